@@ -1,0 +1,98 @@
+"""The small interface every vectorised task offers, and a Gymnasium adapter over it."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Protocol
+
+import gymnasium as gym
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+class Transition(NamedTuple):
+    """What a vectorised task returns from `step` (n instances).
+
+    Attributes:
+        state: next states [n, S] (for a terminal step: the state at failure).
+        reward: raw rewards [n] (the learner squashes them).
+        terminal: [n] the step ended in a terminal state (failure); no next state is learned.
+        learnable: [n] False where the transition is irrelevant (e.g. the target jumped) and
+            must not be learned (Section 5.1).
+    """
+
+    state: FloatArray
+    reward: FloatArray
+    terminal: BoolArray
+    learnable: BoolArray
+
+
+class VecTask(Protocol):
+    """n independent instances of one task, advanced together as arrays."""
+
+    n: int
+    state_low: tuple[float, ...]
+    state_high: tuple[float, ...]
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+
+    def reset(self, rng: np.random.Generator) -> FloatArray:
+        """Start every instance afresh; returns states [n, S]."""
+        ...
+
+    def observe(self) -> FloatArray:
+        """Current states [n, S]."""
+        ...
+
+    def step(self, action: FloatArray) -> Transition:
+        """Apply actions [n, A] for one control step."""
+        ...
+
+
+class TaskEnv(gym.Env[FloatArray, FloatArray]):
+    """Gymnasium view of one instance of a vectorised task (episodes of `max_steps`)."""
+
+    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
+
+    def __init__(self, task: VecTask, max_steps: int) -> None:
+        if task.n != 1:
+            raise ValueError("TaskEnv wraps a task with n == 1")
+        self.task = task
+        self.max_steps = max_steps
+        # The declared ranges scale the learner's inputs; they are not hard limits, so the
+        # observation space is ten times as wide around the same centre.
+        low, high = np.asarray(task.state_low), np.asarray(task.state_high)
+        mid, half = 0.5 * (high + low), 0.5 * (high - low)
+        self.observation_space = gym.spaces.Box(mid - 10.0 * half, mid + 10.0 * half, dtype=np.float64)
+        self.action_space = gym.spaces.Box(
+            np.asarray(task.action_low), np.asarray(task.action_high), dtype=np.float64
+        )
+        self._steps = 0
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[FloatArray, dict[str, Any]]:
+        """Gymnasium reset."""
+        super().reset(seed=seed)
+        self._steps = 0
+        return self._obs(self.task.reset(self.np_random)), {}
+
+    def step(self, action: FloatArray) -> tuple[FloatArray, float, bool, bool, dict[str, Any]]:
+        """Gymnasium step: (obs, reward, terminated, truncated, info)."""
+        tr = self.task.step(np.asarray(action, dtype=np.float64).reshape(1, -1))
+        self._steps += 1
+        info = {"learnable": bool(tr.learnable[0])}
+        return (
+            self._obs(tr.state),
+            float(tr.reward[0]),
+            bool(tr.terminal[0]),
+            self._steps >= self.max_steps and not bool(tr.terminal[0]),
+            info,
+        )
+
+    def _obs(self, state: FloatArray) -> FloatArray:
+        space = self.observation_space
+        assert isinstance(space, gym.spaces.Box)
+        return np.clip(state[0], space.low, space.high)

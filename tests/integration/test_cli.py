@@ -1,0 +1,150 @@
+"""End-to-end runs of the command-line tools with tiny budgets (real processes)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
+
+BIN = Path(sys.executable).parent
+
+
+def run(args, timeout=300):
+    env = {**os.environ, "COLUMNS": "120"}
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=env)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc
+
+
+def test_bench_boat_writes_json_fields_and_plot(tmp_path):
+    j, p = tmp_path / "boat.json", tmp_path / "boat.png"
+    out = run(
+        [
+            BIN / "wfnn-bench",
+            "boat",
+            "--controllers",
+            "3",
+            "--targets",
+            "2",
+            "--thinks",
+            "5",
+            "--json",
+            j,
+            "--plot",
+            p,
+        ]
+    )
+    assert "median_last10" in out.stdout
+    data = json.loads(j.read_text())
+    assert p.stat().st_size > 10_000
+    for key in ("random_ref", "handcoded_ref", "wall_s", "thinks_per_s", "tests", "step1_random_ref"):
+        assert key in data
+    assert [r["condition"] for r in data["results"]] == ["advantage", "q"]
+    for r in data["results"]:
+        assert r["controllers"] == 3
+        assert len(r["scores"]) == 3 and len(r["scores"][0]) == 2
+        assert all(0 < s < 10 for row in r["scores"] for s in row)
+        assert 0 <= r["frac_acceptable"] <= 1
+        assert r["median_last10"] > 0 and r["thinks_per_s"] > 0
+
+
+def test_bench_boat_refuses_a_bad_mode():
+    proc = subprocess.run(
+        [BIN / "wfnn-bench", "boat", "--mode", "sideways"], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode != 0 and "mode" in (proc.stdout + proc.stderr)
+
+
+def test_bench_cartpole_and_speed(tmp_path):
+    j, p = tmp_path / "cp.json", tmp_path / "cp.png"
+    run(
+        [
+            BIN / "wfnn-bench",
+            "cartpole",
+            "--runs",
+            "2",
+            "--steps",
+            "600",
+            "--thinks",
+            "5",
+            "--json",
+            j,
+            "--plot",
+            p,
+        ]
+    )
+    data = json.loads(j.read_text())
+    assert len(data["attempt_steps"]) == 2 and all(len(a) >= 1 for a in data["attempt_steps"])
+    assert p.exists()
+    j2 = tmp_path / "speed.json"
+    run(
+        [
+            BIN / "wfnn-bench",
+            "speed",
+            "--act-calls",
+            "500",
+            "--thinks",
+            "5000",
+            "--population",
+            "4",
+            "--json",
+            j2,
+        ]
+    )
+    speed = json.loads(j2.read_text())
+    for key in (
+        "act_p50_us",
+        "act_p99_us",
+        "incremental_thinks_per_s",
+        "minibatch_updates_per_s",
+        "population_thinks_per_s",
+    ):
+        assert speed[key] > 0
+
+
+def test_client_runs_learns_and_saves(tmp_path):
+    out = tmp_path / "run"
+    run([BIN / "wfnn-client", "--sim", "positioning", "--episodes", "3", "--rate-hz", "0", "--out", out])
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert len(metrics["scores"]) == 3 and metrics["thinks"] > 0 and metrics["snapshots"] >= 1
+    for name in ("weights.npz", "experiences.npz", "learning_curve.png"):
+        assert (out / name).exists()
+    from wfnn_common.persist import load_experiences, load_weights
+
+    cfg, params, meta = load_weights(out / "weights.npz")
+    assert meta["sim"] == "positioning" and params.population == 1
+    assert load_experiences(out / "experiences.npz", cfg).reward.shape[0] == metrics["experiences"]
+
+
+CLIENT_WITHOUT_TORCH = """
+import sys
+sys.modules["torch"] = None  # any import of torch now fails
+import numpy as np
+from sims.boat import BoatVec
+from wfnn_client.local import ClientConfig, learner_config
+from wfnn_common.architectures import ActLearnThinkMT
+from wfnn_common.learner import WFNN
+task = BoatVec(1)
+learner = WFNN(learner_config(task, ClientConfig()))
+x = task.reset(np.random.default_rng(0))[0]
+with ActLearnThinkMT(learner) as mt:
+    for _ in range(50):
+        u = mt.act(x).action
+        tr = task.step(u[None])
+        mt.learn(x, u, tr.state[0], tr.reward[0])
+        x = tr.state[0]
+assert mt.error is None and learner.thinks[0] > 0, (mt.error, learner.thinks)
+assert "torch" not in [m for m in sys.modules if sys.modules[m] is not None]
+print("ok")
+"""
+
+
+def test_client_acts_and_thinks_without_torch():
+    proc = subprocess.run(
+        [sys.executable, "-c", CLIENT_WITHOUT_TORCH], capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr

@@ -1,0 +1,173 @@
+import numpy as np
+import pytest
+
+from tests.fakes import random_experiences, small_config
+from wfnn_common.config import ExplorationConfig
+from wfnn_common.exploration import Explorer
+from wfnn_common.learner import WFNN, DivergenceMonitor
+from wfnn_common.network import forward, split_wires
+from wfnn_common.persist import PersistError, load_experiences, load_weights, save_experiences, save_weights
+from wfnn_common.replay import ReplayBuffer
+
+
+def test_act_is_the_best_wire_in_physical_units():
+    cfg = small_config(
+        state_low=(0.0, 0.0, 0.0),
+        state_high=(10.0, 10.0, 10.0),
+        action_low=(-2.0, 0.0),
+        action_high=(2.0, 1.0),
+    )
+    for pop in (1, 4):
+        learner = WFNN(cfg, population=pop)
+        s = np.random.default_rng(0).uniform(0, 10, (pop, 3))
+        res = learner.act(s if pop > 1 else s[0], explore=False)
+        x = learner.state_scaler.to_unit(s)
+        wu, wq = split_wires(forward(learner.params, x[:, None])[1][:, 0], cfg.n_wires, cfg.action_dim)
+        best = wq.argmax(axis=1)
+        expected_u = learner.action_scaler.from_unit(wu[np.arange(pop), best])
+        expected_q = wq[np.arange(pop), best]
+        np.testing.assert_allclose(np.reshape(res.action, (pop, 2)), expected_u)
+        np.testing.assert_allclose(np.reshape(res.value, pop), expected_q)
+        assert np.all(res.valid) and not np.any(res.explored)
+
+
+def test_q_value_interpolates_and_peaks_at_the_chosen_action():
+    learner = WFNN(small_config())
+    x = np.array([0.2, -0.4, 0.1])
+    res = learner.act(x, explore=False)
+    q_best = learner.q_value(x, res.action)
+    assert q_best <= res.value + 1e-12 and q_best == pytest.approx(res.value, abs=2e-2)
+    others = np.random.default_rng(0).uniform(-1, 1, (50, 2))
+    assert all(learner.q_value(x, u) <= q_best + 1e-9 for u in others)
+
+
+def test_invalid_states_are_acted_on_but_never_learned():
+    cfg = small_config(valid_margin=0.5)
+    learner = WFNN(cfg)
+    good = np.array([0.1, -0.2, 0.3])
+    assert learner.act(good).valid
+    for bad in (np.array([np.nan, 0.0, 0.0]), np.array([0.0, np.inf, 0.0]), np.array([0.0, 0.0, 2.5])):
+        res = learner.act(bad, explore=False)
+        assert not res.valid and np.all(np.isfinite(res.action))
+        assert not learner.learn(bad, [0, 0], good, -0.1)
+        assert not learner.learn(good, [0, 0], bad, -0.1)
+    assert learner.learn(good, [0, 0], good, -0.1)
+    assert not learner.learn(good, [np.nan, 0], good, -0.1)
+    assert not learner.learn(good, [0, 0], good, np.nan)
+    # A terminal experience needs no valid next state.
+    assert learner.learn(good, [0, 0], np.full(3, np.nan), -1.0, terminal=True)
+    # Irrelevant transitions (valid=False) are not stored and not counted as rejected.
+    assert not learner.learn(good, [0, 0], good, -0.1, valid=False)
+    assert learner.buffer.count[0] == 2
+    assert learner.rejected[0] == 8
+    # The best estimate of a non-finite reading is the last valid value.
+    a_bad = learner.act(np.array([np.nan, -0.2, 0.3]), explore=False).action
+    np.testing.assert_allclose(a_bad, learner.act(np.array([0.1, -0.2, 0.3]), explore=False).action)
+
+
+def test_actions_outside_the_range_are_learned_clipped():
+    learner = WFNN(small_config())
+    learner.learn(np.zeros(3), [5.0, -5.0], np.zeros(3), -0.1)
+    np.testing.assert_allclose(learner.buffer.action[0, 0], [1.0, -1.0])
+
+
+def test_divergence_monitor_needs_a_persistent_run():
+    mon = DivergenceMonitor(2, threshold=0.5, patience=3)
+    seq = [[0.6, 0.6], [0.6, 0.1], [0.6, 0.6], [0.6, 0.6]]
+    fired = [mon.observe(np.array(v)).tolist() for v in seq]
+    assert fired == [[False, False], [False, False], [True, False], [False, False]]
+
+
+def test_divergence_resets_weights_and_keeps_experiences():
+    cfg = small_config(divergence_threshold=-2.0, divergence_patience=5)  # any value counts as "high"
+    learner = WFNN(cfg, population=2)
+    rng = np.random.default_rng(1)
+    exp = random_experiences(rng, 50, 3, 2)
+    learner.buffer.extend(0, exp)
+    before = learner.params.flat.copy()
+    for _ in range(4):
+        learner.act(np.zeros((2, 3)), explore=False)
+    assert learner.resets.sum() == 0
+    res = learner.act(np.zeros((2, 3)), explore=False)
+    assert res.diverged.all() and learner.resets.tolist() == [1, 1]
+    assert not np.allclose(learner.params.flat, before)
+    assert learner.buffer.count[0] == 50
+    learner.think(10)  # learning goes on from the kept experiences
+
+
+def test_exploration_strategies():
+    rng = np.random.default_rng(0)
+    greedy = np.zeros((20000, 2))
+    uniform = Explorer(ExplorationConfig(kind="uniform", p=0.1), 20000, 2, rng)(greedy)
+    changed = np.any(uniform != 0, axis=1)
+    assert 0.09 < changed.mean() < 0.11 and np.abs(uniform).max() <= 1
+    gauss = Explorer(ExplorationConfig(kind="gaussian", sigma=0.1), 20000, 2, rng)(greedy)
+    assert 0.095 < gauss.std() < 0.105
+    smooth = Explorer(ExplorationConfig(kind="smooth", sigma=0.2, tau_steps=20.0), 500, 1, rng)
+    trace = np.array([smooth(np.zeros((500, 1)))[:, 0] for _ in range(300)])
+    steps = np.diff(trace, axis=0)
+    assert steps.std() < 0.5 * trace[100:].std()  # consecutive actions close: smooth
+    assert 0.15 < trace[100:].std() < 0.25
+    assert np.array_equal(Explorer(ExplorationConfig(kind="none"), 3, 2, rng)(greedy[:3]), greedy[:3])
+
+
+def test_replay_buffer_is_a_bounded_ring_per_learner():
+    buf = ReplayBuffer(2, 5, 1, 1)
+    rng = np.random.default_rng(0)
+    exp = random_experiences(rng, 7, 1, 1)
+    buf.extend(0, exp)
+    assert buf.count.tolist() == [5, 0]
+    np.testing.assert_allclose(buf.contents(0).reward, exp.reward[2:])
+    idx = buf.sample_indices(rng, 100)
+    assert idx[0].max() <= 4 and idx[0].min() >= 0 and np.all(idx[1] == 0)
+    one = random_experiences(rng, 2, 1, 1)
+    buf.add(one, np.array([False, True]))  # one experience per learner; learner 0 skips
+    assert buf.count.tolist() == [5, 1]
+    np.testing.assert_allclose(buf.contents(1).reward, one.reward[1:])
+
+
+def test_weights_and_experiences_roundtrip(tmp_path):
+    cfg = small_config()
+    learner = WFNN(cfg, population=2)
+    save_weights(tmp_path / "w.npz", cfg, learner.params, {"note": "x"})
+    cfg2, params, meta = load_weights(tmp_path / "w.npz")
+    assert cfg2 == cfg and meta == {"note": "x"}
+    np.testing.assert_array_equal(params.flat, learner.params.flat)
+    exp = random_experiences(np.random.default_rng(0), 9, 3, 2)
+    save_experiences(tmp_path / "e.npz", cfg, exp)
+    back = load_experiences(tmp_path / "e.npz", cfg)
+    for a, b in zip(exp, back, strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(PersistError, match="spec"):
+        load_experiences(tmp_path / "e.npz", small_config(n_hidden=9))
+    with pytest.raises(PersistError, match="format"):
+        load_weights(tmp_path / "e.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(PersistError):
+        load_weights(tmp_path / "junk.npz")
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+@pytest.mark.slow
+def test_learns_a_one_step_task_to_the_best_action():
+    """Terminal experiences, reward -(u - 0.5 x)^2: the best wire must move to u = 0.5 x."""
+    cfg = small_config(
+        state_dim=1,
+        action_dim=1,
+        advantage_k=1.0,
+        thinks_per_action=20,
+        squash_reward=False,
+        n_hidden=10,
+        n_wires=9,
+        replay_capacity=5000,
+        seed=1,
+    )
+    learner = WFNN(cfg, population=4)
+    rng = np.random.default_rng(0)
+    for _ in range(3000):
+        x, u = rng.uniform(-1, 1, (4, 1)), rng.uniform(-1, 1, (4, 1))
+        learner.learn(x, u, x, -((u - 0.5 * x) ** 2)[:, 0], True)
+        learner.think()
+    for xv in (-0.8, 0.0, 0.8):
+        a = learner.act(np.full((4, 1), xv), explore=False).action[:, 0]
+        assert np.median(np.abs(a - 0.5 * xv)) < 0.15

@@ -1,0 +1,165 @@
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from sims.boat import BoatConfig, BoatEnv, BoatVec, handcoded_boat
+from sims.cartpole import CartPoleConfig, CartPoleEnv, CartPoleVec
+from sims.positioning import PositioningEnv, PositioningVec, handcoded_positioning
+from wfnn_bench.boat import run_protocol
+
+
+@pytest.mark.parametrize("make", [BoatEnv, CartPoleEnv, PositioningEnv])
+def test_gymnasium_check_env(make):
+    env = make()
+    check_env(env, skip_render_check=True)
+    obs, _ = env.reset(seed=3)
+    assert env.observation_space.contains(obs)
+
+
+def test_boat_one_euler_step_of_eq37_and_reward_eq38():
+    boat = BoatVec(1, BoatConfig(dt=0.5))
+    boat.reset(np.random.default_rng(0))
+    boat.heading[:] = 0.3
+    boat.vel[:] = [[0.4, 0.1]]
+    boat.turn_rate[:] = 0.2
+    boat.prev_thrust[:] = [[0.1, -0.2]]
+    boat.target[:] = [[1.0, 1.0]]
+    a, b = 0.8, -0.6
+    tr = boat.step(np.array([[a, b]]))
+    c, s = np.cos(0.3), np.sin(0.3)
+    pos = 0.5 * np.array([c * 0.4 - s * 0.1, s * 0.4 + c * 0.1])
+    np.testing.assert_allclose(boat.pos[0], pos)
+    assert boat.heading[0] == pytest.approx(0.3 + 0.5 * 0.2)
+    assert boat.turn_rate[0] == pytest.approx(0.2 + 0.5 * (0.1 * (a - b) - 0.15 * 0.2))
+    np.testing.assert_allclose(
+        boat.vel[0], [0.4 + 0.5 * (0.1 * (a + b) - 0.15 * 0.4), 0.1 + 0.5 * (-0.15 * 0.1)]
+    )
+    d = np.hypot(*(np.array([1.0, 1.0]) - pos))
+    expected = -0.5 * d - 0.5 * (a * a + b * b) - 2 * ((a - 0.1) ** 2 + (b + 0.2) ** 2)
+    assert tr.reward[0] == pytest.approx(expected)
+    np.testing.assert_allclose(tr.state[0, 5:], [a, b])
+
+
+def test_boat_relative_target_is_in_the_boat_frame():
+    boat = BoatVec(1)
+    boat.pos[:] = [[1.0, 1.0]]
+    boat.heading[:] = np.pi / 2  # facing +y
+    boat.target[:] = [[1.0, 3.0]]  # straight ahead
+    np.testing.assert_allclose(boat.relative_target()[0], [2.0, 0.0], atol=1e-12)
+    boat.target[:] = [[0.0, 1.0]]  # to the left
+    np.testing.assert_allclose(boat.relative_target()[0], [0.0, 1.0], atol=1e-12)
+
+
+def test_boat_new_targets_are_one_unit_away():
+    boat = BoatVec(50)
+    boat.reset(np.random.default_rng(0))
+    np.testing.assert_allclose(boat.distance(), 1.0)
+
+
+def test_handcoded_boat_beats_random_and_zero_on_the_protocol():
+    def score(policy, seed=0):
+        rng = np.random.default_rng(seed)
+        boat = BoatVec(10)
+        boat.reset(rng)
+        return np.median(run_protocol(boat, 3, rng, policy))
+
+    rng = np.random.default_rng(1)
+    hand = score(handcoded_boat)
+    rand = score(lambda x: rng.uniform(-1, 1, (x.shape[0], 2)))
+    zero = score(lambda x: np.zeros((x.shape[0], 2)))
+    assert zero == pytest.approx(1.0)
+    assert hand < 0.4 < rand
+
+
+def test_cartpole_eq43_step_and_failure():
+    cp = CartPoleVec(1)
+    cp.reset(np.random.default_rng(0))
+    cp.state[:] = [[0.1, 0.2, 0.05, -0.1]]
+    tr = cp.step(np.array([[5.0]]))
+    cfg = CartPoleConfig()
+    x, xd, th, thd = 0.1, 0.2, 0.05, -0.1
+    tot = cfg.cart_mass + cfg.pole_mass
+    th_acc = (
+        cfg.g * np.sin(th)
+        + np.cos(th)
+        * (
+            (-5.0 - cfg.pole_mass * cfg.half_length * thd**2 * np.sin(th) + cfg.cart_friction * np.sign(xd))
+            / tot
+        )
+        - cfg.pole_friction * thd / (cfg.pole_mass * cfg.half_length)
+    ) / (cfg.half_length * (4 / 3 - cfg.pole_mass * np.cos(th) ** 2 / tot))
+    x_acc = (
+        5.0
+        + cfg.pole_mass * cfg.half_length * (thd**2 * np.sin(th) - th_acc * np.cos(th))
+        - cfg.cart_friction * np.sign(xd)
+    ) / tot
+    np.testing.assert_allclose(
+        tr.state[0], [x + 0.02 * xd, xd + 0.02 * x_acc, th + 0.02 * thd, thd + 0.02 * th_acc]
+    )
+    assert not tr.terminal[0] and tr.reward[0] == 0.0
+    cp.state[:] = [[0.0, 0.0, np.deg2rad(11.99), 5.0]]
+    tr = cp.step(np.array([[0.0]]))
+    assert tr.terminal[0] and tr.reward[0] == -1.0
+    assert cp.last_attempt[0] == 2
+    np.testing.assert_allclose(cp.observe()[0], 0.0)  # restarted
+    cp.state[:] = [[2.39, 1.0, 0.0, 0.0]]
+    assert cp.step(np.array([[10.0]])).terminal[0]
+
+
+def test_cartpole_force_is_clipped_and_uncontrolled_pole_falls():
+    cp = CartPoleVec(2)
+    cp.reset(np.random.default_rng(0))
+    cp.state[:, 2] = 0.01
+    steps = 0
+    while not cp.step(np.array([[0.0], [0.0]])).terminal.all() and steps < 500:
+        steps += 1
+    assert steps < 200
+    a, b = CartPoleVec(1), CartPoleVec(1)
+    a.reset(np.random.default_rng(0)), b.reset(np.random.default_rng(0))
+    np.testing.assert_allclose(a.step(np.array([[100.0]])).state, b.step(np.array([[10.0]])).state)
+
+
+def test_positioning_dynamics_and_irrelevant_jumps():
+    task = PositioningVec(1000)
+    task.reset(np.random.default_rng(0))
+    p0 = task.position.copy()
+    tr = task.step(np.full((1000, 1), 0.5))
+    np.testing.assert_allclose(task.position, p0 + 0.2 * 0.5)
+    np.testing.assert_allclose(tr.state[:, 1], 0.1)
+    jumped = ~tr.learnable
+    assert 5 < jumped.sum() < 40  # about 2% of the systems jumped
+    np.testing.assert_allclose(tr.state[~jumped, 0], task.target[~jumped] - task.position[~jumped])
+
+
+def test_handcoded_positioning_reaches_the_target():
+    task = PositioningVec(5)
+    x = task.reset(np.random.default_rng(0))
+    errs = []
+    for _ in range(200):
+        tr = task.step(handcoded_positioning(x))
+        errs.append(np.abs(tr.state[:, 0]))
+        x = tr.state
+    assert np.median(errs) < 0.05
+
+
+def test_vectorised_equals_individual_instances():
+    many = BoatVec(3)
+    many.reset(np.random.default_rng(0))
+    singles = []
+    for i in range(3):
+        b = BoatVec(1)
+        b.pos, b.heading, b.vel = (
+            many.pos[i : i + 1].copy(),
+            many.heading[i : i + 1].copy(),
+            many.vel[i : i + 1].copy(),
+        )
+        b.turn_rate, b.prev_thrust, b.target = (
+            many.turn_rate[i : i + 1].copy(),
+            many.prev_thrust[i : i + 1].copy(),
+            many.target[i : i + 1].copy(),
+        )
+        singles.append(b)
+    u = np.random.default_rng(1).uniform(-1, 1, (3, 2))
+    tr = many.step(u)
+    for i, b in enumerate(singles):
+        np.testing.assert_allclose(b.step(u[i : i + 1]).state[0], tr.state[i])

@@ -1,0 +1,235 @@
+"""Boat navigation, the Section 4.2 protocol: Q-learning vs advantage learning (Fig 4.2).
+
+Each controller learns from scratch while it is scored: 40 targets in turn, each placed one
+unit from the boat in a random direction, 200 actions per target, score = mean distance to the
+target over those 200 actions. A population of controllers runs as arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from sims.base import Transition
+from sims.boat import BoatConfig, BoatVec, handcoded_boat
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+
+log = logging.getLogger(__name__)
+FloatArray = NDArray[np.float64]
+
+CONDITIONS = {"advantage": 0.2, "q": 1.0}
+"""Benchmark condition -> advantage_k (k = 1 is Q-learning)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class BoatBenchConfig:
+    """Options of `wfnn-bench boat`."""
+
+    controllers: int = 20
+    """Independently learning controllers per condition."""
+    mode: Literal["advantage", "q", "both"] = "both"
+    targets: int = 40
+    steps_per_target: int = 200
+    thinks: int = 200
+    """Experience replays per action."""
+    dt: float = 0.1
+    """Boat time step per action (see sims.boat)."""
+    greedy_targets: int = 10
+    """Fresh targets scored after learning with the greedy policy and learning off."""
+    acceptable: float = 0.5
+    """A controller is acceptable when its median over the last 10 targets is below this."""
+    seed: int = 0
+
+
+def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> LearnerConfig:
+    """The thesis' defaults for the boat (uniform exploration 10%).
+
+    One controller's buffer holds every experience of its run (the thesis erased it between
+    controllers), and there is no divergence monitor (Chapter 4 had none; it arrived with the
+    active head, Section 7.6.2).
+    """
+    return LearnerConfig(
+        state_low=BoatVec.state_low,
+        state_high=BoatVec.state_high,
+        action_low=BoatVec.action_low,
+        action_high=BoatVec.action_high,
+        advantage_k=advantage_k,
+        thinks_per_action=bench.thinks,
+        replay_capacity=bench.targets * bench.steps_per_target,
+        divergence_patience=0,
+        seed=seed,
+    )
+
+
+def run_protocol(
+    boat: BoatVec,
+    targets: int,
+    rng: np.random.Generator,
+    choose: Callable[[FloatArray], FloatArray],
+    after_step: Callable[[FloatArray, FloatArray, Transition], None] | None = None,
+    progress: Progress = no_progress,
+) -> FloatArray:
+    """Score `boat.n` controllers on `targets` successive targets -> scores [n, targets].
+
+    `choose(states [n, 7]) -> thrusts [n, 2]`; `after_step(x, u, transition)` is where a
+    learner records and thinks. The boat keeps its motion from one target to the next; the
+    target jump itself is never part of an experience.
+    """
+    steps = boat.config.steps_per_target
+    scores = np.zeros((boat.n, targets))
+    for t in range(targets):
+        x = boat.new_targets(rng)
+        total = np.zeros(boat.n)
+        for _ in range(steps):
+            u = choose(x)
+            tr = boat.step(u)
+            if after_step is not None:
+                after_step(x, u, tr)
+            total += boat.distance()
+            x = tr.state
+        scores[:, t] = total / steps
+        progress(1)
+    return scores
+
+
+def reference_scores(n: int, targets: int, boat_config: BoatConfig, seed: int) -> dict[str, FloatArray]:
+    """Scores of uniform random thrusting and of the hand-coded controller, [n, targets]."""
+    out: dict[str, FloatArray] = {}
+    rng = np.random.default_rng(seed)
+    policies: dict[str, Callable[[FloatArray], FloatArray]] = {
+        "random": lambda x: rng.uniform(-1.0, 1.0, size=(x.shape[0], 2)),
+        "handcoded": handcoded_boat,
+    }
+    for name, policy in policies.items():
+        boat = BoatVec(n, boat_config)
+        boat.reset(rng)
+        out[name] = run_protocol(boat, targets, rng, policy)
+    return out
+
+
+def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = no_progress) -> dict[str, Any]:
+    """Train and score `bench.controllers` learners of one condition."""
+    k = CONDITIONS[condition]
+    seed = bench.seed * 1000 + (1 if condition == "advantage" else 2)
+    learner = WFNN(learner_config(bench, k, seed), population=bench.controllers)
+    boat = BoatVec(bench.controllers, BoatConfig(dt=bench.dt, steps_per_target=bench.steps_per_target))
+    rng = np.random.default_rng(seed)
+    boat.reset(rng)
+    think_s = [0.0]
+
+    def choose(x: FloatArray) -> FloatArray:
+        return learner.act(x).action
+
+    def after_step(x: FloatArray, u: FloatArray, tr: Transition) -> None:
+        learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+        t0 = time.perf_counter()
+        learner.think()
+        think_s[0] += time.perf_counter() - t0
+
+    start = time.perf_counter()
+    scores = run_protocol(boat, bench.targets, rng, choose, after_step, progress)
+    wall = time.perf_counter() - start
+    # Greedy evaluation on fresh targets: no exploration, no learning.
+    frozen = learner.snapshot()
+    greedy = run_protocol(
+        boat, bench.greedy_targets, rng, lambda x: learner.act(x, explore=False, params=frozen).action
+    )
+    last = scores[:, -min(10, bench.targets) :]
+    per_controller = np.median(last, axis=1)
+    thinks = int(learner.thinks.sum())
+    return {
+        "condition": condition,
+        "advantage_k": k,
+        "controllers": bench.controllers,
+        "scores": scores,
+        "median_per_target": np.median(scores, axis=0),
+        "controller_median_last10": per_controller,
+        "median_last10": float(np.median(per_controller)),
+        "frac_acceptable": float(np.mean(per_controller < bench.acceptable)),
+        "greedy_scores": greedy,
+        "greedy_median": float(np.median(greedy)),
+        "divergence_resets": int(learner.resets.sum()),
+        "thinks": thinks,
+        "wall_s": wall,
+        "thinks_per_s": thinks / think_s[0] if think_s[0] > 0 else float("nan"),
+    }
+
+
+def run(bench: BoatBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """The whole benchmark -> a JSON-ready dict (see the README for its fields)."""
+    start = time.perf_counter()
+    conditions = ["advantage", "q"] if bench.mode == "both" else [bench.mode]
+    boat_config = BoatConfig(dt=bench.dt, steps_per_target=bench.steps_per_target)
+    refs = reference_scores(max(bench.controllers, 20), bench.targets, boat_config, bench.seed + 7)
+    step1 = reference_scores(20, bench.targets, replace(boat_config, dt=1.0), bench.seed + 8)
+    random_ref = float(np.median(refs["random"]))
+    handcoded_ref = float(np.median(refs["handcoded"]))
+    results = []
+    for condition in conditions:
+        res = run_condition(bench, condition, progress)
+        res["random_ref"] = random_ref
+        res["handcoded_ref"] = handcoded_ref
+        results.append(res)
+        log.info(
+            "%s: median last-10 %.3f, acceptable %.0f%%, greedy %.3f, %.0f thinks/s",
+            condition, res["median_last10"], 100 * res["frac_acceptable"], res["greedy_median"],
+            res["thinks_per_s"],
+        )  # fmt: skip
+    out: dict[str, Any] = {
+        "benchmark": "boat",
+        "config": bench.__dict__,
+        "results": results,
+        "random_ref": random_ref,
+        "handcoded_ref": handcoded_ref,
+        "step1_random_ref": float(np.median(step1["random"])),
+        "step1_handcoded_ref": float(np.median(step1["handcoded"])),
+        "machine": machine_info(),
+    }
+    if len(results) == 2:
+        adv, q = (r["controller_median_last10"] for r in results)
+        out["tests"] = {
+            "ranksum_p": float(stats.ranksums(adv, q).pvalue),
+            "ranksum_p_advantage_better": float(stats.ranksums(adv, q, alternative="less").pvalue),
+            "ks_p": float(stats.ks_2samp(adv, q).pvalue),
+        }
+    out["wall_s"] = time.perf_counter() - start
+    out["thinks_per_s"] = float(np.mean([r["thinks_per_s"] for r in results]))
+    return out
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Fig 4.2: a box-and-whisker plot per target for each condition, outliers clipped at 2."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = result["results"]
+    fig, axes = plt.subplots(len(results), 1, figsize=(12, 3.6 * len(results)), squeeze=False)
+    for ax, res in zip(axes[:, 0], results, strict=True):
+        scores = np.minimum(np.asarray(res["scores"], dtype=float), 2.0)
+        ax.boxplot(scores, notch=True, sym="+", widths=0.6)
+        ax.axhline(result["random_ref"], color="tab:red", ls="--", lw=1, label="random")
+        ax.axhline(result["handcoded_ref"], color="tab:green", ls="--", lw=1, label="hand-coded")
+        ax.set_ylim(0, 2.05)
+        ax.set_ylabel("mean distance to target")
+        ax.set_title(
+            f"{res['condition']} (k={res['advantage_k']}): {res['controllers']} controllers, "
+            f"median of last 10 = {res['median_last10']:.3f}, acceptable {100 * res['frac_acceptable']:.0f}%"
+        )
+        ax.legend(loc="upper right")
+    axes[-1, 0].set_xlabel("target number")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,181 @@
+"""`wfnn-bench`: one subcommand per benchmark; each prints a table and writes JSON/PNG."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from wfnn_bench import boat as boat_bench
+from wfnn_bench import cartpole as cartpole_bench
+from wfnn_bench import speed as speed_bench
+from wfnn_bench.common import write_json
+
+app = typer.Typer(
+    help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
+)
+console = Console()
+
+JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the full result as JSON here.")]
+PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write the figure as PNG here.")]
+
+
+def _logging(verbose: bool) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(message)s",
+        handlers=[RichHandler(console=console, show_path=False)],
+    )
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
+    )  # fmt: skip
+
+
+def _table(title: str, rows: list[tuple[str, Any]]) -> None:
+    table = Table(title=title)
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    for name, value in rows:
+        table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value))
+    console.print(table)
+
+
+@app.command()
+def boat(
+    controllers: Annotated[int, typer.Option(min=1, help="Controllers per condition.")] = 20,
+    mode: Annotated[str, typer.Option(help="advantage, q or both.")] = "both",
+    targets: Annotated[int, typer.Option(min=1)] = 40,
+    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
+    dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """Section 4.2 protocol, Q-learning vs advantage learning (Fig 4.2)."""
+    _logging(verbose)
+    if mode not in ("advantage", "q", "both"):
+        raise typer.BadParameter(f"mode must be advantage, q or both, got {mode!r}", param_hint="--mode")
+    cfg = boat_bench.BoatBenchConfig(
+        controllers=controllers,
+        mode=mode,  # type: ignore[arg-type]  # checked just above
+        targets=targets,
+        thinks=thinks,
+        dt=dt,
+        seed=seed,
+    )
+    n_cond = 2 if mode == "both" else 1
+    with _progress() as bar:
+        task = bar.add_task(f"boat ({controllers} controllers x {n_cond})", total=targets * n_cond)
+        result = boat_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = [
+        ("random_ref", result["random_ref"]),
+        ("handcoded_ref", result["handcoded_ref"]),
+        ("step1_random_ref (dt=1)", result["step1_random_ref"]),
+        ("step1_handcoded_ref (dt=1)", result["step1_handcoded_ref"]),
+    ]
+    for res in result["results"]:
+        c = res["condition"]
+        rows += [
+            (f"{c}: median_last10", res["median_last10"]),
+            (f"{c}: frac_acceptable", res["frac_acceptable"]),
+            (f"{c}: greedy_median", res["greedy_median"]),
+            (f"{c}: divergence_resets", res["divergence_resets"]),
+            (f"{c}: thinks_per_s", res["thinks_per_s"]),
+        ]
+    for name, p in result.get("tests", {}).items():
+        rows.append((name, p))
+    rows.append(("wall_s", result["wall_s"]))
+    _table("boat (Section 4.2 protocol)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        boat_bench.plot(result, plot_path)
+
+
+@app.command()
+def cartpole(
+    runs: Annotated[int, typer.Option(min=1)] = 8,
+    steps: Annotated[int, typer.Option(min=1, help="Control steps per run.")] = 30_000,
+    thinks: Annotated[int, typer.Option(min=0)] = 100,
+    max_attempt_steps: Annotated[int, typer.Option(min=1)] = 10_000,
+    gamma: float = 0.8,
+    advantage_k: float = 0.2,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """Cart-pole, pure-delayed reward: steps balanced per attempt (Fig 4.12)."""
+    _logging(verbose)
+    cfg = cartpole_bench.CartPoleBenchConfig(
+        runs=runs, steps=steps, thinks=thinks, max_attempt_steps=max_attempt_steps,
+        gamma=gamma, advantage_k=advantage_k, seed=seed,
+    )  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("cart-pole", total=steps)
+        result = cartpole_bench.run(cfg, lambda k: bar.advance(task, k))
+    med = np.asarray(result["median_per_attempt"], dtype=float)
+    rows: list[tuple[str, Any]] = [
+        ("attempts per run (min)", min(result["attempts_per_run"])),
+        ("best attempt per run (median)", float(np.median(result["best_attempt"]))),
+        ("median steps, first 10 attempts", float(np.median(med[:10])) if med.size else float("nan")),
+        ("median steps, last 10 attempts", float(np.median(med[-10:])) if med.size else float("nan")),
+        ("thinks_per_s", result["thinks_per_s"]),
+        ("wall_s", result["wall_s"]),
+    ]
+    _table("cart-pole (Section 4.5)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        cartpole_bench.plot(result, plot_path)
+
+
+@app.command()
+def speed(
+    act_calls: Annotated[int, typer.Option(min=100)] = 20_000,
+    thinks: Annotated[int, typer.Option(min=1000)] = 200_000,
+    population: Annotated[int, typer.Option(min=1)] = 64,
+    json_path: JsonOpt = None,
+    verbose: bool = False,
+) -> None:
+    """Act latency, incremental / minibatch / population think rates (16-32-45 network)."""
+    _logging(verbose)
+    cfg = speed_bench.SpeedBenchConfig(act_calls=act_calls, thinks=thinks, population=population)
+    with _progress() as bar:
+        task = bar.add_task("speed", total=speed_bench.steps(cfg))
+        result = speed_bench.run(cfg, lambda k: bar.advance(task, k))
+    keys = [
+        "act_p50_us", "act_p99_us", "act_p50_us_gc_paused", "act_p99_us_gc_paused",
+        "incremental_thinks_per_s", "minibatch_updates_per_s", "population_thinks_per_s",
+    ]  # fmt: skip
+    rows: list[tuple[str, Any]] = [(k, result[k]) for k in keys]
+    rows += [
+        (f"minibatch_updates_per_s (batch {b})", v)
+        for b, v in result["minibatch_updates_per_s_by_batch"].items()
+    ]
+    _table("speed (16 states, 4 actions, 9 wires, 32 hidden)", rows)
+    if json_path:
+        write_json(json_path, result)
+
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,131 @@
+"""Speed of act and think for a 16-state, 4-action, 9-wire, 32-hidden WFNN.
+
+- act latency: one greedy `act` on numpy (the robot's hot path), p50/p99 over many calls.
+- incremental thinks/s: one learner, one experience per update, one core.
+- minibatch experience-updates/s: experiences processed per second in minibatch mode.
+- population thinks/s: a population of learners thinking incrementally in parallel.
+"""
+
+from __future__ import annotations
+
+import gc
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+from wfnn_common.replay import Experiences
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpeedBenchConfig:
+    """Options of `wfnn-bench speed`."""
+
+    state_dim: int = 16
+    action_dim: int = 4
+    n_wires: int = 9
+    n_hidden: int = 32
+    act_calls: int = 20_000
+    thinks: int = 200_000
+    batch_sizes: tuple[int, ...] = (256, 1024, 4096)
+    minibatch_updates: int = 40
+    population: int = 64
+    population_thinks: int = 2_000
+    buffer: int = 20_000
+    seed: int = 0
+
+
+def _config(bench: SpeedBenchConfig, **kw: Any) -> LearnerConfig:
+    return LearnerConfig(
+        state_low=(-1.0,) * bench.state_dim,
+        state_high=(1.0,) * bench.state_dim,
+        action_low=(-1.0,) * bench.action_dim,
+        action_high=(1.0,) * bench.action_dim,
+        n_wires=bench.n_wires,
+        n_hidden=bench.n_hidden,
+        replay_capacity=bench.buffer,
+        seed=bench.seed,
+        **kw,
+    )
+
+
+def _fill(learner: WFNN, n: int, rng: np.random.Generator) -> None:
+    s, a = learner.config.state_dim, learner.config.action_dim
+    for i in range(learner.population):
+        learner.buffer.extend(
+            i,
+            Experiences(
+                rng.uniform(-1, 1, (n, s)), rng.uniform(-1, 1, (n, a)), rng.uniform(-1, 1, (n, s)),
+                -rng.random(n), rng.random(n) < 0.02,
+            ),
+        )  # fmt: skip
+
+
+def run(bench: SpeedBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """All speed figures -> JSON-ready dict."""
+    rng = np.random.default_rng(bench.seed)
+    out: dict[str, Any] = {"benchmark": "speed", "config": bench.__dict__, "machine": machine_info()}
+
+    # act latency (greedy, single learner, numpy only).
+    learner = WFNN(_config(bench))
+    states = rng.uniform(-1, 1, (bench.act_calls, bench.state_dim))
+    for s in states[:500]:
+        learner.act(s, explore=False)
+    for key, pause_gc in (("", False), ("_gc_paused", True)):
+        lat = np.empty(bench.act_calls)
+        gc_was = gc.isenabled()
+        if pause_gc:  # a control loop may run with the collector paused (gc.freeze/disable)
+            gc.disable()
+        try:
+            for i, s in enumerate(states):
+                t0 = time.perf_counter()
+                learner.act(s, explore=False)
+                lat[i] = time.perf_counter() - t0
+        finally:
+            if gc_was:
+                gc.enable()
+        out[f"act_p50_us{key}"] = float(np.percentile(lat, 50) * 1e6)
+        out[f"act_p99_us{key}"] = float(np.percentile(lat, 99) * 1e6)
+        out[f"act_max_us{key}"] = float(lat.max() * 1e6)
+    progress(1)
+
+    # incremental thinks/s, one learner (one core).
+    _fill(learner, bench.buffer, rng)
+    learner.think(1000)  # compile / load the kernel
+    t0 = time.perf_counter()
+    learner.think(bench.thinks)
+    out["incremental_thinks_per_s"] = bench.thinks / (time.perf_counter() - t0)
+    progress(1)
+
+    # minibatch experience-updates/s.
+    per_batch = {}
+    for b in bench.batch_sizes:
+        mb = WFNN(_config(bench, update="minibatch", batch_size=b))
+        _fill(mb, bench.buffer, rng)
+        mb.think(2)
+        t0 = time.perf_counter()
+        mb.think(bench.minibatch_updates)
+        per_batch[str(b)] = bench.minibatch_updates * b / (time.perf_counter() - t0)
+        progress(1)
+    out["minibatch_updates_per_s_by_batch"] = per_batch
+    out["minibatch_updates_per_s"] = max(per_batch.values())
+
+    # population: many learners thinking incrementally at once.
+    pop = WFNN(_config(bench), population=bench.population)
+    _fill(pop, 2000, rng)
+    pop.think(10)
+    t0 = time.perf_counter()
+    pop.think(bench.population_thinks)
+    out["population"] = bench.population
+    out["population_thinks_per_s"] = bench.population * bench.population_thinks / (time.perf_counter() - t0)
+    progress(1)
+    return out
+
+
+def steps(bench: SpeedBenchConfig) -> int:
+    """Progress units of `run`."""
+    return 3 + len(bench.batch_sizes)

@@ -1,0 +1,221 @@
+"""Compiled incremental think: many one-experience WFNN updates per call, per learner.
+
+The per-experience update is dominated by interpreter overhead in numpy (tens of
+microseconds for a few thousand flops), so the loop over thinks runs compiled. Learners of a
+population are independent and run in parallel; the GIL is released, so a background think
+thread never stalls `act`. The arithmetic is `wfnn_common.update.wfnn_update` with B = 1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
+def _tanh(a):  # type: ignore[no-untyped-def]
+    # libm's tanh costs about twice exp here and tanh is most of a small network's forward
+    # pass. Both branches are accurate to a few ulp; expm1 avoids cancellation near zero.
+    b = abs(a)
+    if b < 0.125:
+        e = math.expm1(-2.0 * b)
+        t = -e / (2.0 + e)
+    else:
+        e = math.exp(-2.0 * b)
+        t = (1.0 - e) / (1.0 + e)
+    return t if a >= 0.0 else -t
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _forward(W1, b1, W2, b2, x, hidden, out):  # type: ignore[no-untyped-def]
+    n_hidden, n_in = W1.shape
+    for j in range(n_hidden):
+        a = b1[j]
+        for i in range(n_in):
+            a += W1[j, i] * x[i]
+        hidden[j] = _tanh(a)
+    for o in range(W2.shape[0]):
+        a = b2[o]
+        for j in range(n_hidden):
+            a += W2[o, j] * hidden[j]
+        out[o] = _tanh(a)
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _think_learner(  # type: ignore[no-untyped-def]
+    W1,
+    b1,
+    W2,
+    b2,
+    lr1,
+    lr2,
+    xs,
+    us,
+    xns,
+    rs,
+    terms,
+    idx,
+    n_wires,
+    gamma,
+    k,
+    c,
+    eps,
+    exact,
+    squash,
+):
+    n_hidden = W1.shape[0]
+    n_out = W2.shape[0]
+    action_dim = us.shape[1]
+    n_act = n_wires * action_dim
+    hidden = np.empty(n_hidden)
+    out = np.empty(n_out)
+    hidden_next = np.empty(n_hidden)
+    out_next = np.empty(n_out)
+    w = np.empty(n_wires)
+    err = np.empty(n_out)
+    delta_hidden = np.empty(n_hidden)
+    q_sum = 0.0
+    td_sum = 0.0
+    for n in range(idx.shape[0]):
+        t = idx[n]
+        x = xs[t]
+        u = us[t]
+        r = rs[t]
+        if squash:  # Eq 3.6
+            r = (1.0 - gamma) * math.tanh(r)
+        # Part 2: best wire value of the next state.
+        value_next = 0.0
+        if not terms[t]:
+            _forward(W1, b1, W2, b2, xns[t], hidden_next, out_next)
+            value_next = out_next[n_act]
+            for i in range(1, n_wires):
+                value_next = max(value_next, out_next[n_act + i])
+        # Part 3a: wires for the current state and Q(x, u) by wire fitting.
+        _forward(W1, b1, W2, b2, x, hidden, out)
+        top = 0
+        q_max = out[n_act]
+        for i in range(1, n_wires):
+            if out[n_act + i] > q_max:
+                q_max = out[n_act + i]
+                top = i
+        norm = 0.0
+        wsum = 0.0
+        for i in range(n_wires):
+            d = c * (q_max - out[n_act + i]) + eps
+            for j in range(action_dim):
+                diff = out[i * action_dim + j] - u[j]
+                d += diff * diff
+            w[i] = 1.0 / d
+            norm += w[i]
+            wsum += w[i] * out[n_act + i]
+        q = wsum / norm
+        # Part 2 (advantage learning, Eq 4.1) and 3b: change in Q and in every wire.
+        target = q_max + (r + gamma * value_next - q_max) / k
+        delta_q = target - q
+        correction = 0.0
+        for i in range(n_wires):
+            rho = w[i] / norm
+            spread = out[n_act + i] - q
+            rho_w = rho * w[i]
+            err[n_act + i] = (rho + c * rho_w * spread) * delta_q
+            g = -2.0 * rho_w * spread * delta_q
+            for j in range(action_dim):
+                err[i * action_dim + j] = g * (out[i * action_dim + j] - u[j])
+            correction += rho_w * spread
+        if exact:
+            err[n_act + top] -= c * correction * delta_q
+        # Part 3c: incremental backpropagation toward the new wires.
+        for o in range(n_out):
+            err[o] *= 1.0 - out[o] * out[o]
+        for j in range(n_hidden):
+            a = 0.0
+            for o in range(n_out):
+                a += W2[o, j] * err[o]
+            delta_hidden[j] = a * (1.0 - hidden[j] * hidden[j])
+        for o in range(n_out):
+            g = lr2 * err[o]
+            for j in range(n_hidden):
+                W2[o, j] += g * hidden[j]
+            b2[o] += g
+        for j in range(n_hidden):
+            g = lr1 * delta_hidden[j]
+            for i in range(x.shape[0]):
+                W1[j, i] += g * x[i]
+            b1[j] += g
+        q_sum += q
+        td_sum += abs(delta_q)
+    return q_sum, td_sum
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def think_incremental(  # type: ignore[no-untyped-def]
+    W1,
+    b1,
+    W2,
+    b2,
+    lr1,
+    lr2,
+    xs,
+    us,
+    xns,
+    rs,
+    terms,
+    idx,
+    active,
+    n_wires,
+    gamma,
+    k,
+    c,
+    eps,
+    exact,
+    squash,
+):
+    """Replay T experiences per learner, one update each, in order; weights change in place.
+
+    Args:
+        W1 [P,H,S], b1 [P,H], W2 [P,O,H], b2 [P,O]: the population's weights.
+        lr1, lr2: per-layer learning rates.
+        xs, xns [P,N,S]; us [P,N,A]; rs [P,N] raw rewards; terms [P,N] bool: experiences
+            (a replay buffer's arrays, read in place: no gather copy).
+        idx [P,T]: which experiences each learner replays, in order.
+        active [P] bool: learners to update.
+        n_wires, gamma, k, c, eps, exact, squash: as in `LearnerConfig` (exact, squash: bool).
+
+    Returns:
+        (q_mean [P], td_abs_mean [P]) over the replayed experiences.
+    """
+    n_pop = W1.shape[0]
+    n_thinks = idx.shape[1]
+    q_mean = np.zeros(n_pop)
+    td_mean = np.zeros(n_pop)
+    for p in prange(n_pop):
+        if active[p] and n_thinks > 0:
+            q_sum, td_sum = _think_learner(
+                W1[p],
+                b1[p],
+                W2[p],
+                b2[p],
+                lr1,
+                lr2,
+                xs[p],
+                us[p],
+                xns[p],
+                rs[p],
+                terms[p],
+                idx[p],
+                n_wires,
+                gamma,
+                k,
+                c,
+                eps,
+                exact,
+                squash,
+            )
+            q_mean[p] = q_sum / n_thinks
+            td_mean[p] = td_sum / n_thinks
+    return q_mean, td_mean

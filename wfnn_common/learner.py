@@ -1,0 +1,365 @@
+"""The WFNN learner with the act-learn-think interface, for one learner or a population.
+
+    learner = WFNN(config)
+    x = robot.state()
+    while running:
+        u = learner.act(x).action             # Part 1: best wire (+ exploration), real time
+        x_next, r = robot.step(u)
+        learner.learn(x, u, x_next, r)         # Part 1i: store the experience
+        learner.think()                        # Parts 2-3: thinks_per_action replays
+        x = x_next
+
+Every method accepts one learner's arrays ([S], [A], scalars) or a population's ([P, S], ...),
+and answers in the same form. States and actions are in physical units; the learner scales
+them by the declared ranges.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wfnn_common.config import LearnerConfig
+from wfnn_common.exploration import Explorer
+from wfnn_common.kernels import think_incremental
+from wfnn_common.network import Params, Scaler, forward, init_params, layer_rates, reinit, split_wires
+from wfnn_common.replay import Experiences, ReplayBuffer
+from wfnn_common.update import UpdateStats, squash_reward, wfnn_update
+from wfnn_common.wirefit import wirefit_q
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+class ActResult(NamedTuple):
+    """What `act` chose.
+
+    Attributes:
+        action: executed action, physical units, [A] or [P, A].
+        value: value of the best wire (Q of the greedy action): a numpy scalar or [P].
+        valid: whether the state passed the sanity limits, [] or [P].
+        explored: whether exploration changed the action, [] or [P].
+        diverged: whether the divergence monitor fired on this action, [] or [P].
+    """
+
+    action: FloatArray
+    value: Any
+    valid: Any
+    explored: Any
+    diverged: Any
+
+
+class DivergenceMonitor:
+    """Section 7.6.2: chosen actions' values persistently above a threshold mean divergence.
+
+    The maximum reward is zero, so values should not rise above zero; a run of `patience`
+    consecutive chosen-action values above `threshold` is judged divergence.
+    """
+
+    def __init__(self, population: int, threshold: float, patience: int) -> None:
+        self.threshold = threshold
+        self.patience = patience
+        self.run = np.zeros(population, dtype=np.int64)
+
+    def observe(self, value: FloatArray, mask: BoolArray | None = None) -> BoolArray:
+        """Record the chosen actions' values [P]; returns the learners judged diverged now."""
+        high = value > self.threshold
+        if mask is not None:
+            high &= mask
+        self.run = (self.run + 1) * high
+        diverged = self.run >= self.patience if self.patience > 0 else np.zeros_like(high)
+        if diverged.any():
+            self.run[diverged] = 0
+        return diverged
+
+
+def greedy_wires(
+    params: Params, x: FloatArray, n_wires: int, action_dim: int
+) -> tuple[FloatArray, FloatArray]:
+    """Best wire for each learner's scaled state x [P, S] -> (action [P, A], value [P])."""
+    n_act = n_wires * action_dim
+    if params.population == 1:  # the robot's case: plain matrix-vector products are fastest
+        hidden = np.tanh(params.W1[0] @ x[0] + params.b1[0])
+        out = np.tanh(params.W2[0] @ hidden + params.b2[0])
+        best = int(out[n_act:].argmax())
+        return out[None, best * action_dim : (best + 1) * action_dim], out[None, n_act + best]
+    hidden = np.tanh(np.matmul(params.W1, x[:, :, None])[:, :, 0] + params.b1)
+    out = np.tanh(np.matmul(params.W2, hidden[:, :, None])[:, :, 0] + params.b2)
+    wire_u, wire_q = split_wires(out, n_wires, action_dim)
+    best = np.argmax(wire_q, axis=1)
+    rows = np.arange(x.shape[0])
+    return wire_u[rows, best], wire_q[rows, best]
+
+
+class WFNN:
+    """A population of P independent WFNN learners sharing one config (seeds differ)."""
+
+    def __init__(self, config: LearnerConfig, population: int = 1, params: Params | None = None):
+        if population < 1:
+            raise ValueError(f"population must be >= 1, got {population}")
+        self.config = config
+        self.population = population
+        seeds = np.random.SeedSequence(config.seed).spawn(3)
+        self._weights_rng = np.random.default_rng(seeds[0])
+        self._replay_rng = np.random.default_rng(seeds[1])
+        self.params = params if params is not None else init_params(config, population, self._weights_rng)
+        if self.params.population != population:
+            raise ValueError(f"params hold {self.params.population} networks, expected {population}")
+        self.rates = layer_rates(config)
+        self.state_scaler = Scaler(config.state_low, config.state_high)
+        self.action_scaler = Scaler(config.action_low, config.action_high)
+        self.buffer = ReplayBuffer(population, config.replay_capacity, config.state_dim, config.action_dim)
+        self.explorer = Explorer(
+            config.exploration, population, config.action_dim, np.random.default_rng(seeds[2])
+        )
+        self.monitor = DivergenceMonitor(population, config.divergence_threshold, config.divergence_patience)
+        self._limit = 1.0 + 2.0 * config.valid_margin
+        self._last_valid = np.zeros((population, config.state_dim))
+        self.resets = np.zeros(population, dtype=np.int64)
+        """Divergence resets per learner."""
+        self.rejected = np.zeros(population, dtype=np.int64)
+        """Experiences refused by the sanity limits per learner."""
+        self.thinks = np.zeros(population, dtype=np.int64)
+        """Weight updates performed per learner."""
+        self.last_think = UpdateStats(np.zeros(population), np.zeros(population))
+
+    # ------------------------------------------------------------------ shapes
+    def _rows(self, a: ArrayLike, width: int) -> tuple[FloatArray, bool]:
+        arr = np.asarray(a, dtype=np.float64)
+        single = arr.ndim == 1
+        arr = arr.reshape(1, -1) if single else arr
+        if arr.shape != (self.population, width):
+            raise ValueError(f"expected shape [{width}] or [{self.population}, {width}], got {np.shape(a)}")
+        return arr, single
+
+    def _per_learner(self, a: ArrayLike, dtype: type) -> NDArray[Any]:
+        arr: NDArray[Any] = np.asarray(a, dtype=dtype)
+        if arr.ndim == 0:
+            arr = np.full(self.population, arr, dtype=dtype)
+        if arr.shape != (self.population,):
+            raise ValueError(f"expected a scalar or shape [{self.population}], got {arr.shape}")
+        return arr
+
+    # ------------------------------------------------------------------ sanity
+    def scale_state(self, state: FloatArray) -> tuple[FloatArray, BoolArray]:
+        """Scaled states [P, S] and their validity [P] (finite and within the sanity limits)."""
+        x = self.state_scaler.to_unit(state)
+        valid: BoolArray = np.asarray((np.abs(x) <= self._limit).all(axis=1))
+        return x, valid
+
+    def _best_estimate(self, x: FloatArray, valid: BoolArray) -> FloatArray:
+        """For invalid states: the last valid value in place of non-finite entries, clipped."""
+        if valid.all():
+            self._last_valid = x
+            return x
+        fixed = np.clip(np.where(np.isfinite(x), x, self._last_valid), -self._limit, self._limit)
+        self._last_valid = np.where(valid[:, None], x, self._last_valid)
+        return fixed
+
+    # ------------------------------------------------------------------ act
+    def act(self, state: ArrayLike, explore: bool = True, params: Params | None = None) -> ActResult:
+        """Part 1: the best wire's action for each state, optionally explored.
+
+        Invalid states (non-finite or beyond the sanity limits) are acted on with the best
+        estimate; `learn` refuses them. Divergence is monitored on the greedy value and a
+        diverged learner's weights are reset (experiences kept) unless `params` (a snapshot)
+        was given: then the caller sees `diverged` and decides.
+        """
+        cfg = self.config
+        s = np.asarray(state, dtype=np.float64)
+        single = s.ndim == 1
+        if single and self.population == 1 and s.shape[0] == cfg.state_dim:
+            return self._act_one(s, explore, params or self.params)
+        if s.shape[-1] != cfg.state_dim or s.size != self.population * cfg.state_dim:
+            raise ValueError(
+                f"expected state shape [{cfg.state_dim}] or [{self.population}, {cfg.state_dim}], "
+                f"got {s.shape}"
+            )
+        x = ((s - self.state_scaler.mid) / self.state_scaler.half).reshape(self.population, cfg.state_dim)
+        # One comparison covers both limits: NaN compares False, inf exceeds the limit.
+        valid: BoolArray = np.asarray((np.abs(x) <= self._limit).all(axis=1))
+        x = self._best_estimate(x, valid)
+        greedy, value = greedy_wires(params or self.params, x, cfg.n_wires, cfg.action_dim)
+        if explore:
+            u = self.explorer(greedy)
+            explored = (u != greedy).any(axis=1)
+        else:
+            u, explored = greedy, np.zeros(self.population, dtype=np.bool_)
+        diverged = self.monitor.observe(value, valid)
+        if params is None and diverged.any():
+            self.reset_weights(diverged)
+        action = u * self.action_scaler.half + self.action_scaler.mid
+        if single:
+            return ActResult(action[0], value[0], valid[0], explored[0], diverged[0])
+        return ActResult(action, value, valid, explored, diverged)
+
+    def _act_one(self, s: FloatArray, explore: bool, params: Params) -> ActResult:
+        """`act` for a single learner: the robot's hot path, with as few array calls as possible."""
+        cfg = self.config
+        x = (s - self.state_scaler.mid) / self.state_scaler.half
+        valid = bool(np.abs(x).max() <= self._limit)  # False for NaN and inf
+        if valid:
+            self._last_valid = x[None]
+        else:
+            x = self._best_estimate(x[None], np.zeros(1, dtype=np.bool_))[0]
+        W1, b1, W2, b2 = params.single
+        hidden = W1 @ x
+        hidden += b1
+        out = W2 @ np.tanh(hidden, out=hidden)
+        out += b2
+        np.tanh(out, out=out)
+        n_act = cfg.n_wires * cfg.action_dim
+        best = int(out[n_act:].argmax())
+        value = float(out[n_act + best])
+        u = out[best * cfg.action_dim : (best + 1) * cfg.action_dim]
+        explored = False
+        if explore and cfg.exploration.kind != "none":
+            greedy = u
+            u = self.explorer(greedy[None])[0]
+            explored = bool((u != greedy).any())
+        monitor = self.monitor
+        diverged = False
+        if valid and value > monitor.threshold:
+            monitor.run[0] += 1
+            if 0 < monitor.patience <= monitor.run[0]:
+                monitor.run[0] = 0
+                diverged = True
+                if params is self.params:
+                    self.reset_weights(np.ones(1, dtype=np.bool_))
+        else:
+            monitor.run[0] = 0
+        action = u * self.action_scaler.half + self.action_scaler.mid
+        return ActResult(action, np.float64(value), np.bool_(valid), np.bool_(explored), np.bool_(diverged))
+
+    # ------------------------------------------------------------------ learn
+    def to_experiences(
+        self,
+        state: ArrayLike,
+        action: ArrayLike,
+        next_state: ArrayLike,
+        reward: ArrayLike,
+        terminal: ArrayLike = False,
+        valid: ArrayLike = True,
+    ) -> tuple[Experiences, BoolArray]:
+        """Scale one experience per learner and check it: -> (experiences [P, ...], ok [P])."""
+        s, _ = self._rows(state, self.config.state_dim)
+        a, _ = self._rows(action, self.config.action_dim)
+        sn, _ = self._rows(next_state, self.config.state_dim)
+        r = self._per_learner(reward, np.float64)
+        term = self._per_learner(terminal, np.bool_)
+        ok = self._per_learner(valid, np.bool_).copy()
+        x, x_ok = self.scale_state(s)
+        xn, xn_ok = self.scale_state(sn)
+        u = self.action_scaler.to_unit(a)
+        ok &= x_ok & (xn_ok | term) & np.isfinite(u).all(axis=1) & np.isfinite(r)
+        # Actions are executed clipped, so they are learned clipped.
+        u = np.clip(np.nan_to_num(u), -1.0, 1.0)
+        xn = np.where(term[:, None], 0.0, np.nan_to_num(xn))
+        return Experiences(np.nan_to_num(x), u, xn, r, term), ok
+
+    def learn(
+        self,
+        state: ArrayLike,
+        action: ArrayLike,
+        next_state: ArrayLike,
+        reward: ArrayLike,
+        terminal: ArrayLike = False,
+        valid: ArrayLike = True,
+    ) -> BoolArray:
+        """Part 1i: store the experience (x_t, u_t, x_t+1, r_t) of each learner.
+
+        `valid` False marks an irrelevant or suspect transition (e.g. a target jump) that must
+        not be learned. Returns which learners stored it ([] or [P]).
+        """
+        exp, ok = self.to_experiences(state, action, next_state, reward, terminal, valid)
+        self.buffer.add(exp, ok)
+        self.rejected += ~ok & self._per_learner(valid, np.bool_)
+        return ok[0] if np.ndim(state) == 1 else ok
+
+    # ------------------------------------------------------------------ think
+    def think(self, n: int | None = None) -> UpdateStats:
+        """Parts 2-3: n experience replays per learner (default thinks_per_action).
+
+        Incremental mode: n one-experience updates. Minibatch mode: n updates of batch_size
+        experiences each. Learners with no experiences yet are left unchanged.
+        """
+        cfg = self.config
+        n = cfg.thinks_per_action if n is None else n
+        active = self.buffer.count > 0
+        if n <= 0 or not active.any():
+            return self.last_think
+        if cfg.update == "incremental":
+            idx = self.buffer.sample_indices(self._replay_rng, n)
+            stats = self._think_incremental(self.buffer.arrays(), idx, active, self.params)
+        else:
+            from wfnn_common.torch_update import minibatch_think  # torch only where needed
+
+            idx = self.buffer.sample_indices(self._replay_rng, n * cfg.batch_size)
+            idx = idx.reshape(self.population, n, cfg.batch_size).transpose(1, 0, 2)
+            q, td = minibatch_think(
+                self.params, self.rates, self.buffer.arrays(), idx, active,
+                n_wires=cfg.n_wires, gamma=cfg.gamma, advantage_k=cfg.advantage_k,
+                c=cfg.smoothing_c, eps=cfg.eps, exact=cfg.derivatives == "exact",
+                squash=cfg.squash_reward, dtype=cfg.minibatch_dtype,
+            )  # fmt: skip
+            self.thinks += active * n
+            stats = UpdateStats(q, td)
+        self.last_think = stats
+        return stats
+
+    def _think_incremental(
+        self, exp: Experiences, idx: NDArray[np.int64], active: BoolArray, p: Params
+    ) -> UpdateStats:
+        cfg = self.config
+        q, td = think_incremental(
+            p.W1, p.b1, p.W2, p.b2, self.rates[0], self.rates[1],
+            exp.state, exp.action, exp.next_state, exp.reward, exp.terminal, idx, active,
+            cfg.n_wires, cfg.gamma, cfg.advantage_k, cfg.smoothing_c, cfg.eps,
+            cfg.derivatives == "exact", cfg.squash_reward,
+        )  # fmt: skip
+        self.thinks += active * idx.shape[1]
+        return UpdateStats(q, td)
+
+    def think_on(
+        self, exp: Experiences, active: BoolArray | None = None, params: Params | None = None
+    ) -> UpdateStats:
+        """Learn from given experiences [P, T, ...] (incremental: T updates in order; minibatch: one)."""
+        cfg = self.config
+        p = params or self.params
+        active = np.ones(self.population, dtype=np.bool_) if active is None else active
+        if cfg.update == "incremental":
+            n = exp.reward.shape[1]
+            idx = np.broadcast_to(np.arange(n, dtype=np.int64), (self.population, n))
+            return self._think_incremental(exp, idx, active, p)
+        reward = squash_reward(exp.reward, cfg.gamma) if cfg.squash_reward else exp.reward
+        stats = wfnn_update(
+            p, self.rates, exp.state, exp.action, exp.next_state, reward, exp.terminal,
+            n_wires=cfg.n_wires, gamma=cfg.gamma, advantage_k=cfg.advantage_k,
+            c=cfg.smoothing_c, eps=cfg.eps, derivatives=cfg.derivatives, active=active,
+        )  # fmt: skip
+        self.thinks += active
+        return stats
+
+    # ------------------------------------------------------------------ weights
+    def reset_weights(self, which: BoolArray) -> None:
+        """Fresh small random weights for the learners `which`; their experiences are kept."""
+        idx = np.flatnonzero(which)
+        if idx.size:
+            reinit(self.params, self.config, self._weights_rng, idx)
+            self.resets[idx] += 1
+
+    def snapshot(self) -> Params:
+        """A copy of the current weights (safe to read while thinking continues)."""
+        return self.params.copy()
+
+    def q_value(self, state: ArrayLike, action: ArrayLike) -> FloatArray:
+        """Q(x, u) by wire fitting for one state and action per learner ([] or [P])."""
+        s, single = self._rows(state, self.config.state_dim)
+        a, _ = self._rows(action, self.config.action_dim)
+        x = self.state_scaler.to_unit(s)
+        _, out = forward(self.params, x[:, None, :])
+        wire_u, wire_q = split_wires(out[:, 0], self.config.n_wires, self.config.action_dim)
+        q = wirefit_q(wire_u, wire_q, self.action_scaler.to_unit(a), self.config.smoothing_c, self.config.eps)
+        return q[0] if single else q

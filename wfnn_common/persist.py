@@ -1,0 +1,119 @@
+"""Versioned save/load of learner weights (with their config) and of experience buffers.
+
+Files are `.npz` archives written atomically (temporary file, fsync, rename), read with
+`allow_pickle=False`. Each carries a `format` name and `format_version`; a file of another
+format or a newer version is refused with `PersistError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wfnn_common.config import LearnerConfig
+from wfnn_common.network import Params, Shapes
+from wfnn_common.replay import Experiences
+
+WEIGHTS_FORMAT = "wfnn-weights"
+EXPERIENCE_FORMAT = "wfnn-experiences"
+FORMAT_VERSION = 1
+
+
+class PersistError(ValueError):
+    """A file is not a wfnn file of the expected kind and version, or does not fit."""
+
+
+def _atomic_savez(path: Path, arrays: dict[str, Any]) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _open(path: Path, expected_format: str) -> dict[str, Any]:
+    try:
+        with np.load(Path(path), allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise PersistError(f"{path}: not a readable .npz file ({exc})") from exc
+    fmt = str(arrays.get("format", ""))
+    if fmt != expected_format:
+        raise PersistError(f"{path}: expected format {expected_format!r}, found {fmt!r}")
+    version = int(arrays.get("format_version", -1))
+    if not 1 <= version <= FORMAT_VERSION:
+        raise PersistError(f"{path}: format version {version} is not supported (<= {FORMAT_VERSION})")
+    return arrays
+
+
+def save_weights(
+    path: Path, config: LearnerConfig, params: Params, meta: dict[str, Any] | None = None
+) -> None:
+    """Save a population's weights [P, n_params] with the config that defines them."""
+    _atomic_savez(
+        path,
+        {
+            "format": np.str_(WEIGHTS_FORMAT),
+            "format_version": np.int64(FORMAT_VERSION),
+            "config": np.str_(config.to_json()),
+            "spec_hash": np.str_(config.spec_hash()),
+            "meta": np.str_(json.dumps(meta or {})),
+            "params": params.flat,
+        },
+    )
+
+
+def load_weights(path: Path) -> tuple[LearnerConfig, Params, dict[str, Any]]:
+    """Inverse of `save_weights` -> (config, params, meta)."""
+    arrays = _open(path, WEIGHTS_FORMAT)
+    config = LearnerConfig.from_dict(json.loads(str(arrays["config"])))
+    if str(arrays["spec_hash"]) != config.spec_hash():
+        raise PersistError(f"{path}: spec hash does not match its config")
+    flat = np.ascontiguousarray(arrays["params"], dtype=np.float64)
+    shapes = Shapes.of(config)
+    if flat.ndim != 2 or flat.shape[1] != shapes.n_params:
+        raise PersistError(f"{path}: params {flat.shape} do not fit the config ({shapes.n_params} per net)")
+    if not np.isfinite(flat).all():
+        raise PersistError(f"{path}: params contain non-finite values")
+    return config, Params(flat, shapes), json.loads(str(arrays["meta"]))
+
+
+def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> None:
+    """Save a block of experiences [N, ...] (the learner's scaled units, raw rewards)."""
+    _atomic_savez(
+        path,
+        {
+            "format": np.str_(EXPERIENCE_FORMAT),
+            "format_version": np.int64(FORMAT_VERSION),
+            "config": np.str_(config.to_json()),
+            "spec_hash": np.str_(config.spec_hash()),
+            **exp._asdict(),
+        },
+    )
+
+
+def load_experiences(path: Path, config: LearnerConfig | None = None) -> Experiences:
+    """Inverse of `save_experiences`; with `config`, refuses experiences of another spec."""
+    arrays = _open(path, EXPERIENCE_FORMAT)
+    if config is not None and str(arrays["spec_hash"]) != config.spec_hash():
+        raise PersistError(
+            f"{path}: experiences were recorded for spec {arrays['spec_hash']}, "
+            f"this learner is {config.spec_hash()}"
+        )
+    exp = Experiences(*(np.asarray(arrays[name]) for name in Experiences._fields))
+    n = exp.reward.shape[0]
+    if any(a.shape[0] != n for a in exp):
+        raise PersistError(f"{path}: experience arrays have different lengths")
+    return exp

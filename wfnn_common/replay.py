@@ -1,0 +1,127 @@
+"""A bounded experience replay buffer for a population of learners (oldest overwritten)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+
+
+class Experiences(NamedTuple):
+    """A block of experiences in the learner's scaled units.
+
+    Attributes:
+        state: [..., S]; action: [..., A]; next_state: [..., S];
+        reward: raw (unsquashed) reward [...]; terminal: [...] (next_state unused where True).
+    """
+
+    state: FloatArray
+    action: FloatArray
+    next_state: FloatArray
+    reward: FloatArray
+    terminal: BoolArray
+
+
+class ReplayBuffer:
+    """P ring buffers of `capacity` experiences each.
+
+    One experience is one row of a single array [P, capacity, S + A + S + 2] (state, action,
+    next state, reward, terminal as 0/1), so replaying it touches two or three cache lines
+    instead of one per field; `state`, `action`, ... are views into it.
+    """
+
+    def __init__(self, population: int, capacity: int, state_dim: int, action_dim: int) -> None:
+        self.capacity = capacity
+        s, a = state_dim, action_dim
+        self.data = np.zeros((population, capacity, 2 * s + a + 2))
+        self.state = self.data[:, :, :s]
+        self.action = self.data[:, :, s : s + a]
+        self.next_state = self.data[:, :, s + a : 2 * s + a]
+        self.reward = self.data[:, :, 2 * s + a]
+        self._terminal = self.data[:, :, 2 * s + a + 1]
+        self.count = np.zeros(population, dtype=np.int64)
+        """Stored experiences per learner (at most capacity)."""
+        self.added = np.zeros(population, dtype=np.int64)
+        """Experiences ever added per learner (the ring's write position is added % capacity)."""
+
+    @property
+    def terminal(self) -> BoolArray:
+        """Terminal flags [P, capacity] (a copy)."""
+        return self._terminal != 0.0
+
+    @property
+    def population(self) -> int:
+        """Number of learners."""
+        return int(self.count.shape[0])
+
+    def add(self, exp: Experiences, mask: BoolArray | None = None) -> None:
+        """Append one experience per learner ([P, ...] arrays); learners where mask is False skip."""
+        rows = np.arange(self.population) if mask is None else np.flatnonzero(mask)
+        if rows.size == 0:
+            return
+        pos = self.added[rows] % self.capacity
+        self.state[rows, pos] = exp.state[rows]
+        self.action[rows, pos] = exp.action[rows]
+        self.next_state[rows, pos] = exp.next_state[rows]
+        self.reward[rows, pos] = exp.reward[rows]
+        self._terminal[rows, pos] = exp.terminal[rows]
+        self.added[rows] += 1
+        self.count[rows] = np.minimum(self.added[rows], self.capacity)
+
+    def extend(self, learner: int, exp: Experiences) -> None:
+        """Append a block of experiences ([N, ...] arrays) to one learner's buffer."""
+        n = int(exp.reward.shape[0])
+        if n == 0:
+            return
+        if n > self.capacity:  # only the newest fit
+            exp = Experiences._make(a[-self.capacity :] for a in exp)
+            self.added[learner] += n - self.capacity
+            n = self.capacity
+        pos = (self.added[learner] + np.arange(n)) % self.capacity
+        self.state[learner, pos] = exp.state
+        self.action[learner, pos] = exp.action
+        self.next_state[learner, pos] = exp.next_state
+        self.reward[learner, pos] = exp.reward
+        self._terminal[learner, pos] = exp.terminal
+        self.added[learner] += n
+        self.count[learner] = min(int(self.added[learner]), self.capacity)
+
+    def sample_indices(self, rng: np.random.Generator, n: int) -> IntArray:
+        """Uniform indices [P, n] into each learner's stored experiences (0 where it has none)."""
+        return (rng.random((self.population, n)) * self.count[:, None]).astype(np.int64)
+
+    def arrays(self) -> Experiences:
+        """Views of the buffer [P, capacity, ...] (no copy; rows past `count` are unused).
+
+        `terminal` is the 0/1 float column here, not a bool copy.
+        """
+        return Experiences(self.state, self.action, self.next_state, self.reward, self._terminal)
+
+    def gather(self, idx: IntArray) -> Experiences:
+        """Copies of the experiences at idx [P, n] -> arrays [P, n, ...]."""
+        rows = np.arange(self.population)[:, None]
+        return Experiences(
+            self.state[rows, idx],
+            self.action[rows, idx],
+            self.next_state[rows, idx],
+            self.reward[rows, idx],
+            self._terminal[rows, idx] != 0.0,
+        )
+
+    def contents(self, learner: int) -> Experiences:
+        """One learner's stored experiences, oldest first, as copies [N, ...]."""
+        n = int(self.count[learner])
+        start = int(self.added[learner]) - n
+        pos = (start + np.arange(n)) % self.capacity
+        return Experiences(
+            self.state[learner, pos].copy(),
+            self.action[learner, pos].copy(),
+            self.next_state[learner, pos].copy(),
+            self.reward[learner, pos].copy(),
+            self._terminal[learner, pos] != 0.0,
+        )

@@ -1,0 +1,1 @@
+"""Think server of wfnn (replays experiences, publishes weights); see the project issues."""
