@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,14 +17,15 @@ class Experiences(NamedTuple):
 
     Attributes:
         state: [..., S]; action: [..., A]; next_state: [..., S];
-        reward: raw (unsquashed) reward [...]; terminal: [...] (next_state unused where True).
+        reward: raw (unsquashed) reward [...]; terminal: [...] (next_state unused where
+        True): bool, or 0/1 float in the views `ReplayBuffer.arrays` returns.
     """
 
     state: FloatArray
     action: FloatArray
     next_state: FloatArray
     reward: FloatArray
-    terminal: BoolArray
+    terminal: NDArray[Any]
 
 
 class ReplayBuffer:
