@@ -55,8 +55,10 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
     """The thesis' defaults for the boat (uniform exploration 10%).
 
     One controller's buffer holds every experience of its run (the thesis erased it between
-    controllers), and there is no divergence monitor (Chapter 4 had none; it arrived with the
-    active head, Section 7.6.2).
+    controllers). Chapter 4 had neither a divergence monitor (it arrived with the active head,
+    Section 7.6.2) nor sanity limits: a boat far from its target is a legitimate state (with
+    one time unit per action random thrusting travels ~5 units per target), so only
+    non-finite states are refused here.
     """
     return LearnerConfig(
         state_low=BoatVec.state_low,
@@ -67,6 +69,7 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
         thinks_per_action=bench.thinks,
         replay_capacity=bench.targets * bench.steps_per_target,
         divergence_patience=0,
+        valid_margin=1e6,
         seed=seed,
     )
 
