@@ -32,3 +32,97 @@ def random_experiences(
         rng.uniform(-2, 0.5, n),
         rng.random(n) < p_terminal,
     )
+
+
+def key_matches(pattern: str, key: str) -> bool:
+    """Zenoh key-expression matching for the subset wfnn uses: `*` is one chunk, `**` any number."""
+    p, k = pattern.split("/"), key.split("/")
+
+    def match(i: int, j: int) -> bool:
+        if i == len(p):
+            return j == len(k)
+        if p[i] == "**":
+            return any(match(i + 1, jj) for jj in range(j, len(k) + 1))
+        return j < len(k) and (p[i] == "*" or p[i] == k[j]) and match(i + 1, j + 1)
+
+    return match(0, 0)
+
+
+class Hub:
+    """An in-process network for `LoopbackBus` instances; `tap` may alter or drop payloads."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.lock = threading.RLock()
+        self.subscribers: list[tuple[LoopbackBus, str, object]] = []
+        self.queryables: list[tuple[LoopbackBus, str, object]] = []
+        self.tokens: dict[str, LoopbackBus] = {}
+        self.watchers: list[tuple[LoopbackBus, str, object]] = []
+        self.tap = None  # tap(key, payload) -> payload or None (dropped)
+        self.puts: list[tuple[str, int]] = []
+
+    def bus(self) -> LoopbackBus:
+        return LoopbackBus(self)
+
+
+class LoopbackBus:
+    """The `Bus` interface over a `Hub`: delivery is synchronous, in the publisher's thread."""
+
+    def __init__(self, hub: Hub) -> None:
+        self.hub = hub
+        self.closed = False
+
+    def put(self, key, payload, channel) -> None:
+        if self.closed:
+            return
+        hub = self.hub
+        with hub.lock:
+            hub.puts.append((key, len(payload)))
+            targets = [(b, cb) for b, pat, cb in hub.subscribers if not b.closed and key_matches(pat, key)]
+        for _, callback in targets:
+            data = hub.tap(key, payload) if hub.tap is not None else payload
+            if data is not None:
+                callback(key, bytes(data))
+
+    def subscribe(self, key, callback) -> None:
+        with self.hub.lock:
+            self.hub.subscribers.append((self, key, callback))
+
+    def queryable(self, key, answer) -> None:
+        with self.hub.lock:
+            self.hub.queryables.append((self, key, answer))
+
+    def get(self, key, timeout_s):
+        with self.hub.lock:
+            answers = [a for b, pat, a in self.hub.queryables if not b.closed and key_matches(key, pat)]
+        return [r for r in (a() for a in answers) if r is not None]
+
+    def declare_token(self, key) -> None:
+        with self.hub.lock:
+            self.hub.tokens[key] = self
+            watchers = [(pat, cb) for b, pat, cb in self.hub.watchers if not b.closed]
+        for pat, cb in watchers:
+            if key_matches(pat, key):
+                cb(key, True)
+
+    def watch_presence(self, key, callback) -> None:
+        with self.hub.lock:
+            self.hub.watchers.append((self, key, callback))
+            present = [k for k in self.hub.tokens if key_matches(key, k)]
+        for k in present:
+            callback(k, True)
+
+    def close(self) -> None:
+        with self.hub.lock:
+            if self.closed:
+                return
+            self.closed = True
+            gone = [k for k, b in self.hub.tokens.items() if b is self]
+            for k in gone:
+                del self.hub.tokens[k]
+            watchers = [(pat, cb) for b, pat, cb in self.hub.watchers if not b.closed]
+        for k in gone:
+            for pat, cb in watchers:
+                if key_matches(pat, k):
+                    cb(k, False)

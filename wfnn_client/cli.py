@@ -1,70 +1,117 @@
-"""`wfnn-client`: run a simulated robot that learns while it acts."""
+"""`wfnn-client`: a simulated robot that learns while it acts, thinking locally or on servers."""
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from wfnn_client.local import SIMS, ClientConfig, run
+from wfnn_client.run import ClientConfig, run
+from wfnn_client.safety import SafetyConfig
+from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
+from wfnn_common.net import NetConfig
 
-app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT).")
+app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
+
+
+def _floats(text: str | None, what: str) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=what) from None
+
+
+def status_line(f: dict[str, Any]) -> str:
+    """The live figures of a run."""
+    thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
+    return (
+        f"score {f['score']:.3f} | jitter p99 {f['client/tick_jitter_ms_p99_recent']:.2f} ms | "
+        f"overruns {f['client/overruns']:.0f} | safe {f['safe_actions']:.0f} | "
+        f"thinks/s {thinks if thinks is not None else float('nan'):,.0f} | r {f['reward_mean']:+.3f} | "
+        f"Q {f['q_mean']:+.3f} | v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"
+    )
 
 
 @app.command()
 def main(
     sim: Annotated[str, typer.Option(help=f"Simulated task: {', '.join(SIMS)}.")] = "boat",
     episodes: Annotated[int, typer.Option(min=1, help="Episodes (boat: targets).")] = 40,
+    duration: Annotated[float | None, typer.Option(min=0.0, help="Stop after this many seconds.")] = None,
     rate_hz: Annotated[float, typer.Option(min=0.0, help="Control rate; 0 = as fast as possible.")] = 50.0,
+    lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
+    server: Annotated[
+        list[str] | None, typer.Option(help="`local`, or a think server's Zenoh endpoint (repeatable).")
+    ] = None,
+    listen: Annotated[
+        list[str] | None, typer.Option(help="Zenoh endpoint to listen on (repeatable).")
+    ] = None,
+    mode: Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")] = "peer",
+    zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
+    controller: Annotated[
+        str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
+    ] = "default",
+    client_id: Annotated[str | None, typer.Option(help="Client id (default: from the journal).")] = None,
+    follow: Annotated[str | None, typer.Option(help="Follow only this server id.")] = None,
+    key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
+    learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
+    weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
+    thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
     boat_dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     exploration: Annotated[str, typer.Option(help="uniform, gaussian, smooth or none.")] = "uniform",
-    out: Annotated[Path, typer.Option(help="Run directory for weights, experiences, metrics, plot.")] = Path(
-        "runs/latest"
-    ),
+    max_action_rate: Annotated[str | None, typer.Option(help="Max change per second, per action.")] = None,
+    safe_action: Annotated[str | None, typer.Option(help="Safe action, comma-separated (default 0).")] = None,
+    veto: Annotated[bool, typer.Option(help="Apply the robot's veto rules.")] = True,
+    out: Annotated[
+        Path, typer.Option("--out", "--record", help="Run directory (journal, weights...).")
+    ] = Path("runs/latest"),
+    json_stats: Annotated[Path | None, typer.Option(help="Write the final figures as JSON here.")] = None,
     seed: int = 0,
     verbose: bool = False,
 ) -> None:
-    """Learn a simulated task with thinking in a background thread; save the results."""
+    """Run a simulated robot learning at a fixed tick; save weights, experiences, metrics, plot."""
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
-    if sim not in SIMS:
-        raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
         raise typer.BadParameter(f"unknown exploration {exploration!r}", param_hint="--exploration")
-    config = ClientConfig(
-        sim=sim, episodes=episodes, rate_hz=rate_hz, boat_dt=boat_dt, out=out, seed=seed,  # type: ignore[arg-type]
-        exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
-    )  # fmt: skip
+    try:
+        config = ClientConfig(
+            sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate_hz, lockstep=lockstep,
+            boat_dt=boat_dt, thinks_per_action=thinks, learn=learn, weights=weights,
+            exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
+            server=tuple(server or ("local",)), controller=controller, client_id=client_id, follow=follow,
+            net=NetConfig(mode=mode, listen=tuple(listen or ()),  # type: ignore[arg-type]
+                          zenoh_config=str(zenoh_config) if zenoh_config else None),
+            key_file=key_file, out=out, json_stats=json_stats, seed=seed,
+            safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
+                                max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     console.print(f"[bold]wfnn-client[/] {config}")
     with Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("score {task.fields[score]:.3f}"), TimeElapsedColumn(), TimeRemainingColumn(),
-        console=console,
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("{task.fields[line]}"), console=console,
     ) as bar:  # fmt: skip
-        task = bar.add_task(f"{sim} episodes", total=episodes, score=float("nan"))
-        metrics = run(config, lambda done, score: bar.update(task, completed=done, score=score))
+        task = bar.add_task(f"{sim} episodes", total=episodes, line="")
+        metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)))
     console.print(
         f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f} "
-        f"({metrics['metric']}); {metrics['thinks']} thinks, {metrics['snapshots']} snapshots, "
-        f"act p99 {metrics['act_latency_ms_p99']:.3f} ms, overruns {metrics['overruns']}"
+        f"({metrics['metric']}); {metrics['experiences_learned']} experiences, following "
+        f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
+        f"jitter p99 {metrics['client/tick_jitter_ms_p99']:.3f} ms, overruns {metrics['client/overruns']:.0f}"
     )
-    console.print(f"saved weights, experiences, metrics.json and learning_curve.png in {out}/")
+    console.print(f"saved weights, metrics.json and learning_curve.png in {out}/")
 
 
 if __name__ == "__main__":

@@ -250,6 +250,12 @@ class WFNN:
         r = self._per_learner(reward, np.float64)
         term = self._per_learner(terminal, np.bool_)
         ok = self._per_learner(valid, np.bool_).copy()
+        return self._check(s, a, sn, r, term, ok)
+
+    def _check(
+        self, s: FloatArray, a: FloatArray, sn: FloatArray, r: FloatArray, term: BoolArray, ok: BoolArray
+    ) -> tuple[Experiences, BoolArray]:
+        """Scale and sanity-check rows of experiences [N, ...]; `ok` [N] is updated in place."""
         x, x_ok = self.scale_state(s)
         xn, xn_ok = self.scale_state(sn)
         u = self.action_scaler.to_unit(a)
@@ -277,6 +283,32 @@ class WFNN:
         self.buffer.add(exp, ok)
         self.rejected += ~ok & self._per_learner(valid, np.bool_)
         return ok[0] if np.ndim(state) == 1 else ok
+
+    def learn_many(
+        self,
+        state: ArrayLike,
+        action: ArrayLike,
+        next_state: ArrayLike,
+        reward: ArrayLike,
+        terminal: ArrayLike,
+    ) -> BoolArray:
+        """Store a block of N experiences ([N, S], [N, A], [N, S], [N], [N]) for every learner.
+
+        Each experience passes the same sanity limits as in `learn`; returns which were stored [N].
+        """
+        cfg = self.config
+        s = np.asarray(state, dtype=np.float64).reshape(-1, cfg.state_dim)
+        n = s.shape[0]
+        a = np.asarray(action, dtype=np.float64).reshape(n, cfg.action_dim)
+        sn = np.asarray(next_state, dtype=np.float64).reshape(n, cfg.state_dim)
+        r = np.asarray(reward, dtype=np.float64).reshape(n)
+        term = np.asarray(terminal, dtype=np.bool_).reshape(n)
+        exp, ok = self._check(s, a, sn, r, term, np.ones(n, dtype=np.bool_))
+        kept = Experiences._make(field[ok] for field in exp)
+        for i in range(self.population):
+            self.buffer.extend(i, kept)
+        self.rejected += int(n - ok.sum())
+        return ok
 
     # ------------------------------------------------------------------ think
     def think(self, n: int | None = None) -> UpdateStats:
@@ -353,6 +385,13 @@ class WFNN:
     def snapshot(self) -> Params:
         """A copy of the current weights (safe to read while thinking continues)."""
         return self.params.copy()
+
+    def greedy_values(self, state: ArrayLike) -> FloatArray:
+        """Value of the best wire (Q of the action `act` would choose) for states [N, S] -> [P, N]."""
+        x = self.state_scaler.to_unit(np.asarray(state, dtype=np.float64).reshape(-1, self.config.state_dim))
+        x = np.nan_to_num(np.clip(x, -self._limit, self._limit))
+        _, out = forward(self.params, np.broadcast_to(x, (self.population, *x.shape)))
+        return np.asarray(split_wires(out, self.config.n_wires, self.config.action_dim)[1].max(axis=-1))
 
     def q_value(self, state: ArrayLike, action: ArrayLike) -> FloatArray:
         """Q(x, u) by wire fitting for one state and action per learner ([] or [P])."""

@@ -110,14 +110,15 @@ def test_client_runs_learns_and_saves(tmp_path):
     out = tmp_path / "run"
     run([BIN / "wfnn-client", "--sim", "positioning", "--episodes", "3", "--rate-hz", "0", "--out", out])
     metrics = json.loads((out / "metrics.json").read_text())
-    assert len(metrics["scores"]) == 3 and metrics["thinks"] > 0 and metrics["snapshots"] >= 1
+    assert len(metrics["scores"]) == 3 and metrics["think/thinks"] > 0 and metrics["weights/version"] >= 1
+    assert metrics["following"] == "local" and metrics["experiences_learned"] > 0
     for name in ("weights.npz", "experiences.npz", "learning_curve.png"):
         assert (out / name).exists()
     from wfnn_common.persist import load_experiences, load_weights
 
     cfg, params, meta = load_weights(out / "weights.npz")
     assert meta["sim"] == "positioning" and params.population == 1
-    assert load_experiences(out / "experiences.npz", cfg).reward.shape[0] == metrics["experiences"]
+    assert load_experiences(out / "experiences.npz", cfg).reward.shape[0] == metrics["learn/experiences"]
 
 
 CLIENT_WITHOUT_TORCH = """
@@ -125,7 +126,7 @@ import sys
 sys.modules["torch"] = None  # any import of torch now fails
 import numpy as np
 from sims.boat import BoatVec
-from wfnn_client.local import ClientConfig, learner_config
+from wfnn_client.run import ClientConfig, learner_config
 from wfnn_common.architectures import ActLearnThinkMT
 from wfnn_common.learner import WFNN
 task = BoatVec(1)
@@ -138,6 +139,7 @@ with ActLearnThinkMT(learner) as mt:
         mt.learn(x, u, tr.state[0], tr.reward[0])
         x = tr.state[0]
 assert mt.error is None and learner.thinks[0] > 0, (mt.error, learner.thinks)
+import wfnn_client.remote, wfnn_client.run, wfnn_common.net, wfnn_common.protocol  # the C/S client too
 assert "torch" not in [m for m in sys.modules if sys.modules[m] is not None]
 print("ok")
 """

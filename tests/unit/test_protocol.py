@@ -1,0 +1,636 @@
+import dataclasses
+import struct
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from wfnn_common.protocol import (
+    CRC_SIZE,
+    FLAG_MAC,
+    HEADER,
+    MAC_SIZE,
+    MAGIC,
+    MAX_BODY,
+    PROTOCOL_VERSION,
+    Ack,
+    AuthError,
+    BadMagic,
+    ClientStatus,
+    Codec,
+    CorruptFrame,
+    ExperienceBatch,
+    FrameTooLarge,
+    Keys,
+    MalformedBody,
+    MsgType,
+    ProtocolError,
+    ServerStatus,
+    Truncated,
+    UnknownType,
+    VersionMismatch,
+    WeightSnapshot,
+    check_id,
+    crc32c,
+    decode,
+    encode,
+    peek_type,
+    to_body,
+)
+
+KEY = b"0123456789abcdef0123456789abcdef"
+OTHER_KEY = b"fedcba9876543210fedcba9876543210"
+FUZZ = settings(max_examples=250, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+# --------------------------------------------------------------------------- helpers
+def make_batch(n=5, s=3, a=2, first_seq=0, client="robot1", seed=0):
+    rng = np.random.default_rng(seed)
+    return ExperienceBatch(
+        client=client,
+        spec_hash="abc123",
+        first_seq=first_seq,
+        weights_source="srv1",
+        state=rng.uniform(-1, 1, (n, s)),
+        action=rng.uniform(-1, 1, (n, a)),
+        next_state=rng.uniform(-1, 1, (n, s)),
+        reward=rng.uniform(-2, 0.5, n),
+        terminal=rng.random(n) < 0.3,
+        weights_version=rng.integers(0, 2**63, n, dtype=np.uint64),
+        flags=rng.integers(0, 32, n, dtype=np.uint8),
+    )
+
+
+def make_ack(stored_through=41):
+    return Ack(client="robot1", server="srv1", incarnation=3, stored_through=stored_through)
+
+
+def make_weights():
+    return WeightSnapshot(
+        server="srv1",
+        incarnation=2,
+        version=17,
+        spec_hash="abc123",
+        published_ns=1_700_000_000_123_456_789,
+        thinks=12345,
+        diverged=True,
+        learned_through={"robot1": 9, "robot2": -1},
+        params=np.arange(24, dtype=np.float64).reshape(1, 24) / 7,
+    )
+
+
+def make_server_status():
+    return ServerStatus(
+        server="srv1",
+        incarnation=5,
+        started_ns=123,
+        spec_hash="",
+        weights_version=0,
+        stored_through={"robot1": 100},
+        rejected={"crc": 2, "auth": 0},
+        metrics={"think/thinks_per_s": 1234.5, "store/count": 7.0},
+    )
+
+
+def make_client_status():
+    return ClientStatus(
+        client="robot1",
+        spec_hash="abc123",
+        learner_config='{"gamma": 0.8}',
+        following="local",
+        weights_version=3,
+        produced_through=99,
+        acked={"srv1": 90, "srv2": -1},
+        metrics={},
+    )
+
+
+MAKERS = [make_batch, make_ack, make_weights, make_server_status, make_client_status]
+
+
+def assert_same_message(got, want):
+    assert type(got) is type(want)
+    for f in dataclasses.fields(want):
+        g, w = getattr(got, f.name), getattr(want, f.name)
+        if isinstance(w, np.ndarray):
+            assert isinstance(g, np.ndarray), f.name
+            assert g.dtype == w.dtype and g.shape == w.shape, f.name
+            np.testing.assert_array_equal(g, w, err_msg=f.name)
+        else:
+            assert type(g) is type(w) and g == w, f.name
+
+
+def raw_frame(body: bytes, msg_type=MsgType.EXPERIENCES, sender=b"fuzz", seq=0, flags=0, version=None):
+    """A frame with a correct header, length and CRC around any body bytes."""
+    v = PROTOCOL_VERSION if version is None else version
+    frame = HEADER.pack(MAGIC, v, int(msg_type), flags, 0, sender, seq, len(body)) + body
+    return frame + struct.pack("<I", crc32c(frame))
+
+
+def with_crc(frame_without_crc: bytes) -> bytes:
+    return frame_without_crc + struct.pack("<I", crc32c(frame_without_crc))
+
+
+# --------------------------------------------------------------------------- round trips
+@pytest.mark.parametrize("make", MAKERS, ids=lambda m: m.__name__[5:])
+@pytest.mark.parametrize("key", [None, KEY], ids=["nokey", "key"])
+def test_every_message_round_trips(make, key):
+    msg = make()
+    frame = encode(msg, "sender-1", 77, key)
+    assert peek_type(frame) is msg.TYPE
+    assert ((frame[6] & FLAG_MAC) != 0) == (key is not None)
+    sender, seq, got = decode(frame, key)
+    assert (sender, seq) == ("sender-1", 77)
+    assert_same_message(got, msg)
+    _, _, typed = decode(frame, key, expect=type(msg))
+    assert_same_message(typed, msg)
+
+
+def test_frame_layout_and_sizes():
+    msg = make_ack()
+    plain, keyed = encode(msg, "s", 0), encode(msg, "s", 0, KEY)
+    body_len = HEADER.unpack_from(plain)[-1]
+    assert len(plain) == HEADER.size + body_len + CRC_SIZE
+    assert len(keyed) == len(plain) + MAC_SIZE
+    assert plain[:4] == MAGIC and plain[4] == PROTOCOL_VERSION and plain[5] == MsgType.ACK
+    assert struct.unpack("<I", plain[-4:])[0] == crc32c(plain[:-4])
+
+
+def test_decoded_arrays_are_native_writable_copies():
+    batch = make_batch()
+    got = decode(encode(batch, "s", 0)).message
+    for name in ("state", "reward", "terminal", "weights_version", "flags"):
+        arr = getattr(got, name)
+        assert arr.flags.writeable and arr.dtype.isnative, name
+    got.state[0, 0] = 99.0
+    assert batch.state[0, 0] != 99.0
+
+
+def test_experience_batch_round_trip_handles_other_input_dtypes():
+    batch = dataclasses.replace(
+        make_batch(n=3, s=1, a=1),
+        state=np.array([[1], [2], [3]], dtype=np.int32),
+        terminal=np.array([0, 1, 0]),
+        flags=np.array([1, 2, 255]),
+    )
+    got = decode(encode(batch, "s", 0)).message
+    assert got.state.dtype == np.float64 and got.state.tolist() == [[1.0], [2.0], [3.0]]
+    assert got.terminal.dtype == np.bool_ and got.terminal.tolist() == [False, True, False]
+    assert got.flags.dtype == np.uint8 and got.flags.tolist() == [1, 2, 255]
+
+
+def test_codec_sequence_numbers_count_up_and_decode_checks_type():
+    codec = Codec("robot1", KEY)
+    frames = [codec.encode(make_ack(i)) for i in range(5)]
+    assert [decode(f, KEY).seq for f in frames] == [0, 1, 2, 3, 4]
+    other = Codec("srv1", KEY)
+    sender, ack = other.decode(frames[3], Ack)
+    assert sender == "robot1" and isinstance(ack, Ack) and ack.stored_through == 3
+    with pytest.raises(UnknownType):
+        other.decode(frames[0], ExperienceBatch)
+    assert Codec("x", b"").key is None
+    with pytest.raises(ValueError):
+        Codec("bad/id")
+
+
+# --------------------------------------------------------------------------- authentication
+def test_receiver_with_key_rejects_unkeyed_frame():
+    frame = encode(make_ack(), "robot1", 0)
+    with pytest.raises(AuthError) as info:
+        decode(frame, KEY)
+    assert info.value.reason == "auth"
+    with pytest.raises(AuthError):
+        Codec("srv1", KEY).decode(Codec("robot1").encode(make_ack()), Ack)
+
+
+def test_receiver_with_key_rejects_frame_with_other_key():
+    with pytest.raises(AuthError):
+        decode(encode(make_batch(), "robot1", 0, OTHER_KEY), KEY)
+
+
+def test_receiver_without_key_accepts_keyed_frame():
+    msg = make_batch()
+    sender, seq, got = decode(encode(msg, "robot1", 9, KEY))
+    assert (sender, seq) == ("robot1", 9)
+    assert_same_message(got, msg)
+
+
+def test_forged_tag_with_recomputed_crc_is_rejected():
+    frame = bytearray(encode(make_ack(), "robot1", 0, KEY))
+    tag_start = len(frame) - CRC_SIZE - MAC_SIZE
+    frame[tag_start] ^= 0xFF
+    with pytest.raises(AuthError):
+        decode(with_crc(bytes(frame[:-CRC_SIZE])), KEY)
+
+
+def test_stripping_the_tag_and_flag_is_rejected():
+    frame = encode(make_ack(), "robot1", 0, KEY)
+    magic, ver, typ, _, res, sender, seq, body_len = HEADER.unpack_from(frame)
+    body = frame[HEADER.size : HEADER.size + body_len]
+    stripped = with_crc(HEADER.pack(magic, ver, typ, 0, res, sender, seq, body_len) + body)
+    assert decode(stripped).message.stored_through == 41
+    with pytest.raises(AuthError):
+        decode(stripped, KEY)
+
+
+def test_tampered_body_with_recomputed_crc_is_rejected_by_key():
+    frame = bytearray(encode(make_ack(), "robot1", 0, KEY))
+    body_len = HEADER.unpack_from(frame)[-1]
+    # change the stored_through value (the last byte of the body: a positive fixint 41)
+    assert frame[HEADER.size + body_len - 1] == 41
+    frame[HEADER.size + body_len - 1] = 42
+    forged = with_crc(bytes(frame[:-CRC_SIZE]))
+    assert decode(forged).message.stored_through == 42  # without a key only the CRC protects it
+    with pytest.raises(AuthError):
+        decode(forged, KEY)
+
+
+# --------------------------------------------------------------------------- corruption
+@pytest.mark.parametrize("key", [None, KEY], ids=["nokey", "key"])
+def test_every_single_bit_flip_of_an_ack_frame_is_rejected(key):
+    frame = encode(make_ack(), "robot1", 5, key)
+    decode(frame, key)  # intact frame is fine
+    reasons = set()
+    for bit in range(len(frame) * 8):
+        bad = bytearray(frame)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        with pytest.raises(ProtocolError) as info:
+            decode(bytes(bad), key)
+        reasons.add(info.value.reason)
+    assert {"bad_magic", "version", "crc"} <= reasons
+
+
+def test_random_bit_flips_of_an_experience_batch_frame_are_rejected():
+    frame = encode(make_batch(n=20), "robot1", 5)
+    rng = np.random.default_rng(1234)
+    nbits = len(frame) * 8
+    for i in range(2000):
+        k = 1 if i % 2 == 0 else int(rng.integers(2, 9))
+        bits = rng.choice(nbits, size=k, replace=False)
+        bad = bytearray(frame)
+        for bit in bits:
+            bad[bit // 8] ^= 1 << (bit % 8)
+        with pytest.raises(ProtocolError):
+            decode(bytes(bad))
+
+
+def test_bit_flip_in_crc_field_is_corrupt_frame():
+    frame = bytearray(encode(make_batch(), "robot1", 0))
+    frame[-1] ^= 0x10
+    with pytest.raises(CorruptFrame) as info:
+        decode(bytes(frame))
+    assert info.value.reason == "crc"
+
+
+@pytest.mark.parametrize("key", [None, KEY], ids=["nokey", "key"])
+def test_truncation_at_every_length_is_rejected(key):
+    frame = encode(make_ack(), "robot1", 0, key)
+    for n in range(len(frame)):
+        with pytest.raises(Truncated):
+            decode(frame[:n], key)
+
+
+def test_trailing_bytes_are_rejected():
+    frame = encode(make_ack(), "robot1", 0)
+    with pytest.raises(MalformedBody):
+        decode(frame + b"\0")
+
+
+def test_oversized_body_len_in_header_is_frame_too_large():
+    for msg_type, limit in MAX_BODY.items():
+        header = HEADER.pack(MAGIC, PROTOCOL_VERSION, int(msg_type), 0, 0, b"x", 0, limit + 1)
+        with pytest.raises(FrameTooLarge) as info:
+            decode(header + b"\0" * CRC_SIZE)
+        assert info.value.reason == "oversized"
+    header = HEADER.pack(MAGIC, PROTOCOL_VERSION, int(MsgType.ACK), 0, 0, b"x", 0, 2**32 - 1)
+    with pytest.raises(FrameTooLarge):
+        decode(header + b"\0" * 100)
+
+
+def test_encoding_body_over_the_limit_is_frame_too_large():
+    limit = MAX_BODY[MsgType.ACK]
+    empty = len(msgpack.packb(to_body(dataclasses.replace(make_ack(), server="")), use_bin_type=True))
+    length = limit - empty - 2  # a str16 header is 2 bytes longer than the empty fixstr's
+    exact = dataclasses.replace(make_ack(), server="s" * length)
+    assert len(msgpack.packb(to_body(exact), use_bin_type=True)) == limit
+    assert decode(encode(exact, "x", 0)).message.server == "s" * length
+    with pytest.raises(FrameTooLarge):
+        encode(dataclasses.replace(exact, server="s" * (length + 1)), "x", 0)
+
+
+def test_encoding_an_oversized_experience_batch_is_frame_too_large():
+    n = (MAX_BODY[MsgType.EXPERIENCES] // 16) + 1000  # state and next_state alone exceed the limit
+    big = make_batch(n=n, s=1, a=1)
+    with pytest.raises(FrameTooLarge):
+        encode(big, "robot1", 0)
+    with pytest.raises(FrameTooLarge):
+        Codec("robot1").encode(big)
+
+
+# --------------------------------------------------------------------------- header checks
+def test_expect_mismatch_is_unknown_type():
+    frame = encode(make_ack(), "robot1", 0)
+    with pytest.raises(UnknownType) as info:
+        decode(frame, expect=ExperienceBatch)
+    assert info.value.reason == "type"
+    assert isinstance(decode(frame, expect=Ack).message, Ack)
+
+
+def test_unknown_type_code_is_unknown_type():
+    body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
+    for code in (0, 6, 255):
+        with pytest.raises(UnknownType):
+            decode(raw_frame(body, msg_type=code))
+        assert peek_type(raw_frame(body, msg_type=code)) is None
+
+
+def test_wrong_magic_is_bad_magic():
+    frame = bytearray(encode(make_ack(), "robot1", 0))
+    frame[:4] = b"WFNM"
+    with pytest.raises(BadMagic) as info:
+        decode(with_crc(bytes(frame[:-CRC_SIZE])))
+    assert info.value.reason == "bad_magic"
+
+
+def test_wrong_version_is_version_mismatch():
+    body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
+    for version in (0, PROTOCOL_VERSION + 1, 255):
+        with pytest.raises(VersionMismatch) as info:
+            decode(raw_frame(body, MsgType.ACK, version=version))
+        assert info.value.reason == "version"
+    assert isinstance(decode(raw_frame(body, MsgType.ACK)).message, Ack)
+
+
+def test_unknown_flags_are_rejected():
+    body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
+    with pytest.raises(MalformedBody):
+        decode(raw_frame(body, MsgType.ACK, flags=0x02))
+
+
+@pytest.mark.parametrize("sender", [b"", b"a/b", b"a*", b"\xff\xfe", b"ab\0cd"])
+def test_bad_sender_ids_in_frames_are_rejected(sender):
+    body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
+    with pytest.raises(MalformedBody):
+        decode(raw_frame(body, MsgType.ACK, sender=sender))
+
+
+def test_sender_id_with_trailing_newline_is_rejected():
+    body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
+    with pytest.raises(MalformedBody):
+        decode(raw_frame(body, MsgType.ACK, sender=b"robot1\n"))
+
+
+def test_error_reasons_and_hierarchy():
+    errors = {
+        Truncated: "truncated", BadMagic: "bad_magic", VersionMismatch: "version", UnknownType: "type",
+        FrameTooLarge: "oversized", CorruptFrame: "crc", AuthError: "auth", MalformedBody: "malformed",
+    }  # fmt: skip
+    for cls, reason in errors.items():
+        assert issubclass(cls, ProtocolError) and cls.reason == reason
+
+
+# --------------------------------------------------------------------------- fuzzing
+@FUZZ
+@given(st.binary(max_size=400), st.sampled_from([None, KEY]))
+def test_fuzz_arbitrary_bytes_raise_only_protocol_errors(data, key):
+    with pytest.raises(ProtocolError):
+        decode(data, key)
+
+
+@FUZZ
+@given(st.binary(max_size=300))
+def test_fuzz_arbitrary_bytes_after_a_valid_header_prefix(tail):
+    prefix = encode(make_ack(), "robot1", 0)[:8]
+    with pytest.raises(ProtocolError):
+        decode(prefix + tail)
+
+
+msgpack_values = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**63), max_value=2**64 - 1)
+    | st.floats(allow_nan=True)
+    | st.text(max_size=20)
+    | st.binary(max_size=40),
+    lambda children: (
+        st.lists(children, max_size=6) | st.dictionaries(st.text(max_size=12), children, max_size=6)
+    ),
+    max_leaves=12,
+)
+
+
+@FUZZ
+@given(body=msgpack_values, msg_type=st.sampled_from(list(MsgType)))
+def test_fuzz_well_formed_frames_with_arbitrary_bodies(body, msg_type):
+    frame = raw_frame(msgpack.packb(body, use_bin_type=True), msg_type)
+    try:
+        result = decode(frame)
+    except ProtocolError:
+        return
+    assert result.message.TYPE == msg_type  # by chance a valid body
+
+
+@FUZZ
+@given(st.data(), st.sampled_from(list(MsgType)))
+def test_fuzz_well_formed_frames_with_right_field_names_and_arbitrary_values(data, msg_type):
+    proto = next(m() for m in MAKERS if m().TYPE == msg_type)
+    body = {f.name: data.draw(msgpack_values, label=f.name) for f in dataclasses.fields(proto)}
+    try:
+        result = decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type))
+    except ProtocolError:
+        return
+    assert result.message.TYPE == msg_type
+
+
+@FUZZ
+@given(st.binary(min_size=1, max_size=200), st.sampled_from(list(MsgType)))
+def test_fuzz_well_formed_frames_with_arbitrary_body_bytes(body, msg_type):
+    try:
+        result = decode(raw_frame(body, msg_type))
+    except ProtocolError:
+        return
+    assert result.message.TYPE == msg_type
+
+
+BATCH_BODY = to_body(make_batch(n=4, s=3, a=2))
+ARRAY_FIELDS = ["state", "action", "next_state", "reward", "terminal", "weights_version", "flags"]
+SCALAR_FIELDS = {"client": str, "spec_hash": str, "first_seq": int, "weights_source": str}
+small_ints = st.integers(-(2**63), 2**64 - 1)
+scalar_junk = st.one_of(
+    st.none(),
+    st.booleans(),
+    small_ints,
+    st.floats(),
+    st.text(max_size=8),
+    st.binary(max_size=8),
+    st.lists(small_ints, max_size=3),
+    st.dictionaries(st.text(max_size=3), small_ints, max_size=2),
+)
+
+
+def decode_batch_body(body):
+    return decode(raw_frame(msgpack.packb(body, use_bin_type=True), MsgType.EXPERIENCES))
+
+
+def test_unchanged_batch_body_decodes():
+    batch = decode_batch_body(BATCH_BODY).message
+    assert isinstance(batch, ExperienceBatch) and len(batch) == 4
+
+
+@FUZZ
+@given(st.data())
+def test_fuzz_batch_scalar_field_with_wrong_type(data):
+    name = data.draw(st.sampled_from(sorted(SCALAR_FIELDS)))
+    want = SCALAR_FIELDS[name]
+    value = data.draw(scalar_junk.filter(lambda v: type(v) is not want))
+    with pytest.raises(MalformedBody):
+        decode_batch_body({**BATCH_BODY, name: value})
+
+
+@FUZZ
+@given(st.sampled_from(ARRAY_FIELDS), scalar_junk)
+def test_fuzz_batch_array_field_with_wrong_type(name, value):
+    with pytest.raises(MalformedBody):
+        decode_batch_body({**BATCH_BODY, name: value})
+
+
+@FUZZ
+@given(st.sampled_from(ARRAY_FIELDS), st.text(max_size=6) | st.binary(max_size=6) | st.integers(-5, 5))
+def test_fuzz_batch_array_with_wrong_dtype(name, dtype):
+    if dtype == BATCH_BODY[name]["dtype"]:
+        dtype = dtype + "x"
+    with pytest.raises(MalformedBody):
+        decode_batch_body({**BATCH_BODY, name: {**BATCH_BODY[name], "dtype": dtype}})
+
+
+@FUZZ
+@given(st.sampled_from(ARRAY_FIELDS), st.lists(st.integers(-3, 2**33), max_size=4))
+def test_fuzz_batch_array_with_inconsistent_shape(name, shape):
+    if shape == BATCH_BODY[name]["shape"]:
+        shape = [*shape, 1]
+    with pytest.raises(MalformedBody):
+        decode_batch_body({**BATCH_BODY, name: {**BATCH_BODY[name], "shape": shape}})
+
+
+@FUZZ
+@given(st.sampled_from(ARRAY_FIELDS), st.integers(1, 3), st.booleans())
+def test_fuzz_batch_array_length_disagrees_with_the_others(name, extra, longer):
+    # shape and data agree with each other, but not with the batch length N = 4
+    arr = BATCH_BODY[name]
+    itemsize = len(arr["data"]) // int(np.prod(arr["shape"]))
+    row = itemsize * int(np.prod(arr["shape"][1:]))
+    rows = arr["shape"][0] + (extra if longer else -extra)
+    data = (arr["data"] * 2)[: rows * row]
+    with pytest.raises(MalformedBody):
+        decode_batch_body({**BATCH_BODY, name: {**arr, "shape": [rows, *arr["shape"][1:]], "data": data}})
+
+
+@FUZZ
+@given(st.lists(st.integers(0, 255), min_size=4, max_size=4).filter(lambda b: max(b) > 1))
+def test_fuzz_bool_array_bytes_other_than_0_or_1(values):
+    terminal = {**BATCH_BODY["terminal"], "data": bytes(values)}
+    with pytest.raises(MalformedBody, match="booleans"):
+        decode_batch_body({**BATCH_BODY, "terminal": terminal})
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"first_seq": -1},
+        {"reward": {"dtype": "<f8", "shape": [0], "data": b""}},
+        {"extra": 1},
+        {"state": {"dtype": "<f8", "shape": [4, 3], "data": b"\0" * 96, "more": 1}},
+    ],
+)
+def test_batch_body_edge_cases_are_malformed(change):
+    with pytest.raises(MalformedBody):
+        decode_batch_body({**BATCH_BODY, **change})
+
+
+def test_batch_body_missing_field_is_malformed():
+    body = dict(BATCH_BODY)
+    del body["flags"]
+    with pytest.raises(MalformedBody, match="missing"):
+        decode_batch_body(body)
+
+
+def test_dict_fields_are_checked():
+    body = to_body(make_server_status())
+
+    def status_frame(**change):
+        return raw_frame(msgpack.packb({**body, **change}, use_bin_type=True), MsgType.SERVER_STATUS)
+
+    for bad in ({"a": 1.5}, {"a": "x"}, [1, 2], {"a": True}, {"a": None}):
+        with pytest.raises(MalformedBody):
+            decode(status_frame(rejected=bad))
+    with pytest.raises(MalformedBody):  # binary map keys are not strings
+        decode(status_frame(metrics={b"k": 1.0}))
+    ok = decode(status_frame(metrics={"k": 3}))
+    assert ok.message.metrics == {"k": 3.0} and type(ok.message.metrics["k"]) is float
+
+
+# --------------------------------------------------------------------------- batch helpers, keys, ids
+def test_slice_and_last_seq():
+    batch = make_batch(n=6, first_seq=10)
+    assert len(batch) == 6 and batch.last_seq == 15
+    tail = batch.slice(2)
+    assert tail.first_seq == 12 and tail.last_seq == 15 and len(tail) == 4
+    assert tail.client == batch.client and tail.weights_source == batch.weights_source
+    for name in ARRAY_FIELDS:
+        np.testing.assert_array_equal(getattr(tail, name), getattr(batch, name)[2:])
+    tail.validate()
+    assert batch.slice(0).first_seq == 10 and len(batch.slice(0)) == 6
+    assert make_batch(n=1, first_seq=0).last_seq == 0
+
+
+def test_validate_rejects_inconsistent_shapes():
+    batch = make_batch(n=4)
+    with pytest.raises(MalformedBody):
+        dataclasses.replace(batch, terminal=batch.terminal[:3]).validate()
+    with pytest.raises(MalformedBody):
+        dataclasses.replace(batch, next_state=batch.next_state[:, :2]).validate()
+    with pytest.raises(MalformedBody):
+        dataclasses.replace(batch, first_seq=-1).validate()
+    batch.validate()
+
+
+def test_keys_produce_the_documented_key_expressions():
+    k = Keys("arm")
+    assert k.root == "wfnn/arm"
+    assert k.experiences() == "wfnn/arm/exp/live/*"
+    assert k.experiences("robot1") == "wfnn/arm/exp/live/robot1"
+    assert k.resend("srv1") == "wfnn/arm/exp/to/srv1/*"
+    assert k.resend("srv1", "robot1") == "wfnn/arm/exp/to/srv1/robot1"
+    assert k.ack("robot1") == "wfnn/arm/ack/robot1/*"
+    assert k.ack("robot1", "srv1") == "wfnn/arm/ack/robot1/srv1"
+    assert k.weights() == "wfnn/arm/weights/*"
+    assert k.weights("srv1") == "wfnn/arm/weights/srv1"
+    assert k.server_status() == "wfnn/arm/status/server/*"
+    assert k.server_status("srv1") == "wfnn/arm/status/server/srv1"
+    assert k.client_status() == "wfnn/arm/status/client/*"
+    assert k.client_status("robot1") == "wfnn/arm/status/client/robot1"
+    assert k.server_alive("srv1") == "wfnn/arm/alive/server/srv1"
+    assert k.client_alive() == "wfnn/arm/alive/client/*"
+    assert Keys.last(k.ack("robot1", "srv1")) == "srv1"
+    assert Keys.last("plain") == "plain"
+    with pytest.raises(ValueError):
+        Keys("a/b")
+
+
+@pytest.mark.parametrize("name", ["a", "robot-1.x_Y", "x" * 16, "0"])
+def test_check_id_accepts_valid_ids(name):
+    assert check_id(name) == name
+
+
+@pytest.mark.parametrize("name", ["a/b", "*", "", "x" * 17, "a b", "é", None, 5])
+def test_check_id_rejects_invalid_ids(name):
+    with pytest.raises(ValueError, match="controller name"):
+        check_id(name, "controller name")
+
+
+@pytest.mark.parametrize("name", ["robot1\n", "x" * 16 + "\n"])
+def test_check_id_rejects_trailing_newline(name):
+    with pytest.raises(ValueError):
+        check_id(name)

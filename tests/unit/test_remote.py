@@ -1,0 +1,219 @@
+import time
+
+import numpy as np
+import pytest
+
+from sims.positioning import PositioningVec
+from tests.fakes import Hub, small_config
+from tests.unit.test_server import KEYS, Listener, make_server
+from wfnn_client.brain import Experience, LocalBrain
+from wfnn_client.remote import RemoteBrain, RemoteConfig
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+from wfnn_common.protocol import Codec, WeightSnapshot
+
+
+def positioning_config(**kw):
+    task = PositioningVec(1)
+    return LearnerConfig(
+        state_low=task.state_low, state_high=task.state_high, action_low=task.action_low,
+        action_high=task.action_high, **kw,
+    )  # fmt: skip
+
+
+def remote(tmp_path, hub, cfg, **kw):
+    options = {"controller": "t", "journal_dir": tmp_path / "journal", "resend_after_s": 0.2, **kw}
+    return RemoteBrain(WFNN(cfg), RemoteConfig(**options), hub.bus())
+
+
+def wait(predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def drive(brain, steps, seed=0, lockstep=True):
+    """Act-learn(-sync) on the positioning task; returns the rewards."""
+    task = PositioningVec(1)
+    rng = np.random.default_rng(seed)
+    x = task.reset(rng)[0]
+    rewards = []
+    for _ in range(steps):
+        acted = brain.act(x)
+        u = acted.result.action if acted is not None else np.zeros(1)
+        tr = task.step(u[None])
+        if tr.learnable[0]:
+            brain.learn(Experience(x, u, tr.state[0], float(tr.reward[0])), acted)
+            if lockstep:
+                assert brain.sync(10.0)
+        rewards.append(float(tr.reward[0]))
+        x = tr.state[0]
+    return np.asarray(rewards)
+
+
+def test_lockstep_client_server_matches_single_process(tmp_path):
+    cfg = positioning_config(thinks_per_action=20, seed=3)
+    local = LocalBrain(WFNN(cfg), lockstep=True)
+    local_rewards = drive(local, 300)
+    hub = Hub()
+    with make_server(tmp_path, hub, cfg):
+        brain = remote(tmp_path, hub, cfg, lockstep=True)
+        brain.start()
+        assert brain.sync(10.0)  # the first snapshot: the server's initial weights
+        remote_rewards = drive(brain, 300)
+        brain.stop()
+    # Same seed, same experiences, same replays: the C/S learner is the single-process one.
+    np.testing.assert_allclose(remote_rewards, local_rewards, rtol=0, atol=1e-9)
+
+
+def test_no_weights_means_no_action(tmp_path):
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    assert brain.act(np.zeros(3)) is None and brain.following == ""
+    brain.stop()
+
+
+def test_follows_longest_alive_and_fails_over_within_two_seconds(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    first = make_server(tmp_path, hub, cfg, server_id="s1").start()
+    time.sleep(0.01)
+    second = make_server(tmp_path, hub, cfg, server_id="s2").start()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    try:
+        assert wait(lambda: brain.following == "s1")
+        assert brain.act(np.zeros(3)) is not None
+        first.stop()
+        first.bus.close()  # its liveliness token disappears
+        t0 = time.monotonic()
+        assert wait(lambda: brain.following == "s2", timeout=2.0)
+        assert time.monotonic() - t0 < 2.0
+        assert brain.failovers and brain.failovers[-1]["from"] == "s1"
+    finally:
+        brain.stop()
+        second.stop()
+
+
+def test_a_pinned_server_is_followed(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg, server_id="s1"), make_server(tmp_path, hub, cfg, server_id="s2"):
+        brain = remote(tmp_path, hub, cfg, follow="s2")
+        brain.start()
+        assert wait(lambda: brain.following == "s2")
+        time.sleep(0.2)
+        assert brain.following == "s2"
+        brain.stop()
+
+
+def test_a_silent_server_is_left_for_a_live_one(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with (
+        make_server(tmp_path, hub, cfg, server_id="s1") as s1,
+        make_server(tmp_path, hub, cfg, server_id="s2"),
+    ):
+        brain = remote(tmp_path, hub, cfg, snapshot_timeout_s=0.5)
+        brain.start()
+        assert wait(lambda: brain.following == "s1")
+        s1.bus.closed = True  # half-open: the token stays, nothing arrives any more
+        assert wait(lambda: brain.following == "s2", timeout=2.0)
+        brain.stop()
+
+
+def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None):
+    n = WFNN(cfg).params.flat.shape[1]
+    snap = WeightSnapshot(
+        server=server, incarnation=incarnation, version=version, spec_hash=spec or cfg.spec_hash(),
+        published_ns=time.time_ns(), thinks=0, diverged=False, learned_through={},
+        params=np.full((1, n), 0.5) if params is None else params,
+    )  # fmt: skip
+    return Codec(server, key).encode(snap)
+
+
+def test_invalid_snapshots_never_drive_the_robot(tmp_path):
+    hub, cfg = Hub(), small_config()
+    key = b"k" * 32
+    key_file = tmp_path / "key"
+    key_file.write_bytes(key)
+    brain = remote(tmp_path, hub, cfg, key_file=key_file)
+    brain.start()
+    bus = hub.bus()
+    bus.declare_token(KEYS.server_alive("s1"))
+    n = WFNN(cfg).params.flat.shape[1]
+    bad = {
+        "auth": forge(cfg),  # no key
+        "spec": forge(cfg, spec="0123456789abcdef", key=key),
+        "shape": forge(cfg, params=np.zeros((1, n + 1)), key=key),
+        "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=key),
+        "misrouted": Codec("s2", key).encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
+    }
+    for reason, frame in bad.items():  # one at a time: the downlink keeps only the newest per server
+        bus.put(KEYS.weights("s1"), frame, None)
+        assert wait(lambda r=reason: brain.rejected[r] == 1), reason
+    assert brain.current is None
+    bus.put(KEYS.weights("s1"), forge(cfg, version=5, key=key), None)
+    assert wait(lambda: brain.current is not None and brain.current.version == 5)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=4, params=np.zeros((1, n)), key=key), None)
+    assert wait(lambda: brain.rejected["stale"] == 1)
+    assert brain.current.version == 5
+    # A restarted server (next incarnation) starts its versions again.
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=key), None)
+    assert wait(lambda: brain.current.incarnation == 2)
+    brain.stop()
+
+
+def test_lost_frames_are_resent_from_the_journal(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    rng = np.random.default_rng(0)
+    hub.tap = lambda key, data: None if "/exp/live/" in key and rng.random() < 0.4 else data
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg, batch_max=5)
+        brain.start()
+        for i in range(200):
+            x = rng.uniform(-1, 1, 3)
+            brain.learn(Experience(x, rng.uniform(-1, 1, 2), x, -0.1), None)
+            if i % 10 == 0:
+                time.sleep(0.01)
+        assert wait(lambda: server.store.stored_through.get(brain.id) == 199, timeout=20)
+        assert brain.counters["uplink/resent_frames"] > 0
+        assert wait(brain.all_acked)
+        brain.stop()
+    assert server.store.count == 200
+
+
+def test_a_late_server_catches_up_from_the_client(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg, server_id="s1"):
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        rng = np.random.default_rng(1)
+        for _ in range(150):
+            x = rng.uniform(-1, 1, 3)
+            brain.learn(Experience(x, rng.uniform(-1, 1, 2), x, -0.1), None)
+        assert wait(brain.all_acked)
+        with make_server(tmp_path, hub, cfg, server_id="s2") as late:
+            assert wait(lambda: late.store.stored_through.get(brain.id) == 149, timeout=20)
+        brain.stop()
+
+
+def test_the_journal_continues_after_a_client_restart(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg):
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        for _ in range(30):
+            brain.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        brain.stop()
+        again = remote(tmp_path, hub, cfg)
+        assert again.id == brain.id and again.produced_through == 29
+        again.start()
+        for _ in range(5):
+            again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(lambda: listener.acked(brain.id) == 34)
+        again.stop()
+    with pytest.raises(ValueError, match="belongs to client"):
+        remote(tmp_path, hub, cfg, client_id="someone")

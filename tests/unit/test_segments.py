@@ -1,0 +1,296 @@
+import types
+
+import pytest
+
+from wfnn_common import segments
+from wfnn_common.protocol import crc32c
+from wfnn_common.segments import RECORD, LogError, Position, SegmentLog
+
+
+def payloads(n, size=20, tag=b"r"):
+    return [tag + bytes([i % 256]) * size + str(i).encode() for i in range(n)]
+
+
+def seg_path(directory, n):
+    return directory / f"{n:08d}.seg"
+
+
+def read_all(log, start=None):
+    return list(log.read(start))
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 1000.0
+
+    def monotonic(self):
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = FakeClock()
+    monkeypatch.setattr(segments, "time", types.SimpleNamespace(monotonic=fake.monotonic))
+    return fake
+
+
+# --------------------------------------------------------------------------- append and read
+def test_append_read_round_trip_and_positions(tmp_path):
+    records = payloads(10)
+    with SegmentLog(tmp_path, fsync="never") as log:
+        with pytest.raises(LogError):
+            log.append(b"")  # an empty record would be indistinguishable from a zero-filled tail
+        assert log.position == Position(0, 0)
+        positions = [log.append(p) for p in records]
+        expected, offset = [], 0
+        for p in records:
+            expected.append(Position(0, offset))
+            offset += RECORD.size + len(p)
+        assert positions == expected
+        assert log.position == Position(0, offset)
+        assert read_all(log) == list(zip(expected, records, strict=True))
+    assert seg_path(tmp_path, 0).stat().st_size == offset
+    with SegmentLog(tmp_path) as again:
+        assert read_all(again) == list(zip(expected, records, strict=True))
+        assert again.position == Position(0, offset)
+        assert again.recovery.segments == 1 and again.recovery.torn_bytes_cut == 0
+
+
+def test_record_format_on_disk(tmp_path):
+    with SegmentLog(tmp_path) as log:
+        log.append(b"hello")
+    data = seg_path(tmp_path, 0).read_bytes()
+    assert data == RECORD.pack(5, crc32c(b"hello")) + b"hello"
+
+
+def test_empty_directory_reads_nothing(tmp_path):
+    with SegmentLog(tmp_path / "new" / "dir") as log:
+        assert read_all(log) == []
+        assert log.recovery.segments == 0
+        assert log.segment_numbers() == [0]  # the first segment file is created at open
+
+
+def test_rotation_to_new_segments(tmp_path):
+    records = payloads(10, size=40)  # 8 + 42 or 43 bytes each
+    with SegmentLog(tmp_path, segment_bytes=120, fsync="always") as log:
+        positions = [log.append(p) for p in records]
+        assert log.segment_numbers() == [0, 1, 2, 3, 4]
+        assert [p.segment for p in positions] == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4]
+        assert all(p.offset == 0 for p in positions[::2])
+        assert [p.offset for p in positions[1::2]] == [RECORD.size + len(records[i]) for i in range(0, 10, 2)]
+        for n in range(5):
+            assert seg_path(tmp_path, n).stat().st_size <= 120
+        assert read_all(log) == list(zip(positions, records, strict=True))
+    with SegmentLog(tmp_path, segment_bytes=120) as again:
+        assert again.recovery.segments == 5
+        assert [p for _, p in again.read()] == records
+        assert again.append(b"x" * 60) == Position(5, 0)  # segment 4 is full
+        assert again.position.segment == 5
+
+
+def test_record_larger_than_segment_gets_its_own_segment(tmp_path):
+    with SegmentLog(tmp_path, segment_bytes=16) as log:
+        assert log.append(b"a" * 100) == Position(0, 0)  # an empty segment takes any record
+        assert log.append(b"b") == Position(1, 0)
+        assert log.append(b"c" * 50) == Position(2, 0)
+        assert [p for _, p in log.read()] == [b"a" * 100, b"b", b"c" * 50]
+
+
+def test_read_from_a_position(tmp_path):
+    records = payloads(12, size=30)
+    with SegmentLog(tmp_path, segment_bytes=150) as log:
+        positions = [log.append(p) for p in records]
+        assert len(log.segment_numbers()) > 2
+        for i in (0, 1, 4, 5, 11):
+            got = read_all(log, positions[i])
+            assert got == list(zip(positions[i:], records[i:], strict=True))
+        assert read_all(log, log.position) == []
+        seg = positions[5].segment
+        assert [p for _, p in log.read(Position(seg, 0))] == [
+            r for pos, r in zip(positions, records, strict=True) if pos.segment >= seg
+        ]
+
+
+def test_oversized_record_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(segments, "MAX_RECORD", 64)
+    with SegmentLog(tmp_path) as log:
+        log.append(b"x" * 64)
+        with pytest.raises(LogError):
+            log.append(b"x" * 65)
+        assert [p for _, p in log.read()] == [b"x" * 64]
+
+
+# --------------------------------------------------------------------------- torn tails
+@pytest.mark.parametrize("torn", [1, 3, RECORD.size - 1, RECORD.size, RECORD.size + 5])
+def test_torn_partial_record_appended_is_cut_at_reopen(tmp_path, torn):
+    records = payloads(5)
+    with SegmentLog(tmp_path, fsync="always") as log:
+        for p in records:
+            log.append(p)
+        intact_size = log.position.offset
+    partial = RECORD.pack(30, crc32c(b"z" * 30)) + b"z" * 30
+    with open(seg_path(tmp_path, 0), "ab") as f:
+        f.write(partial[:torn])
+    with SegmentLog(tmp_path, fsync="always") as log:
+        assert log.recovery.torn_bytes_cut == torn
+        assert seg_path(tmp_path, 0).stat().st_size == intact_size
+        assert log.position == Position(0, intact_size)
+        assert [p for _, p in log.read()] == records
+        assert log.append(b"after") == Position(0, intact_size)
+        assert [p for _, p in log.read()] == [*records, b"after"]
+    with SegmentLog(tmp_path) as log:
+        assert log.recovery.torn_bytes_cut == 0
+        assert [p for _, p in log.read()] == [*records, b"after"]
+
+
+def test_file_truncated_mid_record_is_cut_at_reopen(tmp_path):
+    records = payloads(6, size=50)
+    with SegmentLog(tmp_path, segment_bytes=200, fsync="always") as log:
+        positions = [log.append(p) for p in records]
+    last = positions[-1]
+    assert last.segment > 0 and last.offset > 0
+    full = seg_path(tmp_path, last.segment).stat().st_size
+    with open(seg_path(tmp_path, last.segment), "r+b") as f:
+        f.truncate(full - 7)
+    with SegmentLog(tmp_path, segment_bytes=200) as log:
+        assert log.recovery.torn_bytes_cut == full - 7 - last.offset
+        assert seg_path(tmp_path, last.segment).stat().st_size == last.offset
+        assert [p for _, p in log.read()] == records[:-1]
+        log.append(b"new")
+        assert [p for _, p in log.read()] == [*records[:-1], b"new"]
+
+
+def test_torn_record_with_bad_crc_is_cut(tmp_path):
+    with SegmentLog(tmp_path) as log:
+        log.append(b"first")
+        log.append(b"second")
+        size = log.position.offset
+    data = bytearray(seg_path(tmp_path, 0).read_bytes())
+    data[-1] ^= 0xFF  # the last record's payload no longer matches its CRC
+    seg_path(tmp_path, 0).write_bytes(bytes(data))
+    with SegmentLog(tmp_path) as log:
+        assert log.recovery.torn_bytes_cut == RECORD.size + len(b"second")
+        assert [p for _, p in log.read()] == [b"first"]
+        assert log.position.offset == size - RECORD.size - len(b"second")
+
+
+def test_absurd_length_in_tail_is_cut(tmp_path):
+    with SegmentLog(tmp_path) as log:
+        log.append(b"ok")
+    with open(seg_path(tmp_path, 0), "ab") as f:
+        f.write(RECORD.pack(0xFFFFFFFF, 0) + b"junk")
+    with SegmentLog(tmp_path) as log:
+        assert log.recovery.torn_bytes_cut == RECORD.size + 4
+        assert [p for _, p in log.read()] == [b"ok"]
+
+
+def test_zero_filled_tail_is_not_read_as_records(tmp_path):
+    with SegmentLog(tmp_path) as log:
+        log.append(b"ok")
+    with open(seg_path(tmp_path, 0), "ab") as f:
+        f.write(b"\0" * 4096)
+    with SegmentLog(tmp_path) as log:
+        assert [p for _, p in log.read()] == [b"ok"]
+
+
+# --------------------------------------------------------------------------- corruption in older segments
+def test_corruption_in_an_older_segment_skips_the_rest_of_it(tmp_path):
+    records = payloads(9, size=40)
+    with SegmentLog(tmp_path, segment_bytes=160, fsync="always") as log:
+        positions = [log.append(p) for p in records]
+    by_segment = {}
+    for pos, p in zip(positions, records, strict=True):
+        by_segment.setdefault(pos.segment, []).append((pos, p))
+    assert len(by_segment) >= 3 and len(by_segment[1]) == 3
+    victim = by_segment[1][1][0]  # the middle record of segment 1
+    path = seg_path(tmp_path, 1)
+    data = bytearray(path.read_bytes())
+    data[victim.offset + RECORD.size + 3] ^= 0x01
+    path.write_bytes(bytes(data))
+
+    with SegmentLog(tmp_path, segment_bytes=160) as log:
+        assert log.recovery.torn_bytes_cut == 0  # only the last segment is checked for a torn tail
+        expected = [p for pos, p in zip(positions, records, strict=True) if pos.segment != 1]
+        expected.insert(len(by_segment[0]), by_segment[1][0][1])
+        assert [p for _, p in log.read()] == expected
+        assert log.recovery.corrupt_segments == 1
+        assert [p for _, p in log.read()] == expected
+        assert log.recovery.corrupt_segments == 1  # counted once, however often it is read
+        assert [p for _, p in log.read(victim)] == [p for pos, p in zip(positions, records, strict=True)
+                                                     if pos.segment > 1]  # fmt: skip
+        assert log.recovery.corrupt_segments == 1
+        log.append(b"more")
+        assert [p for _, p in log.read()] == [*expected, b"more"]
+
+
+def test_two_corrupt_segments_are_counted_separately(tmp_path):
+    with SegmentLog(tmp_path, segment_bytes=40) as log:
+        positions = [log.append(bytes([i]) * 20) for i in range(4)]
+    assert [p.segment for p in positions] == [0, 1, 2, 3]
+    for n in (0, 2):
+        path = seg_path(tmp_path, n)
+        data = bytearray(path.read_bytes())
+        data[-1] ^= 0x80
+        path.write_bytes(bytes(data))
+    with SegmentLog(tmp_path, segment_bytes=40) as log:
+        assert [p for _, p in log.read()] == [bytes([1]) * 20, bytes([3]) * 20]
+        assert log.recovery.corrupt_segments == 2
+
+
+# --------------------------------------------------------------------------- fsync policies
+def test_always_leaves_nothing_to_sync(tmp_path, clock):
+    with SegmentLog(tmp_path, fsync="always", fsync_interval_s=0.0) as log:
+        log.append(b"a")
+        assert not log.due()
+        clock.now += 100
+        assert not log.due()
+        log.append(b"b")
+        assert not log.due()
+
+
+def test_interval_due_only_after_the_interval(tmp_path, clock):
+    with SegmentLog(tmp_path, fsync="interval", fsync_interval_s=0.5) as log:
+        log.append(b"a")
+        assert not log.due()
+        clock.now += 0.4375
+        assert not log.due()
+        clock.now += 0.0625
+        assert log.due()
+        log.sync()
+        assert not log.due()
+        clock.now += 0.25
+        log.append(b"b")
+        assert not log.due()  # the interval counts from the last sync
+        clock.now += 0.25
+        assert log.due()
+
+
+def test_interval_with_nothing_appended_is_never_due(tmp_path, clock):
+    with SegmentLog(tmp_path, fsync="interval", fsync_interval_s=0.5) as log:
+        clock.now += 10
+        assert not log.due()
+
+
+def test_never_is_due_whenever_records_wait(tmp_path, clock):
+    with SegmentLog(tmp_path, fsync="never", fsync_interval_s=100.0) as log:
+        assert not log.due()
+        log.append(b"a")
+        assert log.due()
+        log.sync()
+        assert not log.due()
+
+
+def test_appends_reach_the_file_before_any_sync(tmp_path):
+    with SegmentLog(tmp_path, fsync="never") as log:
+        log.append(b"a")
+        log.append(b"bc")
+        assert log.due()
+        data = seg_path(tmp_path, 0).read_bytes()
+        assert data == RECORD.pack(1, crc32c(b"a")) + b"a" + RECORD.pack(2, crc32c(b"bc")) + b"bc"
+
+
+@pytest.mark.parametrize("policy", ["sometimes", "", "ALWAYS", None])
+def test_invalid_fsync_policy_is_refused(tmp_path, policy):
+    with pytest.raises(ValueError, match="fsync"):
+        SegmentLog(tmp_path / "x", fsync=policy)
+    assert not (tmp_path / "x").exists()

@@ -1,0 +1,227 @@
+import json
+import time
+
+import numpy as np
+import pytest
+
+from tests.fakes import Hub, small_config
+from wfnn_common.protocol import (
+    Ack,
+    ClientStatus,
+    Codec,
+    ExperienceBatch,
+    Keys,
+    ServerStatus,
+    WeightSnapshot,
+)
+from wfnn_server.config import ServerConfig
+from wfnn_server.server import ThinkServer
+
+KEYS = Keys("t")
+
+
+def batch(cfg, first, n, client="c1", seed=0, spec=None):
+    rng = np.random.default_rng(seed + first)
+    s, a = cfg.state_dim, cfg.action_dim
+    return ExperienceBatch(
+        client=client, spec_hash=spec or cfg.spec_hash(), first_seq=first, weights_source="",
+        state=rng.uniform(-1, 1, (n, s)), action=rng.uniform(-1, 1, (n, a)),
+        next_state=rng.uniform(-1, 1, (n, s)), reward=rng.uniform(-1, 0, n),
+        terminal=np.zeros(n, dtype=np.bool_), weights_version=np.zeros(n, dtype=np.uint64),
+        flags=np.zeros(n, dtype=np.uint8),
+    )  # fmt: skip
+
+
+class Listener:
+    """Collects what servers publish."""
+
+    def __init__(self, hub):
+        self.bus = hub.bus()
+        self.codec = Codec("listener")
+        self.acks, self.snapshots, self.statuses = [], [], []
+        self.bus.subscribe(KEYS.ack("*", "*"), lambda k, d: self.acks.append(self.codec.decode(d, Ack)[1]))
+        self.bus.subscribe(
+            KEYS.weights(), lambda k, d: self.snapshots.append(self.codec.decode(d, WeightSnapshot)[1])
+        )
+        self.bus.subscribe(
+            KEYS.server_status(), lambda k, d: self.statuses.append(self.codec.decode(d, ServerStatus)[1])
+        )
+
+    def wait(self, predicate, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(0.005)
+        return False
+
+    def acked(self, client="c1", server="s1"):
+        values = [a.stored_through for a in self.acks if a.client == client and a.server == server]
+        return max(values, default=-1)
+
+
+def make_server(tmp_path, hub, cfg=None, server_id="s1", **kw):
+    config_path = None
+    if cfg is not None:
+        config_path = tmp_path / f"{server_id}-learner.json"
+        config_path.write_text(cfg.to_json())
+    options = {
+        "controller": "t", "server_id": server_id, "data_dir": tmp_path / server_id,
+        "learner_config": config_path, "publish_period_s": 0.05, "status_period_s": 0.05, "fsync": "never",
+    }  # fmt: skip
+    options.update(kw)
+    return ThinkServer(ServerConfig(**options), hub.bus())
+
+
+def send(hub, b, client="c1", key=None):
+    hub.bus().put(KEYS.experiences(client), Codec(client, key).encode(b), None)
+
+
+def test_stores_acknowledges_and_learns(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=7)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 10))
+        assert listener.wait(lambda: listener.acked() == 9)
+        assert listener.wait(lambda: any(s.learned_through.get("c1") == 9 for s in listener.snapshots)), (
+            "no snapshot covering the batch"
+        )
+        snap = next(s for s in listener.snapshots if s.learned_through.get("c1") == 9)
+        assert snap.thinks == 70 and snap.server == "s1" and snap.spec_hash == cfg.spec_hash()
+        assert snap.params.shape == (1, server.learner.params.flat.shape[1])
+        assert server.store.count == 10 and server.learner.buffer.count[0] == 10
+        versions = [s.version for s in listener.snapshots]
+        assert versions == sorted(versions) and len(set(versions)) == len(versions)
+
+
+def test_duplicates_overlaps_and_gaps(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 10))
+        assert listener.wait(lambda: listener.acked() == 9)
+        send(hub, batch(cfg, 0, 10))  # a re-send: dropped, acked again
+        send(hub, batch(cfg, 15, 5))  # a gap: refused, the ack says where to resume
+        assert listener.wait(
+            lambda: server.counters["ingest/gaps"] == 1 and server.counters["ingest/duplicates"] == 1
+        )
+        assert server.store.count == 10
+        send(hub, batch(cfg, 5, 10))  # overlaps 5..9: only 10..14 is new
+        assert listener.wait(lambda: listener.acked() == 14)
+        assert server.store.count == 15
+        assert listener.wait(lambda: server.learner.buffer.count[0] == 15)
+
+
+def test_corrupt_and_misrouted_frames_are_counted_never_learned(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    rng = np.random.default_rng(1)
+    with make_server(tmp_path, hub, cfg) as server:
+        good = Codec("c1").encode(batch(cfg, 0, 4))
+        n = 300
+        for _ in range(n):
+            bad = bytearray(good)
+            bad[int(rng.integers(len(bad)))] ^= 1 << int(rng.integers(8))
+            hub.bus().put(KEYS.experiences("c1"), bytes(bad), None)
+        # A frame whose sender is not the client it carries experiences of.
+        hub.bus().put(KEYS.experiences("c1"), Codec("c2").encode(batch(cfg, 0, 4)), None)
+        # Experiences for a network of another shape.
+        send(hub, batch(cfg, 0, 4, spec="0123456789abcdef"))
+        assert listener.wait(lambda: sum(server.rejected.values()) == n + 2)
+        assert server.rejected["spec"] == 2
+        assert server.store.count == 0 and server.learner.buffer.count[0] == 0
+        send(hub, batch(cfg, 0, 4))
+        assert listener.wait(lambda: listener.acked() == 3)
+
+
+def test_keyed_server_rejects_unauthenticated_frames(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    key_file = tmp_path / "key"
+    key_file.write_text("k" * 32)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, key_file=key_file) as server:
+        send(hub, batch(cfg, 0, 4))
+        send(hub, batch(cfg, 0, 4), key=b"x" * 32)
+        assert listener.wait(lambda: server.rejected["auth"] == 2)
+        assert server.store.count == 0
+        send(hub, batch(cfg, 0, 4), key=b"k" * 32)
+        assert listener.wait(lambda: server.store.count == 4)
+
+
+def test_adopts_the_first_clients_config(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=3, seed=5)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, None, seed=11) as server:
+        send(hub, batch(cfg, 0, 4))
+        assert listener.wait(lambda: server.rejected["no_config"] == 1)
+        status = ClientStatus(
+            client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
+            weights_version=0, produced_through=3, acked={}, metrics={},
+        )  # fmt: skip
+        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        assert listener.wait(lambda: server.learner is not None)
+        assert server.learner_config.seed == 11 and server.learner_config.thinks_per_action == 3
+        send(hub, batch(cfg, 0, 4))
+        assert listener.wait(lambda: listener.acked() == 3)
+    saved = json.loads((tmp_path / "s1" / "learner_config.json").read_text())
+    assert saved["seed"] == 11
+
+
+def test_restart_resumes_checkpoint_and_store(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=5)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 20))
+        assert listener.wait(lambda: any(s.learned_through.get("c1") == 19 for s in listener.snapshots))
+        first_params = None
+    first_params = server.learner.params.flat.copy()
+    version, thinks = server.version, int(server.learner.thinks[0])
+    listener.snapshots.clear()
+    with make_server(tmp_path, hub, cfg) as again:
+        assert again.incarnation == server.incarnation + 1
+        assert again.store.count == 20 and again.learner.buffer.count[0] == 20
+        assert int(again.learner.thinks[0]) == thinks and again.budget == 0
+        np.testing.assert_array_equal(again.learner.params.flat, first_params)
+        assert listener.wait(lambda: bool(listener.snapshots))
+        assert listener.snapshots[0].version > version
+        assert listener.snapshots[0].learned_through["c1"] == 19
+        send(hub, batch(cfg, 20, 5))
+        assert listener.wait(lambda: listener.acked() == 24)
+
+
+def test_experiences_stored_after_the_checkpoint_are_owed_their_thinks(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=4)
+    listener = Listener(hub)
+    server = make_server(tmp_path, hub, cfg).start()
+    send(hub, batch(cfg, 0, 10))
+    assert listener.wait(lambda: any(s.learned_through.get("c1") == 9 for s in listener.snapshots))
+    server.checkpoint()
+    thinks = int(server.learner.thinks[0])
+    server._stop.set()  # stop the threads as a crash would: no final checkpoint
+    for thread in server._threads:
+        thread.join()
+    # Experiences that reached the store after the checkpoint, then the process died.
+    server.store.append(batch(cfg, 10, 6))
+    server.store.close()
+    again = make_server(tmp_path, hub, cfg)
+    assert again.store.count == 16
+    assert int(again.learner.thinks[0]) == thinks and again.budget == 6 * 4
+
+
+def test_divergence_resets_and_flags_snapshots(tmp_path):
+    hub = Hub()
+    cfg = small_config(thinks_per_action=1, divergence_threshold=-2.0, divergence_patience=3)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 10))
+        assert listener.wait(lambda: server.learner.resets[0] >= 1)
+        assert listener.wait(lambda: any(s.diverged for s in listener.snapshots))
+        assert listener.wait(
+            lambda: any(st.metrics.get("learn/divergence_resets", 0) >= 1 for st in listener.statuses)
+        )
+
+
+@pytest.mark.parametrize("bad", [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}])
+def test_server_config_is_checked(tmp_path, bad):
+    with pytest.raises(ValueError):
+        ServerConfig(**{"data_dir": tmp_path, **bad})

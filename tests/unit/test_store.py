@@ -1,0 +1,303 @@
+import dataclasses
+import types
+
+import numpy as np
+import pytest
+
+from wfnn_common import segments
+from wfnn_common.protocol import Codec, ExperienceBatch
+from wfnn_server.store import Admission, ExperienceStore
+
+ARRAYS = ["state", "action", "next_state", "reward", "terminal", "weights_version", "flags"]
+
+
+def batch(first_seq, n, client="robot1", s=3, a=2):
+    """Experience i of a client carries recognisable values derived from (client, i)."""
+    seqs = np.arange(first_seq, first_seq + n)
+    base = seqs.astype(np.float64) + (1000.0 if client != "robot1" else 0.0)
+    return ExperienceBatch(
+        client=client,
+        spec_hash="spec",
+        first_seq=first_seq,
+        weights_source="srv1",
+        state=np.repeat(base[:, None], s, axis=1) + np.arange(s) / 10,
+        action=np.repeat(-base[:, None], a, axis=1),
+        next_state=np.repeat(base[:, None] + 0.5, s, axis=1),
+        reward=-base / 7,
+        terminal=seqs % 3 == 0,
+        weights_version=seqs.astype(np.uint64) * 2,
+        flags=(seqs % 32).astype(np.uint8),
+    )
+
+
+def assert_same_batch(got, want):
+    assert (got.client, got.first_seq, got.spec_hash, got.weights_source) == (
+        want.client, want.first_seq, want.spec_hash, want.weights_source,
+    )  # fmt: skip
+    for name in ARRAYS:
+        g, w = getattr(got, name), getattr(want, name)
+        assert g.dtype == w.dtype and g.shape == w.shape, name
+        np.testing.assert_array_equal(g, w, err_msg=name)
+
+
+def store_all(store, *batches):
+    for b in batches:
+        admitted = store.admit(b)
+        assert admitted.new is not None
+        store.append(admitted.new)
+
+
+def seg_files(directory):
+    return sorted(directory.glob("*.seg"))
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = types.SimpleNamespace(now=500.0)
+    monkeypatch.setattr(segments, "time", types.SimpleNamespace(monotonic=lambda: fake.now))
+    return fake
+
+
+# --------------------------------------------------------------------------- admission
+def test_admit_new_batch_from_an_empty_store(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    b = batch(0, 5)
+    admitted = store.admit(b)
+    assert admitted.new is b and not admitted.duplicate and not admitted.gap
+    assert store.stored_through == {} and store.count == 0  # admit writes nothing
+    assert list(store.batches()) == []
+    store.close()
+
+
+def test_admit_first_batch_must_start_at_zero(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    assert store.admit(batch(1, 5)) == Admission(None, gap=True)
+    store.close()
+
+
+def test_admit_duplicate_overlap_and_gap(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    store_all(store, batch(0, 10))
+    assert store.stored_through == {"robot1": 9} and store.count == 10
+
+    for dup in (batch(0, 10), batch(3, 4), batch(9, 1), batch(0, 1)):
+        assert store.admit(dup) == Admission(None, duplicate=True)
+
+    overlap = store.admit(batch(6, 8))  # 6..13: 10..13 are new
+    assert not overlap.duplicate and not overlap.gap
+    assert overlap.new.first_seq == 10 and overlap.new.last_seq == 13 and len(overlap.new) == 4
+    assert_same_batch(overlap.new, batch(10, 4))
+
+    edge = store.admit(batch(9, 2))  # 9..10: only 10 is new
+    assert edge.new.first_seq == 10 and len(edge.new) == 1
+
+    follow = batch(10, 3)
+    assert store.admit(follow).new is follow
+
+    for gap in (batch(11, 2), batch(50, 1)):
+        assert store.admit(gap) == Admission(None, gap=True)
+    assert store.stored_through == {"robot1": 9} and store.count == 10
+    store.close()
+
+
+def test_append_stores_overlap_remainder_and_advances(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    store_all(store, batch(0, 10), batch(6, 8))
+    assert store.stored_through == {"robot1": 13} and store.count == 14
+    stored = list(store.batches())
+    assert [(b.first_seq, len(b)) for b in stored] == [(0, 10), (10, 4)]
+    store.close()
+
+
+@pytest.mark.parametrize("first_seq", [0, 5, 11, 12])
+def test_append_refuses_a_batch_that_does_not_continue_the_run(tmp_path, first_seq):
+    store = ExperienceStore(tmp_path, "srv1")
+    store_all(store, batch(0, 10))
+    size = store.log.position
+    with pytest.raises(ValueError, match="robot1"):
+        store.append(batch(first_seq, 3))
+    assert store.stored_through == {"robot1": 9} and store.count == 10
+    assert store.log.position == size  # nothing written
+    store.append(batch(10, 1))
+    assert store.stored_through == {"robot1": 10}
+    store.close()
+
+
+def test_append_refuses_a_first_batch_not_starting_at_zero(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    with pytest.raises(ValueError):
+        store.append(batch(3, 2))
+    assert store.stored_through == {} and list(store.batches()) == []
+    store.close()
+
+
+# --------------------------------------------------------------------------- durability
+def test_sync_returns_clients_whose_durable_point_moved(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1", fsync="never")
+    assert store.sync() == {}
+    store_all(store, batch(0, 5, "robot1"), batch(0, 3, "robot2"))
+    assert store.durable_through == {}
+    assert store.sync() == {"robot1": 4, "robot2": 2}
+    assert store.durable_through == {"robot1": 4, "robot2": 2}
+    assert store.sync() == {}
+    store_all(store, batch(3, 2, "robot2"))
+    assert store.sync() == {"robot2": 4}
+    assert store.durable_through == {"robot1": 4, "robot2": 4}
+    store.close()
+
+
+def test_due_under_interval_policy(tmp_path, clock):
+    store = ExperienceStore(tmp_path, "srv1", fsync="interval", fsync_interval_s=0.5)
+    assert not store.due()
+    store_all(store, batch(0, 2))
+    assert not store.due()
+    clock.now += 0.25
+    assert not store.due()
+    clock.now += 0.25
+    assert store.due()
+    assert store.sync() == {"robot1": 1}
+    assert not store.due()
+    clock.now += 10
+    assert not store.due()  # nothing new stored
+    store_all(store, batch(2, 1))
+    assert store.due()  # the last sync was long ago
+    store.sync()
+    store_all(store, batch(3, 1))
+    assert not store.due()
+    store.close()
+
+
+def test_due_under_never_policy(tmp_path, clock):
+    store = ExperienceStore(tmp_path, "srv1", fsync="never", fsync_interval_s=100.0)
+    assert not store.due()
+    store_all(store, batch(0, 2))
+    assert store.due()  # no interval to wait for
+    assert store.sync() == {"robot1": 1}
+    assert not store.due()
+    store.close()
+
+
+def test_due_under_always_policy_until_acknowledged(tmp_path, clock):
+    store = ExperienceStore(tmp_path, "srv1", fsync="always")
+    store_all(store, batch(0, 2))
+    assert not store.log.due()  # already fsynced by append
+    assert store.due()  # but not yet reported as durable
+    assert store.sync() == {"robot1": 1}
+    assert not store.due()
+    store.close()
+
+
+# --------------------------------------------------------------------------- reopening
+def test_reopen_rebuilds_counters_and_batches(tmp_path):
+    written = [batch(0, 4), batch(0, 3, "robot2"), batch(4, 6), batch(3, 2, "robot2"), batch(10, 1)]
+    store = ExperienceStore(tmp_path, "srv1", segment_bytes=2000)
+    store_all(store, *written)
+    store.close()
+    assert len(seg_files(tmp_path)) > 1  # the rebuild crosses segment files
+
+    again = ExperienceStore(tmp_path, "srv2", segment_bytes=2000)
+    assert again.stored_through == {"robot1": 10, "robot2": 4}
+    assert again.durable_through == {"robot1": 10, "robot2": 4}
+    assert again.count == 16 and again.unreadable == 0
+    assert not again.due() and again.sync() == {}
+    stored = list(again.batches())
+    assert len(stored) == len(written)
+    for got, want in zip(stored, written, strict=True):
+        assert_same_batch(got, want)
+    assert again.admit(batch(5, 3)) == Admission(None, duplicate=True)
+    assert again.admit(batch(12, 1)) == Admission(None, gap=True)
+    store_all(again, batch(11, 2))
+    again.close()
+
+    third = ExperienceStore(tmp_path, "srv1", segment_bytes=2000)
+    assert third.stored_through == {"robot1": 12, "robot2": 4} and third.count == 18
+    assert [(b.client, b.first_seq) for b in third.batches()][-1] == ("robot1", 11)
+    third.close()
+
+
+def test_reopen_empty_store(tmp_path):
+    ExperienceStore(tmp_path, "srv1").close()
+    store = ExperienceStore(tmp_path, "srv1")
+    assert store.stored_through == {} and store.count == 0 and list(store.batches()) == []
+    store.close()
+
+
+def test_torn_tail_is_cut_on_reopen_without_losing_earlier_batches(tmp_path):
+    written = [batch(0, 4), batch(4, 4), batch(8, 4)]
+    store = ExperienceStore(tmp_path, "srv1", fsync="always")
+    store_all(store, *written)
+    store.close()
+    (path,) = seg_files(tmp_path)
+    intact = path.stat().st_size
+    torn = Codec("srv1").encode(batch(12, 4))
+    torn_record = segments.RECORD.pack(len(torn), segments.crc32c(torn)) + torn
+    with open(path, "ab") as f:
+        f.write(torn_record[: len(torn_record) // 2])
+
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.log.recovery.torn_bytes_cut == len(torn_record) // 2
+    assert path.stat().st_size == intact
+    assert again.stored_through == {"robot1": 11} and again.count == 12 and again.unreadable == 0
+    for got, want in zip(again.batches(), written, strict=True):
+        assert_same_batch(got, want)
+    assert again.admit(batch(12, 4)).new is not None
+    store_all(again, batch(12, 4))
+    again.close()
+    third = ExperienceStore(tmp_path, "srv1")
+    assert third.stored_through == {"robot1": 15} and third.log.recovery.torn_bytes_cut == 0
+    third.close()
+
+
+def test_last_batch_cut_mid_record_is_forgotten_and_can_be_resent(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1", fsync="always")
+    store_all(store, batch(0, 4))
+    last_at = store.log.position.offset
+    store_all(store, batch(4, 4))
+    store.close()
+    (path,) = seg_files(tmp_path)
+    size = path.stat().st_size
+    with open(path, "r+b") as f:
+        f.truncate(size - 10)
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.log.recovery.torn_bytes_cut == size - 10 - last_at
+    assert again.stored_through == {"robot1": 3} and again.count == 4
+    assert again.admit(batch(0, 8)).new.first_seq == 4  # the client re-sends from its ack
+    again.close()
+
+
+def test_records_that_are_not_batches_are_counted_and_skipped(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    store_all(store, batch(0, 2))
+    store.log.append(b"not a frame")
+    frame = Codec("x").encode(dataclasses.replace(batch(0, 1), client="other"))
+    store.log.append(b"XXXX" + frame[4:])  # intact record, but not a wfnn frame
+    store_all(store, batch(2, 2))
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.unreadable == 2
+    assert again.stored_through == {"robot1": 3} and again.count == 4
+    again.close()
+
+
+# --------------------------------------------------------------------------- several clients
+def test_interleaved_clients_keep_separate_counters(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    store_all(store, batch(0, 3, "a"), batch(0, 5, "b"), batch(3, 2, "a"))
+    assert store.stored_through == {"a": 4, "b": 4} and store.count == 10
+    assert store.admit(batch(0, 5, "b")).duplicate
+    assert store.admit(batch(5, 1, "a")).new is not None
+    assert store.admit(batch(6, 1, "b")).gap
+    overlap = store.admit(batch(3, 4, "b"))
+    assert overlap.new.client == "b" and overlap.new.first_seq == 5 and len(overlap.new) == 2
+    store.append(overlap.new)
+    with pytest.raises(ValueError):
+        store.append(batch(7, 1, "a"))  # "a" continues at 5
+    assert store.stored_through == {"a": 4, "b": 6} and store.count == 12
+    store.close()
+
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.stored_through == {"a": 4, "b": 6} and again.count == 12
+    assert [(b.client, b.first_seq, len(b)) for b in again.batches()] == [
+        ("a", 0, 3), ("b", 0, 5), ("a", 3, 2), ("b", 5, 2),
+    ]  # fmt: skip
+    again.close()

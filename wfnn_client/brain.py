@@ -1,0 +1,168 @@
+"""The robot side's learner roles: `act` on the current weights, `learn` (record/send) experiences.
+
+    brain.start()
+    while running:
+        acted = brain.act(x)                # None: no valid weights yet -> the safe action
+        ... execute, observe x_next, r ...
+        brain.learn(Experience(x, u, x_next, r, ...), acted)
+        brain.sync()                        # lock-step runs only: wait for the thinks
+    brain.stop()
+
+`LocalBrain` thinks in this process (act-learn-think-MT, or act-learn-think in lock-step);
+`wfnn_client.remote.RemoteBrain` sends experiences to think servers over the bus
+(act-learn-think-C/S).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wfnn_common.architectures import ActLearnThinkMT
+from wfnn_common.learner import WFNN, ActResult
+
+FloatArray = NDArray[np.float64]
+
+
+class Acted(NamedTuple):
+    """An action chosen by `act`, and the weights that chose it."""
+
+    result: ActResult
+    source: str
+    """Who made the weights: a server id and incarnation ("srv:3"), or "local"."""
+    version: int
+    """Version of the snapshot from `source`."""
+
+
+@dataclass(frozen=True)
+class Experience:
+    """One experience in physical units, as executed, with its EXP_* flags."""
+
+    state: FloatArray
+    action: FloatArray
+    next_state: FloatArray
+    reward: float
+    terminal: bool = False
+    flags: int = 0
+
+
+class Brain(Protocol):
+    """What the control loop needs from the learner (see the module docstring)."""
+
+    @property
+    def following(self) -> str:
+        """Whose weights `act` uses ("" when none)."""
+        ...
+
+    @property
+    def connected(self) -> bool:
+        """Whether the weights come from a healthy source right now."""
+        ...
+
+    def start(self) -> None:
+        """Start background work."""
+        ...
+
+    def stop(self) -> None:
+        """Stop background work, flushing what must be kept."""
+        ...
+
+    def act(self, state: FloatArray, explore: bool = True) -> Acted | None:
+        """The learner's action for `state`, or None when no valid weights exist."""
+        ...
+
+    def learn(self, experience: Experience, acted: Acted | None) -> None:
+        """Record an experience; never blocks the tick. `acted`: what chose its action."""
+        ...
+
+    def sync(self, timeout_s: float) -> bool:
+        """Lock-step: wait until every learned experience has had its thinks; False on timeout."""
+        ...
+
+    def metrics(self) -> dict[str, float]:
+        """Namespaced figures of the brain."""
+        ...
+
+    def report(self, metrics: dict[str, Any]) -> None:
+        """Figures of the control loop to pass on (numbers go into the client's status heartbeat)."""
+        ...
+
+    def check(self) -> None:
+        """Raise if background work has failed."""
+        ...
+
+
+class LocalBrain:
+    """Thinking in this process: a background think thread, or inline in lock-step mode."""
+
+    def __init__(self, learner: WFNN, lockstep: bool = False, think_batch: int = 50) -> None:
+        self.learner = learner
+        self.lockstep = lockstep
+        self.mt = None if lockstep else ActLearnThinkMT(learner, think_batch=think_batch)
+
+    @property
+    def following(self) -> str:
+        """Always the in-process learner."""
+        return "local"
+
+    @property
+    def connected(self) -> bool:
+        """The in-process learner is always there."""
+        return True
+
+    def start(self) -> None:
+        """Start the think thread (none in lock-step)."""
+        if self.mt is not None:
+            self.mt.start()
+
+    def stop(self) -> None:
+        """Stop the think thread."""
+        if self.mt is not None:
+            self.mt.stop()
+
+    def act(self, state: FloatArray, explore: bool = True) -> Acted | None:
+        """Best wire of the newest snapshot (lock-step: of the learner itself)."""
+        if self.mt is None:
+            return Acted(self.learner.act(state, explore), "local", int(self.learner.thinks[0]))
+        return Acted(self.mt.act(state, explore), "local", self.mt.version)
+
+    def learn(self, experience: Experience, acted: Acted | None) -> None:
+        """Queue for the think thread, or learn and think now (lock-step)."""
+        e = experience
+        if self.mt is None:
+            self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
+            self.learner.think()
+        else:
+            self.mt.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
+
+    def sync(self, timeout_s: float) -> bool:
+        """Lock-step thinks happen inside `learn`; the threaded brain waits for its queue to drain."""
+        if self.mt is None:
+            return True
+        deadline = time.monotonic() + timeout_s
+        while self.mt.queued or self.mt.budget > 0:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.0005)
+        return True
+
+    def metrics(self) -> dict[str, float]:
+        """Thinks, snapshots and resets."""
+        return {
+            "think/thinks": float(self.learner.thinks.sum()),
+            "weights/version": float(self.mt.version if self.mt else self.learner.thinks[0]),
+            "learn/divergence_resets": float(self.learner.resets.sum()),
+            "learn/experiences": float(self.learner.buffer.count[0]),
+        }
+
+    def report(self, metrics: dict[str, Any]) -> None:
+        """Nobody to tell in-process."""
+
+    def check(self) -> None:
+        """Raise the think thread's error, if any."""
+        if self.mt is not None and self.mt.error is not None:
+            raise RuntimeError("think thread failed") from self.mt.error

@@ -1,0 +1,584 @@
+"""act-learn-think-C/S, robot side: experiences up to think servers, weight snapshots down.
+
+    tick (caller):  act on the current snapshot (numpy) -> learn() appends to a deque
+    uplink thread:  deque -> batches (sequence numbers, weights version) -> journal -> publish;
+                    acks per server; re-send from the journal what a server has not
+                    acknowledged in time (lost frames, a restarted or late-joining server)
+    downlink thread: snapshots (CRC/MAC, spec, shape, finite, monotonic version) per server;
+                    follow one server and fail over when it is gone, silent or diverged;
+                    swap the weights `act` uses in one reference assignment
+
+Bus callbacks only put bytes on queues. Nothing here can block the tick.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wfnn_client.brain import Acted, Experience
+from wfnn_client.journal import Journal
+from wfnn_common.learner import WFNN
+from wfnn_common.net import Bus, Channel
+from wfnn_common.network import Params, Shapes
+from wfnn_common.protocol import (
+    EXP_EXPLORED,
+    Ack,
+    ClientStatus,
+    Codec,
+    ExperienceBatch,
+    Keys,
+    ProtocolError,
+    ServerStatus,
+    WeightSnapshot,
+    check_id,
+    decode,
+    load_key,
+)
+from wfnn_common.segments import FsyncPolicy
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RemoteConfig:
+    """How the client reaches its think servers."""
+
+    controller: str = "default"
+    client_id: str | None = None
+    """Client id (default: the journal's, or a new random one)."""
+    journal_dir: Path = Path("runs/latest/journal")
+    key_file: Path | None = None
+    follow: str | None = None
+    """Pin this server id; None follows the longest-alive healthy server."""
+    batch_max: int = 256
+    """Experiences per batch at most."""
+    batch_period_s: float = 0.01
+    """A batch waits at most this long for more experiences (lock-step: not at all)."""
+    resend_after_s: float = 1.0
+    """A server that has not acknowledged an experience this long after it was sent is sent it
+    again from the journal (also how a restarted or late server catches up)."""
+    resend_window: int = 64
+    """Frames per re-send round (the next round starts when they are acknowledged)."""
+    snapshot_timeout_s: float = 1.5
+    """A followed server with no valid snapshot for this long is unhealthy (a silent peer)."""
+    diverged_hold_s: float = 10.0
+    """How long a server whose weights diverged here is passed over."""
+    status_period_s: float = 0.5
+    journal_fsync: FsyncPolicy = "interval"
+    lockstep: bool = False
+
+    def __post_init__(self) -> None:
+        check_id(self.controller, "controller name")
+        if self.client_id is not None:
+            check_id(self.client_id, "client id")
+        if self.follow is not None:
+            check_id(self.follow, "server id")
+
+
+@dataclass
+class Weights:
+    """A validated snapshot ready for `act`."""
+
+    params: Params
+    server: str
+    incarnation: int
+    version: int
+    published_ns: int
+    diverged: bool
+    learned_through: dict[str, int]
+    received: float
+    """time.monotonic() at arrival."""
+
+    @property
+    def source(self) -> str:
+        """`server:incarnation`, as carried by experiences."""
+        return f"{self.server}:{self.incarnation}"
+
+
+@dataclass
+class ServerView:
+    """What this client knows of one server."""
+
+    server: str
+    alive: bool = False
+    started_ns: int = 0
+    spec_hash: str = ""
+    incarnation: int = 0
+    acked: int = -1
+    """Every experience numbered <= this is stored there."""
+    latest: Weights | None = None
+    suspect_until: float = 0.0
+    metrics: dict[str, float] = field(default_factory=dict)
+    """Figures from its latest status."""
+    window_end: int = -1
+    """Last experience of the current re-send round."""
+    last_resend: float = 0.0
+
+
+@dataclass
+class _Pending:
+    experience: Experience
+    source: str
+    version: int
+    t: float = field(default_factory=time.monotonic)
+
+
+class RemoteBrain:
+    """Robot side of act-learn-think-C/S over a `Bus` (see the module docstring)."""
+
+    def __init__(self, learner: WFNN, config: RemoteConfig, bus: Bus, initial: Params | None = None) -> None:
+        self.learner = learner
+        self.config = config
+        self.bus = bus
+        self.keys = Keys(config.controller)
+        self.journal = Journal(config.journal_dir, config.client_id, fsync=config.journal_fsync)
+        self.id = self.journal.client_id
+        self.codec = Codec(self.id, load_key(str(config.key_file) if config.key_file else None))
+        self.spec_hash = learner.config.spec_hash()
+        self._config_json = learner.config.to_json()
+        self._shapes = Shapes.of(learner.config)
+        self._pending: collections.deque[_Pending] = collections.deque()
+        self._wake_up = threading.Event()
+        self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._statuses: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._presence: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
+        self._snapshots: dict[str, bytes] = {}
+        """Newest unprocessed snapshot frame per server (a ring of one)."""
+        self._wake_down = threading.Event()
+        self._lock = threading.Lock()
+        self.servers: dict[str, ServerView] = {}
+        self.current: Weights | None = None
+        """The weights `act` uses; replaced by one reference assignment."""
+        if initial is not None:  # saved weights drive the robot until a server's snapshot arrives
+            self.current = Weights(initial, "file", 0, 0, time.time_ns(), False, {}, time.monotonic())
+        self._following = ""
+        self._connected = False
+        self._learned = threading.Condition()
+        self._sent: collections.deque[tuple[float, int]] = collections.deque()
+        self._overdue = -1
+        self.produced_through = self.journal.next_seq - 1
+        self.rejected: Counter[str] = Counter()
+        self.counters: Counter[str] = Counter()
+        self.apply_latency_ms: list[float] = []
+        self.staleness_s: list[float] = []
+        self.failovers: list[dict[str, Any]] = []
+        self._lost_at: float | None = None
+        self._loop_metrics: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.error: BaseException | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def following(self) -> str:
+        """The server whose snapshots `act` uses ("" before the first)."""
+        return self._following
+
+    @property
+    def connected(self) -> bool:
+        """Whether a healthy server is followed (False before the first and during outages)."""
+        return self._connected
+
+    def start(self) -> None:
+        """Subscribe, announce this client, and start the uplink and downlink threads."""
+        bus, keys = self.bus, self.keys
+        bus.subscribe(keys.ack(self.id), self._on_ack)
+        bus.subscribe(keys.server_status(), self._on_status)
+        bus.subscribe(keys.weights(), self._on_snapshot)
+        bus.watch_presence(keys.server_alive(), self._on_presence)
+        bus.declare_token(keys.client_alive(self.id))
+        for name, target in (("uplink", self._uplink_loop), ("downlink", self._downlink_loop)):
+            thread = threading.Thread(target=self._guard(target), name=f"wfnn-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        log.info("client %s: controller %s, journal continues at %d", self.id, self.config.controller,
+                 self.journal.next_seq)  # fmt: skip
+
+    # Bus callbacks: hand over and return.
+    def _on_ack(self, key: str, data: bytes) -> None:
+        self._acks.put(data)
+        self._wake_up.set()
+
+    def _on_status(self, key: str, data: bytes) -> None:
+        self._statuses.put(data)
+        self._wake_down.set()
+
+    def _on_presence(self, key: str, alive: bool) -> None:
+        self._presence.put((Keys.last(key), alive))
+        self._wake_down.set()
+
+    def _on_snapshot(self, key: str, data: bytes) -> None:
+        self._snapshots[Keys.last(key)] = data
+        self._wake_down.set()
+
+    def _guard(self, target: Any) -> Any:
+        def run() -> None:
+            try:
+                target()
+            except BaseException as exc:
+                self.error = exc
+                log.exception("client thread failed")
+
+        return run
+
+    def stop(self, flush_timeout_s: float = 2.0) -> None:
+        """Send what is queued, wait briefly for acks, stop the threads, close the journal and the bus."""
+        deadline = time.monotonic() + flush_timeout_s
+        while self._pending and time.monotonic() < deadline and self.error is None:
+            time.sleep(0.005)
+        while time.monotonic() < deadline and self.error is None and not self.all_acked():
+            if not self._live_servers():  # nobody to wait for: the journal keeps the rest
+                break
+            time.sleep(0.01)
+        self._stop.set()
+        self._wake_up.set()
+        self._wake_down.set()
+        for thread in self._threads:
+            thread.join(timeout=10)
+        self._threads.clear()
+        self.journal.close()
+        self.bus.close()
+
+    def check(self) -> None:
+        """Raise if a background thread failed."""
+        if self.error is not None:
+            raise RuntimeError("client thread failed") from self.error
+
+    def _live_servers(self) -> bool:
+        with self._lock:
+            return any(v.alive for v in self.servers.values())
+
+    def all_acked(self) -> bool:
+        """Whether some live server has stored everything produced so far."""
+        with self._lock:
+            return any(v.alive and v.acked >= self.produced_through for v in self.servers.values())
+
+    # ------------------------------------------------------------------ tick side
+    def act(self, state: Any, explore: bool = True) -> Acted | None:
+        """Action from the current snapshot, or None when no valid weights exist yet."""
+        weights = self.current
+        if weights is None:
+            return None
+        result = self.learner.act(state, explore, params=weights.params)
+        self.staleness_s.append((time.time_ns() - weights.published_ns) / 1e9)
+        if len(self.staleness_s) > 100_000:
+            del self.staleness_s[:50_000]
+        if result.diverged:
+            with self._lock:
+                view = self.servers.get(weights.server)
+                if view is not None:
+                    view.suspect_until = time.monotonic() + self.config.diverged_hold_s
+            self._wake_down.set()
+        return Acted(result, weights.source, weights.version)
+
+    def learn(self, experience: Experience, acted: Acted | None) -> None:
+        """Queue an experience for the uplink (never blocks)."""
+        flags = experience.flags | (EXP_EXPLORED if acted is not None and acted.result.explored else 0)
+        if flags != experience.flags:
+            experience = Experience(experience.state, experience.action, experience.next_state,
+                                    experience.reward, experience.terminal, flags)  # fmt: skip
+        source, version = (acted.source, acted.version) if acted is not None else ("", 0)
+        self._pending.append(_Pending(experience, source, version))
+        self.produced_through += 1
+        self._wake_up.set()
+
+    def sync(self, timeout_s: float) -> bool:
+        """Wait until the followed server's applied snapshot has learned everything produced."""
+        target = self.produced_through
+        deadline = time.monotonic() + timeout_s
+        with self._learned:
+            while True:
+                w = self.current
+                if w is not None and w.learned_through.get(self.id, -1) >= target:
+                    return True
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self.error is not None:
+                    self.counters["lockstep/timeouts"] += 1
+                    return False
+                self._learned.wait(min(remaining, 0.1))
+
+    def report(self, metrics: dict[str, Any]) -> None:
+        """Control-loop figures for the status heartbeat."""
+        self._loop_metrics = {k: float(v) for k, v in metrics.items() if isinstance(v, int | float)}
+
+    def metrics(self) -> dict[str, float]:
+        """Transport figures: snapshot latency, staleness, acks, rejections, failovers."""
+        out: dict[str, float] = {
+            "uplink/produced_through": float(self.produced_through),
+            "weights/version": float(self.current.version if self.current else 0),
+            "downlink/failovers": float(len(self.failovers)),
+            **{f"downlink/rejected_{k}": float(v) for k, v in self.rejected.items()},
+            **{k: float(v) for k, v in self.counters.items()},
+        }
+        with self._lock:
+            acked = [v.acked for v in self.servers.values() if v.alive]
+            followed = self.servers.get(self._following)
+            if followed is not None:
+                out.update({f"server/{k}": v for k, v in followed.metrics.items()})
+        out["uplink/acked_through_max"] = float(max(acked)) if acked else -1.0
+        for name, values in (("downlink/snapshot_latency_ms", self.apply_latency_ms),
+                             ("weights/staleness_s", self.staleness_s)):  # fmt: skip
+            if values:
+                arr = np.asarray(values[-10_000:])
+                out[f"{name}_p50"] = float(np.percentile(arr, 50))
+                out[f"{name}_p99"] = float(np.percentile(arr, 99))
+        return out
+
+    # ------------------------------------------------------------------ uplink thread
+    def _uplink_loop(self) -> None:
+        cfg = self.config
+        next_status = 0.0
+        while True:
+            stopping = self._stop.is_set()
+            self._wake_up.wait(timeout=0.005)
+            self._wake_up.clear()
+            while self._pending:
+                oldest = self._pending[0].t
+                if not (stopping or cfg.lockstep or len(self._pending) >= cfg.batch_max
+                        or time.monotonic() - oldest >= cfg.batch_period_s):  # fmt: skip
+                    break
+                self._send_batch()
+            self._take_acks()
+            self._resend()
+            if self.journal.log.due():
+                self.journal.sync()
+            now = time.monotonic()
+            if now >= next_status:
+                self._publish_status()
+                next_status = now + cfg.status_period_s
+            if stopping and not self._pending:
+                return
+
+    def _send_batch(self) -> None:
+        """Take up to batch_max queued experiences with one weights source; journal and publish."""
+        first = self._pending[0]
+        items: list[_Pending] = []
+        while (
+            self._pending and len(items) < self.config.batch_max and self._pending[0].source == first.source
+        ):
+            items.append(self._pending.popleft())
+        seq = self.journal.next_seq
+        e = [p.experience for p in items]
+        batch = ExperienceBatch(
+            client=self.id, spec_hash=self.spec_hash, first_seq=seq, weights_source=first.source,
+            state=np.stack([x.state for x in e]), action=np.stack([x.action for x in e]),
+            next_state=np.stack([x.next_state for x in e]), reward=np.array([x.reward for x in e]),
+            terminal=np.array([x.terminal for x in e], dtype=np.bool_),
+            weights_version=np.array([p.version for p in items], dtype=np.uint64),
+            flags=np.array([x.flags for x in e], dtype=np.uint8),
+        )  # fmt: skip
+        frame = self.codec.encode(batch)
+        self.journal.append(frame, batch.last_seq)
+        self.bus.put(self.keys.experiences(self.id), frame, Channel.DATA)
+        self._sent.append((time.monotonic(), batch.last_seq))
+        self.counters["uplink/batches"] += 1
+
+    def _take_acks(self) -> None:
+        while True:
+            try:
+                data = self._acks.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                sender, ack = self.codec.decode(data, Ack)
+            except ProtocolError as exc:
+                self.rejected[f"ack_{exc.reason}"] += 1
+                continue
+            if ack.client != self.id or sender != ack.server:
+                self.rejected["ack_misrouted"] += 1
+                continue
+            self._acked(ack.server, ack.incarnation, ack.stored_through)
+
+    def _acked(self, server: str, incarnation: int, through: int) -> None:
+        with self._lock:
+            view = self.servers.setdefault(server, ServerView(server))
+            if incarnation != view.incarnation:  # a restarted server may have lost data: believe it
+                view.incarnation, view.acked = incarnation, through
+            else:
+                view.acked = max(view.acked, through)
+
+    def _resend(self) -> None:
+        """Re-send from the journal to live servers missing experiences sent long enough ago."""
+        cfg = self.config
+        now = time.monotonic()
+        while self._sent and now - self._sent[0][0] >= cfg.resend_after_s:
+            self._overdue = self._sent.popleft()[1]
+        with self._lock:
+            views = [v for v in self.servers.values() if v.alive and v.spec_hash in ("", self.spec_hash)]
+        for view in views:
+            if view.acked >= self._overdue:
+                continue
+            window_done = view.acked >= view.window_end
+            if not window_done and now - view.last_resend < cfg.resend_after_s:
+                continue
+            frames = self.journal.frames_from(view.acked + 1, cfg.resend_window)
+            if not frames:
+                continue
+            for frame in frames:
+                self.bus.put(self.keys.resend(view.server, self.id), frame, Channel.DATA)
+            view.last_resend = now
+            view.window_end = min(self.journal.next_seq - 1, self._frame_end(frames[-1]))
+            self.counters["uplink/resent_frames"] += len(frames)
+            log.info("re-sent %d batches from experience %d to server %s", len(frames), view.acked + 1,
+                     view.server)  # fmt: skip
+
+    @staticmethod
+    def _frame_end(frame: bytes) -> int:
+        """Last experience number of a journaled frame (journal frames passed their CRC at open)."""
+        batch = decode(frame, expect=ExperienceBatch).message
+        assert isinstance(batch, ExperienceBatch)
+        return batch.last_seq
+
+    def _publish_status(self) -> None:
+        with self._lock:
+            acked = {v.server: v.acked for v in self.servers.values()}
+        weights = self.current
+        status = ClientStatus(
+            client=self.id, spec_hash=self.spec_hash, learner_config=self._config_json,
+            following=self._following, weights_version=weights.version if weights else 0,
+            produced_through=self.produced_through, acked=acked,
+            metrics={**self._loop_metrics, **self.metrics()},
+        )  # fmt: skip
+        self.bus.put(self.keys.client_status(self.id), self.codec.encode(status), Channel.LATEST)
+
+    # ------------------------------------------------------------------ downlink thread
+    def _downlink_loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake_down.wait(timeout=0.02)
+            self._wake_down.clear()
+            self._take_presence()
+            self._take_statuses()
+            for server in list(self._snapshots):
+                data = self._snapshots.pop(server, None)
+                if data is not None:
+                    self._take_snapshot(data)
+            self._choose()
+
+    def _take_presence(self) -> None:
+        while True:
+            try:
+                server, alive = self._presence.get_nowait()
+            except queue.Empty:
+                return
+            with self._lock:
+                view = self.servers.setdefault(server, ServerView(server))
+                view.alive = alive
+            log.info("server %s %s", server, "is alive" if alive else "is gone")
+
+    def _take_statuses(self) -> None:
+        while True:
+            try:
+                data = self._statuses.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                sender, status = self.codec.decode(data, ServerStatus)
+            except ProtocolError as exc:
+                self.rejected[f"status_{exc.reason}"] += 1
+                continue
+            if sender != status.server:
+                self.rejected["status_misrouted"] += 1
+                continue
+            with self._lock:
+                view = self.servers.setdefault(status.server, ServerView(status.server))
+                view.started_ns, view.spec_hash = status.started_ns, status.spec_hash
+                view.metrics = status.metrics
+            if self.id in status.stored_through:
+                self._acked(status.server, status.incarnation, status.stored_through[self.id])
+
+    def _take_snapshot(self, data: bytes) -> None:
+        try:
+            sender, snap = self.codec.decode(data, WeightSnapshot)
+        except ProtocolError as exc:
+            self.rejected[exc.reason] += 1
+            return
+        reason = self._invalid(sender, snap)
+        if reason:
+            self.rejected[reason] += 1
+            log.debug("snapshot from %s rejected: %s", sender, reason)
+            return
+        weights = Weights(
+            Params(np.ascontiguousarray(snap.params, dtype=np.float64), self._shapes), snap.server,
+            snap.incarnation, snap.version, snap.published_ns, snap.diverged, snap.learned_through,
+            time.monotonic(),
+        )  # fmt: skip
+        with self._lock:
+            view = self.servers.setdefault(snap.server, ServerView(snap.server))
+            view.latest = weights
+            if not view.spec_hash:
+                view.spec_hash = snap.spec_hash
+
+    def _invalid(self, sender: str, snap: WeightSnapshot) -> str:
+        """Why a decoded snapshot must not drive the robot ("" when it may)."""
+        if sender != snap.server:
+            return "misrouted"
+        if snap.spec_hash != self.spec_hash:
+            if self.counters["downlink/spec_warned_" + snap.server] == 0:
+                self.counters["downlink/spec_warned_" + snap.server] = 1
+                log.error("server %s publishes weights for spec %s; this client is spec %s: ignored",
+                          snap.server, snap.spec_hash, self.spec_hash)  # fmt: skip
+            return "spec"
+        if snap.params.shape != (1, self._shapes.n_params):
+            return "shape"
+        if not np.isfinite(snap.params).all():
+            return "non_finite"
+        with self._lock:
+            view = self.servers.get(snap.server)
+            latest = view.latest if view else None
+        if latest is not None and (snap.incarnation, snap.version) <= (latest.incarnation, latest.version):
+            return "stale"
+        return ""
+
+    def _healthy(self, view: ServerView, now: float) -> bool:
+        w = view.latest
+        return (
+            view.alive and w is not None and not w.diverged and now >= view.suspect_until
+            and now - w.received <= self.config.snapshot_timeout_s
+        )  # fmt: skip
+
+    def _choose(self) -> None:
+        """Follow the pinned or longest-alive healthy server; apply its newest snapshot."""
+        now = time.monotonic()
+        with self._lock:
+            healthy = [v for v in self.servers.values() if self._healthy(v, now)]
+            if self.config.follow is not None:
+                healthy = [v for v in healthy if v.server == self.config.follow]
+            current = self.servers.get(self._following)
+            if current is not None and current in healthy:
+                chosen: ServerView | None = current
+            else:
+                chosen = min(healthy, key=lambda v: (v.started_ns or 1 << 62, v.server), default=None)
+        self._connected = chosen is not None
+        if chosen is None:
+            if self._following and self._lost_at is None:
+                self._lost_at = now
+                log.warning("server %s unhealthy and no other healthy server: acting on its last weights",
+                            self._following)  # fmt: skip
+            return
+        if chosen.server != self._following:
+            if self._following:
+                self.failovers.append({"from": self._following, "to": chosen.server, "at_unix": time.time()})
+                log.warning("failover: following server %s instead of %s", chosen.server, self._following)
+            else:
+                log.info("following server %s", chosen.server)
+            self._following = chosen.server
+        self._lost_at = None
+        w = chosen.latest
+        assert w is not None
+        if w is not self.current:
+            self.current = w
+            self.apply_latency_ms.append((time.time_ns() - w.published_ns) / 1e6)
+            if len(self.apply_latency_ms) > 100_000:
+                del self.apply_latency_ms[:50_000]
+            with self._learned:
+                self._learned.notify_all()

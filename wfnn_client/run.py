@@ -1,0 +1,308 @@
+"""A simulated robot learning while it acts: the client's control loop.
+
+Each tick, on an absolute schedule: sense, `act` on the current weights (numpy), pass the
+action through the safety layer, execute it, and `learn` the experience (queued, never
+blocking). Thinking happens in this process (`--server local`: act-learn-think-MT, or
+act-learn-think in lock-step) or on think servers over Zenoh (act-learn-think-C/S). At the end
+the run directory holds the weights (with their config), the experiences (the journal in C/S
+mode, experiences.npz locally), metrics.json and a learning-curve PNG.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sims.base import VecTask
+from wfnn_client.brain import Brain, Experience, LocalBrain
+from wfnn_client.safety import SafetyConfig, SafetyLayer
+from wfnn_client.sims import SIMS
+from wfnn_client.tick import Ticker, TickStats
+from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.learner import WFNN
+from wfnn_common.net import NetConfig
+from wfnn_common.persist import load_weights, save_experiences, save_weights
+from wfnn_common.protocol import EXP_VETO_PROPOSED
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ClientConfig:
+    """Options of `wfnn-client`; the CLI only builds this and calls `run`."""
+
+    sim: str = "boat"
+    episodes: int = 40
+    """Episodes (boat: targets) to run."""
+    duration_s: float | None = None
+    """Stop after this much wall time (whichever comes first)."""
+    rate_hz: float = 50.0
+    """Control rate; 0 runs as fast as possible."""
+    lockstep: bool = False
+    """As fast as possible, each action waiting for the previous experiences' thinks (the
+    single-process act-learn-think order, for reproducible benchmarks); needs rate_hz 0."""
+    lockstep_timeout_s: float = 30.0
+    boat_dt: float = 0.1
+    """Boat time per action (see sims.boat)."""
+    thinks_per_action: int | None = None
+    """Override the learner's thinks per action (local thinking and the announced config)."""
+    think_batch: int = 50
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    learn: bool = True
+    """False: act greedily only (no exploration), send and learn nothing."""
+    weights: Path | None = None
+    """Start from these saved weights (local: the learner; C/S: until a server's snapshot)."""
+    server: tuple[str, ...] = ("local",)
+    """`local` thinks in-process; otherwise Zenoh endpoints of think servers (or routers)."""
+    controller: str = "default"
+    client_id: str | None = None
+    follow: str | None = None
+    """Pin a server id (C/S)."""
+    net: NetConfig = field(default_factory=NetConfig)
+    """Zenoh settings (C/S); `connect` is filled from `server`."""
+    key_file: Path | None = None
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    out: Path = Path("runs/latest")
+    json_stats: Path | None = None
+    """Also write the final figures here."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.sim not in SIMS:
+            raise ValueError(f"unknown sim {self.sim!r}; choose from {', '.join(SIMS)}")
+        if self.lockstep and self.rate_hz != 0:
+            raise ValueError("lock-step runs as fast as possible: set rate_hz to 0")
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if not self.server:
+            raise ValueError("server needs `local` or at least one endpoint")
+
+    @property
+    def local(self) -> bool:
+        """Whether thinking happens in this process."""
+        return self.server == ("local",)
+
+
+def learner_config(task: VecTask, config: ClientConfig) -> LearnerConfig:
+    """The thesis' defaults over the task's declared ranges (with the client's overrides)."""
+    extra = {} if config.thinks_per_action is None else {"thinks_per_action": config.thinks_per_action}
+    return LearnerConfig(
+        state_low=task.state_low,
+        state_high=task.state_high,
+        action_low=task.action_low,
+        action_high=task.action_high,
+        exploration=config.exploration,
+        seed=config.seed,
+        **extra,  # type: ignore[arg-type]
+    )
+
+
+def make_brain(config: ClientConfig, learner: WFNN) -> Brain:
+    """Local thinking, or the C/S client over a Zenoh bus."""
+    if config.local:
+        return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch)
+    from wfnn_client.remote import RemoteBrain, RemoteConfig
+    from wfnn_common.net import ZenohBus
+
+    net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server))
+    remote = RemoteConfig(
+        controller=config.controller, client_id=config.client_id, journal_dir=config.out / "journal",
+        key_file=config.key_file, follow=config.follow, lockstep=config.lockstep,
+    )  # fmt: skip
+    return RemoteBrain(learner, remote, ZenohBus(net), initial=learner.params if config.weights else None)
+
+
+StatusCallback = Callable[[dict[str, Any]], None]
+
+
+def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[str, Any]:
+    """Run the simulated robot; returns the metrics also written to `out/metrics.json`.
+
+    `on_status(fields)` is called about twice a second and after every episode.
+    """
+    spec = SIMS[config.sim]
+    task = spec.make(config.boat_dt)
+    rng = np.random.default_rng(config.seed)
+    lcfg = learner_config(task, config)
+    learner = WFNN(lcfg)
+    if config.weights is not None:
+        saved_cfg, params, _ = load_weights(config.weights)
+        if saved_cfg.spec_hash() != lcfg.spec_hash():
+            raise ValueError(f"{config.weights} holds weights for spec {saved_cfg.spec_hash()}, "
+                             f"this task needs {lcfg.spec_hash()}")  # fmt: skip
+        learner = WFNN(lcfg, params=params)
+    period = 1.0 / config.rate_hz if config.rate_hz > 0 else 0.0
+    ticks = TickStats()
+    ticker = Ticker(period, ticks)
+    safety = SafetyLayer(config.safety, lcfg.action_low, lcfg.action_high, period,
+                         spec.veto(task) if spec.veto else None)  # fmt: skip
+    reward_of = spec.reward_of(task) if spec.reward_of else None
+    brain = make_brain(config, learner)
+    log.info("learner: %s (spec %s)", lcfg.short_repr(), lcfg.spec_hash())
+    scores: list[float] = []
+    rewards: list[float] = []
+    values: list[float] = []
+    learned = lockstep_timeouts = 0
+    outages: list[dict[str, float]] = []
+    """Windows without a healthy weights source (start-up included), unix times."""
+    outage_late: list[float] = []
+    task.reset(rng)
+    next_status = 0.0
+    brain.start()
+    start = time.perf_counter()
+    try:
+        if config.lockstep and not brain.sync(config.lockstep_timeout_s):  # lock-step acts on weights only
+            raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s")
+        start = time.perf_counter()
+        for episode in range(config.episodes):
+            spec.new_episode(task, rng)
+            x = task.observe()[0]
+            total, steps = 0.0, 0
+            for _ in range(spec.episode_steps):
+                late = ticker.wait()
+                if not brain.connected:
+                    outage_late.append(late)
+                    if not outages or "end_unix" in outages[-1]:
+                        outages.append({"start_unix": time.time()})
+                elif outages and "end_unix" not in outages[-1]:
+                    outages[-1]["end_unix"] = time.time()
+                t0 = time.perf_counter()
+                acted = brain.act(x, explore=config.learn)
+                proposed = acted.result.action if acted is not None else None
+                decision = safety.decide(proposed, x, ticker.late_now() if period else 0.0)
+                ticks.latency_s.append(time.perf_counter() - t0)
+                tr = task.step(decision.executed[None])
+                x_next, reward = tr.state[0], float(tr.reward[0])
+                if config.learn and tr.learnable[0]:
+                    terminal = bool(tr.terminal[0])
+                    brain.learn(
+                        Experience(x, decision.executed, x_next, reward, terminal, decision.flags), acted
+                    )
+                    learned += 1
+                    if decision.proposed is not None and reward_of is not None and config.safety.learn_twice:
+                        r_proposed = reward_of(x, decision.proposed, x_next)
+                        brain.learn(Experience(x, decision.proposed, x_next, r_proposed, terminal,
+                                               EXP_VETO_PROPOSED), acted)  # fmt: skip
+                        learned += 1
+                    if config.lockstep and not brain.sync(config.lockstep_timeout_s):
+                        lockstep_timeouts += 1
+                        log.warning("lock-step: no snapshot covering experience %d in %.0f s",
+                                    learned, config.lockstep_timeout_s)  # fmt: skip
+                total += float(spec.metric(task)[0])
+                rewards.append(reward)
+                if acted is not None:
+                    values.append(float(acted.result.value))
+                x = x_next
+                steps += 1
+                now = time.perf_counter()
+                if now >= next_status:
+                    brain.check()
+                    fields = _status(brain, ticks, safety, rewards, values, episode, scores, now - start)
+                    brain.report(fields)
+                    if on_status is not None:
+                        on_status(fields)
+                    next_status = now + 0.5
+                if config.duration_s is not None and now - start >= config.duration_s:
+                    break
+            scores.append(total / max(steps, 1))
+            if on_status is not None:
+                on_status(_status(brain, ticks, safety, rewards, values, episode + 1, scores,
+                                  time.perf_counter() - start))  # fmt: skip
+            if config.duration_s is not None and time.perf_counter() - start >= config.duration_s:
+                break
+        wall = time.perf_counter() - start
+    finally:
+        brain.stop()
+    brain.check()
+    final = _status(brain, ticks, safety, rewards, values, len(scores), scores, wall)
+    current = getattr(brain, "current", None)  # C/S: the snapshot act used last
+    final_params = learner.params if config.local else (current.params if current is not None else None)
+    out = Path(config.out)
+    meta = {"sim": config.sim, "episodes": len(scores), "following": brain.following}
+    if final_params is not None:
+        save_weights(out / "weights.npz", lcfg, final_params, meta)
+    if config.local and config.learn:
+        save_experiences(out / "experiences.npz", lcfg, learner.buffer.contents(0))
+    metrics: dict[str, Any] = {
+        "sim": config.sim,
+        "metric": spec.metric_name,
+        "scores": scores,
+        "first10_median": float(np.median(scores[:10])),
+        "last10_median": float(np.median(scores[-10:])),
+        "experiences_learned": learned,
+        "lockstep_timeouts": lockstep_timeouts,
+        "wall_s": wall,
+        "ticks": len(ticks.latency_s),
+        "safety": dict(safety.counts),
+        "following": brain.following,
+        "failovers": getattr(brain, "failovers", []),
+        "outages": outages,
+        "client/tick_jitter_ms_p99_outage": (
+            float(np.percentile(outage_late, 99) * 1e3) if outage_late else None
+        ),
+        "client/outage_ticks": len(outage_late),
+        "config": {"client": _jsonable_config(config), "learner": lcfg.to_dict()},
+        **final,
+    }
+    from wfnn_bench.common import write_json  # JSON helper shared with the benchmarks
+
+    write_json(out / "metrics.json", metrics)
+    if config.json_stats is not None:
+        write_json(config.json_stats, metrics)
+    plot(metrics, out / "learning_curve.png")
+    return metrics
+
+
+def _status(
+    brain: Brain, ticks: TickStats, safety: SafetyLayer, rewards: list[float], values: list[float],
+    episode: int, scores: list[float], elapsed: float,
+) -> dict[str, Any]:  # fmt: skip
+    recent = slice(-1000, None)
+    fields: dict[str, Any] = {
+        "episode": episode,
+        "score": scores[-1] if scores else float("nan"),
+        "elapsed_s": elapsed,
+        "following": brain.following,
+        "reward_mean": float(np.mean(rewards[recent])) if rewards else float("nan"),
+        "q_mean": float(np.mean(values[recent])) if values else float("nan"),
+        "safe_actions": float(safety.counts["no_weights"] + safety.counts["late"]),
+        "vetoes": float(safety.counts["vetoed"]),
+        **ticks.summary("client/"),
+        **brain.metrics(),
+    }
+    recent_late = ticks.lateness_s[-1000:]
+    fields["client/tick_jitter_ms_p99_recent"] = (
+        float(np.percentile(recent_late, 99) * 1e3) if recent_late else 0.0
+    )
+    return fields
+
+
+def _jsonable_config(config: ClientConfig) -> dict[str, Any]:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
+
+
+def plot(metrics: dict[str, Any], path: Path) -> None:
+    """Score per episode."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    scores = metrics["scores"]
+    ax.plot(np.arange(1, len(scores) + 1), scores, marker="o", ms=3)
+    ax.set_xlabel("episode")
+    ax.set_ylabel(metrics["metric"])
+    where = "in-process" if metrics["following"] == "local" else f"server {metrics['following'] or '-'}"
+    ax.set_title(f"{metrics['sim']}: {metrics['experiences_learned']} experiences, thinking {where}")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

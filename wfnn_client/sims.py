@@ -1,0 +1,110 @@
+"""The simulated robots `wfnn-client --sim` can drive, with what the client needs of each.
+
+Each entry builds the task, says how episodes start and are scored, and optionally gives the
+reward of an action that was never executed (for learning a vetoed proposal, Eq 5.4) and the
+robot's veto rules (sensors outside the learner's state).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sims.base import VecTask
+from sims.boat import BoatConfig, BoatVec
+from sims.cartpole import CartPoleVec
+from sims.positioning import PositioningVec
+from wfnn_client.safety import Veto
+
+FloatArray = NDArray[np.float64]
+RewardOf = Callable[[FloatArray, FloatArray, FloatArray], float]
+"""reward_of(state [S], action [A], next_state [S]) -> reward, for an action not executed."""
+
+
+@dataclass(frozen=True)
+class SimSpec:
+    """How the client drives one simulated task."""
+
+    make: Callable[[float], VecTask]
+    """Build the task (one instance) given the boat time step option."""
+    episode_steps: int
+    new_episode: Callable[[Any, np.random.Generator], None]
+    metric: Callable[[Any], FloatArray]
+    """Per-step performance figure (lower is better), averaged per episode."""
+    metric_name: str
+    reward_of: Callable[[Any], RewardOf] | None = None
+    """Build the reward function of never-executed actions for a task instance."""
+    veto: Callable[[Any], Veto] | None = None
+    """Build the veto rules for a task instance."""
+
+
+def _boat_reward(task: BoatVec) -> RewardOf:
+    cfg = task.config
+
+    def reward_of(state: FloatArray, action: FloatArray, next_state: FloatArray) -> float:
+        # Eq 3.8 with the proposed thrusts; the distance is the one observed after the step.
+        u = np.clip(action, -1.0, 1.0)
+        change = u - state[5:7]
+        return float(
+            -cfg.distance_weight * np.hypot(next_state[0], next_state[1])
+            - cfg.energy_weight * float(u @ u) - cfg.coarseness_weight * float(change @ change)
+        )  # fmt: skip
+
+    return reward_of
+
+
+def _positioning_reward(task: PositioningVec) -> RewardOf:
+    cfg = task.config
+
+    def reward_of(state: FloatArray, action: FloatArray, next_state: FloatArray) -> float:
+        # The velocity the proposed command asks for is charged, not the one executed.
+        return -(
+            abs(float(next_state[0])) + cfg.velocity_weight * abs(cfg.gain * float(np.clip(action[0], -1, 1)))
+        )
+
+    return reward_of
+
+
+def positioning_wall_veto(task: PositioningVec, wall: float = 1.2) -> Veto:
+    """Stop commands that drive the object further past +-wall (an absolute position sensor)."""
+
+    def veto(state: FloatArray, action: FloatArray) -> FloatArray | None:
+        position = float(task.position[0])
+        if abs(position) >= wall and np.sign(action[0]) == np.sign(position):
+            return np.zeros_like(action)
+        return None
+
+    return veto
+
+
+SIMS: dict[str, SimSpec] = {
+    "boat": SimSpec(
+        make=lambda dt: BoatVec(1, BoatConfig(dt=dt)),
+        episode_steps=200,
+        new_episode=lambda task, rng: task.new_targets(rng),
+        metric=lambda task: task.distance(),
+        metric_name="mean distance to target",
+        reward_of=_boat_reward,
+    ),
+    "positioning": SimSpec(
+        make=lambda dt: PositioningVec(1),
+        episode_steps=200,
+        new_episode=lambda task, rng: None,
+        metric=lambda task: np.abs(task.target - task.position),
+        metric_name="mean position error",
+        reward_of=_positioning_reward,
+        veto=positioning_wall_veto,
+    ),
+    "cartpole": SimSpec(
+        make=lambda dt: CartPoleVec(1),
+        episode_steps=500,
+        new_episode=lambda task, rng: None,
+        metric=lambda task: (task.steps == 0).astype(np.float64),
+        metric_name="failures per step",
+    ),
+}
+SIMS["position"] = SIMS["positioning"]

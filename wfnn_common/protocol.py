@@ -1,0 +1,598 @@
+"""The wfnn wire protocol: framed, versioned, CRC-32C-checked msgpack messages (never pickle).
+
+Every frame, little-endian:
+
+    magic "WFNN" | version u8 | type u8 | flags u8 | reserved u8 | sender 16s | seq u64 |
+    body_len u32 | msgpack body | [HMAC-SHA256 tag, 32 bytes, when flags & FLAG_MAC] | CRC-32C u32
+
+The CRC covers everything before it and detects corruption; the optional HMAC (over header and
+body, with a shared key) stops forged frames: a receiver configured with a key rejects frames
+without a valid tag. Arrays travel as raw little-endian bytes with their dtype and shape.
+Each message type has a body size limit. `decode` raises nothing but `ProtocolError`
+subclasses, whose `reason` names the rejection for counters.
+
+Key expressions of a controller live in `Keys`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import hmac
+import re
+import struct
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, ClassVar, NamedTuple, TypeVar
+
+import crcmod.predefined
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+MAGIC = b"WFNN"
+PROTOCOL_VERSION = 1
+FLAG_MAC = 0x01
+HEADER = struct.Struct("<4sBBBB16sQI")
+"""magic, version, type, flags, reserved, sender, seq, body_len."""
+CRC_SIZE = 4
+MAC_SIZE = 32
+MIN_FRAME = HEADER.size + CRC_SIZE
+_ID_PATTERN = re.compile(r"[A-Za-z0-9_.\-]{1,16}")
+_crc32c = crcmod.predefined.mkPredefinedCrcFun("crc-32c")
+
+FloatArray = NDArray[np.float64]
+
+
+def crc32c(data: bytes | bytearray | memoryview) -> int:
+    """CRC-32C (Castagnoli) of `data`."""
+    return int(_crc32c(data))
+
+
+# --------------------------------------------------------------------------- errors
+class ProtocolError(Exception):
+    """A frame or message that must be rejected; `reason` is a short counter name."""
+
+    reason: ClassVar[str] = "malformed"
+
+
+class Truncated(ProtocolError):
+    """The frame is shorter than its header says."""
+
+    reason = "truncated"
+
+
+class BadMagic(ProtocolError):
+    """Not a wfnn frame."""
+
+    reason = "bad_magic"
+
+
+class VersionMismatch(ProtocolError):
+    """A protocol version this build does not speak."""
+
+    reason = "version"
+
+
+class UnknownType(ProtocolError):
+    """A message type this build does not know, or not the one expected on this key."""
+
+    reason = "type"
+
+
+class FrameTooLarge(ProtocolError):
+    """The body exceeds its message type's size limit."""
+
+    reason = "oversized"
+
+
+class CorruptFrame(ProtocolError):
+    """The CRC does not match: bits changed in transit or on disk."""
+
+    reason = "crc"
+
+
+class AuthError(ProtocolError):
+    """A key is configured and the frame has no valid HMAC tag."""
+
+    reason = "auth"
+
+
+class MalformedBody(ProtocolError):
+    """The body is not the msgpack map its message type defines."""
+
+    reason = "malformed"
+
+
+class SpecMismatch(ProtocolError):
+    """The message is for a learner of another spec (network shape or state/action ranges)."""
+
+    reason = "spec"
+
+
+def check_id(name: str, what: str = "id") -> str:
+    """A sender id or controller name: 1-16 of [A-Za-z0-9_.-] (safe in frames and key expressions)."""
+    if not isinstance(name, str) or not _ID_PATTERN.fullmatch(name):
+        raise ValueError(f"{what} must be 1-16 characters of [A-Za-z0-9_.-], got {name!r}")
+    return name
+
+
+# --------------------------------------------------------------------------- messages
+class MsgType(IntEnum):
+    """Message type codes carried in the frame header."""
+
+    EXPERIENCES = 1
+    ACK = 2
+    WEIGHTS = 3
+    SERVER_STATUS = 4
+    CLIENT_STATUS = 5
+
+
+MAX_BODY: dict[MsgType, int] = {
+    MsgType.EXPERIENCES: 8 << 20,
+    MsgType.ACK: 64 << 10,
+    MsgType.WEIGHTS: 32 << 20,
+    MsgType.SERVER_STATUS: 1 << 20,
+    MsgType.CLIENT_STATUS: 1 << 20,
+}
+"""Body size limit per message type (bytes)."""
+
+_DTYPES = {"<f8", "<f4", "<i8", "<u8", "<i4", "<u4", "|u1", "|b1"}
+
+
+def _array(dtype: str, ndim: int) -> dict[str, Any]:
+    """Field metadata: an array of exactly this dtype and number of dimensions."""
+    return {"dtype": dtype, "ndim": ndim}
+
+
+_F8_1, _F8_2 = _array("<f8", 1), _array("<f8", 2)
+_B1_1, _U8_1, _U1_1 = _array("|b1", 1), _array("<u8", 1), _array("|u1", 1)
+
+
+# Experience flags (ExperienceBatch.flags).
+EXP_EXPLORED = 0x01
+"""Exploration changed the learner's action."""
+EXP_SAFE_ACTION = 0x02
+"""The configured safe action was executed (no valid weights, or the tick missed its deadline)."""
+EXP_VETO_ACTUAL = 0x04
+"""A veto replaced the proposed action; this is the executed action's experience (Eq 5.1)."""
+EXP_VETO_PROPOSED = 0x08
+"""The vetoed, never executed proposal learned with the observed outcome (Eq 5.4)."""
+EXP_FILTERED = 0x10
+"""The action filter (maximum acceleration) changed the proposed action."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ExperienceBatch:
+    """Experiences numbered first_seq, first_seq + 1, ... by their client, in physical units.
+
+    Shapes: state, next_state [N, S]; action [N, A]; reward, terminal, weights_version,
+    flags [N]. `weights_version[i]` is the version of the snapshot from `weights_source` that
+    chose action i (0: no snapshot, the safe action).
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.EXPERIENCES
+    client: str
+    spec_hash: str
+    first_seq: int
+    weights_source: str
+    state: FloatArray = field(metadata=_F8_2)
+    action: FloatArray = field(metadata=_F8_2)
+    next_state: FloatArray = field(metadata=_F8_2)
+    reward: FloatArray = field(metadata=_F8_1)
+    terminal: NDArray[np.bool_] = field(metadata=_B1_1)
+    weights_version: NDArray[np.uint64] = field(metadata=_U8_1)
+    flags: NDArray[np.uint8] = field(metadata=_U1_1)
+
+    def __len__(self) -> int:
+        return int(self.reward.shape[0])
+
+    @property
+    def last_seq(self) -> int:
+        """Sequence number of the last experience."""
+        return self.first_seq + len(self) - 1
+
+    def validate(self) -> None:
+        """Shapes agree with each other."""
+        n = len(self)
+        s, a = self.state.shape[1], self.action.shape[1]
+        if n < 1 or self.first_seq < 0:
+            raise MalformedBody(
+                f"experience batch needs N >= 1 and first_seq >= 0, got {n}, {self.first_seq}"
+            )
+        expected = {"state": (n, s), "action": (n, a), "next_state": (n, s), "terminal": (n,),
+                    "weights_version": (n,), "flags": (n,)}  # fmt: skip
+        for name, shape in expected.items():
+            if getattr(self, name).shape != shape:
+                raise MalformedBody(f"{name}: expected shape {shape}, found {getattr(self, name).shape}")
+
+    def slice(self, start: int) -> ExperienceBatch:
+        """The experiences from index `start` on (renumbered accordingly)."""
+        return dataclasses.replace(
+            self, first_seq=self.first_seq + start, state=self.state[start:], action=self.action[start:],
+            next_state=self.next_state[start:], reward=self.reward[start:], terminal=self.terminal[start:],
+            weights_version=self.weights_version[start:], flags=self.flags[start:],
+        )  # fmt: skip
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Ack:
+    """A server has durably stored every experience of `client` numbered <= stored_through."""
+
+    TYPE: ClassVar[MsgType] = MsgType.ACK
+    client: str
+    server: str
+    incarnation: int
+    stored_through: int
+    """-1: nothing stored yet."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class WeightSnapshot:
+    """A think server's weights for `act`: one network, params [1, n_params] (float64)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.WEIGHTS
+    server: str
+    incarnation: int
+    """Increases at every start of the server: (incarnation, version) orders its snapshots."""
+    version: int
+    spec_hash: str
+    published_ns: int
+    """time.time_ns() when published (publish-to-applied latency on one host)."""
+    thinks: int
+    diverged: bool
+    """The server saw divergence and reset; these weights have not relearned yet."""
+    learned_through: dict[str, int]
+    """Per client: every experience numbered <= this has had its thinks (lock-step mode)."""
+    params: FloatArray = field(metadata=_F8_2)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ServerStatus:
+    """A think server's heartbeat and figures (namespaced metrics: `think/thinks_per_s`, ...)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.SERVER_STATUS
+    server: str
+    incarnation: int
+    started_ns: int
+    spec_hash: str
+    """Empty until the server has a learner config."""
+    weights_version: int
+    stored_through: dict[str, int]
+    rejected: dict[str, int]
+    """Frames rejected, by reason."""
+    metrics: dict[str, float]
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ClientStatus:
+    """A robot client's heartbeat: its learner config (servers without one adopt it) and figures."""
+
+    TYPE: ClassVar[MsgType] = MsgType.CLIENT_STATUS
+    client: str
+    spec_hash: str
+    learner_config: str
+    """The client's LearnerConfig as JSON."""
+    following: str
+    """Server whose snapshots `act` uses ("" for none, "local" in-process)."""
+    weights_version: int
+    produced_through: int
+    acked: dict[str, int]
+    metrics: dict[str, float]
+
+
+Message = ExperienceBatch | Ack | WeightSnapshot | ServerStatus | ClientStatus
+M = TypeVar("M", ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus)
+MESSAGES: dict[MsgType, type[Any]] = {
+    cls.TYPE: cls for cls in (ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus)
+}
+
+
+# --------------------------------------------------------------------------- body codec
+def _pack_array(a: NDArray[Any], dtype: str) -> dict[str, Any]:
+    arr = np.ascontiguousarray(a, dtype=np.dtype(dtype))
+    return {"dtype": dtype, "shape": list(arr.shape), "data": arr.tobytes()}
+
+
+def _unpack_array(name: str, value: Any, dtype: str, ndim: int) -> NDArray[Any]:
+    if not isinstance(value, dict) or set(value) != {"dtype", "shape", "data"}:
+        raise MalformedBody(f"{name}: expected an array map {{dtype, shape, data}}")
+    found, shape, data = value["dtype"], value["shape"], value["data"]
+    if found != dtype or found not in _DTYPES:
+        raise MalformedBody(f"{name}: expected dtype {dtype}, found {found!r}")
+    if not isinstance(shape, list) or len(shape) != ndim:
+        raise MalformedBody(f"{name}: expected {ndim} dimensions, found shape {shape!r}")
+    if not all(type(d) is int and 0 <= d < 1 << 31 for d in shape):
+        raise MalformedBody(f"{name}: bad shape {shape!r}")
+    if not isinstance(data, bytes):
+        raise MalformedBody(f"{name}: data must be bytes")
+    dt = np.dtype(dtype)
+    if len(data) != int(np.prod(shape, dtype=np.int64)) * dt.itemsize:
+        raise MalformedBody(f"{name}: {len(data)} bytes do not hold shape {shape} of {dtype}")
+    arr = np.frombuffer(data, dtype=dt).reshape(shape)
+    if dtype == "|b1":
+        arr = arr.view(np.uint8)
+        if arr.size and arr.max() > 1:
+            raise MalformedBody(f"{name}: booleans must be 0 or 1")
+        arr = arr.view(np.bool_)
+    # Native byte order and writable, so receivers may use it as any array.
+    return arr.astype(dt.newbyteorder("="), copy=True)
+
+
+def _check_scalar(name: str, kind: str, value: Any) -> Any:
+    if kind == "int":
+        if type(value) is not int or not -(1 << 63) <= value < 1 << 64:
+            raise MalformedBody(f"{name}: expected an integer, found {type(value).__name__}")
+        return value
+    if kind == "float":
+        if type(value) not in (int, float):
+            raise MalformedBody(f"{name}: expected a number, found {type(value).__name__}")
+        return float(value)
+    if kind == "bool":
+        if type(value) is not bool:
+            raise MalformedBody(f"{name}: expected a boolean, found {type(value).__name__}")
+        return value
+    if kind == "str":
+        if type(value) is not str or len(value) > 1 << 16:
+            raise MalformedBody(f"{name}: expected a string, found {type(value).__name__}")
+        return value
+    raise AssertionError(kind)
+
+
+def _check_dict(name: str, kind: str, value: Any) -> dict[str, Any]:
+    if type(value) is not dict:
+        raise MalformedBody(f"{name}: expected a map, found {type(value).__name__}")
+    return {
+        _check_scalar(f"{name} key", "str", k): _check_scalar(f"{name}[{k!r}]", kind, v)
+        for k, v in value.items()
+    }
+
+
+_KINDS = {"int": "int", "float": "float", "bool": "bool", "str": "str",
+          "dict[str, int]": "dict:int", "dict[str, float]": "dict:float"}  # fmt: skip
+
+
+def _fields(cls: type[Any]) -> list[tuple[str, str, dict[str, Any]]]:
+    """(name, kind, array metadata) per field of a message class."""
+    out = []
+    for f in dataclasses.fields(cls):
+        kind = "array" if "dtype" in f.metadata else _KINDS[str(f.type)]
+        out.append((f.name, kind, dict(f.metadata)))
+    return out
+
+
+_FIELDS = {t: _fields(cls) for t, cls in MESSAGES.items()}
+
+
+def to_body(msg: Message) -> dict[str, Any]:
+    """The msgpack-ready map of a message."""
+    body: dict[str, Any] = {}
+    for name, kind, meta in _FIELDS[msg.TYPE]:
+        value = getattr(msg, name)
+        if kind == "array":
+            body[name] = _pack_array(value, meta["dtype"])
+        elif kind == "dict:int":
+            body[name] = {str(k): int(v) for k, v in value.items()}
+        elif kind == "dict:float":
+            body[name] = {str(k): float(v) for k, v in value.items()}
+        elif kind == "float":
+            body[name] = float(value)
+        elif kind == "int":
+            body[name] = int(value)
+        else:
+            body[name] = value
+    return body
+
+
+def from_body(msg_type: MsgType, body: Any) -> Message:
+    """Check a decoded body against its message type's fields; -> the message."""
+    if type(body) is not dict:
+        raise MalformedBody(f"body must be a map, found {type(body).__name__}")
+    fields = _FIELDS[msg_type]
+    names = {name for name, _, _ in fields}
+    if set(body) != names:
+        missing, extra = sorted(names - set(body)), sorted(set(body) - names)
+        raise MalformedBody(f"{MESSAGES[msg_type].__name__}: missing fields {missing}, unexpected {extra}")
+    values: dict[str, Any] = {}
+    for name, kind, meta in fields:
+        v = body[name]
+        if kind == "array":
+            values[name] = _unpack_array(name, v, meta["dtype"], meta["ndim"])
+        elif kind.startswith("dict:"):
+            values[name] = _check_dict(name, kind[5:], v)
+        else:
+            values[name] = _check_scalar(name, kind, v)
+    msg: Message = MESSAGES[msg_type](**values)
+    if isinstance(msg, ExperienceBatch):
+        msg.validate()
+    return msg
+
+
+# --------------------------------------------------------------------------- frames
+class Frame(NamedTuple):
+    """A decoded frame."""
+
+    sender: str
+    seq: int
+    message: Message
+
+
+def _mac(key: bytes, data: bytes | memoryview) -> bytes:
+    return hmac.new(key, data, hashlib.sha256).digest()
+
+
+def encode(msg: Message, sender: str, seq: int, key: bytes | None = None) -> bytes:
+    """One frame holding `msg`; with `key`, an HMAC-SHA256 tag is added."""
+    check_id(sender, "sender id")
+    body = msgpack.packb(to_body(msg), use_bin_type=True)
+    limit = MAX_BODY[msg.TYPE]
+    if len(body) > limit:
+        raise FrameTooLarge(f"{msg.TYPE.name} body of {len(body)} bytes exceeds the limit of {limit}")
+    header = HEADER.pack(
+        MAGIC, PROTOCOL_VERSION, int(msg.TYPE), FLAG_MAC if key else 0, 0, sender.encode("ascii"), seq,
+        len(body),
+    )  # fmt: skip
+    frame = header + body
+    if key:
+        frame += _mac(key, frame)
+    return frame + struct.pack("<I", crc32c(frame))
+
+
+def peek_type(frame: bytes) -> MsgType | None:
+    """The message type in a frame's header, without checking anything else (None if unknown)."""
+    if len(frame) < HEADER.size:
+        return None
+    try:
+        return MsgType(frame[5])
+    except ValueError:
+        return None
+
+
+def decode(
+    frame: bytes | bytearray | memoryview, key: bytes | None = None, expect: type[M] | None = None
+) -> Frame:
+    """Check and decode one frame; raises only `ProtocolError` subclasses.
+
+    Args:
+        frame: the bytes received.
+        key: the shared key; when given, a frame without a valid HMAC tag is rejected.
+        expect: the message class this key expression carries; any other type is rejected.
+    """
+    try:
+        return _decode(bytes(frame), key, expect)
+    except ProtocolError:
+        raise
+    except Exception as exc:  # anything a hostile body provokes becomes a rejection
+        raise MalformedBody(f"{type(exc).__name__}: {exc}") from exc
+
+
+def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None) -> Frame:
+    if len(frame) < MIN_FRAME:
+        raise Truncated(f"frame of {len(frame)} bytes is shorter than the minimum {MIN_FRAME}")
+    magic, version, type_code, flags, _, sender_raw, seq, body_len = HEADER.unpack_from(frame)
+    if magic != MAGIC:
+        raise BadMagic(f"expected magic {MAGIC!r}, found {magic!r}")
+    if version != PROTOCOL_VERSION:
+        raise VersionMismatch(f"expected protocol version {PROTOCOL_VERSION}, found {version}")
+    try:
+        msg_type = MsgType(type_code)
+    except ValueError:
+        raise UnknownType(f"unknown message type {type_code}") from None
+    if body_len > MAX_BODY[msg_type]:
+        raise FrameTooLarge(f"{msg_type.name} body of {body_len} bytes exceeds {MAX_BODY[msg_type]}")
+    mac_len = MAC_SIZE if flags & FLAG_MAC else 0
+    expected_len = HEADER.size + body_len + mac_len + CRC_SIZE
+    if len(frame) != expected_len:
+        cls = Truncated if len(frame) < expected_len else MalformedBody
+        raise cls(f"frame is {len(frame)} bytes, its header says {expected_len}")
+    (crc,) = struct.unpack_from("<I", frame, expected_len - CRC_SIZE)
+    if crc != crc32c(memoryview(frame)[: expected_len - CRC_SIZE]):
+        raise CorruptFrame("CRC-32C mismatch")
+    if key:
+        if not mac_len:
+            raise AuthError("a key is configured and the frame carries no HMAC tag")
+        end = HEADER.size + body_len
+        if not hmac.compare_digest(frame[end : end + MAC_SIZE], _mac(key, memoryview(frame)[:end])):
+            raise AuthError("HMAC tag does not verify with the configured key")
+    if flags & ~FLAG_MAC:
+        raise MalformedBody(f"unknown flags {flags:#x}")
+    if expect is not None and msg_type != expect.TYPE:
+        raise UnknownType(f"expected a {expect.TYPE.name} frame, found {msg_type.name}")
+    sender = sender_raw.rstrip(b"\0").decode("ascii")
+    if not _ID_PATTERN.fullmatch(sender):
+        raise MalformedBody(f"bad sender id {sender_raw!r}")
+    body = msgpack.unpackb(
+        memoryview(frame)[HEADER.size : HEADER.size + body_len], raw=False, strict_map_key=True,
+        use_list=True,
+    )  # fmt: skip
+    return Frame(sender, seq, from_body(msg_type, body))
+
+
+class Codec:
+    """Encodes and decodes frames for one sender with an optional shared key.
+
+    Frame sequence numbers count up from 0 per codec (thread-safe: `itertools.count`).
+    """
+
+    def __init__(self, sender: str, key: bytes | None = None) -> None:
+        import itertools
+
+        self.sender = check_id(sender, "sender id")
+        self.key = key or None
+        self._seq = itertools.count()
+
+    def encode(self, msg: Message) -> bytes:
+        """Frame `msg` with the next sequence number."""
+        return encode(msg, self.sender, next(self._seq), self.key)
+
+    def decode(self, frame: bytes | bytearray | memoryview, expect: type[M]) -> tuple[str, M]:
+        """-> (sender, message) of a frame that must carry `expect`."""
+        sender, _, msg = decode(frame, self.key, expect)
+        return sender, msg  # type: ignore[return-value]  # `expect` checked the type
+
+
+def load_key(path: str | None) -> bytes | None:
+    """Read a shared key file (at least 16 bytes after stripping whitespace); None for no path."""
+    if not path:
+        return None
+    from pathlib import Path
+
+    key = Path(path).read_bytes().strip()
+    if len(key) < 16:
+        raise ValueError(
+            f"key file {path} holds {len(key)} bytes; use at least 16 (e.g. 32 random hex chars)"
+        )
+    return key
+
+
+# --------------------------------------------------------------------------- key expressions
+@dataclass(frozen=True)
+class Keys:
+    """Every key expression of one controller, under `wfnn/<controller>/`."""
+
+    controller: str
+
+    def __post_init__(self) -> None:
+        check_id(self.controller, "controller name")
+
+    @property
+    def root(self) -> str:
+        """Prefix of all keys of this controller."""
+        return f"wfnn/{self.controller}"
+
+    def experiences(self, client: str = "*") -> str:
+        """Live experience batches of a client, for every server."""
+        return f"{self.root}/exp/live/{client}"
+
+    def resend(self, server: str, client: str = "*") -> str:
+        """Experience batches a client re-sends to one server that is missing them."""
+        return f"{self.root}/exp/to/{server}/{client}"
+
+    def ack(self, client: str, server: str = "*") -> str:
+        """A server's acks to one client."""
+        return f"{self.root}/ack/{client}/{server}"
+
+    def weights(self, server: str = "*") -> str:
+        """A server's weight snapshots (published, and answered by its queryable)."""
+        return f"{self.root}/weights/{server}"
+
+    def server_status(self, server: str = "*") -> str:
+        """A server's status heartbeat."""
+        return f"{self.root}/status/server/{server}"
+
+    def client_status(self, client: str = "*") -> str:
+        """A client's status heartbeat."""
+        return f"{self.root}/status/client/{client}"
+
+    def server_alive(self, server: str = "*") -> str:
+        """Liveliness token of a server."""
+        return f"{self.root}/alive/server/{server}"
+
+    def client_alive(self, client: str = "*") -> str:
+        """Liveliness token of a client."""
+        return f"{self.root}/alive/client/{client}"
+
+    @staticmethod
+    def last(key: str) -> str:
+        """The last chunk of a key expression (the id it names)."""
+        return str(key).rsplit("/", 1)[-1]

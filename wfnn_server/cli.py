@@ -1,0 +1,91 @@
+"""`wfnn-server`: a think server for robots running `wfnn-client` (act-learn-think-C/S)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.status import Status
+
+from wfnn_common.net import NetConfig
+from wfnn_common.protocol import ServerStatus
+from wfnn_server.config import ServerConfig
+from wfnn_server.server import run
+
+app = typer.Typer(help="Think server: stores robots' experiences, replays them, publishes weights.")
+console = Console(stderr=True)
+
+
+def status_line(status: ServerStatus) -> str:
+    """One line of the server's figures."""
+    m = status.metrics
+    parts = [
+        f"[bold]{status.server}[/] v{status.weights_version}",
+        f"thinks/s {m.get('think/thinks_per_s', 0):,.0f}",
+        f"stored {m.get('store/experiences', 0):,.0f}",
+        f"Q {m.get('learn/q_chosen_mean', float('nan')):+.3f}",
+        f"resets {m.get('learn/divergence_resets', 0):.0f}",
+        f"rejected {sum(status.rejected.values())}",
+        f"clients {len(status.stored_through)}",
+    ]
+    return " | ".join(parts)
+
+
+@app.command()
+def main(
+    controller: Annotated[
+        str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
+    ] = "default",
+    server_id: Annotated[str, typer.Option("--id", help="This server's id.")] = "server",
+    mode: Annotated[str, typer.Option(help="Zenoh mode: router, peer or client.")] = "router",
+    listen: Annotated[list[str] | None, typer.Option(help="Endpoint to listen on (repeatable).")] = None,
+    connect: Annotated[list[str] | None, typer.Option(help="Endpoint to connect to (repeatable).")] = None,
+    zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
+    data_dir: Annotated[Path, typer.Option(help="Store, checkpoint and config directory.")] = Path(
+        "wfnn-data"
+    ),
+    learner_config: Annotated[
+        Path | None, typer.Option(help="LearnerConfig JSON (default: adopt the first client's).")
+    ] = None,
+    key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the learner's seed.")] = None,
+    publish_period: Annotated[float, typer.Option(help="Snapshot period (s).")] = 0.25,
+    checkpoint_period: Annotated[float, typer.Option(help="Checkpoint period (s).")] = 30.0,
+    think: Annotated[str, typer.Option(help="budget (thinks per action) or continuous.")] = "budget",
+    fsync: Annotated[str, typer.Option(help="always, interval or never.")] = "interval",
+    quiet: Annotated[bool, typer.Option(help="No live status line.")] = False,
+    verbose: bool = False,
+) -> None:
+    """Serve a controller's robots until SIGTERM/SIGINT (checkpointing on the way out)."""
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+        handlers=[RichHandler(console=console, show_path=False)],
+    )  # fmt: skip
+    try:
+        default_listen = ("tcp/127.0.0.1:7447",) if mode == "router" else ()
+        net = NetConfig(
+            mode=mode,  # type: ignore[arg-type]  # checked by NetConfig
+            listen=tuple(listen) if listen is not None else default_listen,
+            connect=tuple(connect or ()), zenoh_config=str(zenoh_config) if zenoh_config else None,
+        )  # fmt: skip
+        config = ServerConfig(
+            controller=controller, server_id=server_id, net=net, data_dir=data_dir,
+            learner_config=learner_config, key_file=key_file, seed=seed, publish_period_s=publish_period,
+            checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    console.print(f"[bold]wfnn-server[/] {config}")
+    if quiet:
+        run(config)
+        return
+    with Status("starting", console=console) as line:
+        run(config, lambda status: line.update(status_line(status)))
+
+
+if __name__ == "__main__":
+    app()

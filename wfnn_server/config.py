@@ -1,0 +1,61 @@
+"""Typed configuration of a think server."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from wfnn_common.net import NetConfig
+from wfnn_common.protocol import check_id
+from wfnn_common.segments import FsyncPolicy
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServerConfig:
+    """Everything a `wfnn-server` needs; the CLI only builds this and calls `run`."""
+
+    controller: str = "default"
+    """Controller name: the server serves keys under wfnn/<controller>/."""
+    server_id: str = "server"
+    """This server's id (1-16 of [A-Za-z0-9_.-]); unique among the controller's servers."""
+    net: NetConfig = field(default_factory=lambda: NetConfig(mode="router", listen=("tcp/127.0.0.1:7447",)))
+    data_dir: Path = Path("wfnn-data")
+    """Experience store, checkpoint, learner config and incarnation counter."""
+    learner_config: Path | None = None
+    """A LearnerConfig JSON file; without one the server adopts the first client's config."""
+    key_file: Path | None = None
+    """Shared key: frames must carry a valid HMAC-SHA256 tag, and so will ours."""
+    seed: int | None = None
+    """Overrides the learner config's seed (servers on the same data learn differently)."""
+    publish_period_s: float = 0.25
+    """Weight snapshot period (also published as soon as the think budget is spent)."""
+    status_period_s: float = 0.5
+    """Status heartbeat period."""
+    checkpoint_period_s: float = 30.0
+    """Checkpoint period (also on SIGTERM/SIGINT)."""
+    think_batch: int = 50
+    """Replays per think call (between checks for new experiences and publishing)."""
+    think: Literal["budget", "continuous"] = "budget"
+    """`budget`: thinks_per_action replays per stored experience, then idle (as
+    act-learn-think); `continuous`: replay whenever there is nothing else to do."""
+    fsync: FsyncPolicy = "interval"
+    fsync_interval_s: float = 0.02
+    """With fsync `interval`: acknowledgements wait at most this long for an fsync."""
+    segment_bytes: int = 64 << 20
+    recovery_thinks_max: int = 2_000_000
+    """After a divergence reset, snapshots are flagged diverged until the learner has replayed
+    thinks_per_action per stored experience, at most this many thinks."""
+
+    def __post_init__(self) -> None:
+        check_id(self.controller, "controller name")
+        check_id(self.server_id, "server id")
+        for name in ("publish_period_s", "status_period_s", "checkpoint_period_s", "fsync_interval_s"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.think_batch < 1:
+            raise ValueError(f"think_batch must be >= 1, got {self.think_batch}")
+        if self.fsync not in ("always", "interval", "never"):
+            raise ValueError(f"fsync must be always, interval or never, got {self.fsync!r}")
+        if self.think not in ("budget", "continuous"):
+            raise ValueError(f"think must be budget or continuous, got {self.think!r}")

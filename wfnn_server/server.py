@@ -1,0 +1,511 @@
+"""The think server of act-learn-think-C/S: store experiences, replay them, publish weights.
+
+    ingest thread:  frames from the bus -> decode/check (CRC, MAC, spec) -> store (dedupe,
+                    in order per client) -> ack once durable -> hand to the learner thread
+    learner thread: learn_many -> think (thinks_per_action per experience) -> publish a
+                    snapshot every publish_period_s and as soon as the think budget is spent
+                    -> status heartbeat -> checkpoint
+
+Bus callbacks only put frames on a queue. Restart resumes from the checkpoint (weights,
+counters, config) and the stored experiences; experiences stored after the checkpoint are
+owed their thinks again.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+from wfnn_common.net import Bus, Channel
+from wfnn_common.persist import PersistError, load_weights, save_weights
+from wfnn_common.protocol import (
+    Ack,
+    ClientStatus,
+    Codec,
+    ExperienceBatch,
+    Keys,
+    ProtocolError,
+    ServerStatus,
+    SpecMismatch,
+    WeightSnapshot,
+    load_key,
+)
+from wfnn_server.config import ServerConfig
+from wfnn_server.store import ExperienceStore
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT = "checkpoint.npz"
+LEARNER_JSON = "learner_config.json"
+
+
+@dataclass
+class _Owed:
+    """Thinks owed up to a client's experience: done when the think counter reaches `mark`."""
+
+    mark: int
+    client: str
+    seq: int
+
+
+def _write_atomic(path: os.PathLike[str], text: str) -> None:
+    tmp = f"{os.fspath(path)}.tmp"
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class ThinkServer:
+    """One think server: a WFNN learner fed by every client of its controller."""
+
+    def __init__(self, config: ServerConfig, bus: Bus) -> None:
+        self.config = config
+        self.bus = bus
+        self.keys = Keys(config.controller)
+        self.id = config.server_id
+        self.codec = Codec(config.server_id, load_key(str(config.key_file) if config.key_file else None))
+        self.data_dir = config.data_dir
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.incarnation = self._next_incarnation()
+        self.started_ns = time.time_ns()
+        self.rejected: Counter[str] = Counter()
+        """Frames rejected, by reason (protocol errors, spec, no_config, sender)."""
+        self.counters: Counter[str] = Counter()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._to_learn: collections.deque[ExperienceBatch] = collections.deque()
+        self._threads: list[threading.Thread] = []
+        self._latest_frame: bytes | None = None
+        self._spec_warned: set[str] = set()
+        self.error: BaseException | None = None
+
+        self.store = ExperienceStore(
+            self.data_dir / "store", self.id, fsync=config.fsync,
+            fsync_interval_s=config.fsync_interval_s, segment_bytes=config.segment_bytes,
+        )  # fmt: skip
+        # Learner state (owned by the learner thread once running).
+        self.learner: WFNN | None = None
+        self.learner_config: LearnerConfig | None = None
+        self.spec_hash = ""
+        self._pending_config: LearnerConfig | None = None
+        self.version = 0
+        self.budget = 0
+        self.learned_through: dict[str, int] = {}
+        self._owed: collections.deque[_Owed] = collections.deque()
+        self._thinks_owed_total = 0
+        self._recover_until = 0
+        self._staleness: list[int] = []
+        self._q_chosen: list[float] = []
+        self._queued_through: dict[str, int] = dict(self.store.stored_through)
+        """Per client: the last experience handed to the learner (its thinks are owed)."""
+        self.last_status: ServerStatus | None = None
+        cfg = self._initial_config()
+        if cfg is not None:
+            self._start_learner(cfg)
+
+    # ------------------------------------------------------------------ start-up
+    def _next_incarnation(self) -> int:
+        path = self.data_dir / "incarnation"
+        previous = int(path.read_text()) if path.exists() else 0
+        _write_atomic(path, str(previous + 1))
+        return previous + 1
+
+    def _initial_config(self) -> LearnerConfig | None:
+        """The learner config from --learner-config, or adopted by an earlier run, or None."""
+        path = self.config.learner_config or (self.data_dir / LEARNER_JSON)
+        if not path.exists():
+            if self.config.learner_config is not None:
+                raise FileNotFoundError(f"learner config {path} does not exist")
+            return None
+        cfg = LearnerConfig.from_dict(json.loads(path.read_text()))
+        if self.config.seed is not None:
+            cfg = LearnerConfig.from_dict({**cfg.to_dict(), "seed": self.config.seed})
+        return cfg
+
+    def _start_learner(self, cfg: LearnerConfig) -> None:
+        """Build the learner, resume the checkpoint if it fits, and load the stored experiences."""
+        _write_atomic(self.data_dir / LEARNER_JSON, cfg.to_json())
+        meta: dict[str, Any] = {}
+        learner = WFNN(cfg)
+        checkpoint = self.data_dir / CHECKPOINT
+        if checkpoint.exists():
+            try:
+                ck_cfg, params, meta = load_weights(checkpoint)
+                if ck_cfg.spec_hash() != cfg.spec_hash():
+                    raise PersistError(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
+                learner = WFNN(cfg, params=params)
+                learner.thinks[:] = int(meta.get("thinks", 0))
+                learner.resets[:] = int(meta.get("resets", 0))
+                self.version = int(meta.get("version", 0))
+                log.info("resumed checkpoint: version %d, %d thinks", self.version, int(learner.thinks[0]))
+            except (PersistError, KeyError, ValueError) as exc:
+                log.error("checkpoint %s not used (%s); starting from fresh weights", checkpoint, exc)
+                meta = {}
+        checkpointed: dict[str, int] = meta.get("stored_through", {})
+        self.budget = int(meta.get("budget", 0))
+        self.learned_through = dict(meta.get("learned_through", {}))
+        tpa = cfg.thinks_per_action
+        loaded = 0
+        for batch in self.store.batches():
+            ok = learner.learn_many(batch.state, batch.action, batch.next_state, batch.reward, batch.terminal)
+            loaded += len(batch)
+            # Experiences stored after the checkpoint have not had their thinks yet.
+            after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
+            self.budget += tpa * int(np.count_nonzero(ok & after))
+        self._thinks_owed_total = int(learner.thinks[0]) + self.budget
+        for client, through in self.store.stored_through.items():
+            self._owed.append(_Owed(self._thinks_owed_total, client, through))
+        self.learner, self.learner_config, self.spec_hash = learner, cfg, cfg.spec_hash()
+        log.info(
+            "learner %s (spec %s, seed %d); %d stored experiences loaded, %d thinks owed",
+            cfg.short_repr(), self.spec_hash, cfg.seed, loaded, self.budget,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ running
+    def start(self) -> ThinkServer:
+        """Subscribe, declare presence and start the ingest and learner threads."""
+        bus, keys = self.bus, self.keys
+        bus.subscribe(keys.experiences(), lambda key, data: self._inbox.put(("exp", data)))
+        bus.subscribe(keys.resend(self.id), lambda key, data: self._inbox.put(("exp", data)))
+        bus.subscribe(keys.client_status(), lambda key, data: self._inbox.put(("status", data)))
+        bus.queryable(keys.weights(self.id), lambda: self._latest_frame)
+        bus.declare_token(keys.server_alive(self.id))
+        for name, target in (("ingest", self._ingest_loop), ("learner", self._learner_loop)):
+            thread = threading.Thread(target=self._guard(target), name=f"wfnn-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        log.info(
+            "server %s (incarnation %d) serving controller %s; %d experiences stored",
+            self.id, self.incarnation, self.config.controller, self.store.count,
+        )  # fmt: skip
+        return self
+
+    def _guard(self, target: Any) -> Any:
+        def run() -> None:
+            try:
+                target()
+            except BaseException as exc:
+                self.error = exc
+                log.exception("server thread failed; stopping")
+                self._stop.set()
+
+        return run
+
+    def stop(self) -> None:
+        """Stop the threads, write a final checkpoint and close the store."""
+        self._stop.set()
+        self._wake.set()
+        for thread in self._threads:
+            thread.join(timeout=30)
+        self._threads.clear()
+        if self.learner is not None:
+            self.checkpoint()
+        self.store.close()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until stopped (or a thread failed); returns whether stopped."""
+        return self._stop.wait(timeout)
+
+    def __enter__(self) -> ThinkServer:
+        return self.start()
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ ingest thread
+    def _ingest_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                kind, data = self._inbox.get(timeout=0.01)
+            except queue.Empty:
+                kind = ""
+            if kind == "exp":
+                self._ingest(data)
+            elif kind == "status":
+                self._client_status(data)
+            if self.store.due():
+                for client, through in self.store.sync().items():
+                    self._ack(client, through)
+        for client, through in self.store.sync().items():
+            self._ack(client, through)
+
+    def _ingest(self, frame: bytes) -> None:
+        try:
+            sender, batch = self.codec.decode(frame, ExperienceBatch)
+            if sender != batch.client:
+                raise SpecMismatch(f"frame from {sender} carries experiences of {batch.client}")
+            self._check_spec(batch)
+        except ProtocolError as exc:
+            self.rejected[exc.reason] += 1
+            log.debug("rejected experience frame: %s", exc)
+            return
+        admitted = self.store.admit(batch)
+        self.counters["ingest/batches"] += 1
+        if admitted.new is None:
+            self.counters["ingest/duplicates" if admitted.duplicate else "ingest/gaps"] += 1
+            # The client is re-sending or skipped ahead: tell it where our run of its data ends.
+            self._ack(batch.client, self.store.durable_through.get(batch.client, -1))
+            return
+        self.store.append(admitted.new)
+        self._to_learn.append(admitted.new)
+        self._wake.set()
+
+    def _check_spec(self, batch: ExperienceBatch) -> None:
+        cfg = self.learner_config or self._pending_config
+        if cfg is None:
+            raise _NoConfig("no learner config yet (waiting for a client status or --learner-config)")
+        if (
+            batch.spec_hash != cfg.spec_hash()
+            or batch.state.shape[1] != cfg.state_dim
+            or (batch.action.shape[1] != cfg.action_dim)
+        ):
+            if batch.client not in self._spec_warned:
+                self._spec_warned.add(batch.client)
+                log.error(
+                    "client %s sends experiences for spec %s (S=%d, A=%d); this server's learner is "
+                    "spec %s (S=%d, A=%d): refused",
+                    batch.client, batch.spec_hash, batch.state.shape[1], batch.action.shape[1],
+                    cfg.spec_hash(), cfg.state_dim, cfg.action_dim,
+                )  # fmt: skip
+            raise SpecMismatch(f"spec {batch.spec_hash} is not {cfg.spec_hash()}")
+
+    def _client_status(self, frame: bytes) -> None:
+        try:
+            _, status = self.codec.decode(frame, ClientStatus)
+        except ProtocolError as exc:
+            self.rejected[exc.reason] += 1
+            return
+        self.counters["ingest/client_status"] += 1
+        if self.learner_config is not None or self._pending_config is not None:
+            return
+        try:
+            cfg = LearnerConfig.from_dict(json.loads(status.learner_config))
+        except (ValueError, TypeError) as exc:
+            self.rejected["config"] += 1
+            log.error("client %s announced an unusable learner config: %s", status.client, exc)
+            return
+        if cfg.spec_hash() != status.spec_hash:
+            self.rejected["config"] += 1
+            return
+        if self.config.seed is not None:
+            cfg = LearnerConfig.from_dict({**cfg.to_dict(), "seed": self.config.seed})
+        log.info("adopting the learner config of client %s", status.client)
+        self._pending_config = cfg
+        self._wake.set()
+
+    def _ack(self, client: str, through: int) -> None:
+        ack = Ack(client=client, server=self.id, incarnation=self.incarnation, stored_through=through)
+        self.bus.put(self.keys.ack(client, self.id), self.codec.encode(ack), Channel.CONTROL)
+
+    # ------------------------------------------------------------------ learner thread
+    def _learner_loop(self) -> None:
+        cfg = self.config
+        now = time.monotonic()
+        next_publish = next_status = now
+        next_checkpoint = now + cfg.checkpoint_period_s
+        last_status, last_thinks = now, 0
+        while not self._stop.is_set():
+            if self.learner is None and self._pending_config is not None:
+                self._start_learner(self._pending_config)
+                self._pending_config = None
+            learner = self.learner
+            thought = False
+            if learner is not None:
+                self._learn_queued(learner)
+                thought = self._think(learner)
+                caught_up = self._advance_learned(learner)
+                now = time.monotonic()
+                if now >= next_publish or caught_up:
+                    self.publish()
+                    next_publish = now + cfg.publish_period_s
+                if now >= next_checkpoint:
+                    self.checkpoint()
+                    next_checkpoint = now + cfg.checkpoint_period_s
+            now = time.monotonic()
+            if now >= next_status:
+                thinks = int(learner.thinks[0]) if learner is not None else 0
+                self._publish_status((thinks - last_thinks) / max(now - last_status, 1e-9))
+                last_status, last_thinks = now, thinks
+                next_status = now + cfg.status_period_s
+            if not thought:
+                self._wake.wait(timeout=max(0.0, min(next_status, next_publish) - time.monotonic()))
+                self._wake.clear()
+
+    def _learn_queued(self, learner: WFNN) -> None:
+        tpa = learner.config.thinks_per_action
+        while self._to_learn:
+            batch = self._to_learn.popleft()
+            ok = learner.learn_many(batch.state, batch.action, batch.next_state, batch.reward, batch.terminal)
+            owed = tpa * int(np.count_nonzero(ok))
+            self.budget += owed
+            self._thinks_owed_total += owed
+            self._owed.append(_Owed(self._thinks_owed_total, batch.client, batch.last_seq))
+            self._queued_through[batch.client] = batch.last_seq
+            self._observe(learner, batch)
+
+    def _observe(self, learner: WFNN, batch: ExperienceBatch) -> None:
+        """Q of the actions the current weights choose in the new states; divergence; staleness."""
+        values = learner.greedy_values(batch.next_state)[0]
+        self._q_chosen.extend(values.tolist())
+        if batch.weights_source == f"{self.id}:{self.incarnation}":
+            self._staleness.extend((self.version - batch.weights_version.astype(np.int64)).tolist())
+        monitor = learner.monitor
+        for v in values:
+            if not monitor.observe(np.array([v]))[0]:
+                continue
+            learner.reset_weights(np.ones(1, dtype=np.bool_))
+            n = int(learner.buffer.count[0])
+            self._recover_until = int(learner.thinks[0]) + min(
+                learner.config.thinks_per_action * n, self.config.recovery_thinks_max
+            )
+            log.warning(
+                "divergence: chosen-action values above %.2f for %d experiences; weights reset, "
+                "relearning from %d stored experiences", monitor.threshold, monitor.patience, n,
+            )  # fmt: skip
+            self.publish()  # followers learn of it at once and may fail over
+            break
+
+    def _think(self, learner: WFNN) -> bool:
+        recovering = learner.thinks[0] < self._recover_until
+        if self.budget > 0:
+            n = min(self.config.think_batch, self.budget)
+            self.budget -= n
+        elif (self.config.think == "continuous" or recovering) and learner.buffer.count[0] > 0:
+            n = self.config.think_batch
+            self._thinks_owed_total += n
+        else:
+            return False
+        learner.think(n)
+        return True
+
+    def _advance_learned(self, learner: WFNN) -> bool:
+        """Move learned_through past the experiences whose thinks are done; True if it moved."""
+        done = int(learner.thinks[0])
+        moved = False
+        while self._owed and self._owed[0].mark <= done:
+            owed = self._owed.popleft()
+            if self.learned_through.get(owed.client, -1) < owed.seq:
+                self.learned_through[owed.client] = owed.seq
+                moved = True
+        return moved
+
+    def publish(self) -> None:
+        """Publish the current weights as a snapshot (and keep it for the queryable)."""
+        learner = self.learner
+        if learner is None:
+            return
+        self.version += 1
+        snapshot = WeightSnapshot(
+            server=self.id, incarnation=self.incarnation, version=self.version, spec_hash=self.spec_hash,
+            published_ns=time.time_ns(), thinks=int(learner.thinks[0]),
+            diverged=bool(learner.thinks[0] < self._recover_until),
+            learned_through=dict(self.learned_through), params=learner.params.flat[:1],
+        )  # fmt: skip
+        frame = self.codec.encode(snapshot)
+        self._latest_frame = frame
+        self.bus.put(self.keys.weights(self.id), frame, Channel.LATEST)
+
+    def _publish_status(self, thinks_per_s: float) -> None:
+        learner = self.learner
+        metrics: dict[str, float] = {
+            "think/thinks_per_s": thinks_per_s,
+            "think/thinks": float(learner.thinks[0]) if learner else 0.0,
+            "think/budget": float(self.budget),
+            "store/experiences": float(self.store.count),
+            "store/torn_bytes_cut": float(self.store.log.recovery.torn_bytes_cut),
+            "store/corrupt_segments": float(self.store.log.recovery.corrupt_segments),
+            "learn/divergence_resets": float(learner.resets[0]) if learner else 0.0,
+            "learn/diverged": float(bool(learner is not None and learner.thinks[0] < self._recover_until)),
+            "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,
+            **{k: float(v) for k, v in self.counters.items()},
+        }
+        if self._q_chosen:
+            q = np.asarray(self._q_chosen)
+            metrics.update({"learn/q_chosen_mean": float(q.mean()), "learn/q_chosen_max": float(q.max())})
+            self._q_chosen.clear()
+        if self._staleness:
+            lag = np.asarray(self._staleness)
+            for p in (50, 90, 99):
+                metrics[f"learn/staleness_versions_p{p}"] = float(np.percentile(lag, p))
+            self._staleness.clear()
+        status = ServerStatus(
+            server=self.id, incarnation=self.incarnation, started_ns=self.started_ns,
+            spec_hash=self.spec_hash, weights_version=self.version,
+            stored_through=dict(self.store.durable_through), rejected=dict(self.rejected), metrics=metrics,
+        )  # fmt: skip
+        self.last_status = status
+        self.bus.put(self.keys.server_status(self.id), self.codec.encode(status), Channel.LATEST)
+
+    def checkpoint(self) -> None:
+        """Save weights, counters and config atomically (resumed at the next start)."""
+        learner, cfg = self.learner, self.learner_config
+        if learner is None or cfg is None:
+            return
+        meta = {
+            "version": self.version, "incarnation": self.incarnation, "thinks": int(learner.thinks[0]),
+            "resets": int(learner.resets[0]), "budget": self.budget,
+            "stored_through": dict(self._queued_through), "learned_through": dict(self.learned_through),
+            "server": self.id,
+        }  # fmt: skip
+        save_weights(self.data_dir / CHECKPOINT, cfg, learner.params, meta)
+        log.info(
+            "checkpoint: version %d, %d thinks, %d experiences",
+            self.version,
+            meta["thinks"],
+            self.store.count,
+        )
+
+
+class _NoConfig(ProtocolError):
+    """Experiences arrived before the server has a learner config (not acked; re-sent later)."""
+
+    reason = "no_config"
+
+
+def run(config: ServerConfig, on_status: Any = None) -> None:
+    """Serve until SIGTERM/SIGINT (checkpointing on the way out).
+
+    `on_status(status)` is called with each `ServerStatus` published (for a status line).
+    """
+    import signal
+
+    from wfnn_common.net import ZenohBus
+
+    bus = ZenohBus(config.net)
+    server = ThinkServer(config, bus)
+    stop = threading.Event()
+
+    def on_signal(signum: int, _: Any) -> None:
+        log.info("signal %d: checkpointing and stopping", signum)
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        server.start()
+        shown = None
+        while not stop.wait(0.2) and not server.wait(0):
+            if on_status is not None and server.last_status is not shown:
+                shown = server.last_status
+                on_status(shown)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        server.stop()
+        bus.close()
+    if server.error is not None:
+        raise RuntimeError("think server failed") from server.error

@@ -1,0 +1,112 @@
+"""The think server's durable experience store: accepted batches in a segment log.
+
+Experiences of each client are stored once and in order of their sequence numbers, so what is
+stored from a client is always the run 0..stored_through[client]: a duplicate (a re-sent
+batch) is dropped, an overlap is trimmed, and a batch that leaves a gap is refused (the client
+re-sends from the acknowledged point). Records are `ExperienceBatch` frames, the format of the
+client journal.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from wfnn_common.protocol import Codec, ExperienceBatch, ProtocolError
+from wfnn_common.segments import FsyncPolicy, SegmentLog
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Admission:
+    """What the store made of an offered batch: the new part (if any) and why not otherwise."""
+
+    new: ExperienceBatch | None
+    duplicate: bool = False
+    gap: bool = False
+
+
+class ExperienceStore:
+    """Append-only store of experience batches with per-client contiguous sequence numbers."""
+
+    def __init__(
+        self,
+        directory: Path,
+        server_id: str,
+        *,
+        fsync: FsyncPolicy = "interval",
+        fsync_interval_s: float = 0.02,
+        segment_bytes: int = 64 << 20,
+    ) -> None:
+        self.log = SegmentLog(
+            directory, segment_bytes=segment_bytes, fsync=fsync, fsync_interval_s=fsync_interval_s
+        )
+        self._codec = Codec(server_id)
+        self.stored_through: dict[str, int] = {}
+        """Per client: every experience numbered <= this is stored (written; durable after `sync`)."""
+        self.durable_through: dict[str, int] = {}
+        """Per client: what `sync` has made durable (what may be acknowledged)."""
+        self.count = 0
+        """Experiences stored."""
+        self.unreadable = 0
+        """Records that were intact on disk but are not experience batches (counted, skipped)."""
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Recount what is stored per client from the log (at start)."""
+        for batch in self.batches():
+            admitted = self.admit(batch)
+            if admitted.new is not None:
+                self._count(admitted.new)
+        self.durable_through = dict(self.stored_through)
+
+    def batches(self) -> Iterator[ExperienceBatch]:
+        """Every stored batch, oldest first (records that are not batches are counted and skipped)."""
+        for _, payload in self.log.read():
+            try:
+                _, batch = self._codec.decode(payload, ExperienceBatch)
+            except ProtocolError as exc:
+                self.unreadable += 1
+                log.error("store record not readable as an experience batch: %s", exc)
+                continue
+            yield batch
+
+    def admit(self, batch: ExperienceBatch) -> Admission:
+        """The part of `batch` that continues its client's stored run (nothing is written)."""
+        through = self.stored_through.get(batch.client, -1)
+        if batch.last_seq <= through:
+            return Admission(None, duplicate=True)
+        if batch.first_seq > through + 1:
+            return Admission(None, gap=True)
+        return Admission(batch.slice(through + 1 - batch.first_seq) if batch.first_seq <= through else batch)
+
+    def append(self, batch: ExperienceBatch) -> None:
+        """Store an admitted batch (from `admit`)."""
+        if batch.first_seq != self.stored_through.get(batch.client, -1) + 1:
+            raise ValueError(f"batch from {batch.client} starts at {batch.first_seq}, not where its run ends")
+        self.log.append(self._codec.encode(batch))
+        self._count(batch)
+
+    def _count(self, batch: ExperienceBatch) -> None:
+        self.stored_through[batch.client] = batch.last_seq
+        self.count += len(batch)
+
+    def due(self) -> bool:
+        """Whether stored experiences wait to be made durable and acknowledged, per the fsync policy."""
+        if self.stored_through == self.durable_through:
+            return False
+        return self.log.fsync != "interval" or self.log.due()
+
+    def sync(self) -> dict[str, int]:
+        """Make everything appended durable; -> the clients whose durable point moved, and to where."""
+        self.log.sync()
+        moved = {c: t for c, t in self.stored_through.items() if self.durable_through.get(c, -1) != t}
+        self.durable_through.update(moved)
+        return moved
+
+    def close(self) -> None:
+        """Sync and close the log."""
+        self.log.close()
