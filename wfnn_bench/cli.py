@@ -23,6 +23,7 @@ from rich.table import Table
 from wfnn_bench import boat as boat_bench
 from wfnn_bench import cartpole as cartpole_bench
 from wfnn_bench import speed as speed_bench
+from wfnn_bench import transport as transport_bench
 from wfnn_bench.common import write_json
 
 app = typer.Typer(
@@ -175,6 +176,53 @@ def speed(
     _table("speed (16 states, 4 actions, 9 wires, 32 hidden)", rows)
     if json_path:
         write_json(json_path, result)
+
+
+@app.command()
+def transport(
+    experiences: Annotated[
+        int, typer.Option(min=1000, help="Experiences in the throughput phase.")
+    ] = 200_000,
+    seconds: Annotated[float, typer.Option(min=1.0, help="Length of the real-time phase.")] = 30.0,
+    rate_hz: Annotated[float, typer.Option(min=1.0, help="Tick rate of the real-time phase.")] = 15.0,
+    busy: Annotated[bool, typer.Option(help="The server thinks continuously meanwhile.")] = True,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """C/S over Zenoh across processes: experiences/s, loss, snapshot latency, tick jitter."""
+    _logging(verbose)
+    cfg = transport_bench.TransportBenchConfig(
+        experiences=experiences, tick_seconds=seconds, rate_hz=rate_hz, busy_server=busy
+    )
+    with _progress() as bar:
+        task = bar.add_task("transport", total=transport_bench.steps(cfg))
+        result = transport_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = [
+        (k, result[k])
+        for k in (
+            "experiences_per_s",
+            "experiences_lost",
+            "snapshot_p50_ms",
+            "snapshot_p99_ms",
+            "tick_jitter_p99_ms",
+        )
+    ]
+    rt = result["realtime"]
+    rows += [
+        ("tick_jitter_p50_ms", rt["tick_jitter_p50_ms"]),
+        ("tick_jitter_max_ms", rt["tick_jitter_max_ms"]),
+        ("ticks / overruns / safe actions", f"{rt['ticks']} / {rt['overruns']} / {rt['safe_actions']}"),
+        ("snapshots applied", rt["snapshots_applied"]),
+        ("server thinks/s while ticking", rt["server_thinks_per_s"]),
+        ("wall_s", result["wall_s"]),
+    ]
+    rows += [(f"goal {k} {g['goal']}", "met" if g["met"] else "NOT met") for k, g in result["goals"].items()]
+    _table("transport (act-learn-think-C/S, loopback)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        transport_bench.plot(result, plot_path)
 
 
 if __name__ == "__main__":

@@ -72,6 +72,8 @@ class ClientConfig:
     out: Path = Path("runs/latest")
     json_stats: Path | None = None
     """Also write the final figures here."""
+    timing_trace: bool = False
+    """Put every tick's lateness and every snapshot's latency in the metrics (benchmarks)."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -251,6 +253,12 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
         "config": {"client": _jsonable_config(config), "learner": lcfg.to_dict()},
         **final,
     }
+    if config.timing_trace:
+        metrics["trace"] = {
+            "tick_lateness_ms": [v * 1e3 for v in ticks.lateness_s],
+            "act_latency_ms": [v * 1e3 for v in ticks.latency_s],
+            "snapshot_latency_ms": list(getattr(brain, "apply_latency_ms", [])),
+        }
     from wfnn_bench.common import write_json  # JSON helper shared with the benchmarks
 
     write_json(out / "metrics.json", metrics)

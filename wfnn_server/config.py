@@ -39,6 +39,9 @@ class ServerConfig:
     think: Literal["budget", "continuous"] = "budget"
     """`budget`: thinks_per_action replays per stored experience, then idle (as
     act-learn-think); `continuous`: replay whenever there is nothing else to do."""
+    think_nice: int = 10
+    """Niceness of the thinking thread (Linux): thinking is any-time work and yields the CPU
+    to real-time work on the same machine, as the thesis runs `think` at a lower priority."""
     fsync: FsyncPolicy = "interval"
     fsync_interval_s: float = 0.02
     """With fsync `interval`: acknowledgements wait at most this long for an fsync."""

@@ -60,6 +60,17 @@ class _Owed:
     seq: int
 
 
+def lower_priority(nice: int) -> None:
+    """Make the calling thread `nice` steps less urgent (Linux threads; elsewhere nothing)."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
+    except OSError as exc:
+        log.warning("could not lower the think thread's priority: %s", exc)
+
+
 def _write_atomic(path: os.PathLike[str], text: str) -> None:
     tmp = f"{os.fspath(path)}.tmp"
     with open(tmp, "w") as f:
@@ -315,6 +326,7 @@ class ThinkServer:
     # ------------------------------------------------------------------ learner thread
     def _learner_loop(self) -> None:
         cfg = self.config
+        lower_priority(cfg.think_nice)
         now = time.monotonic()
         next_publish = next_status = now
         next_checkpoint = now + cfg.checkpoint_period_s

@@ -1,0 +1,160 @@
+import time
+
+import numpy as np
+import pytest
+
+from sims.positioning import PositioningVec
+from wfnn_client.safety import SafetyConfig, SafetyLayer
+from wfnn_client.sims import SIMS, positioning_wall_veto
+from wfnn_client.tick import Ticker
+from wfnn_common.protocol import EXP_FILTERED, EXP_SAFE_ACTION, EXP_VETO_ACTUAL
+
+LOW, HIGH = (-1.0, -2.0), (1.0, 2.0)
+
+
+def layer(period=0.1, veto=None, **kw):
+    return SafetyLayer(SafetyConfig(**kw), LOW, HIGH, period, veto)
+
+
+def test_no_weights_gives_the_safe_action():
+    s = layer(safe_action=(0.5, -3.0))
+    d = s.decide(None, np.zeros(2), 0.0)
+    np.testing.assert_array_equal(d.executed, [0.5, -2.0])  # clipped into the action range
+    assert d.flags == EXP_SAFE_ACTION and d.proposed is None and s.counts["no_weights"] == 1
+
+
+def test_the_filter_limits_each_components_change_per_second():
+    s = layer(period=0.1, max_action_rate=(2.0, 10.0))  # per tick: 0.2 and 1.0
+    d = s.decide(np.array([1.0, 2.0]), np.zeros(2), 0.0)
+    np.testing.assert_allclose(d.executed, [0.2, 1.0])
+    assert d.flags == EXP_FILTERED
+    d = s.decide(np.array([1.0, 2.0]), np.zeros(2), 0.0)
+    np.testing.assert_allclose(d.executed, [0.4, 2.0])
+    d = s.decide(np.array([0.3, 2.0]), np.zeros(2), 0.0)
+    np.testing.assert_allclose(d.executed, [0.3, 2.0])
+    assert d.flags == 0 and s.counts["filtered"] == 2
+
+
+def test_a_vetoed_action_is_replaced_and_returned_for_learning_twice():
+    def veto(state, action):
+        return np.zeros(2) if action[0] > 0.5 else None
+
+    s = layer(veto=veto)
+    d = s.decide(np.array([0.9, 1.0]), np.zeros(2), 0.0)
+    np.testing.assert_array_equal(d.executed, [0.0, 0.0])
+    np.testing.assert_array_equal(d.proposed, [0.9, 1.0])
+    assert d.flags == EXP_VETO_ACTUAL and s.counts["vetoed"] == 1
+    assert s.decide(np.array([0.1, 1.0]), np.zeros(2), 0.0).proposed is None
+    off = SafetyLayer(SafetyConfig(veto=False), LOW, HIGH, 0.1, veto)
+    assert off.decide(np.array([0.9, 1.0]), np.zeros(2), 0.0).proposed is None
+
+
+def test_a_late_command_is_stale_and_the_safe_action_goes_out():
+    s = layer(period=0.1, act_deadline_fraction=0.5)
+    assert s.decide(np.array([0.3, 0.3]), np.zeros(2), 0.049).flags == 0
+    d = s.decide(np.array([0.3, 0.3]), np.zeros(2), 0.051)
+    np.testing.assert_array_equal(d.executed, [0.0, 0.0])
+    assert d.flags == EXP_SAFE_ACTION and s.counts["late"] == 1
+    # As fast as possible, nothing is ever late.
+    assert layer(period=0.0).decide(np.array([0.3, 0.3]), np.zeros(2), 10.0).flags == 0
+
+
+@pytest.mark.parametrize(
+    "kw", [{"act_deadline_fraction": 0.0}, {"max_action_rate": (1.0, 0.0)}, {"act_deadline_fraction": 1.5}]
+)
+def test_bad_safety_config_is_refused(kw):
+    with pytest.raises(ValueError):
+        SafetyConfig(**kw)
+
+
+def test_wrong_sizes_are_refused():
+    with pytest.raises(ValueError, match="safe_action"):
+        layer(safe_action=(0.0,))
+    with pytest.raises(ValueError, match="max_action_rate"):
+        layer(max_action_rate=(1.0,))
+
+
+def test_positioning_wall_veto_and_the_reward_of_a_proposal():
+    task = PositioningVec(1)
+    veto = positioning_wall_veto(task, wall=1.2)
+    task.position[:] = 1.3
+    assert veto(np.zeros(2), np.array([0.5])) is not None
+    assert veto(np.zeros(2), np.array([-0.5])) is None
+    task.position[:] = 0.0
+    assert veto(np.zeros(2), np.array([0.5])) is None
+    reward_of = SIMS["positioning"].reward_of(task)
+    # Moving at full speed is charged more than standing still, for the same outcome.
+    assert reward_of(np.zeros(2), np.array([1.0]), np.zeros(2)) < reward_of(
+        np.zeros(2), np.zeros(1), np.zeros(2)
+    )
+
+
+def test_boat_reward_of_matches_the_task_for_the_executed_action():
+    task = SIMS["boat"].make(0.1)
+    x = task.reset(np.random.default_rng(0))[0]
+    u = np.array([0.4, -0.7])
+    tr = task.step(u[None])
+    assert SIMS["boat"].reward_of(task)(x, u, tr.state[0]) == pytest.approx(tr.reward[0])
+
+
+def test_the_tick_keeps_an_absolute_schedule():
+    ticker = Ticker(0.004)
+    starts = []
+    for k in range(40):
+        ticker.wait()
+        starts.append(ticker.deadline)
+        if k == 10:
+            time.sleep(0.003)  # a slow tick shifts nothing after it
+    np.testing.assert_allclose(np.diff(starts), 0.004, atol=1e-9)
+    assert ticker.stats.overruns == 0 and len(ticker.stats.lateness_s) == 40
+
+
+def test_an_overrun_skips_the_missed_ticks_and_keeps_the_phase():
+    ticker = Ticker(0.01)
+    ticker.wait()
+    first = ticker.deadline
+    time.sleep(0.035)  # misses the ticks due at +10 and +20 ms (and +30 ms)
+    ticker.wait()
+    assert ticker.stats.overruns in (2, 3)
+    phase = (ticker.deadline - first) / 0.01
+    assert abs(phase - round(phase)) < 1e-6 and ticker.late_now() < 0.01
+    with pytest.raises(ValueError):
+        Ticker(-1.0)
+
+
+def test_a_vetoed_tick_is_learned_twice(tmp_path, monkeypatch):
+    import dataclasses
+
+    from wfnn_client import run as client_run
+    from wfnn_client.brain import LocalBrain
+    from wfnn_common.protocol import EXP_VETO_PROPOSED
+
+    learned = []
+
+    class Recording(LocalBrain):
+        def learn(self, experience, acted):
+            learned.append(experience)
+            super().learn(experience, acted)
+
+    def always_veto(task):
+        return lambda state, action: np.zeros_like(action)
+
+    sims = dict(client_run.SIMS)
+    sims["positioning"] = dataclasses.replace(sims["positioning"], veto=always_veto)
+    monkeypatch.setattr(client_run, "SIMS", sims)
+    monkeypatch.setattr(client_run, "make_brain", lambda config, learner: Recording(learner, lockstep=True))
+    config = client_run.ClientConfig(
+        sim="positioning", episodes=1, rate_hz=0, lockstep=True, thinks_per_action=1, out=tmp_path
+    )
+    metrics = client_run.run(config)
+    actual, proposed = learned[0::2], learned[1::2]
+    # Every tick is vetoed; the learnable ones (no target jump) are learned twice.
+    assert metrics["safety"]["vetoed"] == 200 and len(learned) == metrics["experiences_learned"]
+    assert len(actual) == len(proposed) and 150 < len(actual) <= 200
+    assert all(e.flags == EXP_VETO_ACTUAL and not e.action.any() for e in actual)
+    assert all(e.flags == EXP_VETO_PROPOSED for e in proposed)
+    for a, p in zip(actual, proposed, strict=True):
+        np.testing.assert_array_equal(a.state, p.state)
+        np.testing.assert_array_equal(a.next_state, p.next_state)  # both led to the observed state
+    moving = [(a, p) for a, p in zip(actual, proposed, strict=True) if abs(p.action[0]) > 0.1]
+    assert moving and all(p.reward < a.reward for a, p in moving)  # Eq 5.5: the proposal is charged

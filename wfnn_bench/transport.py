@@ -1,0 +1,239 @@
+"""act-learn-think-C/S transport across processes on one machine (loopback Zenoh).
+
+1. Throughput: this process (the client: `RemoteBrain`, journal included) produces N boat
+   experiences as fast as it can; a `wfnn-server` process stores them (fsync interval) and
+   acknowledges. experiences/s = N / (time until the last one is acknowledged); lost = N minus
+   what the server's store holds afterwards (read from its files). The server does not think
+   in this phase, so the figure is transport + store.
+2. Real time: `wfnn-client`'s loop (in this process) runs the boat at 15 Hz against a server
+   that thinks continuously (a busy server on the same two cores). Reported: tick lateness
+   (jitter) and snapshot latency from publish on the server to applied in the client (one host,
+   one clock), from every tick and every snapshot.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sims.boat import BoatVec
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_client.brain import Experience
+from wfnn_client.remote import RemoteBrain, RemoteConfig
+from wfnn_client.run import ClientConfig
+from wfnn_client.run import run as run_client
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+from wfnn_common.net import NetConfig, ZenohBus
+from wfnn_server.spawn import ServerProcess, free_port
+from wfnn_server.store import ExperienceStore
+
+CONTROLLER = "bench"
+GOALS = {
+    "experiences_per_s": (">=", 50_000.0),
+    "experiences_lost": ("<=", 0.0),
+    "snapshot_p99_ms": ("<=", 50.0),
+    "tick_jitter_p99_ms": ("<=", 2.0),
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class TransportBenchConfig:
+    """Options of `wfnn-bench transport`."""
+
+    experiences: int = 200_000
+    """Experiences sent in the throughput phase."""
+    batch_max: int = 256
+    """Experiences per frame at most."""
+    rate_hz: float = 15.0
+    tick_seconds: float = 30.0
+    """Length of the real-time phase."""
+    busy_server: bool = True
+    """The server thinks continuously during the real-time phase."""
+    seed: int = 0
+
+
+def steps(cfg: TransportBenchConfig) -> int:
+    """Progress units: thousands of experiences, then seconds of ticking."""
+    return cfg.experiences // 1000 + int(cfg.tick_seconds)
+
+
+def _boat_config(**kw: Any) -> LearnerConfig:
+    boat = BoatVec(1)
+    return LearnerConfig(
+        state_low=boat.state_low, state_high=boat.state_high, action_low=boat.action_low,
+        action_high=boat.action_high, **kw,
+    )  # fmt: skip
+
+
+def _wait(predicate: Any, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.002)
+    return False
+
+
+def throughput(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[str, Any]:
+    """Phase 1: experiences/s from this process into a server's store, and how many were lost."""
+    lcfg = _boat_config(thinks_per_action=0, seed=cfg.seed)
+    (work / "learner.json").write_text(lcfg.to_json())
+    port = free_port()
+    server = ServerProcess(work / "srv1", port, "--learner-config", str(work / "learner.json"),
+                           controller=CONTROLLER).start()  # fmt: skip
+    try:
+        bus = ZenohBus(NetConfig(connect=(server.endpoint,)))
+        remote = RemoteConfig(controller=CONTROLLER, journal_dir=work / "journal", batch_max=cfg.batch_max)
+        brain = RemoteBrain(WFNN(lcfg), remote, bus)
+        brain.start()
+        if not _wait(lambda: brain.following != "", 30.0):
+            raise TimeoutError("the server's weights never arrived")
+        rng = np.random.default_rng(cfg.seed)
+        n = cfg.experiences
+        states = rng.uniform(-1, 1, (n + 1, lcfg.state_dim))
+        actions = rng.uniform(-1, 1, (n, lcfg.action_dim))
+        rewards = rng.uniform(-1, 0, n)
+        first = brain.produced_through + 1
+        t0 = time.perf_counter()
+        for i in range(n):
+            brain.learn(Experience(states[i], actions[i], states[i + 1], float(rewards[i])), None)
+            if i % 1000 == 999:
+                progress(1)
+        produced_s = time.perf_counter() - t0
+        last = first + n - 1
+        done = _wait(lambda: brain.all_acked(), 300.0)
+        acked_s = time.perf_counter() - t0
+        brain.stop()
+        if not done:
+            raise TimeoutError(f"not every experience was acknowledged in 300 s (up to {last})")
+    finally:
+        server.stop()
+    store = ExperienceStore(work / "srv1" / "store", "check")
+    held = store.stored_through.get(brain.id, -1) - first + 1
+    store.close()
+    return {
+        "experiences": n,
+        "experiences_per_s": n / acked_s,
+        "experiences_lost": int(n - held),
+        "produce_s": produced_s,
+        "acknowledged_s": acked_s,
+        "batches": int(brain.counters["uplink/batches"]),
+        "resent_frames": int(brain.counters["uplink/resent_frames"]),
+    }
+
+
+def realtime(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[str, Any]:
+    """Phase 2: tick jitter at rate_hz and snapshot latency with a busy server."""
+    port = free_port()
+    args = ["--think", "continuous"] if cfg.busy_server else []
+    server = ServerProcess(work / "srv2", port, *args, controller=CONTROLLER).start()
+    done = [0]
+
+    def on_status(fields: dict[str, Any]) -> None:
+        elapsed = int(fields["elapsed_s"])
+        if elapsed > done[0]:
+            progress(elapsed - done[0])
+            done[0] = elapsed
+
+    try:
+        client = ClientConfig(
+            sim="boat", episodes=10**6, duration_s=cfg.tick_seconds, rate_hz=cfg.rate_hz,
+            server=(server.endpoint,), controller=CONTROLLER, out=work / "client", timing_trace=True,
+            seed=cfg.seed,
+        )  # fmt: skip
+        metrics = run_client(client, on_status)
+    finally:
+        server.stop()
+    progress(max(int(cfg.tick_seconds) - done[0], 0))
+    trace = metrics["trace"]
+    late = np.asarray(trace["tick_lateness_ms"])
+    snap = np.asarray(trace["snapshot_latency_ms"])
+    return {
+        "ticks": int(late.size),
+        "overruns": int(metrics["client/overruns"]),
+        "safe_actions": int(metrics["safe_actions"]),
+        "tick_jitter_p50_ms": float(np.percentile(late, 50)),
+        "tick_jitter_p99_ms": float(np.percentile(late, 99)),
+        "tick_jitter_max_ms": float(late.max()),
+        "act_latency_p99_ms": float(np.percentile(trace["act_latency_ms"], 99)),
+        "snapshots_applied": int(snap.size),
+        "snapshot_p50_ms": float(np.percentile(snap, 50)) if snap.size else float("nan"),
+        "snapshot_p99_ms": float(np.percentile(snap, 99)) if snap.size else float("nan"),
+        "server_thinks_per_s": float(metrics.get("server/think/thinks_per_s", float("nan"))),
+        "staleness_s_p50": float(metrics.get("weights/staleness_s_p50", float("nan"))),
+        "tick_lateness_ms": late.tolist(),
+        "snapshot_latency_ms": snap.tolist(),
+    }
+
+
+def run(cfg: TransportBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """Both phases; the figures the issue asks for at the top level, details per phase."""
+    with tempfile.TemporaryDirectory(prefix="wfnn-transport-") as tmp:
+        work = Path(tmp)
+        t0 = time.perf_counter()
+        phase1 = throughput(cfg, work, progress)
+        phase2 = realtime(cfg, work, progress)
+        wall = time.perf_counter() - t0
+    result: dict[str, Any] = {
+        "benchmark": "transport",
+        "config": asdict(cfg),
+        "machine": machine_info(),
+        "experiences_per_s": phase1["experiences_per_s"],
+        "experiences_lost": phase1["experiences_lost"],
+        "snapshot_p50_ms": phase2["snapshot_p50_ms"],
+        "snapshot_p99_ms": phase2["snapshot_p99_ms"],
+        "tick_jitter_p99_ms": phase2["tick_jitter_p99_ms"],
+        "throughput": phase1,
+        "realtime": phase2,
+        "wall_s": wall,
+    }
+    result["goals"] = {
+        name: {
+            "goal": f"{op} {bound:g}",
+            "met": bool(result[name] >= bound if op == ">=" else result[name] <= bound),
+        }
+        for name, (op, bound) in GOALS.items()
+    }
+    return result
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Tick lateness and snapshot latency distributions (log-scale counts)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rt = result["realtime"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, key, title, goal in (
+        (
+            axes[0],
+            "tick_lateness_ms",
+            f"tick lateness at {result['config']['rate_hz']:g} Hz, busy server",
+            2.0,
+        ),
+        (axes[1], "snapshot_latency_ms", "snapshot publish -> applied", 50.0),
+    ):
+        values = np.asarray(rt[key])
+        ax.hist(values, bins=60, color="tab:blue")
+        ax.axvline(float(np.percentile(values, 99)) if values.size else 0.0, color="k", ls="--", label="p99")
+        ax.axvline(goal, color="tab:red", ls=":", label=f"goal {goal:g} ms")
+        ax.set_yscale("log")
+        ax.set_xlabel("ms")
+        ax.set_title(title)
+        ax.legend()
+    fig.suptitle(
+        f"{result['experiences_per_s']:,.0f} experiences/s client -> server store, "
+        f"{result['experiences_lost']} lost"
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
