@@ -186,6 +186,9 @@ def transport(
     seconds: Annotated[float, typer.Option(min=1.0, help="Length of the real-time phase.")] = 30.0,
     rate_hz: Annotated[float, typer.Option(min=1.0, help="Tick rate of the real-time phase.")] = 15.0,
     busy: Annotated[bool, typer.Option(help="The server thinks continuously meanwhile.")] = True,
+    outage_seconds: Annotated[
+        float, typer.Option(min=0.0, help="Length of the outage phase (0: skip).")
+    ] = 12.0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
     verbose: bool = False,
@@ -193,8 +196,9 @@ def transport(
     """C/S over Zenoh across processes: experiences/s, loss, snapshot latency, tick jitter."""
     _logging(verbose)
     cfg = transport_bench.TransportBenchConfig(
-        experiences=experiences, tick_seconds=seconds, rate_hz=rate_hz, busy_server=busy
-    )
+        experiences=experiences, tick_seconds=seconds, rate_hz=rate_hz, busy_server=busy,
+        outage_seconds=outage_seconds,
+    )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("transport", total=transport_bench.steps(cfg))
         result = transport_bench.run(cfg, lambda k: bar.advance(task, k))
@@ -210,11 +214,14 @@ def transport(
     ]
     rt = result["realtime"]
     rows += [
+        ("experiences_per_s over TCP (no shared memory)", result["experiences_per_s_tcp"]),
         ("tick_jitter_p50_ms", rt["tick_jitter_p50_ms"]),
         ("tick_jitter_max_ms", rt["tick_jitter_max_ms"]),
         ("ticks / overruns / safe actions", f"{rt['ticks']} / {rt['overruns']} / {rt['safe_actions']}"),
         ("snapshots applied", rt["snapshots_applied"]),
         ("server thinks/s while ticking", rt["server_thinks_per_s"]),
+        ("outage: tick jitter p99 ms (server dead)", result["outage_tick_jitter_p99_ms"]),
+        ("outage: experiences missing after restart", result["outage_experiences_missing"]),
         ("wall_s", result["wall_s"]),
     ]
     rows += [(f"goal {k} {g['goal']}", "met" if g["met"] else "NOT met") for k, g in result["goals"].items()]

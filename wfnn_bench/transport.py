@@ -9,11 +9,16 @@
    that thinks continuously (a busy server on the same two cores). Reported: tick lateness
    (jitter) and snapshot latency from publish on the server to applied in the client (one host,
    one clock), from every tick and every snapshot.
+3. Outage: the same loop; the server is SIGKILLed mid-run and restarted a few seconds later.
+   Reported: tick jitter while no server was reachable, and, counted by sequence numbers, how
+   many experiences the client produced that are missing from the restarted server's store.
 """
 
 from __future__ import annotations
 
+import json
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -55,12 +60,16 @@ class TransportBenchConfig:
     """Length of the real-time phase."""
     busy_server: bool = True
     """The server thinks continuously during the real-time phase."""
+    outage_seconds: float = 12.0
+    """Length of the outage phase (0 skips it)."""
+    outage_down_s: float = 3.0
+    """How long the server stays dead."""
     seed: int = 0
 
 
 def steps(cfg: TransportBenchConfig) -> int:
     """Progress units: thousands of experiences, then seconds of ticking."""
-    return cfg.experiences // 1000 + int(cfg.tick_seconds)
+    return cfg.experiences // 1000 + int(cfg.tick_seconds) + int(cfg.outage_seconds)
 
 
 def _boat_config(**kw: Any) -> LearnerConfig:
@@ -80,18 +89,31 @@ def _wait(predicate: Any, timeout_s: float) -> bool:
     return False
 
 
-def throughput(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[str, Any]:
-    """Phase 1: experiences/s from this process into a server's store, and how many were lost."""
+def throughput(
+    cfg: TransportBenchConfig, work: Path, progress: Progress, shared_memory: bool = True
+) -> dict[str, Any]:
+    """Phase 1: experiences/s from this process into a server's store, and how many were lost.
+
+    With shared_memory False, Zenoh moves every frame over TCP, as it would between hosts.
+    """
     lcfg = _boat_config(thinks_per_action=0, seed=cfg.seed)
     (work / "learner.json").write_text(lcfg.to_json())
     port = free_port()
-    server = ServerProcess(work / "srv1", port, "--learner-config", str(work / "learner.json"),
+    tag = "shm" if shared_memory else "tcp"
+    shm = [] if shared_memory else ["--no-shared-memory"]
+    server = ServerProcess(work / f"srv1-{tag}", port, "--learner-config", str(work / "learner.json"), *shm,
                            controller=CONTROLLER).start()  # fmt: skip
     try:
-        bus = ZenohBus(NetConfig(connect=(server.endpoint,)))
-        remote = RemoteConfig(controller=CONTROLLER, journal_dir=work / "journal", batch_max=cfg.batch_max)
+        bus = ZenohBus(NetConfig(connect=(server.endpoint,), shared_memory=shared_memory))
+        remote = RemoteConfig(
+            controller=CONTROLLER, journal_dir=work / f"journal-{tag}", batch_max=cfg.batch_max
+        )
         brain = RemoteBrain(WFNN(lcfg), remote, bus)
         brain.start()
+    except BaseException:
+        server.stop()
+        raise
+    try:
         if not _wait(lambda: brain.following != "", 30.0):
             raise TimeoutError("the server's weights never arrived")
         rng = np.random.default_rng(cfg.seed)
@@ -109,12 +131,12 @@ def throughput(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dic
         last = first + n - 1
         done = _wait(lambda: brain.all_acked(), 300.0)
         acked_s = time.perf_counter() - t0
-        brain.stop()
         if not done:
             raise TimeoutError(f"not every experience was acknowledged in 300 s (up to {last})")
     finally:
+        brain.stop()  # closes the Zenoh session too (an open one would hold the process at exit)
         server.stop()
-    store = ExperienceStore(work / "srv1" / "store", "check")
+    store = ExperienceStore(work / f"srv1-{tag}" / "store", "check")
     held = store.stored_through.get(brain.id, -1) - first + 1
     store.close()
     return {
@@ -125,6 +147,7 @@ def throughput(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dic
         "acknowledged_s": acked_s,
         "batches": int(brain.counters["uplink/batches"]),
         "resent_frames": int(brain.counters["uplink/resent_frames"]),
+        "shared_memory": shared_memory,
     }
 
 
@@ -172,25 +195,80 @@ def realtime(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[
     }
 
 
+def outage(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[str, Any]:
+    """Phase 3: SIGKILL the server mid-run, restart it; jitter meanwhile and experiences missing."""
+    port = free_port()
+    server = ServerProcess(work / "srv3", port, "--checkpoint-period", "1", controller=CONTROLLER).start()
+    client = ClientConfig(
+        sim="boat", episodes=10**6, duration_s=cfg.outage_seconds, rate_hz=cfg.rate_hz,
+        server=(server.endpoint,), controller=CONTROLLER, out=work / "client3", seed=cfg.seed,
+    )  # fmt: skip
+    outcome: dict[str, Any] = {}
+
+    def loop() -> None:
+        try:
+            outcome["metrics"] = run_client(client)
+        except BaseException as exc:  # reported below, in the benchmark's thread
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=loop, name="wfnn-bench-client")
+    thread.start()
+    try:
+        time.sleep(cfg.outage_seconds * 0.3)
+        server.kill()
+        time.sleep(cfg.outage_down_s)
+        server.start()
+        thread.join(timeout=cfg.outage_seconds + 120)
+    finally:
+        server.stop()
+    progress(int(cfg.outage_seconds))
+    if "error" in outcome:
+        raise RuntimeError("the client failed during the outage phase") from outcome["error"]
+    metrics = outcome["metrics"]
+    client_id = json.loads((work / "client3" / "journal" / "client.json").read_text())["client"]
+    store = ExperienceStore(work / "srv3" / "store", "check")
+    stored = store.stored_through.get(client_id, -1) + 1
+    store.close()
+    produced = int(metrics["uplink/produced_through"]) + 1
+    return {
+        "down_s": cfg.outage_down_s,
+        "outage_ticks": int(metrics["client/outage_ticks"]),
+        "tick_jitter_p99_ms_during_outage": metrics["client/tick_jitter_ms_p99_outage"],
+        "tick_jitter_p99_ms": float(metrics["client/tick_jitter_ms_p99"]),
+        "overruns": int(metrics["client/overruns"]),
+        "experiences_produced": produced,
+        "experiences_stored": stored,
+        "experiences_missing": produced - stored,
+        "outages": metrics["outages"],
+    }
+
+
 def run(cfg: TransportBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
     """Both phases; the figures the issue asks for at the top level, details per phase."""
     with tempfile.TemporaryDirectory(prefix="wfnn-transport-") as tmp:
         work = Path(tmp)
         t0 = time.perf_counter()
         phase1 = throughput(cfg, work, progress)
+        tcp = throughput(cfg, work, no_progress, shared_memory=False)
         phase2 = realtime(cfg, work, progress)
+        phase3 = outage(cfg, work, progress) if cfg.outage_seconds > 0 else None
         wall = time.perf_counter() - t0
     result: dict[str, Any] = {
         "benchmark": "transport",
         "config": asdict(cfg),
         "machine": machine_info(),
         "experiences_per_s": phase1["experiences_per_s"],
-        "experiences_lost": phase1["experiences_lost"],
+        "experiences_lost": phase1["experiences_lost"] + tcp["experiences_lost"],
+        "experiences_per_s_tcp": tcp["experiences_per_s"],
         "snapshot_p50_ms": phase2["snapshot_p50_ms"],
         "snapshot_p99_ms": phase2["snapshot_p99_ms"],
         "tick_jitter_p99_ms": phase2["tick_jitter_p99_ms"],
+        "outage_tick_jitter_p99_ms": phase3["tick_jitter_p99_ms_during_outage"] if phase3 else None,
+        "outage_experiences_missing": phase3["experiences_missing"] if phase3 else None,
         "throughput": phase1,
+        "throughput_tcp": tcp,
         "realtime": phase2,
+        "outage": phase3,
         "wall_s": wall,
     }
     result["goals"] = {

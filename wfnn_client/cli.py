@@ -56,6 +56,7 @@ def main(
     ] = None,
     mode: Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")] = "peer",
     zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
+    shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
     controller: Annotated[
         str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
     ] = "default",
@@ -90,7 +91,7 @@ def main(
             boat_dt=boat_dt, thinks_per_action=thinks, learn=learn, weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server or ("local",)), controller=controller, client_id=client_id, follow=follow,
-            net=NetConfig(mode=mode, listen=tuple(listen or ()),  # type: ignore[arg-type]
+            net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
                           zenoh_config=str(zenoh_config) if zenoh_config else None),
             key_file=key_file, out=out, json_stats=json_stats, seed=seed,
             safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),

@@ -74,6 +74,8 @@ class RemoteConfig:
     diverged_hold_s: float = 10.0
     """How long a server whose weights diverged here is passed over."""
     status_period_s: float = 0.5
+    query_timeout_s: float = 0.5
+    """Deadline of the query for a server's newest weights when it appears."""
     journal_fsync: FsyncPolicy = "interval"
     lockstep: bool = False
 
@@ -473,7 +475,11 @@ class RemoteBrain:
             with self._lock:
                 view = self.servers.setdefault(server, ServerView(server))
                 view.alive = alive
+                ask = alive and view.latest is None
             log.info("server %s %s", server, "is alive" if alive else "is gone")
+            if ask:  # its newest weights now, rather than at its next publication
+                for frame in self.bus.get(self.keys.weights(server), self.config.query_timeout_s):
+                    self._snapshots.setdefault(server, frame)
 
     def _take_statuses(self) -> None:
         while True:

@@ -153,8 +153,10 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     values: list[float] = []
     learned = lockstep_timeouts = 0
     outages: list[dict[str, float]] = []
-    """Windows without a healthy weights source (start-up included), unix times."""
+    """Windows without a healthy weights source after the first one (unix times)."""
     outage_late: list[float] = []
+    startup_ticks = 0
+    """Ticks before the first weights arrived."""
     task.reset(rng)
     next_status = 0.0
     brain.start()
@@ -169,12 +171,15 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
             total, steps = 0.0, 0
             for _ in range(spec.episode_steps):
                 late = ticker.wait()
-                if not brain.connected:
+                if brain.connected:
+                    if outages and "end_unix" not in outages[-1]:
+                        outages[-1]["end_unix"] = time.time()
+                elif brain.following == "":
+                    startup_ticks += 1
+                else:
                     outage_late.append(late)
                     if not outages or "end_unix" in outages[-1]:
                         outages.append({"start_unix": time.time()})
-                elif outages and "end_unix" not in outages[-1]:
-                    outages[-1]["end_unix"] = time.time()
                 t0 = time.perf_counter()
                 acted = brain.act(x, explore=config.learn)
                 proposed = acted.result.action if acted is not None else None
@@ -250,6 +255,7 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
             float(np.percentile(outage_late, 99) * 1e3) if outage_late else None
         ),
         "client/outage_ticks": len(outage_late),
+        "client/startup_ticks": startup_ticks,
         "config": {"client": _jsonable_config(config), "learner": lcfg.to_dict()},
         **final,
     }

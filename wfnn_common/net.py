@@ -85,6 +85,9 @@ class NetConfig:
     """A peer silent for this long is dropped (its liveliness tokens vanish)."""
     retry_ms: int = 250
     """Period of connection retries to `connect` endpoints."""
+    shared_memory: bool = True
+    """Let processes on one host pass large messages through shared memory (Zenoh's default);
+    False forces TCP, as between hosts."""
     zenoh_config: str | None = None
     """A Zenoh JSON5 config file applied first (TLS, user/password, ...); the fields above override."""
 
@@ -106,10 +109,13 @@ def zenoh_config(net: NetConfig) -> Any:
     if net.connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(net.connect)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(net.multicast_scouting))
-    # Start even when no endpoint answers yet, and keep retrying: the robot keeps its tick
-    # and a server may start before or after the client.
-    conf.insert_json5("connect/timeout_ms", "0")
+    # Keep retrying endpoints that do not answer yet: a server may start before or after the
+    # client. A peer's open() then returns at once (no scouting delay); a client-mode session
+    # waits inside open() until its router answers (Zenoh has no other way for that mode).
+    conf.insert_json5("connect/timeout_ms", "-1")
     conf.insert_json5("connect/exit_on_failure", "false")
+    conf.insert_json5("scouting/delay", "0")
+    conf.insert_json5("transport/shared_memory/enabled", json.dumps(net.shared_memory))
     retry = {"period_init_ms": net.retry_ms, "period_max_ms": net.retry_ms, "period_increase_factor": 1.0}
     conf.insert_json5("connect/retry", json.dumps(retry))
     conf.insert_json5("listen/exit_on_failure", "true")

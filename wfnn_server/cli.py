@@ -45,6 +45,7 @@ def main(
     listen: Annotated[list[str] | None, typer.Option(help="Endpoint to listen on (repeatable).")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Endpoint to connect to (repeatable).")] = None,
     zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
+    shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
     data_dir: Annotated[Path, typer.Option(help="Store, checkpoint and config directory.")] = Path(
         "wfnn-data"
     ),
@@ -71,6 +72,7 @@ def main(
             mode=mode,  # type: ignore[arg-type]  # checked by NetConfig
             listen=tuple(listen) if listen is not None else default_listen,
             connect=tuple(connect or ()), zenoh_config=str(zenoh_config) if zenoh_config else None,
+            shared_memory=shared_memory,
         )  # fmt: skip
         config = ServerConfig(
             controller=controller, server_id=server_id, net=net, data_dir=data_dir,

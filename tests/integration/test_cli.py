@@ -150,3 +150,63 @@ def test_client_acts_and_thinks_without_torch():
         [sys.executable, "-c", CLIENT_WITHOUT_TORCH], capture_output=True, text=True, timeout=300
     )
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
+
+
+def test_bench_transport_writes_the_figures(tmp_path):
+    j, p = tmp_path / "transport.json", tmp_path / "transport.png"
+    out = run(
+        [
+            BIN / "wfnn-bench",
+            "transport",
+            "--experiences",
+            "3000",
+            "--seconds",
+            "3",
+            "--outage-seconds",
+            "0",
+            "--json",
+            j,
+            "--plot",
+            p,
+        ]
+    )
+    assert "experiences_per_s" in out.stdout
+    data = json.loads(j.read_text())
+    for key in ("experiences_per_s", "snapshot_p50_ms", "snapshot_p99_ms", "tick_jitter_p99_ms"):
+        assert data[key] > 0, key
+    assert data["experiences_lost"] == 0 and data["throughput"]["experiences"] == 3000
+    assert data["realtime"]["ticks"] >= 40 and data["realtime"]["snapshots_applied"] >= 1
+    assert set(data["goals"]) == {
+        "experiences_per_s",
+        "experiences_lost",
+        "snapshot_p99_ms",
+        "tick_jitter_p99_ms",
+    }
+    assert p.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--fsync", "sometimes"], "fsync"),
+        (["--id", "a/b"], "server id"),
+        (["--mode", "star"], "mode"),
+    ],
+)
+def test_server_refuses_bad_options(tmp_path, args, message):
+    proc = subprocess.run(
+        [BIN / "wfnn-server", "--data-dir", tmp_path, "--quiet", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode != 0 and message in proc.stdout + proc.stderr
+
+
+def test_client_refuses_bad_options(tmp_path):
+    proc = subprocess.run(
+        [BIN / "wfnn-client", "--sim", "boat", "--rate-hz", "10", "--lockstep", "--out", tmp_path],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode != 0 and "lock-step" in proc.stdout + proc.stderr
+    assert not (tmp_path / "metrics.json").exists()

@@ -203,3 +203,21 @@ def test_ten_thousand_corrupted_frames_are_rejected_and_counted(tmp_path):
     assert sum(last.rejected.values()) == n, last.rejected
     assert last.stored_through == {"fuzz": good_batches * 8 - 1}
     assert last.metrics["store/experiences"] == good_batches * 8
+
+
+def test_a_client_started_before_its_server_delivers_everything_later(tmp_path):
+    port = free_port()
+    stats = tmp_path / "stats.json"
+    out = tmp_path / "c"
+    proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "8", "--rate-hz", "40",
+                  "--server", endpoint(port), "--out", str(out), "--json-stats", str(stats))  # fmt: skip
+    time.sleep(3.0)  # the robot runs on its safe action, journaling every experience
+    with ServerProcess(tmp_path / "srv", port):
+        finish(proc, timeout=60)
+    result = metrics(stats)
+    assert result["following"] == "srv" and result["client/startup_ticks"] > 40
+    assert result["safety"]["no_weights"] == result["client/startup_ticks"]
+    produced = int(result["uplink/produced_through"])
+    store = ExperienceStore(tmp_path / "srv" / "store", "check")
+    client_id = json.loads((out / "journal" / "client.json").read_text())["client"]
+    assert store.stored_through[client_id] == produced and store.count == produced + 1

@@ -217,3 +217,14 @@ def test_the_journal_continues_after_a_client_restart(tmp_path):
         again.stop()
     with pytest.raises(ValueError, match="belongs to client"):
         remote(tmp_path, hub, cfg, client_id="someone")
+
+
+def test_a_new_server_is_asked_for_its_weights(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg, publish_period_s=100.0) as server:
+        assert wait(lambda: server.version == 1)  # published once, before the client existed
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        assert wait(lambda: brain.following == "s1", timeout=2.0)
+        assert brain.current.version == 1
+        brain.stop()
