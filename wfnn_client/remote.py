@@ -546,10 +546,11 @@ class RemoteBrain:
         return ""
 
     def _healthy(self, view: ServerView, now: float) -> bool:
+        """Alive (token and heartbeat seen), fresh valid weights, not diverged."""
         w = view.latest
         return (
-            view.alive and w is not None and not w.diverged and now >= view.suspect_until
-            and now - w.received <= self.config.snapshot_timeout_s
+            view.alive and view.started_ns > 0 and w is not None and not w.diverged
+            and now >= view.suspect_until and now - w.received <= self.config.snapshot_timeout_s
         )  # fmt: skip
 
     def _choose(self) -> None:
@@ -559,11 +560,9 @@ class RemoteBrain:
             healthy = [v for v in self.servers.values() if self._healthy(v, now)]
             if self.config.follow is not None:
                 healthy = [v for v in healthy if v.server == self.config.follow]
-            current = self.servers.get(self._following)
-            if current is not None and current in healthy:
-                chosen: ServerView | None = current
-            else:
-                chosen = min(healthy, key=lambda v: (v.started_ns or 1 << 62, v.server), default=None)
+            # The longest-alive: deterministic for every client, and a restarted server (a new
+            # start time) never takes over from one that kept running.
+            chosen = min(healthy, key=lambda v: (v.started_ns, v.server), default=None)
         self._connected = chosen is not None
         if chosen is None:
             if self._following and self._lost_at is None:

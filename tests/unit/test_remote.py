@@ -10,7 +10,7 @@ from wfnn_client.brain import Experience, LocalBrain
 from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
-from wfnn_common.protocol import Codec, WeightSnapshot
+from wfnn_common.protocol import Codec, ServerStatus, WeightSnapshot
 
 
 def positioning_config(**kw):
@@ -142,6 +142,11 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     brain.start()
     bus = hub.bus()
     bus.declare_token(KEYS.server_alive("s1"))
+    status = ServerStatus(
+        server="s1", incarnation=1, started_ns=1, spec_hash=cfg.spec_hash(), weights_version=0,
+        stored_through={}, rejected={}, metrics={},
+    )  # fmt: skip
+    bus.put(KEYS.server_status("s1"), Codec("s1", key).encode(status), None)  # its heartbeat
     n = WFNN(cfg).params.flat.shape[1]
     bad = {
         "auth": forge(cfg),  # no key
