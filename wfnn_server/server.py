@@ -355,7 +355,8 @@ class ThinkServer:
                 last_status, last_thinks = now, thinks
                 next_status = now + cfg.status_period_s
             if not thought:
-                self._wake.wait(timeout=max(0.0, min(next_status, next_publish) - time.monotonic()))
+                due = min(next_status, next_publish) if learner is not None else next_status
+                self._wake.wait(timeout=max(0.0, due - time.monotonic()))
                 self._wake.clear()
 
     def _learn_queued(self, learner: WFNN) -> None:
