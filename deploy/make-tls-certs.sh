@@ -12,7 +12,8 @@
 #       Zenoh checks when verify_name_on_connect is true).
 # DIR:  output directory (default: ./wfnn-tls), created if needed. It receives
 #       ca.pem ca-key.pem              the CA (keep ca-key.pem off the robot and think hosts)
-#       server.pem server-key.pem      robot (listening) side: listen_certificate / listen_private_key
+#       server.pem server-key.pem      robot (listening) side:
+#                                      listen_certificate / listen_private_key
 #       client.pem client-key.pem      think-server (connecting) side, for mutual TLS:
 #                                      connect_certificate / connect_private_key
 # Every host needs ca.pem (root_ca_certificate). Keys are EC P-256, PKCS#8, mode 600.

@@ -49,7 +49,11 @@ def main(
     rate_hz: Annotated[float, typer.Option(min=0.0, help="Control rate; 0 = as fast as possible.")] = 50.0,
     lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
     server: Annotated[
-        list[str] | None, typer.Option(help="`local`, or a think server's Zenoh endpoint (repeatable).")
+        list[str] | None,
+        typer.Option(
+            help="`local`, or a think server's Zenoh endpoint (repeatable); default local, "
+            "or none with --listen (servers connect to this client)."
+        ),
     ] = None,
     listen: Annotated[
         list[str] | None, typer.Option(help="Zenoh endpoint to listen on (repeatable).")
@@ -90,7 +94,8 @@ def main(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate_hz, lockstep=lockstep,
             boat_dt=boat_dt, thinks_per_action=thinks, learn=learn, weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
-            server=tuple(server or ("local",)), controller=controller, client_id=client_id, follow=follow,
+            server=tuple(server) if server else (() if listen else ("local",)),
+            controller=controller, client_id=client_id, follow=follow,
             net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
                           zenoh_config=str(zenoh_config) if zenoh_config else None),
             key_file=key_file, out=out, json_stats=json_stats, seed=seed,

@@ -60,7 +60,8 @@ class ClientConfig:
     weights: Path | None = None
     """Start from these saved weights (local: the learner; C/S: until a server's snapshot)."""
     server: tuple[str, ...] = ("local",)
-    """`local` thinks in-process; otherwise Zenoh endpoints of think servers (or routers)."""
+    """`local` thinks in-process; otherwise Zenoh endpoints of think servers (or routers). Empty,
+    with `net.listen` set: the servers connect to this client."""
     controller: str = "default"
     client_id: str | None = None
     follow: str | None = None
@@ -83,8 +84,10 @@ class ClientConfig:
             raise ValueError("lock-step runs as fast as possible: set rate_hz to 0")
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
-        if not self.server:
-            raise ValueError("server needs `local` or at least one endpoint")
+        if not self.server and not self.net.listen:
+            raise ValueError("server needs `local`, an endpoint, or a listen endpoint servers connect to")
+        if "local" in self.server and len(self.server) > 1:
+            raise ValueError("server is either `local` or endpoints, not both")
 
     @property
     def local(self) -> bool:

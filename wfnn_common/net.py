@@ -110,8 +110,8 @@ def zenoh_config(net: NetConfig) -> Any:
         conf.insert_json5("connect/endpoints", json.dumps(list(net.connect)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(net.multicast_scouting))
     # Keep retrying endpoints that do not answer yet: a server may start before or after the
-    # client. A peer's open() then returns at once (no scouting delay); a client-mode session
-    # waits inside open() until its router answers (Zenoh has no other way for that mode).
+    # client. A peer's open() then returns at once (no scouting delay); for client mode see
+    # `ZenohBus._open`.
     conf.insert_json5("connect/timeout_ms", "-1")
     conf.insert_json5("connect/exit_on_failure", "false")
     conf.insert_json5("scouting/delay", "0")
@@ -132,11 +132,33 @@ class ZenohBus:
 
         self._zenoh = zenoh
         self.net = net
-        self.session = zenoh.open(zenoh_config(net))
+        self.session = self._open()
         self._publishers: dict[tuple[str, Channel], Any] = {}
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._closed = False
+
+    def _open(self) -> Any:
+        """Open the session.
+
+        A client-mode session cannot connect later, so it is retried here, a second at a time,
+        saying what it waits for (Ctrl-C or SIGTERM end the wait).
+        """
+        zenoh, net = self._zenoh, self.net
+        conf = zenoh_config(net)
+        if net.mode != "client":
+            return zenoh.open(conf)
+        conf.insert_json5("connect/timeout_ms", "1000")
+        conf.insert_json5("connect/exit_on_failure", "true")
+        waited = 0
+        while True:
+            try:
+                return zenoh.open(conf)
+            except zenoh.ZError as exc:
+                if waited % 10 == 0:
+                    log.warning("client mode: no router answers at %s yet (%s); retrying",
+                                ", ".join(net.connect) or "(no endpoint)", exc)  # fmt: skip
+                waited += 1
 
     def _publisher(self, key: str, channel: Channel) -> Any:
         z = self._zenoh

@@ -500,7 +500,11 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
     from wfnn_common.net import ZenohBus
 
     bus = ZenohBus(config.net)
-    server = ThinkServer(config, bus)
+    try:
+        server = ThinkServer(config, bus)
+    except BaseException:
+        bus.close()  # an open session would hold the process at exit
+        raise
     stop = threading.Event()
 
     def on_signal(signum: int, _: Any) -> None:
@@ -516,9 +520,9 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
                 shown = server.last_status
                 on_status(shown)
     finally:
+        server.stop()  # a second signal meanwhile must not cut the final checkpoint short
+        bus.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
-        server.stop()
-        bus.close()
     if server.error is not None:
         raise RuntimeError("think server failed") from server.error

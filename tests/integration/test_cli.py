@@ -138,6 +138,10 @@ with ActLearnThinkMT(learner) as mt:
         tr = task.step(u[None])
         mt.learn(x, u, tr.state[0], tr.reward[0])
         x = tr.state[0]
+    import time
+    deadline = time.monotonic() + 120  # the first think compiles the kernel on a fresh machine
+    while learner.thinks[0] == 0 and mt.error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
 assert mt.error is None and learner.thinks[0] > 0, (mt.error, learner.thinks)
 import wfnn_client.remote, wfnn_client.run, wfnn_common.net, wfnn_common.protocol  # the C/S client too
 assert "torch" not in [m for m in sys.modules if sys.modules[m] is not None]

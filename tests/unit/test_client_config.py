@@ -1,0 +1,33 @@
+import pytest
+
+from wfnn_client.run import ClientConfig
+from wfnn_common.net import NetConfig
+
+
+def test_local_and_remote_configs():
+    assert ClientConfig().local
+    assert not ClientConfig(server=("tcp/127.0.0.1:7447",)).local
+    listening = ClientConfig(server=(), net=NetConfig(mode="router", listen=("tcp/127.0.0.1:7447",)))
+    assert not listening.local  # servers connect to this client
+
+
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        ({"server": ()}, "listen"),
+        ({"server": ("local", "tcp/127.0.0.1:7447")}, "not both"),
+        ({"lockstep": True, "rate_hz": 15.0}, "lock-step"),
+        ({"sim": "submarine"}, "unknown sim"),
+        ({"episodes": 0}, "episodes"),
+    ],
+)
+def test_bad_client_configs_are_refused(kw, message):
+    with pytest.raises(ValueError, match=message):
+        ClientConfig(**kw)
+
+
+def test_net_config_is_checked():
+    with pytest.raises(ValueError, match="mode"):
+        NetConfig(mode="star")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="lease"):
+        NetConfig(lease_ms=10)
