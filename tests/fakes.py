@@ -34,6 +34,18 @@ def random_experiences(
     )
 
 
+def wait_for(predicate, timeout=10.0):
+    """Poll `predicate` until it holds (True) or the timeout passes (False)."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return False
+
+
 def key_matches(pattern: str, key: str) -> bool:
     """Zenoh key-expression matching for the subset wfnn uses: `*` is one chunk, `**` any number."""
     p, k = pattern.split("/"), key.split("/")

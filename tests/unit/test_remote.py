@@ -5,6 +5,7 @@ import pytest
 
 from sims.positioning import PositioningVec
 from tests.fakes import Hub, small_config
+from tests.fakes import wait_for as wait
 from tests.unit.test_server import KEYS, Listener, make_server
 from wfnn_client.brain import Experience, LocalBrain
 from wfnn_client.remote import RemoteBrain, RemoteConfig
@@ -24,15 +25,6 @@ def positioning_config(**kw):
 def remote(tmp_path, hub, cfg, **kw):
     options = {"controller": "t", "journal_dir": tmp_path / "journal", "resend_after_s": 0.2, **kw}
     return RemoteBrain(WFNN(cfg), RemoteConfig(**options), hub.bus())
-
-
-def wait(predicate, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return False
 
 
 def drive(brain, steps, seed=0, lockstep=True):

@@ -1,10 +1,9 @@
 import json
-import time
 
 import numpy as np
 import pytest
 
-from tests.fakes import Hub, small_config
+from tests.fakes import Hub, small_config, wait_for
 from wfnn_common.protocol import (
     Ack,
     ClientStatus,
@@ -47,13 +46,9 @@ class Listener:
             KEYS.server_status(), lambda k, d: self.statuses.append(self.codec.decode(d, ServerStatus)[1])
         )
 
-    def wait(self, predicate, timeout=10.0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            time.sleep(0.005)
-        return False
+    @staticmethod
+    def wait(predicate, timeout=10.0):
+        return wait_for(predicate, timeout)
 
     def acked(self, client="c1", server="s1"):
         values = [a.stored_through for a in self.acks if a.client == client and a.server == server]
