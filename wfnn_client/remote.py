@@ -571,10 +571,11 @@ class RemoteBrain:
                             self._following)  # fmt: skip
             return
         if chosen.server != self._following:
-            if self._following:
+            previous = self.servers.get(self._following)
+            if previous is not None and not self._healthy(previous, now):
                 self.failovers.append({"from": self._following, "to": chosen.server, "at_unix": time.time()})
                 log.warning("failover: following server %s instead of %s", chosen.server, self._following)
-            else:
+            else:  # the first, or one alive longer than the one followed has just become known
                 log.info("following server %s", chosen.server)
             self._following = chosen.server
         self._lost_at = None
