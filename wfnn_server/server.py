@@ -48,6 +48,8 @@ from wfnn_server.store import ExperienceStore
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.npz"
+CLIENT_TIMEOUT_S = 2.0
+"""A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 LEARNER_JSON = "learner_config.json"
 
 
@@ -103,6 +105,9 @@ class ThinkServer:
         self._threads: list[threading.Thread] = []
         self._latest_frame: bytes | None = None
         self._spec_warned: set[str] = set()
+        self._heard: dict[str, float] = {}
+        """Per client: when its heartbeat (status) last arrived (monotonic)."""
+        self._silent: set[str] = set()
         self.error: BaseException | None = None
 
         self.store = ExperienceStore(
@@ -302,6 +307,7 @@ class ThinkServer:
             self.rejected[exc.reason] += 1
             return
         self.counters["ingest/client_status"] += 1
+        self._heard[status.client] = time.monotonic()
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:
@@ -433,6 +439,21 @@ class ThinkServer:
         self._latest_frame = frame
         self.bus.put(self.keys.weights(self.id), frame, Channel.LATEST)
 
+    def _check_clients(self) -> int:
+        """Log clients whose heartbeat stopped or came back; -> how many are heard now."""
+        now = time.monotonic()
+        heard = 0
+        for client, seen in list(self._heard.items()):
+            if now - seen <= CLIENT_TIMEOUT_S:
+                heard += 1
+                if client in self._silent:
+                    self._silent.discard(client)
+                    log.info("client %s is heard again", client)
+            elif client not in self._silent:
+                self._silent.add(client)
+                log.warning("client %s silent for %.1f s", client, now - seen)
+        return heard
+
     def _publish_status(self, thinks_per_s: float) -> None:
         learner = self.learner
         metrics: dict[str, float] = {
@@ -445,6 +466,8 @@ class ThinkServer:
             "learn/divergence_resets": float(learner.resets[0]) if learner else 0.0,
             "learn/diverged": float(bool(learner is not None and learner.thinks[0] < self._recover_until)),
             "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,
+            "clients/heard": float(self._check_clients()),
+            "clients/silent": float(len(self._silent)),
             **{k: float(v) for k, v in self.counters.items()},
         }
         if self._q_chosen:

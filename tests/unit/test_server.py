@@ -220,3 +220,21 @@ def test_divergence_resets_and_flags_snapshots(tmp_path):
 def test_server_config_is_checked(tmp_path, bad):
     with pytest.raises(ValueError):
         ServerConfig(**{"data_dir": tmp_path, **bad})
+
+
+def test_silent_clients_are_reported(tmp_path, monkeypatch):
+    import wfnn_server.server as server_module
+
+    monkeypatch.setattr(server_module, "CLIENT_TIMEOUT_S", 0.3)
+    hub, cfg = Hub(), small_config()
+    listener = Listener(hub)
+    status = ClientStatus(
+        client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
+        weights_version=0, produced_through=-1, acked={}, metrics={},
+    )  # fmt: skip
+    with make_server(tmp_path, hub, cfg):
+        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        assert listener.wait(lambda: any(s.metrics.get("clients/heard") == 1 for s in listener.statuses))
+        assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 1)
+        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 0)
