@@ -121,7 +121,12 @@ def make_brain(config: ClientConfig, learner: WFNN) -> Brain:
         controller=config.controller, client_id=config.client_id, journal_dir=config.out / "journal",
         key_file=config.key_file, follow=config.follow, lockstep=config.lockstep,
     )  # fmt: skip
-    return RemoteBrain(learner, remote, ZenohBus(net), initial=learner.params if config.weights else None)
+    bus = ZenohBus(net)
+    try:
+        return RemoteBrain(learner, remote, bus, initial=learner.params if config.weights else None)
+    except BaseException:
+        bus.close()  # an open Zenoh session would hold the process at exit
+        raise
 
 
 StatusCallback = Callable[[dict[str, Any]], None]
