@@ -60,11 +60,8 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
     one time unit per action random thrusting travels ~5 units per target), so only
     non-finite states are refused here.
     """
-    return LearnerConfig(
-        state_low=BoatVec.state_low,
-        state_high=BoatVec.state_high,
-        action_low=BoatVec.action_low,
-        action_high=BoatVec.action_high,
+    return LearnerConfig.for_task(
+        BoatVec,
         advantage_k=advantage_k,
         thinks_per_action=bench.thinks,
         replay_capacity=bench.targets * bench.steps_per_target,

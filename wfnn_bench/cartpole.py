@@ -41,11 +41,8 @@ class CartPoleBenchConfig:
 def run(bench: CartPoleBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
     """Learn in `runs` cart-poles -> steps per attempt for each run."""
     task = CartPoleVec(bench.runs)
-    config = LearnerConfig(
-        state_low=task.state_low,
-        state_high=task.state_high,
-        action_low=task.action_low,
-        action_high=task.action_high,
+    config = LearnerConfig.for_task(
+        task,
         gamma=bench.gamma,
         advantage_k=bench.advantage_k,
         thinks_per_action=bench.thinks,

@@ -72,14 +72,6 @@ def steps(cfg: TransportBenchConfig) -> int:
     return cfg.experiences // 1000 + int(cfg.tick_seconds) + int(cfg.outage_seconds)
 
 
-def _boat_config(**kw: Any) -> LearnerConfig:
-    boat = BoatVec(1)
-    return LearnerConfig(
-        state_low=boat.state_low, state_high=boat.state_high, action_low=boat.action_low,
-        action_high=boat.action_high, **kw,
-    )  # fmt: skip
-
-
 def _wait(predicate: Any, timeout_s: float) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -96,7 +88,7 @@ def throughput(
 
     With shared_memory False, Zenoh moves every frame over TCP, as it would between hosts.
     """
-    lcfg = _boat_config(thinks_per_action=0, seed=cfg.seed)
+    lcfg = LearnerConfig.for_task(BoatVec, thinks_per_action=0, seed=cfg.seed)
     (work / "learner.json").write_text(lcfg.to_json())
     port = free_port()
     tag = "shm" if shared_memory else "tcp"

@@ -98,15 +98,7 @@ class ClientConfig:
 def learner_config(task: VecTask, config: ClientConfig) -> LearnerConfig:
     """The thesis' defaults over the task's declared ranges (with the client's overrides)."""
     extra = {} if config.thinks_per_action is None else {"thinks_per_action": config.thinks_per_action}
-    return LearnerConfig(
-        state_low=task.state_low,
-        state_high=task.state_high,
-        action_low=task.action_low,
-        action_high=task.action_high,
-        exploration=config.exploration,
-        seed=config.seed,
-        **extra,  # type: ignore[arg-type]
-    )
+    return LearnerConfig.for_task(task, exploration=config.exploration, seed=config.seed, **extra)
 
 
 def make_brain(config: ClientConfig, learner: WFNN) -> Brain:

@@ -128,6 +128,17 @@ class LearnerConfig:
             if not ok:
                 raise ConfigError(f"{message} (config: {self.short_repr()})")
 
+    @classmethod
+    def for_task(cls, task: Any, **overrides: Any) -> LearnerConfig:
+        """A config over a task's declared ranges, the thesis' defaults where not overridden.
+
+        `task` is anything with state_low, state_high, action_low and action_high.
+        """
+        return cls(
+            state_low=tuple(task.state_low), state_high=tuple(task.state_high),
+            action_low=tuple(task.action_low), action_high=tuple(task.action_high), **overrides,
+        )  # fmt: skip
+
     # ----------------------------------------------------------------- derived sizes
     @property
     def state_dim(self) -> int:

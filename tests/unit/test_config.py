@@ -56,3 +56,11 @@ def test_roundtrip_and_spec_hash():
     assert small_config(n_hidden=7).spec_hash() != cfg.spec_hash()
     with pytest.raises(ConfigError, match="unknown"):
         LearnerConfig.from_dict({**cfg.to_dict(), "bogus": 1})
+
+
+def test_for_task_takes_the_tasks_ranges():
+    from sims.boat import BoatVec
+
+    cfg = LearnerConfig.for_task(BoatVec, thinks_per_action=3)
+    assert cfg.state_low == BoatVec.state_low and cfg.action_high == BoatVec.action_high
+    assert cfg.thinks_per_action == 3 and cfg.gamma == 0.8

@@ -15,11 +15,7 @@ from wfnn_common.protocol import Codec, ServerStatus, WeightSnapshot
 
 
 def positioning_config(**kw):
-    task = PositioningVec(1)
-    return LearnerConfig(
-        state_low=task.state_low, state_high=task.state_high, action_low=task.action_low,
-        action_high=task.action_high, **kw,
-    )  # fmt: skip
+    return LearnerConfig.for_task(PositioningVec, **kw)
 
 
 def remote(tmp_path, hub, cfg, **kw):
