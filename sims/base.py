@@ -33,10 +33,26 @@ class VecTask(Protocol):
     """n independent instances of one task, advanced together as arrays."""
 
     n: int
-    state_low: tuple[float, ...]
-    state_high: tuple[float, ...]
-    action_low: tuple[float, ...]
-    action_high: tuple[float, ...]
+
+    @property
+    def state_low(self) -> tuple[float, ...]:
+        """Lower ends of the declared state ranges."""
+        ...
+
+    @property
+    def state_high(self) -> tuple[float, ...]:
+        """Upper ends of the declared state ranges."""
+        ...
+
+    @property
+    def action_low(self) -> tuple[float, ...]:
+        """Lower ends of the action ranges."""
+        ...
+
+    @property
+    def action_high(self) -> tuple[float, ...]:
+        """Upper ends of the action ranges."""
+        ...
 
     def reset(self, rng: np.random.Generator) -> FloatArray:
         """Start every instance afresh; returns states [n, S]."""

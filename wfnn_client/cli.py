@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from sims.hydra import HydraConfig
 from wfnn_client.run import ClientConfig, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
@@ -30,6 +31,10 @@ def _floats(text: str | None, what: str) -> tuple[float, ...] | None:
         raise typer.BadParameter(f"expected comma-separated numbers, got {text!r}", param_hint=what) from None
 
 
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(v.strip() for v in text.split(",") if v.strip())
+
+
 def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
@@ -46,7 +51,10 @@ def main(
     sim: Annotated[str, typer.Option(help=f"Simulated task: {', '.join(SIMS)}.")] = "boat",
     episodes: Annotated[int, typer.Option(min=1, help="Episodes (boat: targets).")] = 40,
     duration: Annotated[float | None, typer.Option(min=0.0, help="Stop after this many seconds.")] = None,
-    rate_hz: Annotated[float, typer.Option(min=0.0, help="Control rate; 0 = as fast as possible.")] = 50.0,
+    rate_hz: Annotated[
+        float | None,
+        typer.Option(min=0.0, help="Control rate; 0 = as fast as possible [sim's rate: 50, hydra 15]."),
+    ] = None,
     lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
     server: Annotated[
         list[str] | None,
@@ -71,7 +79,14 @@ def main(
     weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
     boat_dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
-    exploration: Annotated[str, typer.Option(help="uniform, gaussian, smooth or none.")] = "uniform",
+    joints: Annotated[str, typer.Option(help="hydra: included joints (pan,tilt,left,right).")] = "right",
+    axes: Annotated[
+        str, typer.Option(help="hydra: included image axes (left_x,left_y,right_x,right_y).")
+    ] = "right_x",
+    regime: Annotated[str, typer.Option(help="hydra: targets: static, swing, mixed or elastic.")] = "swing",
+    exploration: Annotated[
+        str | None, typer.Option(help="uniform, gaussian, smooth or none [sim's: uniform, hydra gaussian].")
+    ] = None,
     max_action_rate: Annotated[str | None, typer.Option(help="Max change per second, per action.")] = None,
     safe_action: Annotated[str | None, typer.Option(help="Safe action, comma-separated (default 0).")] = None,
     veto: Annotated[bool, typer.Option(help="Apply the robot's veto rules.")] = True,
@@ -87,11 +102,16 @@ def main(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
+    if sim not in SIMS:
+        raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
+    rate = rate_hz if rate_hz is not None else (0.0 if lockstep else SIMS[sim].rate_hz)
+    exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
         raise typer.BadParameter(f"unknown exploration {exploration!r}", param_hint="--exploration")
     try:
+        hydra = HydraConfig(joints=_names(joints), axes=_names(axes), regime=regime)  # type: ignore[arg-type]
         config = ClientConfig(
-            sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate_hz, lockstep=lockstep,
+            sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep, hydra=hydra,
             boat_dt=boat_dt, thinks_per_action=thinks, learn=learn, weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from sims.base import VecTask
+from sims.hydra import HydraConfig
 from wfnn_client.brain import Brain, Experience, LocalBrain
 from wfnn_client.safety import SafetyConfig, SafetyLayer
 from wfnn_client.sims import SIMS
@@ -51,6 +52,8 @@ class ClientConfig:
     lockstep_timeout_s: float = 30.0
     boat_dt: float = 0.1
     """Boat time per action (see sims.boat)."""
+    hydra: HydraConfig = field(default_factory=HydraConfig)
+    """HyDrA's joints, image axes and target regime (`sim` hydra)."""
     thinks_per_action: int | None = None
     """Override the learner's thinks per action (local thinking and the announced config)."""
     think_batch: int = 50
@@ -130,7 +133,7 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     `on_status(fields)` is called about twice a second and after every episode.
     """
     spec = SIMS[config.sim]
-    task = spec.make(config.boat_dt)
+    task = spec.make(config)
     rng = np.random.default_rng(config.seed)
     lcfg = learner_config(task, config)
     learner = WFNN(lcfg)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,8 +17,12 @@ from numpy.typing import NDArray
 from sims.base import VecTask
 from sims.boat import BoatConfig, BoatVec
 from sims.cartpole import CartPoleVec
+from sims.hydra import HydraVec
 from sims.positioning import PositioningVec
 from wfnn_client.safety import Veto
+
+if TYPE_CHECKING:
+    from wfnn_client.run import ClientConfig
 
 FloatArray = NDArray[np.float64]
 RewardOf = Callable[[FloatArray, FloatArray, FloatArray], float]
@@ -29,8 +33,8 @@ RewardOf = Callable[[FloatArray, FloatArray, FloatArray], float]
 class SimSpec:
     """How the client drives one simulated task."""
 
-    make: Callable[[float], VecTask]
-    """Build the task (one instance) given the boat time step option."""
+    make: Callable[[ClientConfig], VecTask]
+    """Build the task (one instance) from the client's options."""
     episode_steps: int
     new_episode: Callable[[Any, np.random.Generator], None]
     metric: Callable[[Any], FloatArray]
@@ -40,6 +44,11 @@ class SimSpec:
     """Build the reward function of never-executed actions for a task instance."""
     veto: Callable[[Any], Veto] | None = None
     """Build the veto rules for a task instance."""
+    rate_hz: float = 50.0
+    """The task's control rate in real time (when the client is not told otherwise)."""
+    exploration: str = "uniform"
+    """The exploration kind used unless the client is told otherwise (robots: gaussian, as in
+    Section 6.4.1; a uniform random action throws an active head off its target)."""
 
 
 def _boat_reward(task: BoatVec) -> RewardOf:
@@ -83,7 +92,7 @@ def positioning_wall_veto(task: PositioningVec, wall: float = 1.2) -> Veto:
 
 SIMS: dict[str, SimSpec] = {
     "boat": SimSpec(
-        make=lambda dt: BoatVec(1, BoatConfig(dt=dt)),
+        make=lambda c: BoatVec(1, BoatConfig(dt=c.boat_dt)),
         episode_steps=200,
         new_episode=lambda task, rng: task.new_targets(rng),
         metric=lambda task: task.distance(),
@@ -91,7 +100,7 @@ SIMS: dict[str, SimSpec] = {
         reward_of=_boat_reward,
     ),
     "positioning": SimSpec(
-        make=lambda dt: PositioningVec(1),
+        make=lambda c: PositioningVec(1),
         episode_steps=200,
         new_episode=lambda task, rng: None,
         metric=lambda task: np.abs(task.target - task.position),
@@ -100,11 +109,20 @@ SIMS: dict[str, SimSpec] = {
         veto=positioning_wall_veto,
     ),
     "cartpole": SimSpec(
-        make=lambda dt: CartPoleVec(1),
+        make=lambda c: CartPoleVec(1),
         episode_steps=500,
         new_episode=lambda task, rng: None,
         metric=lambda task: (task.steps == 0).astype(np.float64),
         metric_name="failures per step",
     ),
 }
+SIMS["hydra"] = SimSpec(
+    make=lambda c: HydraVec(1, c.hydra, seed=c.seed),
+    episode_steps=450,
+    new_episode=lambda task, rng: task.new_targets(rng),
+    metric=lambda task: task.pixel_error(),
+    metric_name="mean |pixel error| (lost: half the image)",
+    rate_hz=15.0,
+    exploration="gaussian",
+)
 SIMS["position"] = SIMS["positioning"]

@@ -64,11 +64,14 @@ class DivergenceMonitor:
         self.run = np.zeros(population, dtype=np.int64)
 
     def observe(self, value: FloatArray, mask: BoolArray | None = None) -> BoolArray:
-        """Record the chosen actions' values [P]; returns the learners judged diverged now."""
+        """Record the chosen actions' values [P]; returns the learners judged diverged now.
+
+        Learners where `mask` is False (an invalid state, acted on from a best estimate) are
+        skipped: their run of high values neither grows nor ends.
+        """
         high = value > self.threshold
-        if mask is not None:
-            high &= mask
-        self.run = (self.run + 1) * high
+        run = (self.run + 1) * high
+        self.run = run if mask is None else np.where(mask, run, self.run)
         diverged = self.run >= self.patience if self.patience > 0 else np.zeros_like(high)
         if diverged.any():
             self.run[diverged] = 0
@@ -221,7 +224,9 @@ class WFNN:
             explored = bool((u != greedy).any())
         monitor = self.monitor
         diverged = False
-        if valid and value > monitor.threshold:
+        if not valid:
+            pass  # an estimated state: the run of high values neither grows nor ends
+        elif value > monitor.threshold:
             monitor.run[0] += 1
             if 0 < monitor.patience <= monitor.run[0]:
                 monitor.run[0] = 0

@@ -171,3 +171,20 @@ def test_learns_a_one_step_task_to_the_best_action():
     for xv in (-0.8, 0.0, 0.8):
         a = learner.act(np.full((4, 1), xv), explore=False).action[:, 0]
         assert np.median(np.abs(a - 0.5 * xv)) < 0.15
+
+
+def test_invalid_states_neither_extend_nor_end_a_run_of_high_values():
+    mon = DivergenceMonitor(1, threshold=0.5, patience=3)
+    valid, invalid = np.array([True]), np.array([False])
+    assert not mon.observe(np.array([0.9]), valid)[0]
+    assert not mon.observe(np.array([0.1]), invalid)[0]  # a best-estimate state: skipped
+    assert not mon.observe(np.array([0.9]), valid)[0]
+    assert mon.observe(np.array([0.9]), valid)[0]
+    # The single-learner path of act agrees.
+    cfg = small_config(divergence_threshold=-2.0, divergence_patience=3)
+    learner = WFNN(cfg)
+    learner.act(np.zeros(3), explore=False)
+    learner.act(np.full(3, np.nan), explore=False)  # invalid: skipped
+    learner.act(np.zeros(3), explore=False)
+    assert learner.resets[0] == 0
+    assert learner.act(np.zeros(3), explore=False).diverged and learner.resets[0] == 1

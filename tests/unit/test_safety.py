@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sims.positioning import PositioningVec
+from wfnn_client.run import ClientConfig
 from wfnn_client.safety import SafetyConfig, SafetyLayer
 from wfnn_client.sims import SIMS, positioning_wall_veto
 from wfnn_client.tick import Ticker
@@ -90,7 +91,7 @@ def test_positioning_wall_veto_and_the_reward_of_a_proposal():
 
 
 def test_boat_reward_of_matches_the_task_for_the_executed_action():
-    task = SIMS["boat"].make(0.1)
+    task = SIMS["boat"].make(ClientConfig())
     x = task.reset(np.random.default_rng(0))[0]
     u = np.array([0.4, -0.7])
     tr = task.step(u[None])

@@ -1,0 +1,131 @@
+"""What HyDrA's cameras report: the tracked target's pixel position, with a real tracker's faults.
+
+Each camera projects candidate targets through a pinhole model (its pose from the simulation).
+A candidate is visible when it is in front of the camera, inside the image, not hidden by
+another object (a ray from the camera reaches it first) and not blurred (moving across the image
+faster than `blur_px_per_frame`). The tracker keeps its current target while that stays visible
+(it searches a small window around the last position); when it is lost, it searches the whole
+image and takes any visible candidate, which may be the wrong one (Section 7.5.2). Measurements
+are quantised to whole pixels plus Gaussian noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, kw_only=True)
+class VisionConfig:
+    """Camera images and tracker faults."""
+
+    width: int = 320
+    height: int = 240
+    noise_px: float = 0.3
+    """Standard deviation of the tracker's position noise (pixels)."""
+    quantise: bool = True
+    """Report whole pixels, as template matching does."""
+    blur_px_per_frame: float = 25.0
+    """A target moving faster than this across the image (pixels per 30 Hz frame) blurs and is lost."""
+    margin_px: float = 4.0
+    """Targets closer than this to the image border are not found."""
+
+
+@dataclass
+class Measurement:
+    """One camera's tracker output for one frame."""
+
+    found: bool
+    pixel: FloatArray
+    """Target position relative to the image centre (x right, y down), pixels [2]."""
+    target: int
+    """Index of the tracked candidate (-1 when lost)."""
+    switched: bool
+    """The tracker (re)acquired its target in this frame by a search of the whole image."""
+
+
+class Camera:
+    """A pinhole camera of the model and the tracker that follows one target in its image."""
+
+    def __init__(self, model: mujoco.MjModel, name: str, cfg: VisionConfig, rng: np.random.Generator) -> None:
+        self.cfg = cfg
+        self.id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+        if self.id < 0:
+            raise ValueError(f"no camera {name!r} in the model")
+        fovy = np.deg2rad(model.cam_fovy[self.id])
+        self.focal = (cfg.height / 2) / np.tan(fovy / 2)
+        """Focal length in pixels."""
+        self.body = int(model.cam_bodyid[self.id])
+        self.rng = rng
+        self.current = -1
+        self._last: dict[int, FloatArray] = {}
+        """Each candidate's projection in the previous frame (for blur)."""
+
+    def reset(self) -> None:
+        """Forget the tracked target and the previous frame."""
+        self.current = -1
+        self._last = {}
+
+    def project(self, data: mujoco.MjData, point: FloatArray) -> tuple[FloatArray, float]:
+        """Pixel position (x right, y down, from the centre) and depth of a world point."""
+        rel = data.cam_xmat[self.id].reshape(3, 3).T @ (point - data.cam_xpos[self.id])
+        depth = -rel[2]
+        if depth <= 1e-6:
+            return np.array([np.inf, np.inf]), depth
+        return np.array([self.focal * rel[0] / depth, -self.focal * rel[1] / depth]), depth
+
+    def _visible(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        geom: int,
+        point: FloatArray,
+        groups: NDArray[np.uint8],
+    ) -> bool:
+        start = data.cam_xpos[self.id]
+        vec = point - start
+        hit = np.zeros(1, dtype=np.int32)
+        mujoco.mj_ray(model, data, start, vec, groups, 1, self.body, hit)
+        return int(hit[0]) == geom or int(hit[0]) == -1
+
+    def observe(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        candidates: list[tuple[int, FloatArray]],
+        groups: NDArray[np.uint8],
+    ) -> Measurement:
+        """Track for one frame among candidates [(geom id, world position)]."""
+        cfg = self.cfg
+        half = np.array([cfg.width / 2 - cfg.margin_px, cfg.height / 2 - cfg.margin_px])
+        seen: dict[int, FloatArray] = {}
+        previous = self._last
+        self._last = {}
+        for index, (geom, point) in enumerate(candidates):
+            pixel, depth = self.project(data, point)
+            if depth <= 0 or np.any(np.abs(pixel) > half):
+                continue
+            self._last[index] = pixel
+            moved = previous.get(index)
+            if moved is not None and np.hypot(*(pixel - moved)) > cfg.blur_px_per_frame:
+                continue
+            if self._visible(model, data, geom, point, groups):
+                seen[index] = pixel
+        switched = False
+        if self.current not in seen:
+            if seen:
+                self.current = list(seen)[int(self.rng.integers(len(seen)))]
+                switched = True
+            else:
+                self.current = -1
+        if self.current == -1:
+            return Measurement(False, np.zeros(2), -1, False)
+        pixel = seen[self.current] + self.rng.normal(0.0, cfg.noise_px, 2)
+        if cfg.quantise:
+            pixel = np.round(pixel)
+        return Measurement(True, pixel, self.current, switched)
