@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# The main job: set up, start a think server on localhost, and run a simulated robot that learns
-# through it (act-learn-think-C/S over Zenoh). Until the HyDrA simulation exists the robot is the
-# boat; extra arguments go to wfnn-client (e.g. --sim positioning --episodes 20).
+# The main job: set up, start a think server on localhost, and run the simulated HyDrA active head
+# learning 1-DOF visual servoing through it (right verge-axis joint, right camera x; swinging
+# target; 15 Hz real time; act-learn-think-C/S over Zenoh). Extra arguments go to wfnn-client
+# (e.g. --episodes 20, --regime static, --joints pan,tilt,left,right --axes left_x,left_y,right_x,right_y).
 # Results: runs/main/ (client: weights, journal, metrics.json, learning_curve.png;
 # server/: store, checkpoint; server.log). A previous runs/main/ is kept as runs/main.<time>/.
 set -euo pipefail
@@ -12,10 +13,10 @@ if [ -e runs/main ]; then
 fi
 mkdir -p runs/main
 port=$(.venv/bin/python -c 'from wfnn_server.spawn import free_port; print(free_port())')
-.venv/bin/wfnn-server --id local --controller main --listen "tcp/127.0.0.1:$port" \
+.venv/bin/wfnn-server --id think1 --controller main --listen "tcp/127.0.0.1:$port" \
   --data-dir runs/main/server --quiet --verbose > runs/main/server.log 2>&1 &
 server=$!
 trap 'kill -TERM "$server" 2>/dev/null && wait "$server" 2>/dev/null; true' EXIT
 .venv/bin/python -c "from wfnn_server.spawn import wait_listening; wait_listening($port)"
-echo "think server 'local' on tcp/127.0.0.1:$port (log: runs/main/server.log)"
-.venv/bin/wfnn-client --sim boat --controller main --server "tcp/127.0.0.1:$port" --out runs/main "$@"
+echo "think server think1 on tcp/127.0.0.1:$port (log: runs/main/server.log)"
+.venv/bin/wfnn-client --sim hydra --episodes 8 --controller main --server "tcp/127.0.0.1:$port" --out runs/main "$@"

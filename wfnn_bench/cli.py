@@ -22,6 +22,7 @@ from rich.table import Table
 
 from wfnn_bench import boat as boat_bench
 from wfnn_bench import cartpole as cartpole_bench
+from wfnn_bench import hydra as hydra_bench
 from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
 from wfnn_bench.common import write_json
@@ -176,6 +177,61 @@ def speed(
     _table("speed (16 states, 4 actions, 9 wires, 32 hidden)", rows)
     if json_path:
         write_json(json_path, result)
+
+
+@app.command()
+def hydra(
+    controllers: Annotated[int, typer.Option(min=1, help="1-DOF controllers per training regime.")] = 4,
+    episodes: Annotated[int, typer.Option(min=1, help="1-DOF training episodes (30 s each).")] = 30,
+    eval_episodes: Annotated[int, typer.Option(min=1)] = 4,
+    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
+    four_dof_controllers: Annotated[int, typer.Option(min=1)] = 2,
+    four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """HyDrA (Chapter 7): Table 7.1, controller analysis, 4-DOF, tick cost."""
+    _logging(verbose)
+    cfg = hydra_bench.HydraBenchConfig(
+        controllers=controllers, train_episodes=episodes, eval_episodes=eval_episodes, thinks=thinks,
+        four_dof_controllers=four_dof_controllers, four_dof_episodes=four_dof_episodes, seed=seed,
+    )  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("hydra episodes", total=hydra_bench.steps(cfg))
+        result = hydra_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = []
+    for trained, cells in result["table71"].items():
+        for evaluated, c in cells.items():
+            rows += [
+                (f"{trained}-trained on {evaluated}: rms_error_px", c["rms_error_px"]),
+                (f"{trained}-trained on {evaluated}: lag_s", c["lag_s"]),
+                (f"{trained}-trained on {evaluated}: action_roughness", c["action_roughness"]),
+                (f"{trained}-trained on {evaluated}: lost_fraction", c["lost_fraction"]),
+            ]
+    for trained, res in result["training"].items():
+        curve = np.asarray(res["curve"])
+        rows.append((f"{trained} training: error first / last episode (median)",
+                     f"{np.median(curve[:, 0]):.1f} / {np.median(curve[:, -1]):.1f}"))  # fmt: skip
+        rows.append((f"{trained} training: divergence resets", int(np.sum(res["divergence_resets"]))))
+    dof4 = result["four_dof"]
+    curve4 = np.asarray(dof4["curve"])
+    rows += [
+        ("4-DOF error first / last episode (median)",
+         f"{np.median(curve4[:, 0]):.1f} / {np.median(curve4[:, -1]):.1f}"),
+        ("4-DOF divergence resets", int(np.sum(dof4["divergence_resets"]))),
+        ("4-DOF joint motion share pan/tilt/left/right",
+         " / ".join(f"{float(np.median(v)):.2f}" for v in dof4["joint_motion_share"].values())),
+        ("tick_ms_p50", result["tick_ms_p50"]),
+        ("tick_ms_p99", result["tick_ms_p99"]),
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    _table("HyDrA (Chapter 7)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        hydra_bench.plot(result, plot_path)
 
 
 @app.command()

@@ -214,3 +214,21 @@ def test_client_refuses_bad_options(tmp_path):
     )  # fmt: skip
     assert proc.returncode != 0 and "lock-step" in proc.stdout + proc.stderr
     assert not (tmp_path / "metrics.json").exists()
+
+
+def test_bench_hydra_writes_table71_and_tick_cost(tmp_path):
+    j, p = tmp_path / "hydra.json", tmp_path / "hydra.png"
+    out = run(
+        [BIN / "wfnn-bench", "hydra", "--controllers", "2", "--episodes", "2", "--eval-episodes", "1",
+         "--four-dof-controllers", "1", "--four-dof-episodes", "1", "--thinks", "5", "--json", j, "--plot", p]
+    )  # fmt: skip
+    assert "rms_error_px" in out.stdout
+    data = json.loads(j.read_text())
+    for trained in ("static", "swing"):
+        for evaluated in ("static", "swing"):
+            cell = data["table71"][trained][evaluated]
+            assert 0 <= cell["rms_error_px"] < 400 and cell["action_roughness"] >= 0
+            assert cell["lag_s"] is None or 0 <= cell["lag_s"] <= 1.0
+    assert 0 < data["tick_ms_p50"] < 50
+    assert len(data["analysis"]["swing"]["accel_by_position"]) == 2
+    assert p.stat().st_size > 10_000

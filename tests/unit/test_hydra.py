@@ -163,3 +163,14 @@ def test_a_control_tick_is_deterministic_for_a_seed():
         return np.array([task.step(np.array([[0.3]])).state for _ in range(20)])
 
     np.testing.assert_array_equal(run(1), run(1))
+
+
+def test_lag_is_recovered_from_a_delayed_copy():
+    from wfnn_bench.hydra import lag_s
+
+    t = np.arange(600) / 15.0
+    target = np.sin(2 * np.pi * t / 2.5)
+    joint = np.sin(2 * np.pi * (t - 0.2) / 2.5)
+    assert lag_s(target, joint, 15.0) == pytest.approx(0.2, abs=0.02)
+    assert lag_s(target, target, 15.0) == pytest.approx(0.0, abs=1e-9)
+    assert np.isnan(lag_s(target, np.zeros_like(t), 15.0))

@@ -1,0 +1,353 @@
+"""HyDrA experiments of thesis Chapter 7 on the MuJoCo head.
+
+- Table 7.1: 1-DOF controllers (right verge-axis joint, right camera x) are trained with static
+  targets (moved by steps) and with the swinging target, then evaluated with learning off and no
+  exploration on both: RMS pixel error while tracked (and the fraction of time lost), lag
+  (the delay that best aligns the joint's motion with the target's bearing, by
+  cross-correlation) and roughness of the commanded action (mean |change| per tick).
+- Controller analysis (Figs 7.19, 7.22): synthetic states fed to each trained controller; the
+  implied joint acceleration (commanded velocity from rest, over one tick) against joint
+  position, with the pendulum model of Eq 7.1 and the static model, and against target position.
+- 4-DOF with both cameras (Section 7.6), target on elastic: learning curve, divergence resets,
+  and how the joints share the work (pan against verge-axis redundancy).
+- Time series like Figs 7.12-7.18 for one controller per Table 7.1 cell.
+- The cost of a control tick (physics + vision + act) at the default settings.
+
+Several controllers (a population of learners, one simulated head each) learn at once.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sims.hydra import HydraConfig, HydraVec
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.learner import WFNN
+
+FloatArray = np.ndarray
+REGIMES_71 = ("static", "swing")
+EPISODE = 450
+"""Ticks per episode (30 s at 15 Hz)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class HydraBenchConfig:
+    """Options of `wfnn-bench hydra`."""
+
+    controllers: int = 4
+    """Controllers trained per regime (1-DOF)."""
+    train_episodes: int = 30
+    """30 s episodes of training (1-DOF)."""
+    eval_episodes: int = 4
+    thinks: int = 200
+    sigma: float = 0.1
+    """Gaussian exploration (scaled action units) while training."""
+    four_dof_controllers: int = 2
+    four_dof_episodes: int = 40
+    tick_samples: int = 2000
+    seed: int = 0
+
+
+def steps(cfg: HydraBenchConfig) -> int:
+    """Progress units: episodes trained or evaluated."""
+    one = len(REGIMES_71) * (cfg.train_episodes + len(REGIMES_71) * cfg.eval_episodes)
+    return one + cfg.four_dof_episodes + 1
+
+
+def _learner(task: HydraVec, population: int, cfg: HydraBenchConfig, episodes: int) -> WFNN:
+    lcfg = LearnerConfig.for_task(
+        task, exploration=ExplorationConfig(kind="gaussian", sigma=cfg.sigma), thinks_per_action=cfg.thinks,
+        replay_capacity=episodes * EPISODE, seed=cfg.seed,
+    )  # fmt: skip
+    return WFNN(lcfg, population=population)
+
+
+def train(
+    hydra: HydraConfig, population: int, episodes: int, cfg: HydraBenchConfig, progress: Progress
+) -> dict[str, Any]:
+    """Learn in `population` heads at once -> learner, per-episode error [P, episodes], resets."""
+    task = HydraVec(population, hydra, seed=cfg.seed)
+    learner = _learner(task, population, cfg, episodes)
+    rng = np.random.default_rng(cfg.seed)
+    task.reset(rng)
+    curve = np.zeros((population, episodes))
+    t0 = time.perf_counter()
+    for ep in range(episodes):
+        x = task.new_targets(rng)
+        for _ in range(EPISODE):
+            u = learner.act(x).action
+            tr = task.step(u)
+            learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+            learner.think()
+            curve[:, ep] += task.pixel_error() / EPISODE
+            x = tr.state
+        progress(1)
+    return {
+        "learner": learner,
+        "curve": curve,
+        "divergence_resets": learner.resets.copy(),
+        "recentred": task.recentred.copy(),
+        "experiences": learner.buffer.count.copy(),
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def _bearing(task: HydraVec) -> FloatArray:
+    """Horizontal bearing of each head's first target from its right verge axis [n] (rad)."""
+    out = np.zeros(task.n)
+    for i, data in enumerate(task.data):
+        target = data.geom_xpos[task._candidates[0]]
+        axis = data.xpos[task.model.cam_bodyid[task.cameras[i]["right"].id]]
+        out[i] = np.arctan2(target[1] - axis[1], target[0] - axis[0])
+    return out
+
+
+def evaluate(
+    learner: WFNN, hydra: HydraConfig, episodes: int, seed: int, progress: Progress
+) -> dict[str, Any]:
+    """Greedy, learning off: traces and the Table 7.1 figures per controller."""
+    n = learner.population
+    task = HydraVec(n, hydra, seed=seed)
+    rng = np.random.default_rng(seed)
+    task.reset(rng)
+    frozen = learner.params  # act on these weights; divergence is not acted on while evaluating
+    traces: dict[str, list[FloatArray]] = {
+        k: [] for k in ("pixel", "pixel_velocity", "joint", "action", "bearing")
+    }
+    errors, lags, rough, lost = [], [], [], []
+    for _ in range(episodes):
+        x = task.new_targets(rng)
+        ep: dict[str, list[FloatArray]] = {k: [] for k in traces}
+        for _ in range(EPISODE):
+            u = learner.act(x, explore=False, params=frozen).action
+            tr = task.step(u)
+            angles = task.joint_angles()
+            ep["pixel"].append(task.pixels[:, 2].copy())
+            ep["pixel_velocity"].append(task.pixel_velocity[:, 2].copy())
+            ep["joint"].append(angles[:, 0] + angles[:, 3])  # pan + right verge: the camera's heading
+            ep["action"].append(u[:, 0].copy())
+            ep["bearing"].append(_bearing(task))
+            x = tr.state
+        arrays = {k: np.stack(v, axis=1) for k, v in ep.items()}  # [n, T]
+        for k in traces:
+            traces[k].append(arrays[k])
+        px = arrays["pixel"]
+        found = ~np.isnan(px)
+        errors.append(np.sqrt(np.nanmean(np.where(found, px, np.nan) ** 2, axis=1)))
+        lost.append(1.0 - found.mean(axis=1))
+        lags.append(
+            np.array([lag_s(arrays["bearing"][i], arrays["joint"][i], hydra.rate_hz) for i in range(n)])
+        )
+        rough.append(np.abs(np.diff(arrays["action"], axis=1)).mean(axis=1))
+        progress(1)
+    return {
+        "rms_error_px": np.nanmean(errors, axis=0),
+        "lost_fraction": np.mean(lost, axis=0),
+        "lag_s": np.nanmean(lags, axis=0),
+        "action_roughness": np.mean(rough, axis=0),
+        "trace": {k: v[0][0].tolist() for k, v in traces.items()},
+    }
+
+
+def lag_s(target: FloatArray, joint: FloatArray, rate_hz: float, max_lag_s: float = 1.0) -> float:
+    """Delay (s) of the joint's motion behind the target's.
+
+    The lag at the peak cross-correlation of their changes, refined between ticks by a parabola;
+    NaN when either does not move.
+    """
+    a, b = np.diff(target), np.diff(joint)
+    if np.std(a) < 1e-9 or np.std(b) < 1e-9:
+        return float("nan")
+    a, b = (a - a.mean()) / a.std(), (b - b.mean()) / b.std()
+    max_k = int(max_lag_s * rate_hz)
+    corr = np.array([np.mean(a[: len(a) - k] * b[k:]) for k in range(max_k + 1)])
+    k = int(np.argmax(corr))
+    lag = float(k)
+    if 0 < k < max_k:
+        y0, y1, y2 = corr[k - 1], corr[k], corr[k + 1]
+        denom = y0 - 2 * y1 + y2
+        lag += 0.5 * (y0 - y2) / denom if denom != 0 else 0.0
+    return lag / rate_hz
+
+
+def analysis(learner: WFNN, task: HydraVec) -> dict[str, Any]:
+    """Figs 7.19 and 7.22: implied joint acceleration from synthetic states, per controller."""
+    rate = task.config.rate_hz
+    limit = task.state_high[0]
+    positions = np.linspace(-0.8 * limit, 0.8 * limit, 41)
+    pixels = np.linspace(-0.8 * task.state_high[2], 0.8 * task.state_high[2], 41)
+    n = learner.population
+
+    def accel(states: FloatArray) -> FloatArray:
+        out = np.array([learner.act(np.tile(s, (n, 1)), explore=False, params=learner.params).action[:, 0]
+                        for s in states])  # fmt: skip
+        return (out * rate).T  # from rest to the commanded velocity within one tick [n, K]
+
+    zeros = np.zeros(len(positions))
+    by_position = accel(np.stack([positions, zeros, zeros, zeros], axis=1))
+    by_pixel = accel(np.stack([zeros, zeros, pixels, zeros], axis=1))
+    # Eq 7.1 about the joint angle that looks at the weight at rest (the right camera sits
+    # beside the string's plane), signed as a restoring acceleration: the thesis prints the
+    # magnitude; a joint ahead of the rest bearing must accelerate back toward it.
+    g, length, d = 9.81, 1.6, 0.64
+    task.reset(np.random.default_rng(0))
+    axis = task.data[0].xpos[task.model.cam_bodyid[task.cameras[0]["right"].id]]
+    rest = float(np.arctan2(-axis[1], d - axis[0]))
+    beta = positions - rest
+    pendulum = -beta * g / length * np.sqrt(np.clip(1 - (beta * d / length) ** 2, 0, None))
+    return {
+        "joint_position_rad": positions.tolist(),
+        "accel_by_position": by_position.tolist(),
+        "pendulum_model": pendulum.tolist(),
+        "rest_bearing_rad": rest,
+        "target_position_px": pixels.tolist(),
+        "accel_by_target": by_pixel.tolist(),
+    }
+
+
+def tick_cost(samples: int, seed: int) -> dict[str, float]:
+    """Milliseconds per control tick (physics + vision + act) at the default 1-DOF settings."""
+    task = HydraVec(1, HydraConfig(), seed=seed)
+    learner = WFNN(LearnerConfig.for_task(task, exploration=ExplorationConfig(kind="gaussian")))
+    x = task.reset(np.random.default_rng(seed))
+    times = np.zeros(samples)
+    for k in range(samples):
+        t0 = time.perf_counter()
+        u = learner.act(x[0]).action
+        x = task.step(u[None]).state
+        times[k] = time.perf_counter() - t0
+    return {
+        "tick_ms_p50": float(np.median(times) * 1e3),
+        "tick_ms_p99": float(np.percentile(times, 99) * 1e3),
+    }
+
+
+def four_dof(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
+    """All joints and image axes, target on elastic: curve, resets, how the joints share the work."""
+    hydra = HydraConfig(
+        joints=("pan", "tilt", "left", "right"),
+        axes=("left_x", "left_y", "right_x", "right_y"),
+        regime="elastic",
+    )
+    result = train(hydra, cfg.four_dof_controllers, cfg.four_dof_episodes, cfg, progress)
+    learner: WFNN = result.pop("learner")
+    task = HydraVec(learner.population, hydra, seed=cfg.seed + 7)
+    rng = np.random.default_rng(cfg.seed + 7)
+    x = task.reset(rng)
+    motion = np.zeros((learner.population, 4))
+    previous = task.joint_angles()
+    for _ in range(EPISODE):
+        x = task.step(learner.act(x, explore=False, params=learner.params).action).state
+        angles = task.joint_angles()
+        motion += np.abs(angles - previous)
+        previous = angles
+    share = motion / np.maximum(motion.sum(axis=1, keepdims=True), 1e-12)
+    return {
+        "curve": result["curve"],
+        "divergence_resets": result["divergence_resets"],
+        "recentred": result["recentred"],
+        "joint_motion_share": {j: share[:, k] for k, j in enumerate(("pan", "tilt", "left", "right"))},
+        "wall_s": result["wall_s"],
+    }
+
+
+def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """All experiments; Table 7.1 as `table71[trained][evaluated]`."""
+    t0 = time.perf_counter()
+    table: dict[str, dict[str, Any]] = {}
+    training: dict[str, Any] = {}
+    analyses: dict[str, Any] = {}
+    traces: dict[str, Any] = {}
+    for trained in REGIMES_71:
+        hydra = HydraConfig(regime=trained)  # type: ignore[arg-type]
+        result = train(hydra, cfg.controllers, cfg.train_episodes, cfg, progress)
+        learner: WFNN = result.pop("learner")
+        training[trained] = result
+        analyses[trained] = analysis(learner, HydraVec(1, hydra))
+        table[trained] = {}
+        for evaluated in REGIMES_71:
+            hydra_eval = HydraConfig(regime=evaluated)  # type: ignore[arg-type]
+            ev = evaluate(learner, hydra_eval, cfg.eval_episodes, cfg.seed + 1000, progress)
+            traces[f"{trained}_on_{evaluated}"] = ev.pop("trace")
+            table[trained][evaluated] = {
+                **{k: float(np.nanmedian(v)) for k, v in ev.items()},
+                "per_controller": {k: v for k, v in ev.items()},
+            }
+    dof4 = four_dof(cfg, progress)
+    tick = tick_cost(cfg.tick_samples, cfg.seed)
+    progress(1)
+    return {
+        "benchmark": "hydra",
+        "config": asdict(cfg),
+        "machine": machine_info(),
+        "table71": table,
+        "training": training,
+        "analysis": analyses,
+        "traces": traces,
+        "four_dof": dof4,
+        **tick,
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Learning curves, Table 7.1 traces, controller analysis and the 4-DOF curve in one figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 3, figsize=(16, 12))
+    ax = axes[0, 0]
+    for trained, res in result["training"].items():
+        curve = np.asarray(res["curve"])
+        ax.plot(np.median(curve, axis=0), label=f"{trained}-trained (median of {curve.shape[0]})")
+    ax.set(xlabel="episode (30 s)", ylabel="mean |pixel error| (lost: 160)", title="1-DOF learning")
+    ax.legend()
+    for k, (name, trace) in enumerate(result["traces"].items()):
+        ax = axes.flat[1 + k]
+        t = np.arange(len(trace["joint"])) / 15.0
+        ax.plot(t, np.degrees(trace["bearing"]), label="target bearing (deg)", lw=1)
+        ax.plot(t, np.degrees(trace["joint"]), label="camera heading (deg)", lw=1)
+        ax.plot(t, np.degrees(trace["action"]), label="joint action (deg/s)", lw=0.8, alpha=0.7)
+        ax.plot(t, np.asarray(trace["pixel"], dtype=float) / 20.0, label="target px / 20", lw=0.8, alpha=0.7)
+        ax.set(xlabel="s", title=name.replace("_", " ") + " (Figs 7.12-7.18)")
+        ax.legend(fontsize=7)
+    an = result["analysis"]
+    ax = axes[1, 2]
+    for trained, a in an.items():
+        ax.plot(
+            a["joint_position_rad"], np.median(a["accel_by_position"], axis=0), label=f"{trained}-trained"
+        )
+    first = next(iter(an.values()))
+    ax.plot(first["joint_position_rad"], first["pendulum_model"], "k--", label="pendulum model (Eq 7.1)")
+    ax.axhline(0, color="gray", ls=":", label="static model")
+    ax.set(xlabel="joint position (rad)", ylabel="implied acceleration (rad/s^2)", title="Fig 7.19")
+    ax.legend(fontsize=8)
+    ax = axes[2, 0]
+    for trained, a in an.items():
+        ax.plot(a["target_position_px"], np.median(a["accel_by_target"], axis=0), label=f"{trained}-trained")
+    ax.set(xlabel="target position (px)", ylabel="implied acceleration (rad/s^2)", title="Fig 7.22")
+    ax.legend(fontsize=8)
+    ax = axes[2, 1]
+    curve = np.asarray(result["four_dof"]["curve"])
+    for c in curve:
+        ax.plot(c, lw=1)
+    ax.set(xlabel="episode (30 s)", ylabel="mean |pixel error|", title="4-DOF, both cameras, elastic target")
+    ax = axes[2, 2]
+    ax.axis("off")
+    rows = [f"{tr} -> {ev}: rms {c['rms_error_px']:.1f} px, lag {c['lag_s']:.3f} s, "
+            f"roughness {c['action_roughness']:.3f}, lost {c['lost_fraction']:.0%}"
+            for tr, cells in result["table71"].items() for ev, c in cells.items()]  # fmt: skip
+    ax.text(0, 1, "Table 7.1 (medians)\n" + "\n".join(rows) + f"\n\ntick {result['tick_ms_p50']:.3f} ms p50",
+            va="top", family="monospace", fontsize=8)  # fmt: skip
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
