@@ -39,7 +39,7 @@ def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
     return (
-        f"score {f['score']:.3f} | jitter p99 {f['client/tick_jitter_ms_p99_recent']:.2f} ms | "
+        f"score {f['score']:.3f} | jitter p99 {f['client/tick_jitter_ms_p99']:.2f} ms | "
         f"overruns {f['client/overruns']:.0f} | safe {f['safe_actions']:.0f} | "
         f"thinks/s {thinks if thinks is not None else float('nan'):,.0f} | r {f['reward_mean']:+.3f} | "
         f"Q {f['q_mean']:+.3f} | v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -152,8 +153,8 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     brain = make_brain(config, learner)
     log.info("learner: %s (spec %s)", lcfg.short_repr(), lcfg.spec_hash())
     scores: list[float] = []
-    rewards: list[float] = []
-    values: list[float] = []
+    rewards: deque[float] = deque(maxlen=RECENT)
+    values: deque[float] = deque(maxlen=RECENT)
     learned = lockstep_timeouts = 0
     outages: list[dict[str, float]] = []
     """Windows without a healthy weights source after the first one (unix times)."""
@@ -231,7 +232,7 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     finally:
         brain.stop()
     brain.check()
-    final = _status(brain, ticks, safety, rewards, values, len(scores), scores, wall)
+    final = _status(brain, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     current = getattr(brain, "current", None)  # C/S: the snapshot act used last
     final_params = learner.params if config.local else (current.params if current is not None else None)
     out = Path(config.out)
@@ -277,28 +278,27 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     return metrics
 
 
+RECENT = 1000
+"""Ticks the live status summarises (the whole run only at the end: no growing work per tick)."""
+
+
 def _status(
-    brain: Brain, ticks: TickStats, safety: SafetyLayer, rewards: list[float], values: list[float],
-    episode: int, scores: list[float], elapsed: float,
+    brain: Brain, ticks: TickStats, safety: SafetyLayer, rewards: deque[float], values: deque[float],
+    episode: int, scores: list[float], elapsed: float, whole_run: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
-    recent = slice(-1000, None)
-    fields: dict[str, Any] = {
+    """Figures of the run; tick timing over the last RECENT ticks, or all with `whole_run`."""
+    return {
         "episode": episode,
         "score": scores[-1] if scores else float("nan"),
         "elapsed_s": elapsed,
         "following": brain.following,
-        "reward_mean": float(np.mean(rewards[recent])) if rewards else float("nan"),
-        "q_mean": float(np.mean(values[recent])) if values else float("nan"),
+        "reward_mean": float(np.mean(rewards)) if rewards else float("nan"),
+        "q_mean": float(np.mean(values)) if values else float("nan"),
         "safe_actions": float(safety.counts["no_weights"] + safety.counts["late"]),
         "vetoes": float(safety.counts["vetoed"]),
-        **ticks.summary("client/"),
+        **ticks.summary("client/", None if whole_run else RECENT),
         **brain.metrics(),
     }
-    recent_late = ticks.lateness_s[-1000:]
-    fields["client/tick_jitter_ms_p99_recent"] = (
-        float(np.percentile(recent_late, 99) * 1e3) if recent_late else 0.0
-    )
-    return fields
 
 
 def _jsonable_config(config: ClientConfig) -> dict[str, Any]:

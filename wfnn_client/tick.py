@@ -24,18 +24,20 @@ class TickStats:
     overruns: int = 0
     """Ticks missed because a tick started more than one period late."""
 
-    def summary(self, prefix: str = "") -> dict[str, float]:
-        """Percentiles in milliseconds (NaN when no tick was timed)."""
+    def summary(self, prefix: str = "", last: int | None = None) -> dict[str, float]:
+        """Percentiles in milliseconds over every tick, or the `last` ticks (NaN when none)."""
+        latency = self.latency_s[-last:] if last else self.latency_s
+        lateness = self.lateness_s[-last:] if last else self.lateness_s
 
         def pct(values: list[float], q: float) -> float:
             return float(np.percentile(np.asarray(values) * 1e3, q)) if values else float("nan")
 
         return {
-            f"{prefix}act_latency_ms_p50": pct(self.latency_s, 50),
-            f"{prefix}act_latency_ms_p99": pct(self.latency_s, 99),
-            f"{prefix}tick_jitter_ms_p50": pct(self.lateness_s, 50),
-            f"{prefix}tick_jitter_ms_p99": pct(self.lateness_s, 99),
-            f"{prefix}tick_jitter_ms_max": pct(self.lateness_s, 100),
+            f"{prefix}act_latency_ms_p50": pct(latency, 50),
+            f"{prefix}act_latency_ms_p99": pct(latency, 99),
+            f"{prefix}tick_jitter_ms_p50": pct(lateness, 50),
+            f"{prefix}tick_jitter_ms_p99": pct(lateness, 99),
+            f"{prefix}tick_jitter_ms_max": pct(lateness, 100),
             f"{prefix}overruns": float(self.overruns),
         }
 
