@@ -79,17 +79,22 @@ class Journal:
         """Journal one encoded batch whose last experience is `last_seq`."""
         self._index(last_seq, self.log.append(frame))
 
-    def frames_from(self, seq: int, max_frames: int) -> list[bytes]:
-        """Up to `max_frames` journaled frames, starting with the one holding experience `seq`."""
+    def frames_from(self, seq: int, max_frames: int) -> tuple[list[bytes], int]:
+        """Up to `max_frames` journaled frames, from the one holding experience `seq`.
+
+        Returns the frames and the last experience they hold (-1 when there are none).
+        """
         i = bisect.bisect_left(self._last, seq)
-        if i >= len(self._last):
-            return []
         out: list[bytes] = []
-        for _, frame in self.log.read(self._where[i]):
+        if i >= len(self._last):
+            return out, -1
+        for pos, frame in self.log.read(self._where[i]):
+            if pos != self._where[i + len(out)]:
+                continue  # a record that was unreadable when the journal was opened
             out.append(frame)
-            if len(out) >= max_frames:
+            if len(out) >= max_frames or i + len(out) >= len(self._where):
                 break
-        return out
+        return out, self._last[i + len(out) - 1]
 
     def sync(self) -> None:
         """Make the journal durable (per its fsync policy)."""

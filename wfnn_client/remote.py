@@ -41,7 +41,6 @@ from wfnn_common.protocol import (
     ServerStatus,
     WeightSnapshot,
     check_id,
-    decode,
     load_key,
 )
 from wfnn_common.segments import FsyncPolicy
@@ -423,23 +422,16 @@ class RemoteBrain:
             window_done = view.acked >= view.window_end
             if not window_done and now - view.last_resend < cfg.resend_after_s:
                 continue
-            frames = self.journal.frames_from(view.acked + 1, cfg.resend_window)
+            frames, last = self.journal.frames_from(view.acked + 1, cfg.resend_window)
             if not frames:
                 continue
             for frame in frames:
                 self.bus.put(self.keys.resend(view.server, self.id), frame, Channel.DATA)
             view.last_resend = now
-            view.window_end = min(self.journal.next_seq - 1, self._frame_end(frames[-1]))
+            view.window_end = last
             self.counters["uplink/resent_frames"] += len(frames)
             log.info("re-sent %d batches from experience %d to server %s", len(frames), view.acked + 1,
                      view.server)  # fmt: skip
-
-    @staticmethod
-    def _frame_end(frame: bytes) -> int:
-        """Last experience number of a journaled frame (journal frames passed their CRC at open)."""
-        batch = decode(frame, expect=ExperienceBatch).message
-        assert isinstance(batch, ExperienceBatch)
-        return batch.last_seq
 
     def _publish_status(self) -> None:
         with self._lock:
