@@ -278,9 +278,9 @@ class HydraVec:
         steps = np.arange(1, cfg.substeps + 1)[:, None]
         half = cfg.substeps // 2
         moved = np.zeros(self.n, dtype=np.bool_)
+        # The low-level controller's velocity ramp at each joint's acceleration limit.
+        reach = np.asarray(cfg.max_acceleration) * dt * steps
         for i, data in enumerate(self.data):
-            # The low-level controller's velocity ramp at each joint's acceleration limit.
-            reach = np.asarray(cfg.max_acceleration) * dt * steps
             profile = previous[i] + np.clip(target[i] - previous[i], -reach, reach)
             for k in range(cfg.substeps):
                 data.ctrl[:] = profile[k]

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
+from wfnn_server.spawn import BIN, endpoint, free_port
 from wfnn_server.spawn import ServerProcess as _ServerProcess
-from wfnn_server.spawn import endpoint, free_port
 
 __all__ = ["ServerProcess", "client", "endpoint", "finish", "free_port"]
-BIN = Path(sys.executable).parent
 ENV = {**os.environ, "COLUMNS": "160", "PYTHONUNBUFFERED": "1"}
 
 
