@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
@@ -138,3 +140,11 @@ class LoopbackBus:
             for pat, cb in watchers:
                 if key_matches(pat, k):
                     cb(k, False)
+
+
+@functools.cache
+def render_problem() -> str | None:
+    """Why off-screen rendering fails here, or None when it works (checked once per session)."""
+    from sims.hydra.render import render_problem as probe
+
+    return probe()

@@ -179,6 +179,10 @@ def speed(
         write_json(json_path, result)
 
 
+def _num(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
 @app.command()
 def hydra(
     controllers: Annotated[int, typer.Option(min=1, help="1-DOF controllers per training regime.")] = 4,
@@ -187,6 +191,8 @@ def hydra(
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
     four_dof_controllers: Annotated[int, typer.Option(min=1)] = 2,
     four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
+    render: Annotated[bool, typer.Option(help="Also check rendered vision (template matching).")] = True,
+    render_ticks: Annotated[int, typer.Option(min=3, help="Ticks per regime of the rendering check.")] = 450,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -197,6 +203,7 @@ def hydra(
     cfg = hydra_bench.HydraBenchConfig(
         controllers=controllers, train_episodes=episodes, eval_episodes=eval_episodes, thinks=thinks,
         four_dof_controllers=four_dof_controllers, four_dof_episodes=four_dof_episodes, seed=seed,
+        render=render, render_ticks=render_ticks,
     )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("hydra episodes", total=hydra_bench.steps(cfg))
@@ -225,13 +232,25 @@ def hydra(
          " / ".join(f"{float(np.median(v)):.2f}" for v in dof4["joint_motion_share"].values())),
         ("tick_ms_p50", result["tick_ms_p50"]),
         ("tick_ms_p99", result["tick_ms_p99"]),
+    ]  # fmt: skip
+    rendering = result["render"]
+    if rendering["available"]:
+        for regime, r in rendering["regimes"].items():
+            rows.append((f"rendered vision, {regime}: tracked (projection) / error p50, p95 px",
+                         f"{r['tracked_fraction']:.2f} ({r['tracked_fraction_projection']:.2f}) / "
+                         f"{_num(r['error_px_p50'])}, {_num(r['error_px_p95'])}"))  # fmt: skip
+        rows.append(("tick_ms_p50_render", rendering["tick_ms_p50_render"]))
+    else:
+        rows.append(("rendered vision", f"not checked: {rendering['reason']}"))
+    rows += [
         ("wall_s", result["wall_s"]),
     ]  # fmt: skip
     _table("HyDrA (Chapter 7)", rows)
-    if json_path:
-        write_json(json_path, result)
     if plot_path:
         hydra_bench.plot(result, plot_path)
+    del result["render_views"]  # images: in the PNG, not in the JSON
+    if json_path:
+        write_json(json_path, result)
 
 
 @app.command()

@@ -12,6 +12,9 @@
   and how the joints share the work (pan against verge-axis redundancy).
 - Time series like Figs 7.12-7.18 for one controller per Table 7.1 cell.
 - The cost of a control tick (physics + vision + act) at the default settings.
+- Rendered vision (`VisionConfig.source="render"`): template matching in MuJoCo's images against
+  the camera model, per target regime, while a simple proportional follower keeps the target in
+  view; the tick cost with rendering; a sheet of what the cameras see.
 
 Several controllers (a population of learners, one simulated head each) learn at once.
 """
@@ -25,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from sims.hydra import HydraConfig, HydraVec
+from sims.hydra import REGIMES, HydraConfig, HydraVec
+from sims.hydra.vision import VisionConfig, VisionSource
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -51,13 +55,17 @@ class HydraBenchConfig:
     four_dof_controllers: int = 2
     four_dof_episodes: int = 40
     tick_samples: int = 2000
+    render: bool = True
+    """Also check rendered vision (needs off-screen GL; reported unavailable otherwise)."""
+    render_ticks: int = 450
+    """Ticks per regime of the rendered-vision check."""
     seed: int = 0
 
 
 def steps(cfg: HydraBenchConfig) -> int:
-    """Progress units: episodes trained or evaluated."""
+    """Progress units: episodes trained or evaluated, and the regimes of the rendering check."""
     one = len(REGIMES_71) * (cfg.train_episodes + len(REGIMES_71) * cfg.eval_episodes)
-    return one + cfg.four_dof_episodes + 1
+    return one + cfg.four_dof_episodes + 1 + (len(REGIMES) if cfg.render else 0)
 
 
 def _learner(task: HydraVec, population: int, cfg: HydraBenchConfig, episodes: int) -> WFNN:
@@ -211,9 +219,9 @@ def analysis(learner: WFNN, task: HydraVec) -> dict[str, Any]:
     }
 
 
-def tick_cost(samples: int, seed: int) -> dict[str, float]:
+def tick_cost(samples: int, seed: int, source: VisionSource = "projection") -> dict[str, float]:
     """Milliseconds per control tick (physics + vision + act) at the default 1-DOF settings."""
-    task = HydraVec(1, HydraConfig(), seed=seed)
+    task = HydraVec(1, HydraConfig(vision=VisionConfig(source=source)), seed=seed)
     learner = WFNN(LearnerConfig.for_task(task, exploration=ExplorationConfig(kind="gaussian")))
     x = task.reset(np.random.default_rng(seed))
     times = np.zeros(samples)
@@ -222,10 +230,70 @@ def tick_cost(samples: int, seed: int) -> dict[str, float]:
         u = learner.act(x[0]).action
         x = task.step(u[None]).state
         times[k] = time.perf_counter() - t0
+    task.close()
     return {
         "tick_ms_p50": float(np.median(times) * 1e3),
         "tick_ms_p99": float(np.percentile(times, 99) * 1e3),
     }
+
+
+def follow_target(
+    regime: str, source: VisionSource, ticks: int, seed: int = 0, views_every: int = 0
+) -> dict[str, Any]:
+    """The right verge axis follows the right camera's target by a proportional rule.
+
+    Returns the tracker's error against the camera model's exact projection of the nearest
+    target (pixels, max of x and y, per frame it reported a target), the fraction of ticks it
+    tracked one, and (every `views_every` ticks) what the cameras saw.
+    """
+    hydra = HydraConfig(regime=regime, vision=VisionConfig(source=source))  # type: ignore[arg-type]
+    task = HydraVec(1, hydra, seed=seed)
+    task.reset(np.random.default_rng(seed))
+    cam = task.cameras[0]["right"]
+    errors, found, views = [], [], []
+    try:
+        for k in range(ticks):
+            px = task.pixels[0, 2]
+            u = 0.0 if np.isnan(px) else -float(np.clip(px / 120.0, -1.0, 1.0))
+            task.step(np.array([[u]]))
+            found.append(bool(task.found[0, 1]))
+            if task.found[0, 1]:
+                data = task.data[0]
+                truth = [cam.project(data, data.geom_xpos[g])[0] for g in task._candidates]
+                errors.append(min(float(np.abs(p - task.pixels[0, 2:]).max()) for p in truth))
+            if views_every and k % views_every == views_every - 1:
+                views.append(task.camera_images(0))
+    finally:
+        task.close()
+    return {"errors": np.asarray(errors), "found": np.asarray(found), "views": views}
+
+
+def render_check(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
+    """Rendered vision against the camera model per regime, and the tick cost with rendering."""
+    from sims.hydra.render import RenderUnavailable
+
+    out: dict[str, Any] = {"available": True, "regimes": {}, "views": {}}
+    try:
+        for regime in REGIMES:
+            rendered = follow_target(
+                regime, "render", cfg.render_ticks, cfg.seed, views_every=cfg.render_ticks // 3
+            )
+            projected = follow_target(regime, "projection", cfg.render_ticks, cfg.seed)
+            errors = rendered["errors"]
+            out["regimes"][regime] = {
+                "tracked_fraction": float(rendered["found"].mean()),
+                "tracked_fraction_projection": float(projected["found"].mean()),
+                "error_px_p50": float(np.median(errors)) if errors.size else None,
+                "error_px_p95": float(np.percentile(errors, 95)) if errors.size else None,
+            }
+            out["views"][regime] = rendered["views"]
+            progress(1)
+        tick = tick_cost(max(cfg.tick_samples // 4, 50), cfg.seed, source="render")
+    except RenderUnavailable as exc:
+        return {"available": False, "reason": str(exc)}
+    out["tick_ms_p50_render"] = tick["tick_ms_p50"]
+    out["tick_ms_p99_render"] = tick["tick_ms_p99"]
+    return out
 
 
 def four_dof(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
@@ -258,7 +326,10 @@ def four_dof(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
 
 
 def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
-    """All experiments; Table 7.1 as `table71[trained][evaluated]`."""
+    """All experiments; Table 7.1 as `table71[trained][evaluated]`.
+
+    `render_views` holds camera images (for `plot`, not for JSON).
+    """
     t0 = time.perf_counter()
     table: dict[str, dict[str, Any]] = {}
     training: dict[str, Any] = {}
@@ -282,6 +353,7 @@ def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, An
     dof4 = four_dof(cfg, progress)
     tick = tick_cost(cfg.tick_samples, cfg.seed)
     progress(1)
+    rendering = render_check(cfg, progress) if cfg.render else {"available": False, "reason": "not run"}
     return {
         "benchmark": "hydra",
         "config": asdict(cfg),
@@ -291,6 +363,8 @@ def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, An
         "analysis": analyses,
         "traces": traces,
         "four_dof": dof4,
+        "render": {k: v for k, v in rendering.items() if k != "views"},
+        "render_views": rendering.get("views", {}),
         **tick,
         "wall_s": time.perf_counter() - t0,
     }
@@ -349,5 +423,32 @@ def plot(result: dict[str, Any], path: Path) -> None:
             va="top", family="monospace", fontsize=8)  # fmt: skip
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    if result.get("render_views"):
+        plot_views(result["render_views"], path.with_name(path.stem + "_cameras.png"))
+
+
+def plot_views(views_by_regime: dict[str, list[dict[str, Any]]], path: Path) -> None:
+    """What the cameras saw in the rendered-vision check: one row per regime, left | right."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    regimes = {k: v for k, v in views_by_regime.items() if v}
+    columns = max(len(v) for v in regimes.values())
+    fig, axes = plt.subplots(
+        len(regimes), columns, figsize=(5.2 * columns, 2.2 * len(regimes)), squeeze=False
+    )
+    for row, (regime, seen) in enumerate(regimes.items()):
+        for col in range(columns):
+            ax = axes[row, col]
+            ax.axis("off")
+            if col < len(seen):
+                views = seen[col]
+                ax.imshow(np.concatenate([np.asarray(views["left"]), np.asarray(views["right"])], axis=1))
+                ax.set_title(f"{regime}: left | right (right tracked)", fontsize=8)
+    fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

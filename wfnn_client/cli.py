@@ -12,6 +12,7 @@ from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sims.hydra import HydraConfig
+from sims.hydra.vision import VisionConfig
 from wfnn_client.run import ClientConfig, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
@@ -84,6 +85,17 @@ def main(
         str, typer.Option(help="hydra: included image axes (left_x,left_y,right_x,right_y).")
     ] = "right_x",
     regime: Annotated[str, typer.Option(help="hydra: targets: static, swing, mixed or elastic.")] = "swing",
+    vision: Annotated[
+        str,
+        typer.Option(
+            help="hydra: `projection` (camera model + tracker faults) or `render` (images, "
+            "template matching; slower)."
+        ),
+    ] = "projection",
+    camera_every: Annotated[
+        int,
+        typer.Option(min=0, help="hydra: save what the cameras see every N ticks to OUT/cameras/ (0: off)."),
+    ] = 0,
     exploration: Annotated[
         str | None, typer.Option(help="uniform, gaussian, smooth or none [sim's: uniform, hydra gaussian].")
     ] = None,
@@ -109,7 +121,10 @@ def main(
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
         raise typer.BadParameter(f"unknown exploration {exploration!r}", param_hint="--exploration")
     try:
-        hydra = HydraConfig(joints=_names(joints), axes=_names(axes), regime=regime)  # type: ignore[arg-type]
+        hydra = HydraConfig(
+            joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
+            vision=VisionConfig(source=vision),  # type: ignore[arg-type]
+        )  # fmt: skip
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep, hydra=hydra,
             boat_dt=boat_dt, thinks_per_action=thinks, learn=learn, weights=weights,
@@ -118,7 +133,7 @@ def main(
             controller=controller, client_id=client_id, follow=follow,
             net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
                           zenoh_config=str(zenoh_config) if zenoh_config else None),
-            key_file=key_file, out=out, json_stats=json_stats, seed=seed,
+            key_file=key_file, out=out, json_stats=json_stats, seed=seed, camera_every=camera_every,
             safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                                 max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
         )  # fmt: skip
@@ -137,7 +152,10 @@ def main(
         f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
         f"jitter p99 {metrics['client/tick_jitter_ms_p99']:.3f} ms, overruns {metrics['client/overruns']:.0f}"
     )
-    console.print(f"saved weights, metrics.json and learning_curve.png in {out}/")
+    saved = "weights, metrics.json and learning_curve.png"
+    if metrics.get("camera_frames"):
+        saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
+    console.print(f"saved {saved} in {out}/")
 
 
 if __name__ == "__main__":

@@ -24,8 +24,9 @@ import numpy as np
 from sims.base import VecTask
 from sims.hydra import HydraConfig
 from wfnn_client.brain import Brain, Experience, LocalBrain
+from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
-from wfnn_client.sims import SIMS
+from wfnn_client.sims import SIMS, SimSpec
 from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -77,6 +78,9 @@ class ClientConfig:
     out: Path = Path("runs/latest")
     json_stats: Path | None = None
     """Also write the final figures here."""
+    camera_every: int = 0
+    """Save what the cameras see every this many ticks to `out/cameras/` (0: never; sims with
+    cameras only)."""
     timing_trace: bool = False
     """Put every tick's lateness and every snapshot's latency in the metrics (benchmarks)."""
     seed: int = 0
@@ -92,6 +96,10 @@ class ClientConfig:
             raise ValueError("server needs `local`, an endpoint, or a listen endpoint servers connect to")
         if "local" in self.server and len(self.server) > 1:
             raise ValueError("server is either `local` or endpoints, not both")
+        if self.camera_every < 0:
+            raise ValueError(f"camera_every must be >= 0, got {self.camera_every}")
+        if self.camera_every and SIMS[self.sim].views is None:
+            raise ValueError(f"camera_every: sim {self.sim!r} has no cameras")
 
     @property
     def local(self) -> bool:
@@ -135,6 +143,17 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     """
     spec = SIMS[config.sim]
     task = spec.make(config)
+    try:
+        return _run(config, spec, task, on_status)
+    finally:
+        close = getattr(task, "close", None)  # a renderer's GL context
+        if close is not None:
+            close()
+
+
+def _run(
+    config: ClientConfig, spec: SimSpec, task: VecTask, on_status: StatusCallback | None
+) -> dict[str, Any]:
     rng = np.random.default_rng(config.seed)
     lcfg = learner_config(task, config)
     learner = WFNN(lcfg)
@@ -150,6 +169,8 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
     safety = SafetyLayer(config.safety, lcfg.action_low, lcfg.action_high, period,
                          spec.veto(task) if spec.veto else None)  # fmt: skip
     reward_of = spec.reward_of(task) if spec.reward_of else None
+    frames = FrameWriter(Path(config.out) / "cameras") if config.camera_every else None
+    tick_count = 0
     brain = make_brain(config, learner)
     log.info("learner: %s (spec %s)", lcfg.short_repr(), lcfg.spec_hash())
     scores: list[float] = []
@@ -210,6 +231,9 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
                 rewards.append(reward)
                 if acted is not None:
                     values.append(float(acted.result.value))
+                if frames is not None and spec.views is not None and tick_count % config.camera_every == 0:
+                    frames = _save_views(frames, tick_count, spec, task)
+                tick_count += 1
                 x = x_next
                 steps += 1
                 now = time.perf_counter()
@@ -231,6 +255,7 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
         wall = time.perf_counter() - start
     finally:
         brain.stop()
+        camera_frames = frames.close() if frames is not None else None
     brain.check()
     final = _status(brain, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     current = getattr(brain, "current", None)  # C/S: the snapshot act used last
@@ -261,6 +286,7 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
         "client/outage_ticks": len(outage_late),
         "client/startup_ticks": startup_ticks,
         "config": {"client": _jsonable_config(config), "learner": lcfg.to_dict()},
+        "camera_frames": camera_frames,
         **final,
     }
     if config.timing_trace:
@@ -276,6 +302,18 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
         write_json(config.json_stats, metrics)
     plot(metrics, out / "learning_curve.png")
     return metrics
+
+
+def _save_views(frames: FrameWriter, tick: int, spec: SimSpec, task: VecTask) -> FrameWriter | None:
+    """Hand this tick's camera views to the writer; stop saving (None) where nothing can render."""
+    assert spec.views is not None
+    try:
+        frames.submit(tick, spec.views(task))
+    except RuntimeError as exc:  # no GL here: the run goes on without pictures
+        log.warning("camera frames off: %s", exc)
+        frames.close()
+        return None
+    return frames
 
 
 RECENT = 1000

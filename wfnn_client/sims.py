@@ -49,6 +49,8 @@ class SimSpec:
     exploration: str = "uniform"
     """The exploration kind used unless the client is told otherwise (robots: gaussian, as in
     Section 6.4.1; a uniform random action throws an active head off its target)."""
+    views: Callable[[Any], dict[str, NDArray[np.uint8]]] | None = None
+    """What the robot's cameras see now ({camera: [h, w, 3] RGB}), for tasks with cameras."""
 
 
 def _boat_reward(task: BoatVec) -> RewardOf:
@@ -124,5 +126,6 @@ SIMS["hydra"] = SimSpec(
     metric_name="mean |pixel error| (lost: half the image)",
     rate_hz=15.0,
     exploration="gaussian",
+    views=lambda task: task.camera_images(0),
 )
 SIMS["position"] = SIMS["positioning"]

@@ -19,7 +19,7 @@ elastic, moving in 3D).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import mujoco
 import numpy as np
@@ -27,15 +27,20 @@ from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
 from sims.hydra.model import (
+    GROUP_DISCS,
     GROUP_HEAD,
     GROUP_PENDULUM,
     GROUP_SCENE,
     JOINTS,
     N_DISCS,
     HydraModelConfig,
+    disc_y,
     hydra_mjcf,
 )
 from sims.hydra.vision import Camera, Measurement, VisionConfig
+
+if TYPE_CHECKING:  # cv2 and the GL context load only when something is rendered
+    from sims.hydra.render import CameraRenderer, ImageTracker, RgbImage
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -128,7 +133,7 @@ class HydraVec:
         limits = dict(zip(JOINTS, cfg.limits_deg, strict=True))
         model_cfg = HydraModelConfig(
             timestep=1.0 / (cfg.rate_hz * cfg.substeps), elastic=cfg.regime == "elastic",
-            apparatus=cfg.regime == "mixed",
+            apparatus=cfg.regime == "mixed", image_size=(cfg.vision.width, cfg.vision.height),
         )  # fmt: skip
         self.model = mujoco.MjModel.from_xml_string(hydra_mjcf(model_cfg, limits))
         self.model_config = model_cfg
@@ -153,8 +158,19 @@ class HydraVec:
             discs if cfg.regime in ("static", "mixed") else []
         )
         self._groups = np.zeros(6, dtype=np.uint8)
-        self._groups[[GROUP_HEAD, GROUP_SCENE]] = 1
+        self._groups[[GROUP_HEAD, GROUP_SCENE, GROUP_DISCS]] = 1
         self._groups[GROUP_PENDULUM] = 1 if pendulum else 0
+        # Rendered vision: the cameras whose image axes are included are rendered and tracked
+        # by template matching; the others are not looked at.
+        self._renderer: CameraRenderer | None = None
+        self._image_trackers: list[dict[str, ImageTracker]] = []
+        self._rendered_cameras = sorted({AXES[a].split("_")[0] for a in cfg.axis_index})
+        if cfg.vision.source == "render":
+            from sims.hydra.render import ImageTracker
+
+            self._image_trackers = [
+                {c: ImageTracker(cfg.vision) for c in self._rendered_cameras} for _ in range(n)
+            ]
         self.command = np.zeros((n, 4))
         """Last velocity command per joint (rad/s); the state's joint velocity."""
         self.pixels = np.zeros((n, 4))
@@ -223,6 +239,8 @@ class HydraVec:
         self.command[i] = 0.0
         for cam in self.cameras[i].values():
             cam.reset()
+        for tracker in self._image_trackers[i].values() if self._image_trackers else ():
+            tracker.reset()
         self._lost_since[i] = self.time[i]
 
     def new_targets(self, rng: np.random.Generator) -> FloatArray:
@@ -258,7 +276,7 @@ class HydraVec:
             if cfg.regime == "static":
                 pos = np.array([board, rng.uniform(-0.35, 0.25), rng.uniform(-0.1, 0.1)]) if k == 0 else away
             elif cfg.regime == "mixed":
-                pos = np.array([board, 0.3 - 0.2 * k, -0.2])
+                pos = np.array([board, disc_y(self.model_config, k), self.model_config.disc_height])
             else:
                 pos = away
             data.mocap_pos[mocap] = pos
@@ -309,11 +327,16 @@ class HydraVec:
         mujoco.mj_kinematics(self.model, data)
         mujoco.mj_camlight(self.model, data)
         candidates = [(g, data.geom_xpos[g].copy()) for g in self._candidates]
-        hidden = self.time[i] < self._hidden_until[i] and self.config.regime == "static"
+        hidden = self._discs_hidden(i)
         for c, name in enumerate(("left", "right")):
-            m: Measurement = self.cameras[i][name].observe(
-                self.model, data, [] if hidden else candidates, self._groups
-            )
+            m: Measurement
+            if not self._image_trackers:
+                seen = [] if hidden else candidates
+                m = self.cameras[i][name].observe(self.model, data, seen, self._groups)
+            elif name in self._image_trackers[i]:
+                m = self._track_image(i, name, [] if hidden else candidates)
+            else:
+                m = Measurement(False, np.zeros(2), -1, False)
             self.found[i, c] = m.found
             self.tracked[i, c] = m.target
             cols = [2 * c, 2 * c + 1]
@@ -327,6 +350,83 @@ class HydraVec:
                 self.pixels[i, cols] = np.nan
                 self.pixel_velocity[i, cols] = np.nan
                 self._last_frame[i, cols] = np.nan
+
+    def _discs_hidden(self, i: int) -> bool:
+        """Whether head i's static target is covered while it is moved."""
+        return bool(self.time[i] < self._hidden_until[i] and self.config.regime == "static")
+
+    def _hidden_groups(self, i: int) -> list[int]:
+        """Geom groups left out of head i's renders: what the regime covers up."""
+        hidden = [] if self._groups[GROUP_PENDULUM] else [GROUP_PENDULUM]
+        return hidden + ([GROUP_DISCS] if self._discs_hidden(i) else [])
+
+    def _render(self, i: int, camera: str) -> RgbImage:
+        if self._renderer is None:
+            from sims.hydra.render import CameraRenderer
+
+            v = self.config.vision
+            self._renderer = CameraRenderer(self.model, round(v.width * v.render_scale),
+                                            round(v.height * v.render_scale))  # fmt: skip
+        return self._renderer.rgb(self.data[i], camera, self._hidden_groups(i))
+
+    def _track_image(self, i: int, camera: str, candidates: list[tuple[int, FloatArray]]) -> Measurement:
+        """Render one camera's frame and track the target in it by template matching."""
+        from sims.hydra.render import to_grey
+
+        cfg = self.config.vision
+        grey = to_grey(self._render(i, camera))
+        tracker = self._image_trackers[i][camera]
+        if tracker.template is None:
+            self._acquire_template(i, camera, grey, candidates)
+        if cfg.image_noise > 0:
+            noise = self._rng.standard_normal(grey.shape, dtype=np.float32)
+            grey += noise * np.float32(cfg.image_noise)
+        return tracker.observe(grey)
+
+    def _acquire_template(
+        self, i: int, camera: str, grey: NDArray[np.float32], candidates: list[tuple[int, FloatArray]]
+    ) -> None:
+        """Cut the target template from a noise-free frame where the first target is in plain view.
+
+        As the experimenter did before a run (Section 7.5.1), once per camera; every head's
+        tracker of that camera shares it.
+        """
+        cam = self.cameras[i][camera]
+        data = self.data[i]
+        for geom, point in candidates[:1]:
+            pixel, depth = cam.project(data, point)
+            if depth <= 0 or not cam._visible(self.model, data, geom, point, self._groups):
+                return
+            radius = float(self.model.geom_size[geom][0]) * cam.focal / depth
+            tracker = self._image_trackers[i][camera]
+            if tracker.acquire(grey, pixel, radius):
+                for trackers in self._image_trackers:
+                    trackers[camera].share_template(tracker)
+
+    def camera_images(self, i: int = 0, overlay: bool = True) -> dict[str, RgbImage]:
+        """What head i's cameras see now, rendered ({left, right}: [h, w, 3] uint8).
+
+        With `overlay`, the tracker's output is drawn on each tracked camera: the target boxed in
+        green (and, for rendered vision, the search window in yellow), a red frame while the
+        target is lost.
+        """
+        from sims.hydra.render import draw_tracker
+
+        out: dict[str, RgbImage] = {}
+        for c, name in enumerate(("left", "right")):
+            image = self._render(i, name)
+            if overlay and (not self._image_trackers or name in self._image_trackers[i]):
+                tracker = self._image_trackers[i].get(name) if self._image_trackers else None
+                pixel = self.pixels[i, 2 * c : 2 * c + 2] if self.found[i, c] else None
+                image = draw_tracker(image, tracker, pixel, self.config.vision.render_scale)
+            out[name] = image
+        return out
+
+    def close(self) -> None:
+        """Release the renderer's GL context, if one was made."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
 
     def _move_static_target(self, i: int) -> bool:
         """Static regime: cover the target, move it, reveal it (a step). True when it moved."""
@@ -394,10 +494,34 @@ class HydraVec:
 
 
 class HydraEnv(TaskEnv):
-    """Gymnasium HyDrA: episodes of `max_steps` ticks; lost-target pixels read as 0 (info says so)."""
+    """Gymnasium HyDrA: episodes of `max_steps` ticks; lost-target pixels read as 0 (info says so).
 
-    def __init__(self, config: HydraConfig | None = None, max_steps: int = 450) -> None:
-        super().__init__(HydraVec(1, config), max_steps)
+    `render_mode="rgb_array"`: `render()` returns the left and right camera views side by side,
+    with the tracker's output drawn.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 15}  # noqa: RUF012
+
+    def __init__(
+        self, config: HydraConfig | None = None, max_steps: int = 450, render_mode: str | None = None
+    ) -> None:
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.hydra = HydraVec(1, config)
+        super().__init__(self.hydra, max_steps)
+        self.render_mode = render_mode
 
     def _obs(self, state: FloatArray) -> FloatArray:
         return super()._obs(np.nan_to_num(state))
+
+    def render(self) -> RgbImage | None:
+        """Both cameras' views side by side [h, 2w, 3] (None without a render mode)."""
+        if self.render_mode is None:
+            return None
+        views = self.hydra.camera_images(0)
+        return np.concatenate([views["left"], views["right"]], axis=1)
+
+    def close(self) -> None:
+        """Release the renderer."""
+        self.hydra.close()
+        super().close()

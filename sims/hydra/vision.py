@@ -12,6 +12,7 @@ are quantised to whole pixels plus Gaussian noise.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import mujoco
 import numpy as np
@@ -20,10 +21,17 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 
 
+VisionSource = Literal["projection", "render"]
+VISION_SOURCES: tuple[VisionSource, ...] = ("projection", "render")
+
+
 @dataclass(frozen=True, kw_only=True)
 class VisionConfig:
     """Camera images and tracker faults."""
 
+    source: VisionSource = "projection"
+    """`projection`: targets projected through the camera model with the faults below (fast);
+    `render`: images rendered by MuJoCo and tracked by template matching (sims.hydra.render)."""
     width: int = 320
     height: int = 240
     noise_px: float = 0.3
@@ -34,6 +42,26 @@ class VisionConfig:
     """A target moving faster than this across the image (pixels per 30 Hz frame) blurs and is lost."""
     margin_px: float = 4.0
     """Targets closer than this to the image border are not found."""
+    render_scale: float = 1.0
+    """render: images are rendered at this fraction of width x height (positions are still
+    reported in width x height pixels)."""
+    image_noise: float = 0.01
+    """render: standard deviation of the camera's grey-level noise (grey levels 0..1)."""
+    window_px: float = 24.0
+    """render: the tracker searches this far around the target's last position (pixels); a
+    target that moves further between frames is lost there and searched for over the whole image."""
+    min_correlation: float = 0.7
+    """render: a match needs at least this normalised correlation with the template."""
+
+    def __post_init__(self) -> None:
+        if self.source not in VISION_SOURCES:
+            raise ValueError(f"vision source must be one of {VISION_SOURCES}, got {self.source!r}")
+        if self.width < 16 or self.height < 16:
+            raise ValueError(f"image must be at least 16 x 16 pixels, got {self.width} x {self.height}")
+        if not 0.1 <= self.render_scale <= 1.0:
+            raise ValueError(f"render_scale must be in [0.1, 1], got {self.render_scale}")
+        if not 0.0 < self.min_correlation < 1.0:
+            raise ValueError(f"min_correlation must be in (0, 1), got {self.min_correlation}")
 
 
 @dataclass

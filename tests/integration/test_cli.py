@@ -121,6 +121,32 @@ def test_client_runs_learns_and_saves(tmp_path):
     assert load_experiences(out / "experiences.npz", cfg).reward.shape[0] == metrics["learn/experiences"]
 
 
+def test_client_hydra_with_rendered_vision_saves_camera_frames(tmp_path):
+    from tests.fakes import render_problem
+
+    if (problem := render_problem()) is not None:
+        pytest.skip(f"no off-screen rendering here: {problem}")
+    out = tmp_path / "run"
+    proc = run([BIN / "wfnn-client", "--sim", "hydra", "--episodes", "1", "--rate-hz", "0", "--thinks", "5",
+                "--vision", "render", "--camera-every", "100", "--out", out])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["client"]["hydra"]["vision"]["source"] == "render"
+    assert metrics["ticks"] == 450 and metrics["experiences_learned"] > 0
+    frames = sorted(p.name for p in (out / "cameras").glob("*.png"))
+    assert frames == [f"{t:07d}.png" for t in range(0, 450, 100)]
+    assert metrics["camera_frames"] == {"written": 5, "dropped": 0, "failed": 0}
+    assert "5 camera frames" in proc.stdout
+
+
+def test_client_refuses_an_unknown_vision_source(tmp_path):
+    proc = subprocess.run(
+        [BIN / "wfnn-client", "--sim", "hydra", "--vision", "sonar", "--out", tmp_path],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode != 0 and "vision source" in proc.stdout + proc.stderr
+    assert not (tmp_path / "metrics.json").exists()
+
+
 CLIENT_WITHOUT_TORCH = """
 import sys
 sys.modules["torch"] = None  # any import of torch now fails
@@ -220,7 +246,8 @@ def test_bench_hydra_writes_table71_and_tick_cost(tmp_path):
     j, p = tmp_path / "hydra.json", tmp_path / "hydra.png"
     out = run(
         [BIN / "wfnn-bench", "hydra", "--controllers", "2", "--episodes", "2", "--eval-episodes", "1",
-         "--four-dof-controllers", "1", "--four-dof-episodes", "1", "--thinks", "5", "--json", j, "--plot", p]
+         "--four-dof-controllers", "1", "--four-dof-episodes", "1", "--thinks", "5", "--render-ticks", "30",
+         "--json", j, "--plot", p]
     )  # fmt: skip
     assert "rms_error_px" in out.stdout
     data = json.loads(j.read_text())
@@ -232,3 +259,12 @@ def test_bench_hydra_writes_table71_and_tick_cost(tmp_path):
     assert 0 < data["tick_ms_p50"] < 50
     assert len(data["analysis"]["swing"]["accel_by_position"]) == 2
     assert p.stat().st_size > 10_000
+    rendering = data["render"]
+    if rendering["available"]:
+        assert set(rendering["regimes"]) == {"static", "swing", "mixed", "elastic"}
+        assert 0 < rendering["regimes"]["swing"]["tracked_fraction"] <= 1
+        assert rendering["regimes"]["swing"]["error_px_p50"] < 2.0
+        assert 0 < rendering["tick_ms_p50_render"] < 200
+        assert (tmp_path / "hydra_cameras.png").stat().st_size > 10_000
+    else:
+        assert "render" in rendering["reason"] or "GL" in rendering["reason"]

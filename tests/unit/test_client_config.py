@@ -19,6 +19,8 @@ def test_local_and_remote_configs():
         ({"lockstep": True, "rate_hz": 15.0}, "lock-step"),
         ({"sim": "submarine"}, "unknown sim"),
         ({"episodes": 0}, "episodes"),
+        ({"sim": "boat", "camera_every": 10}, "no cameras"),
+        ({"sim": "hydra", "camera_every": -1}, "camera_every"),
     ],
 )
 def test_bad_client_configs_are_refused(kw, message):
