@@ -3,7 +3,7 @@
 # learning 1-DOF visual servoing through it (right verge-axis joint, right camera x; swinging
 # target; 15 Hz real time; act-learn-think-C/S over Zenoh). Extra arguments go to wfnn-client
 # (e.g. --episodes 20, --regime static, --joints pan,tilt,left,right --axes left_x,left_y,right_x,right_y).
-# Results: runs/main/ (client: weights, journal, metrics.json, learning_curve.png;
+# Results: runs/main/ (client: weights, journal, metrics.json, learning_curve.png, cameras/;
 # server/: store, checkpoint; server.log). A previous runs/main/ is kept as runs/main.<time>/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -19,4 +19,5 @@ server=$!
 trap 'kill -TERM "$server" 2>/dev/null && wait "$server" 2>/dev/null; true' EXIT
 .venv/bin/python -c "from wfnn_server.spawn import wait_listening; wait_listening($port)"
 echo "think server think1 on tcp/127.0.0.1:$port (log: runs/main/server.log)"
-.venv/bin/wfnn-client --sim hydra --episodes 8 --controller main --server "tcp/127.0.0.1:$port" --out runs/main "$@"
+.venv/bin/wfnn-client --sim hydra --episodes 8 --camera-every 75 --controller main \
+  --server "tcp/127.0.0.1:$port" --out runs/main "$@"

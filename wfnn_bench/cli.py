@@ -191,6 +191,12 @@ def hydra(
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
     four_dof_controllers: Annotated[int, typer.Option(min=1)] = 2,
     four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
+    advantage_k: Annotated[
+        float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning; the thesis' 0.2).")
+    ] = 1.0,
+    velocity_weight: Annotated[
+        float, typer.Option(min=0.0, help="1-DOF image velocity penalty (3.75: Fig 7.6's raw units).")
+    ] = 0.25,
     render: Annotated[bool, typer.Option(help="Also check rendered vision (template matching).")] = True,
     render_ticks: Annotated[int, typer.Option(min=3, help="Ticks per regime of the rendering check.")] = 450,
     seed: int = 0,
@@ -203,7 +209,7 @@ def hydra(
     cfg = hydra_bench.HydraBenchConfig(
         controllers=controllers, train_episodes=episodes, eval_episodes=eval_episodes, thinks=thinks,
         four_dof_controllers=four_dof_controllers, four_dof_episodes=four_dof_episodes, seed=seed,
-        render=render, render_ticks=render_ticks,
+        render=render, render_ticks=render_ticks, velocity_weight=velocity_weight, advantage_k=advantage_k,
     )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("hydra episodes", total=hydra_bench.steps(cfg))

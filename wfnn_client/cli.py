@@ -79,6 +79,9 @@ def main(
     learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
     weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
+    advantage_k: Annotated[
+        float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
+    ] = None,
     boat_dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     joints: Annotated[str, typer.Option(help="hydra: included joints (pan,tilt,left,right).")] = "right",
     axes: Annotated[
@@ -127,7 +130,7 @@ def main(
         )  # fmt: skip
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep, hydra=hydra,
-            boat_dt=boat_dt, thinks_per_action=thinks, learn=learn, weights=weights,
+            boat_dt=boat_dt, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn, weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),
             controller=controller, client_id=client_id, follow=follow,
@@ -146,9 +149,14 @@ def main(
     ) as bar:  # fmt: skip
         task = bar.add_task(f"{sim} episodes", total=episodes, line="")
         metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)))
+    scores = metrics["scores"]
+    trend = (
+        f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f}"
+        if len(scores) >= 20
+        else f"episode 1 {scores[0]:.3f} -> episode {len(scores)} {scores[-1]:.3f}"
+    )
     console.print(
-        f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f} "
-        f"({metrics['metric']}); {metrics['experiences_learned']} experiences, following "
+        f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences, following "
         f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
         f"jitter p99 {metrics['client/tick_jitter_ms_p99']:.3f} ms, overruns {metrics['client/overruns']:.0f}"
     )

@@ -513,6 +513,8 @@ class RemoteBrain:
         with self._lock:
             view = self.servers.setdefault(snap.server, ServerView(snap.server))
             view.latest = weights
+            if weights.diverged:  # it has reset: the weights this client suspected are gone
+                view.suspect_until = 0.0
             if not view.spec_hash:
                 view.spec_hash = snap.spec_hash
 
@@ -545,22 +547,39 @@ class RemoteBrain:
             and now >= view.suspect_until and now - w.received <= self.config.snapshot_timeout_s
         )  # fmt: skip
 
+    def _relearning(self, view: ServerView, now: float) -> bool:
+        """Alive and publishing the fresh weights it relearns after a divergence reset."""
+        w = view.latest
+        return (
+            view.alive and view.started_ns > 0 and w is not None and w.diverged
+            and now - w.received <= self.config.snapshot_timeout_s
+        )  # fmt: skip
+
     def _choose(self) -> None:
-        """Follow the pinned or longest-alive healthy server; apply its newest snapshot."""
+        """Follow the pinned or longest-alive healthy server; apply its newest snapshot.
+
+        With no healthy server, a server relearning after a divergence reset is followed on
+        its fresh weights (Section 7.6.2) rather than keep acting on weights known to have
+        diverged; otherwise the last weights stay in use.
+        """
         now = time.monotonic()
         with self._lock:
-            healthy = [v for v in self.servers.values() if self._healthy(v, now)]
+            views = list(self.servers.values())
             if self.config.follow is not None:
-                healthy = [v for v in healthy if v.server == self.config.follow]
+                views = [v for v in views if v.server == self.config.follow]
             # The longest-alive: deterministic for every client, and a restarted server (a new
             # start time) never takes over from one that kept running.
-            chosen = min(healthy, key=lambda v: (v.started_ns, v.server), default=None)
+            chosen = min((v for v in views if self._healthy(v, now)), key=_age, default=None)
+            relearning = min((v for v in views if self._relearning(v, now)), key=_age, default=None)
         self._connected = chosen is not None
         if chosen is None:
             if self._following and self._lost_at is None:
                 self._lost_at = now
-                log.warning("server %s unhealthy and no other healthy server: acting on its last weights",
-                            self._following)  # fmt: skip
+                fallback = f"the weights {relearning.server} relearns" if relearning else "its last weights"
+                log.warning("server %s unhealthy and no other healthy server: acting on %s",
+                            self._following, fallback)  # fmt: skip
+            if relearning is not None and relearning.latest is not None:
+                self._apply(relearning.latest)
             return
         if chosen.server != self._following:
             previous = self.servers.get(self._following)
@@ -571,8 +590,11 @@ class RemoteBrain:
                 log.info("following server %s", chosen.server)
             self._following = chosen.server
         self._lost_at = None
-        w = chosen.latest
-        assert w is not None
+        assert chosen.latest is not None
+        self._apply(chosen.latest)
+
+    def _apply(self, w: Weights) -> None:
+        """Make `w` the weights `act` uses (one reference swap)."""
         if w is not self.current:
             self.current = w
             self.apply_latency_ms.append((time.time_ns() - w.published_ns) / 1e6)
@@ -580,3 +602,8 @@ class RemoteBrain:
                 del self.apply_latency_ms[:50_000]
             with self._learned:
                 self._learned.notify_all()
+
+
+def _age(view: ServerView) -> tuple[int, str]:
+    """Sort key: the longest-alive server first (ties by id)."""
+    return view.started_ns, view.server

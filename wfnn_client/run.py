@@ -58,6 +58,8 @@ class ClientConfig:
     """HyDrA's joints, image axes and target regime (`sim` hydra)."""
     thinks_per_action: int | None = None
     """Override the learner's thinks per action (local thinking and the announced config)."""
+    advantage_k: float | None = None
+    """Override the advantage-learning constant (1: plain Q-learning); None: the sim's default."""
     think_batch: int = 50
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     learn: bool = True
@@ -109,7 +111,12 @@ class ClientConfig:
 
 def learner_config(task: VecTask, config: ClientConfig) -> LearnerConfig:
     """The thesis' defaults over the task's declared ranges (with the client's overrides)."""
-    extra = {} if config.thinks_per_action is None else {"thinks_per_action": config.thinks_per_action}
+    extra: dict[str, Any] = {}
+    if config.thinks_per_action is not None:
+        extra["thinks_per_action"] = config.thinks_per_action
+    k = config.advantage_k if config.advantage_k is not None else SIMS[config.sim].advantage_k
+    if k is not None:
+        extra["advantage_k"] = k
     return LearnerConfig.for_task(task, exploration=config.exploration, seed=config.seed, **extra)
 
 

@@ -10,6 +10,11 @@ slower than the others). While the target is lost in a camera whose axes are inc
 state is invalid: its pixel entries are NaN (the learner acts on its best estimate and learns
 nothing), and a transition across a target switch is not learnable.
 
+Vision comes from the camera model with a tracker's faults (`sims.hydra.vision`, the default)
+or from rendered images tracked by template matching (`sims.hydra.render`,
+`VisionConfig(source="render")`: only the cameras with included axes are looked at);
+`camera_images` renders what the cameras see for a person, either way.
+
 Target regimes: `static` (one static target, moved by steps: covered, moved, revealed),
 `swing` (the weight swinging on its string), `mixed` (the training apparatus: the swinging
 weight and static targets that its cylinder hides one by one), `elastic` (the weight on

@@ -33,3 +33,14 @@ def test_net_config_is_checked():
         NetConfig(mode="star")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="lease"):
         NetConfig(lease_ms=10)
+
+
+def test_the_learner_config_takes_the_sims_default_and_the_clients_override():
+    from sims.boat import BoatVec
+    from sims.hydra import HydraVec
+    from wfnn_client.run import learner_config
+
+    hydra = HydraVec(1)
+    assert learner_config(hydra, ClientConfig(sim="hydra")).advantage_k == 1.0  # measured: see README
+    assert learner_config(hydra, ClientConfig(sim="hydra", advantage_k=0.2)).advantage_k == 0.2
+    assert learner_config(BoatVec(1), ClientConfig(sim="boat")).advantage_k == 0.2  # the thesis' default

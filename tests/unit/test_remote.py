@@ -111,11 +111,11 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
         brain.stop()
 
 
-def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None):
+def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False):
     n = WFNN(cfg).params.flat.shape[1]
     snap = WeightSnapshot(
         server=server, incarnation=incarnation, version=version, spec_hash=spec or cfg.spec_hash(),
-        published_ns=time.time_ns(), thinks=0, diverged=False, learned_through={},
+        published_ns=time.time_ns(), thinks=0, diverged=diverged, learned_through={},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
     return Codec(server, key).encode(snap)
@@ -155,6 +155,41 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     # A restarted server (next incarnation) starts its versions again.
     bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=key), None)
     assert wait(lambda: brain.current.incarnation == 2)
+    brain.stop()
+
+
+def announce(bus, server, cfg, started_ns):
+    """A server's liveliness token and heartbeat, as a real one publishes them."""
+    bus.declare_token(KEYS.server_alive(server))
+    status = ServerStatus(
+        server=server, incarnation=1, started_ns=started_ns, spec_hash=cfg.spec_hash(), weights_version=0,
+        stored_through={}, rejected={}, metrics={},
+    )  # fmt: skip
+    bus.put(KEYS.server_status(server), Codec(server).encode(status), None)
+
+
+def test_with_no_healthy_server_the_weights_relearned_after_a_reset_drive_the_robot(tmp_path):
+    hub, cfg = Hub(), small_config()
+    n = WFNN(cfg).params.flat.shape[1]
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    bus = hub.bus()
+    announce(bus, "s1", cfg, started_ns=1)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, params=np.full((1, n), 0.1)), None)
+    assert wait(lambda: brain.connected and brain.current.version == 1)
+    # s1 detects divergence and resets: its relearning weights are flagged. With no other
+    # server, they replace the weights that diverged.
+    bus.put(KEYS.weights("s1"), forge(cfg, version=2, params=np.full((1, n), 0.2), diverged=True), None)
+    assert wait(lambda: brain.current.version == 2)
+    assert not brain.connected and brain.following == "s1"
+    assert brain.act(np.zeros(3)) is not None
+    # A healthy server is preferred to a relearning one, even a younger one.
+    announce(bus, "s2", cfg, started_ns=2)
+    bus.put(KEYS.weights("s2"), forge(cfg, server="s2", version=7), None)
+    assert wait(lambda: brain.connected and brain.following == "s2" and brain.current.server == "s2")
+    bus.put(KEYS.weights("s1"), forge(cfg, version=3, diverged=True), None)
+    time.sleep(0.2)
+    assert brain.current.server == "s2"
     brain.stop()
 
 
