@@ -18,12 +18,12 @@ fi
 # Where it is missing and this script may install Debian packages, it does; otherwise rendering
 # is reported unavailable (its tests are skipped with the reason) and everything else works.
 if [ ! -f .venv/.wfnn-render-checked ]; then
-  if ! .venv/bin/python -m sims.hydra.render; then
+  if ! .venv/bin/python -m sims.render; then
     if [ "$(id -u)" = 0 ] && command -v apt-get > /dev/null; then
       echo "installing Mesa's off-screen GL (Debian packages) for rendering"
       apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
         libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libgl1 libosmesa6 > /dev/null || true
-      .venv/bin/python -m sims.hydra.render || true
+      .venv/bin/python -m sims.render || true
     fi
   fi
   touch .venv/.wfnn-render-checked

@@ -145,6 +145,6 @@ class LoopbackBus:
 @functools.cache
 def render_problem() -> str | None:
     """Why off-screen rendering fails here, or None when it works (checked once per session)."""
-    from sims.hydra.render import render_problem as probe
+    from sims.render import render_problem as probe
 
     return probe()

@@ -23,6 +23,7 @@ from rich.table import Table
 from wfnn_bench import boat as boat_bench
 from wfnn_bench import cartpole as cartpole_bench
 from wfnn_bench import hydra as hydra_bench
+from wfnn_bench import nomad as nomad_bench
 from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
 from wfnn_bench.common import write_json
@@ -180,7 +181,7 @@ def speed(
 
 
 def _num(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2f}"
+    return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"
 
 
 @app.command()
@@ -257,6 +258,52 @@ def hydra(
     del result["render_views"]  # images: in the PNG, not in the JSON
     if json_path:
         write_json(json_path, result)
+
+
+@app.command()
+def nomad(
+    controllers: Annotated[int, typer.Option(min=1, help="Servo controllers learning at once.")] = 4,
+    episodes: Annotated[int, typer.Option(min=1, help="Servo training episodes (15 s each).")] = 30,
+    eval_every: Annotated[int, typer.Option(min=1, help="Evaluate greedily every this many episodes.")] = 5,
+    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
+    advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 1.0,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """Nomad 200 (Chapter 6): learned visual servoing from scratch, tick cost."""
+    _logging(verbose)
+    cfg = nomad_bench.NomadBenchConfig(
+        controllers=controllers, servo_episodes=episodes, eval_every=eval_every, thinks=thinks,
+        advantage_k=advantage_k, seed=seed,
+    )  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("nomad servo episodes", total=cfg.servo_episodes)
+        result = nomad_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = []
+    for e in result["servo"]["evaluations"]:
+        label = f"servo after {e['episode']} episodes ({np.median(e['experiences']):.0f} experiences)"
+        to_goal = _num(float(np.nanmedian(e["time_to_goal_s"])))
+        reached = float(np.median(e["reached_fraction"]))
+        rows.append((f"{label}: final error px / time to goal s / reached",
+                     f"{np.median(e['final_error_px']):.1f} / {to_goal} / {reached:.2f}"))  # fmt: skip
+    ref = result["proportional"]
+    ref_goal = _num(float(np.nanmedian(ref["time_to_goal_s"])))
+    rows += [
+        ("proportional controller: final error px / time to goal s",
+         f"{float(np.median(ref['final_error_px'])):.1f} / {ref_goal}"),
+        ("servo_final_error_px", result["servo_final_error_px"]),
+        ("servo_time_to_goal_s", result["servo_time_to_goal_s"]),
+        ("tick_ms_p50 servo", result["tick_ms_p50_servo"]),
+        ("tick_ms_p50 wander", result["tick_ms_p50_wander"]),
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    _table("Nomad 200 (Chapter 6)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        nomad_bench.plot(result, plot_path)
 
 
 @app.command()

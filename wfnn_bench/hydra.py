@@ -276,7 +276,7 @@ def follow_target(
 
 def render_check(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
     """Rendered vision against the camera model per regime, and the tick cost with rendering."""
-    from sims.hydra.render import RenderUnavailable
+    from sims.render import RenderUnavailable
 
     out: dict[str, Any] = {"available": True, "regimes": {}, "views": {}}
     try:

@@ -13,6 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
+from sims.nomad import NomadConfig
 from wfnn_client.run import ClientConfig, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
@@ -95,9 +96,15 @@ def main(
             "template matching; slower)."
         ),
     ] = "projection",
+    behaviour: Annotated[str, typer.Option(help="nomad: the learned behaviour, servo or wander.")] = "servo",
+    camera_yaw: Annotated[
+        float, typer.Option(help="nomad: camera turned from the direction of travel (degrees, Fig 6.14).")
+    ] = 0.0,
     camera_every: Annotated[
         int,
-        typer.Option(min=0, help="hydra: save what the cameras see every N ticks to OUT/cameras/ (0: off)."),
+        typer.Option(
+            min=0, help="hydra, nomad: save what the cameras see every N ticks to OUT/cameras/ (0: off)."
+        ),
     ] = 0,
     exploration: Annotated[
         str | None, typer.Option(help="uniform, gaussian, smooth or none [sim's: uniform, hydra gaussian].")
@@ -128,8 +135,10 @@ def main(
             joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
             vision=VisionConfig(source=vision),  # type: ignore[arg-type]
         )  # fmt: skip
+        nomad = NomadConfig(behaviour=behaviour, camera_yaw_deg=camera_yaw)  # type: ignore[arg-type]
         config = ClientConfig(
-            sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep, hydra=hydra,
+            sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
+            hydra=hydra, nomad=nomad,
             boat_dt=boat_dt, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn, weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),

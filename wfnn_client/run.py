@@ -23,6 +23,7 @@ import numpy as np
 
 from sims.base import VecTask
 from sims.hydra import HydraConfig
+from sims.nomad import NomadConfig
 from wfnn_client.brain import Brain, Experience, LocalBrain
 from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
@@ -56,6 +57,8 @@ class ClientConfig:
     """Boat time per action (see sims.boat)."""
     hydra: HydraConfig = field(default_factory=HydraConfig)
     """HyDrA's joints, image axes and target regime (`sim` hydra)."""
+    nomad: NomadConfig = field(default_factory=NomadConfig)
+    """The Nomad's behaviour and camera (`sim` nomad)."""
     thinks_per_action: int | None = None
     """Override the learner's thinks per action (local thinking and the announced config)."""
     advantage_k: float | None = None
@@ -177,6 +180,7 @@ def _run(
                          spec.veto(task) if spec.veto else None)  # fmt: skip
     reward_of = spec.reward_of(task) if spec.reward_of else None
     frames = FrameWriter(Path(config.out) / "cameras") if config.camera_every else None
+    episode_steps = spec.episode_steps(task) if callable(spec.episode_steps) else spec.episode_steps
     tick_count = 0
     brain = make_brain(config, learner)
     log.info("learner: %s (spec %s)", lcfg.short_repr(), lcfg.spec_hash())
@@ -201,7 +205,7 @@ def _run(
             spec.new_episode(task, rng)
             x = task.observe()[0]
             total, steps = 0.0, 0
-            for _ in range(spec.episode_steps):
+            for _ in range(episode_steps):
                 late = ticker.wait()
                 if brain.connected:
                     if outages and "end_unix" not in outages[-1]:
@@ -275,7 +279,7 @@ def _run(
         save_experiences(out / "experiences.npz", lcfg, learner.buffer.contents(0))
     metrics: dict[str, Any] = {
         "sim": config.sim,
-        "metric": spec.metric_name,
+        "metric": spec.metric_name(task) if callable(spec.metric_name) else spec.metric_name,
         "scores": scores,
         "first10_median": float(np.median(scores[:10])),
         "last10_median": float(np.median(scores[-10:])),

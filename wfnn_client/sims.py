@@ -18,6 +18,7 @@ from sims.base import VecTask
 from sims.boat import BoatConfig, BoatVec
 from sims.cartpole import CartPoleVec
 from sims.hydra import HydraVec
+from sims.nomad import NomadVec, ir_veto
 from sims.positioning import PositioningVec
 from wfnn_client.safety import Veto
 
@@ -35,11 +36,12 @@ class SimSpec:
 
     make: Callable[[ClientConfig], VecTask]
     """Build the task (one instance) from the client's options."""
-    episode_steps: int
+    episode_steps: int | Callable[[Any], int]
+    """Actions per episode (or a function of the task instance)."""
     new_episode: Callable[[Any, np.random.Generator], None]
     metric: Callable[[Any], FloatArray]
-    """Per-step performance figure (lower is better), averaged per episode."""
-    metric_name: str
+    """Per-step performance figure, averaged per episode (its name says which way is better)."""
+    metric_name: str | Callable[[Any], str]
     reward_of: Callable[[Any], RewardOf] | None = None
     """Build the reward function of never-executed actions for a task instance."""
     veto: Callable[[Any], Veto] | None = None
@@ -132,6 +134,42 @@ SIMS["hydra"] = SimSpec(
     # Measured on this simulation (README): advantage learning (k 0.2) diverges and is reset
     # repeatedly where one-step Q-learning learns steadily.
     advantage_k=1.0,
+    views=lambda task: task.camera_images(0),
+)
+
+
+def _nomad_veto(task: NomadVec) -> Veto:
+    cfg = task.config
+
+    def speed() -> float:
+        measured = float(task.measured[0, 0])
+        # A wild encoder reading (Section 6.7.1) is not believed: the command stands in for it.
+        return measured if abs(measured) <= 2 * cfg.max_translation else float(task.command[0, 0])
+
+    return ir_veto(lambda: task.ir[0], task.ir_angles, speed, cfg.max_acceleration[0])
+
+
+def _nomad_reward(task: NomadVec) -> RewardOf:
+    def reward_of(state: FloatArray, action: FloatArray, next_state: FloatArray) -> float:
+        return float(task.reward(state[None], action[None], next_state[None])[0])
+
+    return reward_of
+
+
+SIMS["nomad"] = SimSpec(
+    make=lambda c: NomadVec(1, c.nomad, seed=c.seed),
+    episode_steps=lambda task: 150 if task.config.behaviour == "servo" else 600,
+    new_episode=lambda task, rng: task.new_targets(rng),
+    metric=lambda task: task.pixel_error() if task.config.behaviour == "servo" else task.speed(),
+    metric_name=lambda task: (
+        "mean |pixel error to the goal| (lost: 200)"
+        if task.config.behaviour == "servo"
+        else "metres per second"
+    ),
+    reward_of=_nomad_reward,
+    veto=_nomad_veto,
+    rate_hz=10.0,
+    exploration="gaussian",
     views=lambda task: task.camera_images(0),
 )
 SIMS["position"] = SIMS["positioning"]

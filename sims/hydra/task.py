@@ -45,7 +45,8 @@ from sims.hydra.model import (
 from sims.hydra.vision import Camera, Measurement, VisionConfig
 
 if TYPE_CHECKING:  # cv2 and the GL context load only when something is rendered
-    from sims.hydra.render import CameraRenderer, ImageTracker, RgbImage
+    from sims.hydra.render import ImageTracker
+    from sims.render import CameraRenderer, RgbImage
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -367,7 +368,7 @@ class HydraVec:
 
     def _render(self, i: int, camera: str) -> RgbImage:
         if self._renderer is None:
-            from sims.hydra.render import CameraRenderer
+            from sims.render import CameraRenderer
 
             v = self.config.vision
             self._renderer = CameraRenderer(self.model, round(v.width * v.render_scale),
@@ -376,7 +377,7 @@ class HydraVec:
 
     def _track_image(self, i: int, camera: str, candidates: list[tuple[int, FloatArray]]) -> Measurement:
         """Render one camera's frame and track the target in it by template matching."""
-        from sims.hydra.render import to_grey
+        from sims.render import to_grey
 
         cfg = self.config.vision
         grey = to_grey(self._render(i, camera))

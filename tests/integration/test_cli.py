@@ -138,6 +138,31 @@ def test_client_hydra_with_rendered_vision_saves_camera_frames(tmp_path):
     assert "5 camera frames" in proc.stdout
 
 
+@pytest.mark.parametrize("behaviour", ["servo", "wander"])
+def test_client_nomad_behaviours_run_and_save(tmp_path, behaviour):
+    out = tmp_path / "run"
+    run([BIN / "wfnn-client", "--sim", "nomad", "--behaviour", behaviour, "--episodes", "1", "--rate-hz", "0",
+         "--thinks", "5", "--out", out])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ticks"] == (150 if behaviour == "servo" else 600)
+    assert metrics["experiences_learned"] > 0 and (out / "weights.npz").exists()
+    assert metrics["config"]["client"]["nomad"]["behaviour"] == behaviour
+    assert metrics["metric"].startswith("mean |pixel" if behaviour == "servo" else "metres")
+
+
+def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
+    j, p = tmp_path / "nomad.json", tmp_path / "nomad.png"
+    out = run([BIN / "wfnn-bench", "nomad", "--controllers", "2", "--episodes", "2", "--eval-every", "1",
+               "--thinks", "5", "--json", j, "--plot", p])  # fmt: skip
+    assert "servo_final_error_px" in out.stdout
+    data = json.loads(j.read_text())
+    assert [e["episode"] for e in data["servo"]["evaluations"]] == [1, 2]
+    assert 0 <= data["servo_final_error_px"] <= 200
+    assert data["proportional"]["final_error_px"][0] < 15  # the task is doable
+    assert 0 < data["tick_ms_p50"] < 50
+    assert p.stat().st_size > 10_000
+
+
 def test_client_refuses_an_unknown_vision_source(tmp_path):
     proc = subprocess.run(
         [BIN / "wfnn-client", "--sim", "hydra", "--vision", "sonar", "--out", tmp_path],

@@ -1,0 +1,6 @@
+"""The Nomad 200 mobile robot of thesis Chapter 6, simulated in MuJoCo."""
+
+from sims.nomad.behaviours import WanderConfig, handcoded_wander, ir_veto
+from sims.nomad.task import BEHAVIOURS, NomadConfig, NomadEnv, NomadVec
+
+__all__ = ["BEHAVIOURS", "NomadConfig", "NomadEnv", "NomadVec", "WanderConfig", "handcoded_wander", "ir_veto"]
