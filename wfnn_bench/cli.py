@@ -262,11 +262,11 @@ def hydra(
 
 @app.command()
 def nomad(
-    controllers: Annotated[int, typer.Option(min=1, help="Servo controllers learning at once.")] = 4,
+    controllers: Annotated[int, typer.Option(min=1, help="Servo controllers learning at once.")] = 8,
     episodes: Annotated[int, typer.Option(min=1, help="Servo training episodes (15 s each).")] = 30,
     eval_every: Annotated[int, typer.Option(min=1, help="Evaluate greedily every this many episodes.")] = 5,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
-    advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 1.0,
+    advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 0.2,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,

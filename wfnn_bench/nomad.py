@@ -33,7 +33,7 @@ SERVO_EPISODE = 150
 class NomadBenchConfig:
     """Options of `wfnn-bench nomad`."""
 
-    controllers: int = 4
+    controllers: int = 8
     servo_episodes: int = 30
     eval_every: int = 5
     """Evaluate the servo controllers every this many training episodes."""
@@ -44,8 +44,11 @@ class NomadBenchConfig:
     goal_px: float = 15.0
     """A step response has reached the goal when the pixel error stays below this."""
     thinks: int = 200
-    advantage_k: float = 1.0
+    advantage_k: float = 0.2
+    """The thesis' advantage learning (with k = 1, Q-learning, the median final error after 30
+    episodes was about 80 px against about 20)."""
     sigma: float = 0.1
+    exploration: str = "gaussian"
     task: NomadConfig = field(default_factory=NomadConfig)
     tick_samples: int = 1000
     seed: int = 0
@@ -97,7 +100,8 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="servo"), seed=cfg.seed)
     lcfg = LearnerConfig.for_task(
-        task, exploration=ExplorationConfig(kind="gaussian", sigma=cfg.sigma), thinks_per_action=cfg.thinks,
+        task, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
+        thinks_per_action=cfg.thinks,
         advantage_k=cfg.advantage_k, seed=cfg.seed,
     )  # fmt: skip
     learner = WFNN(lcfg, population=p)
