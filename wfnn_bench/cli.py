@@ -265,6 +265,10 @@ def nomad(
     controllers: Annotated[int, typer.Option(min=1, help="Servo controllers learning at once.")] = 8,
     episodes: Annotated[int, typer.Option(min=1, help="Servo training episodes (15 s each).")] = 30,
     eval_every: Annotated[int, typer.Option(min=1, help="Evaluate greedily every this many episodes.")] = 5,
+    wander_episodes: Annotated[int, typer.Option(min=1, help="Learned wandering: 60 s episodes.")] = 15,
+    from_wander_minutes: Annotated[
+        float, typer.Option(min=0.1, help="Learning servoing by watching the wandering: minutes.")
+    ] = 20.0,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
     advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 0.2,
     seed: int = 0,
@@ -276,10 +280,11 @@ def nomad(
     _logging(verbose)
     cfg = nomad_bench.NomadBenchConfig(
         controllers=controllers, servo_episodes=episodes, eval_every=eval_every, thinks=thinks,
+        wander_episodes=wander_episodes, from_wander_ticks=round(from_wander_minutes * 600),
         advantage_k=advantage_k, seed=seed,
     )  # fmt: skip
     with _progress() as bar:
-        task = bar.add_task("nomad servo episodes", total=cfg.servo_episodes)
+        task = bar.add_task("nomad episodes", total=nomad_bench.steps(cfg))
         result = nomad_bench.run(cfg, lambda k: bar.advance(task, k))
     rows: list[tuple[str, Any]] = []
     for e in result["servo"]["evaluations"]:
@@ -295,6 +300,20 @@ def nomad(
          f"{float(np.median(ref['final_error_px'])):.1f} / {ref_goal}"),
         ("servo_final_error_px", result["servo_final_error_px"]),
         ("servo_time_to_goal_s", result["servo_time_to_goal_s"]),
+        ("servo_from_wander_score (final error px, median)", result["servo_from_wander_score"]),
+        ("  its experiences (median) / from scratch with as many: final error px",
+         f"{np.median(result['servo_from_wander']['experiences']):.0f} / "
+         f"{result['servo_from_scratch_same_experiences']['final_error_px']:.1f} "
+         f"({result['servo_from_scratch_same_experiences']['experiences']:.0f} experiences)"),
+    ]  # fmt: skip
+    w, h = result["wander"], result["wander_handcoded"]
+    rows += [
+        ("wander_m_per_collision early / late / hand-coded",
+         " / ".join(_num(v) for v in result["wander_m_per_collision"].values())),
+        ("wander vetoes per minute early / late / hand-coded",
+         f"{w['vetoes_per_min_early']:.0f} / {w['vetoes_per_min_late']:.0f} / {np.mean(h['vetoes']):.0f}"),
+        ("wander metres per minute early / late / hand-coded",
+         f"{w['m_per_min_early']:.1f} / {w['m_per_min_late']:.1f} / {np.mean(h['distance_m']):.1f}"),
         ("tick_ms_p50 servo", result["tick_ms_p50_servo"]),
         ("tick_ms_p50 wander", result["tick_ms_p50_wander"]),
         ("wall_s", result["wall_s"]),

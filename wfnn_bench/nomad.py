@@ -6,6 +6,13 @@
   pixel error to the goal and the time to reach it.
 - A proportional controller on the same step responses, as a reference for what the task
   allows.
+- Learned wandering (Section 6.4): controllers learn to wander from scratch under the infrared
+  veto (vetoed proposals learned twice); distance travelled per collision and vetoes per
+  minute early and late in learning, against the hand-coded wandering (Fig 6.7); a path plot
+  like Fig 6.9.
+- Learning servoing from the wandering behaviour (Section 6.6): while the hand-coded wandering
+  drives, the interest operator picks targets and a servo learner learns from the wandering's
+  actions only; it is then evaluated like the servo controllers learned from scratch.
 - The cost of a control tick (physics, infrared ring, carpet matrix, tracker, act).
 """
 
@@ -19,7 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.nomad import NomadConfig, NomadVec
+from sims.nomad import NomadConfig, NomadVec, handcoded_wander
+from sims.nomad.model import NomadModelConfig
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -49,9 +57,23 @@ class NomadBenchConfig:
     episodes was about 80 px against about 20)."""
     sigma: float = 0.1
     exploration: str = "gaussian"
+    wander_episodes: int = 15
+    """Learned wandering: 60 s episodes."""
+    from_wander_ticks: int = 12000
+    """Learning servoing from watching the hand-coded wandering: actions (20 minutes)."""
     task: NomadConfig = field(default_factory=NomadConfig)
     tick_samples: int = 1000
     seed: int = 0
+
+
+def steps(cfg: NomadBenchConfig) -> int:
+    """Progress units: servo and wandering episodes, and minutes of learning from wandering."""
+    return (
+        cfg.servo_episodes
+        + cfg.wander_episodes
+        + max(cfg.wander_episodes // 3, 1)
+        + (cfg.from_wander_ticks // WANDER_EPISODE)
+    )
 
 
 def step_responses(policy: Any, cfg: NomadBenchConfig, population: int, seed: int) -> dict[str, FloatArray]:
@@ -138,6 +160,131 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     }
 
 
+WANDER_EPISODE = 600
+"""Actions per wandering episode (60 s at 10 Hz)."""
+
+
+def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progress) -> dict[str, Any]:
+    """Wander (learning, or hand-coded) under the veto: per-episode distance, collisions, vetoes."""
+    p = cfg.controllers
+    task = NomadVec(p, replace(cfg.task, behaviour="wander"), seed=cfg.seed)
+    learner = None
+    if learned:
+        lcfg = LearnerConfig.for_task(
+            task, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
+            thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
+        )  # fmt: skip
+        learner = WFNN(lcfg, population=p)
+    vetoes = [task.veto(i) for i in range(p)]
+    rng = np.random.default_rng(cfg.seed)
+    x = task.reset(rng)
+    shape = (p, episodes)
+    out = {k: np.zeros(shape) for k in ("distance_m", "collisions", "vetoes")}
+    path: list[list[float]] = []
+    for ep in range(episodes):
+        distance0, collisions0 = task.distance.copy(), task.collisions.copy()
+        for _ in range(WANDER_EPISODE):
+            if learner is not None:
+                proposed = learner.act(x).action
+            else:
+                proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
+            executed = proposed.copy()
+            vetoed = np.zeros(p, dtype=np.bool_)
+            for i in range(p):
+                replacement = vetoes[i](x[i], proposed[i])
+                if replacement is not None:
+                    executed[i], vetoed[i] = replacement, True
+            tr = task.step(executed)
+            if learner is not None:
+                learner.learn(x, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
+                if vetoed.any():  # learn twice: the proposal too, with its own reward (Eq 5.4)
+                    r = task.reward(x, proposed, tr.state)
+                    learner.learn(x, proposed, tr.state, r, tr.terminal, tr.learnable & vetoed)
+                learner.think()
+            out["vetoes"][:, ep] += vetoed
+            path.append(task.pose()[0, :2].tolist())
+            x = tr.state
+        out["distance_m"][:, ep] = task.distance - distance0
+        out["collisions"][:, ep] = task.collisions - collisions0
+        progress(1)
+    task.close()
+    third = max(episodes // 3, 1)
+
+    def per_collision(sl: slice) -> float | None:
+        hits = float(out["collisions"][:, sl].sum())
+        return float(out["distance_m"][:, sl].sum() / hits) if hits else None
+
+    return {
+        **out,
+        "m_per_collision_early": per_collision(slice(0, third)),
+        "m_per_collision_late": per_collision(slice(episodes - third, episodes)),
+        "vetoes_per_min_early": float(out["vetoes"][:, :third].mean()),
+        "vetoes_per_min_late": float(out["vetoes"][:, episodes - third :].mean()),
+        "m_per_min_early": float(out["distance_m"][:, :third].mean()),
+        "m_per_min_late": float(out["distance_m"][:, episodes - third :].mean()),
+        "path": path,
+        "divergence_resets": learner.resets.copy() if learner is not None else None,
+    }
+
+
+def _per_collision(result: dict[str, Any]) -> float | None:
+    """Metres per collision over a whole wandering run (None without a collision)."""
+    hits = float(np.sum(result["collisions"]))
+    return float(np.sum(result["distance_m"]) / hits) if hits else None
+
+
+def servo_from_wander(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
+    """A servo learner that only watches the hand-coded wandering pursue nothing (Section 6.6).
+
+    The wandering drives; whenever no target is tracked the interest operator looks for one;
+    while one is tracked, the servo learner learns (servo state, the wandering's action, next
+    servo state, servo reward). The balls are scattered again every minute.
+    """
+    p = cfg.controllers
+    task = NomadVec(p, replace(cfg.task, behaviour="wander"), seed=cfg.seed + 1)
+    servo_task = replace(cfg.task, behaviour="servo")
+    lcfg = LearnerConfig.for_task(
+        NomadVec(1, servo_task), exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
+        thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
+    )  # fmt: skip
+    learner = WFNN(lcfg, population=p)
+    vetoes = [task.veto(i) for i in range(p)]
+    rng = np.random.default_rng(cfg.seed + 1)
+    task.reset(rng)
+    experiences = np.zeros(p)
+    for tick in range(cfg.from_wander_ticks):
+        if tick % WANDER_EPISODE == 0 and tick:
+            for i in range(p):
+                for k in range(len(task.ball_geoms)):
+                    task._put_ball(i, k, task._free_spot(rng, 0.4))
+        for lost in np.flatnonzero(task.tracked() < 0):
+            task.acquire(int(lost))
+        s = task.observe("servo")
+        before = task.valid("servo")
+        geoms = task.tracked()
+        action = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
+        for i in range(p):
+            replacement = vetoes[i](s[i], action[i])
+            if replacement is not None:
+                action[i] = replacement
+        task.step(action)
+        s2 = task.observe("servo")
+        ok = before & task.valid("servo") & (task.tracked() == geoms)
+        if ok.any():
+            learner.learn(s, action, s2, task.reward(s, action, s2, "servo"), np.zeros(p, dtype=np.bool_), ok)
+            learner.think()
+            experiences += ok
+        if tick % WANDER_EPISODE == WANDER_EPISODE - 1:
+            progress(1)
+    task.close()
+
+    def greedy(states: FloatArray) -> FloatArray:
+        return learner.act(states, explore=False, params=learner.params).action
+
+    ev = step_responses(greedy, cfg, p, cfg.seed + 1000)
+    return {"experiences": experiences, **{k: v for k, v in ev.items() if k != "traces"}}
+
+
 def tick_cost(cfg: NomadBenchConfig) -> dict[str, float]:
     """Milliseconds per control tick (physics, infrared, carpet matrix, tracker, act), servo and wander."""
     out: dict[str, float] = {}
@@ -163,6 +310,12 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
     reference = step_responses(lambda x: proportional(x, cfg.task), cfg, 1, cfg.seed + 1000)
     servo = learn_servo(cfg, progress)
     last = servo["evaluations"][-1]
+    learned_wander = wander(cfg, True, cfg.wander_episodes, progress)
+    handcoded = wander(cfg, False, max(cfg.wander_episodes // 3, 1), progress)
+    from_wander = servo_from_wander(cfg, progress)
+    # From scratch with about as many experiences as the watching learner gathered.
+    count = float(np.median(from_wander["experiences"]))
+    nearest = min(servo["evaluations"], key=lambda e: abs(float(np.median(e["experiences"])) - count))
     tick = tick_cost(cfg)
     return {
         "benchmark": "nomad",
@@ -173,38 +326,90 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
         "servo_time_to_goal_s": float(np.nanmedian(last["time_to_goal_s"])),
         "servo_experiences": float(np.median(last["experiences"])),
         "proportional": {k: v for k, v in reference.items() if k != "traces"},
+        "wander": learned_wander,
+        "wander_handcoded": handcoded,
+        "wander_m_per_collision": {
+            "early": learned_wander["m_per_collision_early"],
+            "late": learned_wander["m_per_collision_late"],
+            "handcoded": _per_collision(handcoded),
+        },
+        "servo_from_wander": from_wander,
+        "servo_from_wander_score": float(np.median(from_wander["final_error_px"])),
+        "servo_from_scratch_same_experiences": {
+            "experiences": float(np.median(nearest["experiences"])),
+            "final_error_px": float(np.median(nearest["final_error_px"])),
+        },
         **tick,
         "wall_s": time.perf_counter() - t0,
     }
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
-    """Servo learning (greedy evaluations) and the final controllers' step responses."""
+    """Servo learning, step responses (Fig 6.13), a wandering path (Fig 6.9), vetoes and collisions."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
-    ax = axes[0]
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    ax = axes[0, 0]
     evals = result["servo"]["evaluations"]
     experiences = np.array([e["experiences"] for e in evals])
     errors = np.array([e["final_error_px"] for e in evals])
     for c in range(errors.shape[1]):
-        ax.plot(experiences[:, c], errors[:, c], marker="o", lw=1, label=f"controller {c}")
+        ax.plot(experiences[:, c], errors[:, c], marker="o", lw=1, color=f"C{c % 10}")
     ax.axhline(float(np.median(result["proportional"]["final_error_px"])), color="k", ls="--",
                label="proportional controller")  # fmt: skip
+    fw = result["servo_from_wander"]
+    ax.scatter(
+        fw["experiences"], fw["final_error_px"], marker="x", color="k", label="learned from wandering only"
+    )
     ax.set(xlabel="experiences learned", ylabel="median final |pixel error| (px)",
-           title="Nomad: learned visual servoing, greedy step responses")  # fmt: skip
+           title="learned visual servoing, greedy step responses (one line per controller)")  # fmt: skip
     ax.legend(fontsize=8)
-    ax = axes[1]
+    ax = axes[0, 1]
     traces = np.asarray(result["servo"]["final_traces"])  # [P, 3, T]
     t = np.arange(traces.shape[2]) / 10.0
     for c in range(traces.shape[0]):
         for k in range(traces.shape[1]):
-            ax.plot(t, traces[c, k], lw=0.8, color=f"C{c}", alpha=0.8)
+            ax.plot(t, traces[c, k], lw=0.8, color=f"C{c % 10}", alpha=0.8)
     ax.set(xlabel="s", ylabel="|pixel error to the goal| (lost: 200)",
            title="step responses of the final controllers (Fig 6.13)")  # fmt: skip
+    ax = axes[1, 0]
+    trail = np.asarray(result["wander"]["path"])
+    room = NomadModelConfig()
+    ax.plot(trail[:, 0], trail[:, 1], lw=0.6)
+    ax.plot(*trail[0], "go", label="start")
+    for x, y in room.pillars:
+        ax.add_patch(plt.Rectangle((x - 0.15, y - 0.15), 0.3, 0.3, color="gray"))
+    ax.add_patch(plt.Circle(room.plant, 0.2, color="green"))
+    minutes = len(trail) / WANDER_EPISODE
+    ax.set(xlim=(-room.arena[0] / 2, room.arena[0] / 2), ylim=(-room.arena[1] / 2, room.arena[1] / 2),
+           aspect="equal", xlabel="m", ylabel="m",
+           title=f"learned wandering, one robot, {minutes:.0f} minutes (Fig 6.9)")  # fmt: skip
+    ax.legend(fontsize=8)
+    ax = axes[1, 1]
+    learned, handcoded = result["wander"], result["wander_handcoded"]
+    episodes = np.arange(1, np.asarray(learned["vetoes"]).shape[1] + 1)
+    ax.plot(episodes, np.mean(learned["vetoes"], axis=0), marker="o", label="vetoes per minute, learned")
+    ax.plot(
+        episodes,
+        np.mean(learned["collisions"], axis=0) * 10,
+        marker="s",
+        label="collisions per minute x10, learned",
+    )
+    ax.plot(episodes, np.mean(learned["distance_m"], axis=0), marker="^", label="metres per minute, learned")
+    ax.axhline(
+        float(np.mean(handcoded["vetoes"])), color="C0", ls="--", label="vetoes per minute, hand-coded"
+    )
+    ax.axhline(
+        float(np.mean(handcoded["distance_m"])), color="C2", ls="--", label="metres per minute, hand-coded"
+    )
+    ax.set(
+        xlabel="minute of learning to wander",
+        title="wandering: vetoes, collisions, distance (means over robots)",
+    )
+    ax.legend(fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

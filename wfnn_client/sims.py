@@ -18,7 +18,7 @@ from sims.base import VecTask
 from sims.boat import BoatConfig, BoatVec
 from sims.cartpole import CartPoleVec
 from sims.hydra import HydraVec
-from sims.nomad import NomadVec, ir_veto
+from sims.nomad import NomadVec
 from sims.positioning import PositioningVec
 from wfnn_client.safety import Veto
 
@@ -138,17 +138,6 @@ SIMS["hydra"] = SimSpec(
 )
 
 
-def _nomad_veto(task: NomadVec) -> Veto:
-    cfg = task.config
-
-    def speed() -> float:
-        measured = float(task.measured[0, 0])
-        # A wild encoder reading (Section 6.7.1) is not believed: the command stands in for it.
-        return measured if abs(measured) <= 2 * cfg.max_translation else float(task.command[0, 0])
-
-    return ir_veto(lambda: task.ir[0], task.ir_angles, speed, cfg.max_acceleration[0])
-
-
 def _nomad_reward(task: NomadVec) -> RewardOf:
     def reward_of(state: FloatArray, action: FloatArray, next_state: FloatArray) -> float:
         return float(task.reward(state[None], action[None], next_state[None])[0])
@@ -167,7 +156,7 @@ SIMS["nomad"] = SimSpec(
         else "metres per second"
     ),
     reward_of=_nomad_reward,
-    veto=_nomad_veto,
+    veto=lambda task: task.veto(0),
     rate_hz=10.0,
     exploration="gaussian",
     views=lambda task: task.camera_images(0),

@@ -178,6 +178,9 @@ class HydraVec:
                 {c: ImageTracker(cfg.vision) for c in self._rendered_cameras} for _ in range(n)
             ]
         self.command = np.zeros((n, 4))
+        self.setpoint = np.zeros((n, 4))
+        """The low-level controller's velocity setpoint per joint: where its ramp toward the
+        command has got to (it may take several ticks at the acceleration limit)."""
         """Last velocity command per joint (rad/s); the state's joint velocity."""
         self.pixels = np.zeros((n, 4))
         """Latest frame's target pixels per axis (left x, y, right x, y)."""
@@ -243,6 +246,7 @@ class HydraVec:
         data.qvel[:] = 0.0
         data.ctrl[:] = 0.0
         self.command[i] = 0.0
+        self.setpoint[i] = 0.0
         for cam in self.cameras[i].values():
             cam.reset()
         for tracker in self._image_trackers[i].values() if self._image_trackers else ():
@@ -305,12 +309,13 @@ class HydraVec:
         # The low-level controller's velocity ramp at each joint's acceleration limit.
         reach = np.asarray(cfg.max_acceleration) * dt * steps
         for i, data in enumerate(self.data):
-            profile = previous[i] + np.clip(target[i] - previous[i], -reach, reach)
+            profile = self.setpoint[i] + np.clip(target[i] - self.setpoint[i], -reach, reach)
             for k in range(cfg.substeps):
                 data.ctrl[:] = profile[k]
                 mujoco.mj_step(self.model, data)
                 if k == half - 1 or k == cfg.substeps - 1:
                     self._frame(i)
+            self.setpoint[i] = profile[-1]
             self.time[i] += 1.0 / cfg.rate_hz
             moved[i] = self._move_static_target(i)
         self.command = target

@@ -3,7 +3,7 @@
 The hand-coded wandering drives toward the longest uninterrupted vertical strip of carpet in the
 carpet match matrix, or turns on the spot when no carpet is seen. The veto is the robot's safety
 layer (Section 5.4): a command that would drive the base into something its infrared ring sees
-within stopping distance keeps its rotation and loses its translation.
+within stopping distance is replaced by turning on the spot away from the nearest obstacle.
 """
 
 from __future__ import annotations
@@ -63,12 +63,15 @@ def ir_veto(
     max_deceleration: float,
     margin: float = 0.12,
     arc_deg: float = 50.0,
+    turn: float = 0.5,
 ) -> Callable[[FloatArray, FloatArray], FloatArray | None]:
     """A veto rule over an infrared ring (the readings come from `ir()` when it is consulted).
 
     A proposed (T, R) is vetoed when a sensor within `arc_deg` of the direction of travel reads
     less than the stopping distance at the faster of the commanded and measured speed plus
-    `margin`; the replacement keeps R and stops translating.
+    `margin`. The replacement stops translating and turns at `turn` rad/s away from the nearest
+    of those readings (for one dead ahead, the way the proposal turned, else left): keeping the
+    proposed rotation could hold the robot against an obstacle its camera does not see.
     """
     cos_arc = np.cos(np.deg2rad(arc_deg))
 
@@ -80,8 +83,12 @@ def ir_veto(
         ahead = np.cos(angles) * np.sign(speed) >= cos_arc
         fastest = max(abs(speed), abs(measured_speed()))
         stopping = fastest**2 / (2 * max_deceleration) + margin
-        if np.any(readings[ahead] < stopping):
-            return np.array([0.0, float(action[1])])
-        return None
+        close = ahead & (readings < stopping)
+        if not close.any():
+            return None
+        nearest = angles[close][np.argmin(readings[close])]
+        side = np.sin(nearest)
+        direction = -np.sign(side) if abs(side) > 0.1 else (np.sign(action[1]) or 1.0)
+        return np.array([0.0, float(direction * turn)])
 
     return veto

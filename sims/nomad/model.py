@@ -20,8 +20,11 @@ from dataclasses import dataclass
 
 # Geom groups: what the infrared rays and the camera's rays may hit.
 GROUP_ROBOT, GROUP_FLOOR, GROUP_STATIC, GROUP_OBJECTS = 0, 1, 2, 3
-N_BALLS = 3
-BALL_COLOURS = ((0.85, 0.1, 0.1), (0.95, 0.8, 0.1), (0.1, 0.55, 0.15))
+BALL_COLOURS = (
+    (0.85, 0.1, 0.1), (0.95, 0.8, 0.1), (0.1, 0.55, 0.15),
+    (0.9, 0.45, 0.05), (0.6, 0.1, 0.6), (0.95, 0.95, 0.9),
+)  # fmt: skip
+N_BALLS = len(BALL_COLOURS)
 CARPET = (0.33, 0.36, 0.45)
 """Colour of the carpet (RGB, 0..1)."""
 
@@ -45,8 +48,8 @@ class NomadModelConfig:
     ir_height: float = 0.3
     arena: tuple[float, float] = (8.0, 6.0)
     """Room size, x by y (m)."""
-    wall_colour: tuple[float, float, float] = (0.40, 0.42, 0.50)
-    """Similar to the carpet, as in the thesis' corridors."""
+    wall_colour: tuple[float, float, float] = (0.48, 0.48, 0.55)
+    """Close to the carpet's colour, as in the thesis' corridors (a mismatch of about 0.6)."""
     ball_radius: float = 0.1
     pillars: tuple[tuple[float, float], ...] = ((-1.5, 1.0), (1.8, -1.2), (2.2, 1.6))
     plant: tuple[float, float] = (-2.4, -1.6)

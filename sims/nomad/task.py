@@ -20,6 +20,7 @@ state: it is what the robot's veto (`nomad_ir_veto`) looks at.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -28,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
+from sims.nomad.behaviours import ir_veto
 from sims.nomad.model import GROUP_FLOOR, N_BALLS, NomadModelConfig, nomad_mjcf
 from sims.nomad.vision import (
     COLS,
@@ -141,6 +143,7 @@ class NomadVec:
         self._base_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "base")
         self._base_geom = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "base")
         self._floor = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+        self._harmless = {self._floor, *self.ball_geoms}
         self.obstacles = [
             (float(m.geom_pos[g][0]), float(m.geom_pos[g][1]), 0.5)
             for g in range(m.ngeom)
@@ -158,6 +161,9 @@ class NomadVec:
         self._ir_groups[GROUP_FLOOR] = 0
         self.command = np.zeros((n, 2))
         """Last commanded (T, R)."""
+        self.setpoint = np.zeros((n, 2))
+        """The low-level controller's velocity setpoint: where its ramp toward the command has
+        got to (several actions at the acceleration limit)."""
         self.measured = np.zeros((n, 2))
         """The encoders' (t, r) this tick (possibly wild)."""
         self.ir = np.full((n, cfg.ir_sensors), cfg.ir_range)
@@ -240,6 +246,7 @@ class NomadVec:
             self.trackers[i].stop()
             mujoco.mj_forward(self.model, data)
         self.command[:] = 0.0
+        self.setpoint[:] = 0.0
         self.measured[:] = 0.0
         self.carpet[:] = 0.0
         self.time[:] = 0.0
@@ -322,13 +329,14 @@ class NomadVec:
         moved = np.zeros(self.n, dtype=np.bool_)
         for i, data in enumerate(self.data):
             start = np.array([data.qpos[self._q[0]], data.qpos[self._q[1]]])
-            profile = self.command[i] + np.clip(target[i] - self.command[i], -reach, reach)
+            profile = self.setpoint[i] + np.clip(target[i] - self.setpoint[i], -reach, reach)
             self._move_person(i)
             for k in range(cfg.substeps):
                 data.ctrl[:] = (profile[k, 0], 0.0, profile[k, 1])
                 mujoco.mj_step(self.model, data)
                 if k in frames:
                     self._frame(i)
+            self.setpoint[i] = profile[-1]
             self.time[i] += 1.0 / cfg.rate_hz
             self.distance[i] += float(
                 np.hypot(data.qpos[self._q[0]] - start[0], data.qpos[self._q[1]] - start[1])
@@ -398,8 +406,10 @@ class NomadVec:
         self.carpet_raw[i] = carpet_mismatch(self.model, hit, points, cfg.vision, rng)
         v = cfg.vision
         self.carpet[i] = smooth_carpet(self.carpet_raw[i], None if first else self.carpet[i], v.alpha, v.beta)
+        # A collision is the base touching anything but the floor and the balls (which it may
+        # nudge while pursuing them).
         touching = any(
-            self._base_geom in (c.geom1, c.geom2) and self._floor not in (c.geom1, c.geom2)
+            self._base_geom in (c.geom1, c.geom2) and not {c.geom1, c.geom2} & self._harmless
             for c in data.contact[: data.ncon]
         )
         if touching and not self._touching[i]:
@@ -472,19 +482,54 @@ class NomadVec:
             self._renderer = None
 
     # ------------------------------------------------------------------ state and reward
-    def valid(self) -> BoolArray:
+    # Both behaviours' views are kept up to date whichever behaviour is learned, so one can
+    # learn from the other's actions (Section 6.6); `behaviour` None means the configured one.
+    def valid(self, behaviour: Behaviour | None = None) -> BoolArray:
         """servo: a target is tracked; wander: always (the encoders are checked by the learner)."""
-        if self.config.behaviour == "servo":
+        if (behaviour or self.config.behaviour) == "servo":
             return np.asarray(~np.isnan(self.pixels).any(axis=1))
         return np.ones(self.n, dtype=np.bool_)
 
-    def observe(self) -> FloatArray:
+    def observe(self, behaviour: Behaviour | None = None) -> FloatArray:
         """States [n, S] (servo: pixel entries NaN while no target is tracked)."""
-        if self.config.behaviour == "servo":
+        if (behaviour or self.config.behaviour) == "servo":
             return np.concatenate([self.pixels, self.pixel_velocity, self.measured], axis=1)
         return np.concatenate([self.carpet.reshape(self.n, -1), self.measured], axis=1)
 
-    def reward_components(self, state: FloatArray, action: FloatArray, next_state: FloatArray) -> FloatArray:
+    def veto(self, i: int) -> Callable[[FloatArray, FloatArray], FloatArray | None]:
+        """Robot i's infrared veto (`ir_veto` over its ring and its measured speed)."""
+        cfg = self.config
+
+        def speed() -> float:
+            measured = float(self.measured[i, 0])
+            # A wild encoder reading (Section 6.7.1) is not believed: the command stands in.
+            return measured if abs(measured) <= 2 * cfg.max_translation else float(self.command[i, 0])
+
+        return ir_veto(lambda: self.ir[i], self.ir_angles, speed, cfg.max_acceleration[0])
+
+    def tracked(self) -> NDArray[np.int64]:
+        """The geom each robot's tracker follows [n] (-1: none)."""
+        return np.array([t.geom for t in self.trackers])
+
+    def acquire(self, i: int) -> bool:
+        """Run the interest operator for robot i and track the first interesting object found."""
+        found = self.interesting(i)
+        if not found:
+            return False
+        geom, point = found[0]
+        self.trackers[i].start(self.data[i], geom, point)
+        self._last_frame[i] = np.nan
+        self._frame(i)
+        self._lost_since[i] = self.time[i]
+        return bool(self.trackers[i].active)
+
+    def reward_components(
+        self,
+        state: FloatArray,
+        action: FloatArray,
+        next_state: FloatArray,
+        behaviour: Behaviour | None = None,
+    ) -> FloatArray:
         """Fig 6.10 (servo) or Fig 6.8 (wander) terms, signed as they add up [n, 3].
 
         servo: (-pixel error, -energy, -roughness); wander: (-carpet mismatch, +forward,
@@ -496,7 +541,7 @@ class NomadVec:
         u = np.atleast_2d(action) / limits
         measured = np.clip(state[:, -2:], -limits, limits) / limits
         rough = -cfg.smoothness_weight * ((u - measured) ** 2).sum(axis=1)
-        if cfg.behaviour == "servo":
+        if (behaviour or cfg.behaviour) == "servo":
             v = cfg.vision
             half_diagonal = np.hypot(v.width, v.height) / 2
             error = np.hypot(*np.nan_to_num(next_state[:, :2].T, nan=half_diagonal))
@@ -507,9 +552,15 @@ class NomadVec:
         forward = np.clip(next_state[:, -2], -cfg.max_translation, cfg.max_translation) / cfg.max_translation
         return np.stack([-cfg.carpet_weight * carpet, cfg.forward_weight * forward, rough], axis=1)
 
-    def reward(self, state: FloatArray, action: FloatArray, next_state: FloatArray) -> FloatArray:
+    def reward(
+        self,
+        state: FloatArray,
+        action: FloatArray,
+        next_state: FloatArray,
+        behaviour: Behaviour | None = None,
+    ) -> FloatArray:
         """The behaviour's reward [n] for (state, action, next_state) [n, ...]."""
-        return np.asarray(self.reward_components(state, action, next_state).sum(axis=1))
+        return np.asarray(self.reward_components(state, action, next_state, behaviour).sum(axis=1))
 
     def speed(self) -> FloatArray:
         """Each robot's true ground speed [n] (m/s)."""

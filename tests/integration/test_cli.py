@@ -153,7 +153,8 @@ def test_client_nomad_behaviours_run_and_save(tmp_path, behaviour):
 def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     j, p = tmp_path / "nomad.json", tmp_path / "nomad.png"
     out = run([BIN / "wfnn-bench", "nomad", "--controllers", "2", "--episodes", "2", "--eval-every", "1",
-               "--thinks", "5", "--json", j, "--plot", p])  # fmt: skip
+               "--wander-episodes", "3", "--from-wander-minutes", "1", "--thinks", "5", "--json", j,
+               "--plot", p])  # fmt: skip
     assert "servo_final_error_px" in out.stdout
     data = json.loads(j.read_text())
     assert [e["episode"] for e in data["servo"]["evaluations"]] == [1, 2]
@@ -161,6 +162,9 @@ def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     assert data["proportional"]["final_error_px"][0] < 15  # the task is doable
     assert 0 < data["tick_ms_p50"] < 50
     assert p.stat().st_size > 10_000
+    assert len(data["wander"]["distance_m"]) == 2 and len(data["wander"]["distance_m"][0]) == 3
+    assert len(data["wander"]["path"]) == 3 * 600
+    assert "early" in data["wander_m_per_collision"] and data["servo_from_wander_score"] >= 0
 
 
 def test_client_refuses_an_unknown_vision_source(tmp_path):

@@ -126,6 +126,12 @@ def test_joint_velocity_ramps_at_the_acceleration_limit():
     pan = task.data[0].qpos[task._qpos[0]]
     task.step(np.array([[1.0, 0.0]]))
     assert task.data[0].qpos[task._qpos[0]] - pan < 0.5 * 1.0 * tick  # pan is slower (5 rad/s^2)
+    # Its ramp continues over the following ticks: 5 rad/s^2 reaches 1 rad/s after 0.2 s (3 ticks).
+    pan_dof = task.model.jnt_dofadr[mujoco.mj_name2id(task.model, mujoco.mjtObj.mjOBJ_JOINT, "pan")]
+    task.step(np.array([[1.0, 0.0]]))
+    assert task.data[0].qvel[pan_dof] == pytest.approx(2 * tick * 5.0, abs=0.1)  # the actuator lags a little
+    task.step(np.array([[1.0, 0.0]]))
+    assert task.data[0].qvel[pan_dof] == pytest.approx(1.0, abs=0.1)
 
 
 def test_lost_targets_make_invalid_states_and_unlearnable_transitions():

@@ -37,8 +37,8 @@ def placed(task, x, y, heading):
     data = task.data[0]
     data.qpos[task._q] = (x, y, heading)
     data.qvel[:] = 0.0
-    for k in range(3):
-        task._put_ball(0, k, (3.5, 2.5 - 0.5 * k))
+    for k in range(len(task.ball_geoms)):
+        task._put_ball(0, k, (3.6, 2.6 - 0.4 * k))
     mujoco.mj_forward(task.model, data)
 
 
@@ -48,9 +48,13 @@ def test_the_base_follows_velocity_commands_within_its_acceleration_limits():
     task.reset(np.random.default_rng(0))
     placed(task, 0.0, 0.2, np.pi)  # facing open carpet
     task.step(np.array([[0.5, 0.0]]))
-    # 0.5 m/s^2 from rest: 0.05 m/s after one 0.1 s action, whatever was asked.
+    # 0.5 m/s^2 from rest: 0.05 m/s after one 0.1 s action, whatever was asked...
     assert task.velocity()[0, 0] == pytest.approx(0.05, abs=0.015)
-    for _ in range(15):
+    for _ in range(3):
+        task.step(np.array([[0.5, 0.0]]))
+    # ...and the ramp carries on from where it got to over the following actions.
+    assert task.velocity()[0, 0] == pytest.approx(0.2, abs=0.015)
+    for _ in range(12):
         task.step(np.array([[0.5, 0.0]]))
     assert task.velocity()[0, 0] == pytest.approx(0.5, abs=0.02)
     assert task.measured[0, 0] == pytest.approx(task.velocity()[0, 0])  # no noise configured
@@ -70,8 +74,11 @@ def test_infrared_ring_sees_a_wall_ahead_and_the_veto_stops_driving_into_it():
     assert ahead == pytest.approx(0.6 - task.model_config.radius, abs=0.01)
     assert behind == cfg.ir_range
     veto = ir_veto(lambda: task.ir[0], task.ir_angles, lambda: 0.0, cfg.max_acceleration[0])
-    replaced = veto(np.zeros(37), np.array([0.5, 0.3]))
-    assert replaced is not None and replaced.tolist() == [0.0, 0.3]  # keeps turning, stops driving
+    replaced = veto(np.zeros(37), np.array([0.5, -0.3]))
+    assert replaced is not None and replaced.tolist() == [0.0, -0.5]  # stops, turns (its way: wall ahead)
+    placed(task, 3.0, 2.68, 0.0)  # the north wall 0.32 m to the left, the east wall 1 m ahead
+    task._sense(0, first=True)
+    assert veto(np.zeros(37), np.array([0.4, 0.0])).tolist() == [0.0, -0.5]  # turns right, away from it
     assert veto(np.zeros(37), np.array([-0.3, 0.0])) is None  # backing away is allowed
     assert veto(np.zeros(37), np.array([0.0, 0.8])) is None
 
