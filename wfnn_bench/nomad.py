@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -117,16 +118,35 @@ def proportional(x: FloatArray, cfg: NomadConfig) -> FloatArray:
     )  # fmt: skip
 
 
+def _learner(task: NomadVec, cfg: NomadBenchConfig, population: int | None = None) -> WFNN:
+    """The benchmark's learners over a task's declared ranges (one per robot unless told)."""
+    lcfg = LearnerConfig.for_task(
+        task, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
+        thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
+    )  # fmt: skip
+    return WFNN(lcfg, population=population or task.n)
+
+
+def _apply_vetoes(
+    vetoes: list[Callable[[FloatArray, FloatArray], FloatArray | None]],
+    states: FloatArray,
+    proposed: FloatArray,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Each robot's veto over its proposed action -> (executed actions [n, 2], vetoed [n])."""
+    executed = proposed.copy()
+    vetoed = np.zeros(len(vetoes), dtype=np.bool_)
+    for i, veto in enumerate(vetoes):
+        replacement = veto(states[i], proposed[i])
+        if replacement is not None:
+            executed[i], vetoed[i] = replacement, True
+    return executed, vetoed
+
+
 def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     """Servo controllers learn from scratch; greedy evaluations along the way."""
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="servo"), seed=cfg.seed)
-    lcfg = LearnerConfig.for_task(
-        task, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
-        thinks_per_action=cfg.thinks,
-        advantage_k=cfg.advantage_k, seed=cfg.seed,
-    )  # fmt: skip
-    learner = WFNN(lcfg, population=p)
+    learner = _learner(task, cfg)
     rng = np.random.default_rng(cfg.seed)
     x = task.reset(rng)
     experiences = np.zeros(p)
@@ -168,13 +188,7 @@ def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progre
     """Wander (learning, or hand-coded) under the veto: per-episode distance, collisions, vetoes."""
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="wander"), seed=cfg.seed)
-    learner = None
-    if learned:
-        lcfg = LearnerConfig.for_task(
-            task, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
-            thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
-        )  # fmt: skip
-        learner = WFNN(lcfg, population=p)
+    learner = _learner(task, cfg) if learned else None
     vetoes = [task.veto(i) for i in range(p)]
     rng = np.random.default_rng(cfg.seed)
     x = task.reset(rng)
@@ -188,12 +202,7 @@ def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progre
                 proposed = learner.act(x).action
             else:
                 proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
-            executed = proposed.copy()
-            vetoed = np.zeros(p, dtype=np.bool_)
-            for i in range(p):
-                replacement = vetoes[i](x[i], proposed[i])
-                if replacement is not None:
-                    executed[i], vetoed[i] = replacement, True
+            executed, vetoed = _apply_vetoes(vetoes, x, proposed)
             tr = task.step(executed)
             if learner is not None:
                 learner.learn(x, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
@@ -242,12 +251,8 @@ def servo_from_wander(cfg: NomadBenchConfig, progress: Progress) -> dict[str, An
     """
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="wander"), seed=cfg.seed + 1)
-    servo_task = replace(cfg.task, behaviour="servo")
-    lcfg = LearnerConfig.for_task(
-        NomadVec(1, servo_task), exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
-        thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
-    )  # fmt: skip
-    learner = WFNN(lcfg, population=p)
+    # The servo learner's declared ranges are those of a servoing robot.
+    learner = _learner(NomadVec(1, replace(cfg.task, behaviour="servo")), cfg, p)
     vetoes = [task.veto(i) for i in range(p)]
     rng = np.random.default_rng(cfg.seed + 1)
     task.reset(rng)
@@ -262,11 +267,8 @@ def servo_from_wander(cfg: NomadBenchConfig, progress: Progress) -> dict[str, An
         s = task.observe("servo")
         before = task.valid("servo")
         geoms = task.tracked()
-        action = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
-        for i in range(p):
-            replacement = vetoes[i](s[i], action[i])
-            if replacement is not None:
-                action[i] = replacement
+        proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
+        action, _ = _apply_vetoes(vetoes, s, proposed)
         task.step(action)
         s2 = task.observe("servo")
         ok = before & task.valid("servo") & (task.tracked() == geoms)

@@ -539,21 +539,22 @@ class RemoteBrain:
             return "stale"
         return ""
 
-    def _healthy(self, view: ServerView, now: float) -> bool:
-        """Alive (token and heartbeat seen), fresh valid weights, not diverged."""
+    def _fresh_weights(self, view: ServerView, now: float) -> Weights | None:
+        """Its newest weights if it is alive (token and heartbeat seen) and they are fresh."""
         w = view.latest
-        return (
-            view.alive and view.started_ns > 0 and w is not None and not w.diverged
-            and now >= view.suspect_until and now - w.received <= self.config.snapshot_timeout_s
-        )  # fmt: skip
+        if w is None or not view.alive or view.started_ns <= 0:
+            return None
+        return w if now - w.received <= self.config.snapshot_timeout_s else None
+
+    def _healthy(self, view: ServerView, now: float) -> bool:
+        """Fresh weights that have not diverged, from a server this client does not suspect."""
+        w = self._fresh_weights(view, now)
+        return w is not None and not w.diverged and now >= view.suspect_until
 
     def _relearning(self, view: ServerView, now: float) -> bool:
-        """Alive and publishing the fresh weights it relearns after a divergence reset."""
-        w = view.latest
-        return (
-            view.alive and view.started_ns > 0 and w is not None and w.diverged
-            and now - w.received <= self.config.snapshot_timeout_s
-        )  # fmt: skip
+        """Fresh weights it relearns after a divergence reset."""
+        w = self._fresh_weights(view, now)
+        return w is not None and w.diverged
 
     def _choose(self) -> None:
         """Follow the pinned or longest-alive healthy server; apply its newest snapshot.

@@ -178,10 +178,10 @@ class HydraVec:
                 {c: ImageTracker(cfg.vision) for c in self._rendered_cameras} for _ in range(n)
             ]
         self.command = np.zeros((n, 4))
+        """Last velocity command per joint (rad/s); the state's joint velocity."""
         self.setpoint = np.zeros((n, 4))
         """The low-level controller's velocity setpoint per joint: where its ramp toward the
         command has got to (it may take several ticks at the acceleration limit)."""
-        """Last velocity command per joint (rad/s); the state's joint velocity."""
         self.pixels = np.zeros((n, 4))
         """Latest frame's target pixels per axis (left x, y, right x, y)."""
         self.pixel_velocity = np.zeros((n, 4))

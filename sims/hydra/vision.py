@@ -18,6 +18,8 @@ import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
+from sims.pinhole import focal_px, project
+
 FloatArray = NDArray[np.float64]
 
 
@@ -85,8 +87,7 @@ class Camera:
         self.id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
         if self.id < 0:
             raise ValueError(f"no camera {name!r} in the model")
-        fovy = np.deg2rad(model.cam_fovy[self.id])
-        self.focal = (cfg.height / 2) / np.tan(fovy / 2)
+        self.focal = focal_px(model, self.id, cfg.height)
         """Focal length in pixels."""
         self.body = int(model.cam_bodyid[self.id])
         self.rng = rng
@@ -101,11 +102,7 @@ class Camera:
 
     def project(self, data: mujoco.MjData, point: FloatArray) -> tuple[FloatArray, float]:
         """Pixel position (x right, y down, from the centre) and depth of a world point."""
-        rel = data.cam_xmat[self.id].reshape(3, 3).T @ (point - data.cam_xpos[self.id])
-        depth = -rel[2]
-        if depth <= 1e-6:
-            return np.array([np.inf, np.inf]), depth
-        return np.array([self.focal * rel[0] / depth, -self.focal * rel[1] / depth]), depth
+        return project(data, self.id, self.focal, point)
 
     def _visible(
         self,

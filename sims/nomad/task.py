@@ -82,8 +82,9 @@ class NomadConfig:
     smoothness_weight: float = 0.05
     """Penalty weight of ((T - t)^2 + (R - r)^2), velocities in units of their limits. Small:
     the base accelerates slowly, so a command differs from the measured velocity for several
-    actions, and a heavier penalty taught the servo controllers not to drive at all (measured
-    with `wfnn-bench nomad`)."""
+    actions; with 0.5 (and energy 0.1) the servo controllers hardly drove toward far targets in
+    early `wfnn-bench nomad` runs, made before the velocity ramp was corrected and not repeated
+    since."""
     carpet_weight: float = 1.0
     """wander: penalty weight of the row-weighted carpet mismatch (0..1)."""
     forward_weight: float = 0.5
@@ -168,6 +169,8 @@ class NomadVec:
         """The encoders' (t, r) this tick (possibly wild)."""
         self.ir = np.full((n, cfg.ir_sensors), cfg.ir_range)
         self.carpet_raw = np.zeros((n, ROWS, COLS))
+        self._looked: list[tuple[NDArray[np.int32], FloatArray] | None] = [None] * n
+        """What each robot's grid rays met when carpet_raw was computed (geoms, points)."""
         self.carpet = np.zeros((n, ROWS, COLS))
         """Filtered carpet mismatch (Eq 6.2), 0 carpet .. 1 not carpet."""
         self.pixels = np.full((n, 2), np.nan)
@@ -402,7 +405,7 @@ class NomadVec:
         self.ir[i] = np.where(
             dist >= 0, np.clip(dist - self.model_config.radius, 0, cfg.ir_range), cfg.ir_range
         )
-        hit, points = self.camera.look(self.model, data)
+        hit, points = self._looked[i] = self.camera.look(self.model, data)
         self.carpet_raw[i] = carpet_mismatch(self.model, hit, points, cfg.vision, rng)
         v = cfg.vision
         self.carpet[i] = smooth_carpet(self.carpet_raw[i], None if first else self.carpet[i], v.alpha, v.beta)
@@ -435,7 +438,11 @@ class NomadVec:
         Returns, per interesting object, the geom its rays met most and the mean point where
         they met it (where a template of it would be taken): [(geom, point [3])].
         """
-        hit, points = self.camera.look(self.model, self.data[i])
+        # The rays the carpet matrix was measured with: the object is what those cells saw.
+        looked = self._looked[i]
+        if looked is None:
+            return []
+        hit, points = looked
         out = []
         for cells in interesting_cells(self.carpet_raw[i], self.config.vision):
             geoms = np.concatenate([hit[r, c] for r, c in cells])

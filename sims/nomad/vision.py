@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from sims.nomad.model import CARPET
+from sims.pinhole import focal_px, project
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -126,7 +127,7 @@ class NomadCamera:
     def __init__(self, model: mujoco.MjModel, cfg: NomadVisionConfig, exclude_body: int) -> None:
         self.cfg = cfg
         self.id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "camera")
-        self.focal = (cfg.height / 2) / np.tan(np.deg2rad(model.cam_fovy[self.id]) / 2)
+        self.focal = focal_px(model, self.id, cfg.height)
         self.exclude_body = exclude_body
         self.grid = cell_pixels(cfg)
         # Ray directions in the camera frame for every grid sample (x right, y up, looking -z).
@@ -139,11 +140,7 @@ class NomadCamera:
 
     def project(self, data: mujoco.MjData, point: FloatArray) -> tuple[FloatArray, float]:
         """Pixel position (x right, y down, from the centre) and depth of a world point."""
-        rel = data.cam_xmat[self.id].reshape(3, 3).T @ (point - data.cam_xpos[self.id])
-        depth = -rel[2]
-        if depth <= 1e-6:
-            return np.array([np.inf, np.inf]), depth
-        return np.array([self.focal * rel[0] / depth, -self.focal * rel[1] / depth]), depth
+        return project(data, self.id, self.focal, point)
 
     def look(self, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[NDArray[np.int32], FloatArray]:
         """What each grid ray meets first: geom ids [ROWS, COLS, k] (-1: nothing) and hit points."""
