@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
 import gymnasium as gym
@@ -64,6 +65,50 @@ class VecTask(Protocol):
 
     def step(self, action: FloatArray) -> Transition:
         """Apply actions [n, A] for one control step."""
+        ...
+
+
+@dataclass(frozen=True)
+class Ranges:
+    """Declared ranges of one behaviour's states and actions (what `LearnerConfig.for_task` reads)."""
+
+    state_low: tuple[float, ...]
+    state_high: tuple[float, ...]
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+
+
+class Behaviours(Protocol):
+    """Several learned behaviours sharing one vectorised robot, one driving at a time.
+
+    A behaviour-based system (thesis Fig 6.3): each behaviour has its own state, reward and
+    learner; `driving` says whose action goes to the motors; every behaviour learns from every
+    executed action, whichever behaviour chose it (learning from other behaviours, Section 6.6).
+    """
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The behaviours, in a fixed order."""
+        ...
+
+    def ranges(self, name: str) -> Ranges:
+        """Declared ranges of behaviour `name`."""
+        ...
+
+    def driving(self) -> NDArray[np.int64]:
+        """Index into `names` of the behaviour driving each instance now [n]; once per tick, before acting."""
+        ...
+
+    def observe(self, name: str) -> FloatArray:
+        """Behaviour `name`'s current states [n, S_name]."""
+        ...
+
+    def step(self, action: FloatArray) -> dict[str, Transition]:
+        """Apply actions [n, A]; each behaviour's view of the step."""
+        ...
+
+    def reward(self, name: str, state: FloatArray, action: FloatArray, next_state: FloatArray) -> FloatArray:
+        """Behaviour `name`'s reward [n] for an action, executed or not (learning a vetoed proposal)."""
         ...
 
 

@@ -266,9 +266,13 @@ def nomad(
     episodes: Annotated[int, typer.Option(min=1, help="Servo training episodes (15 s each).")] = 30,
     eval_every: Annotated[int, typer.Option(min=1, help="Evaluate greedily every this many episodes.")] = 5,
     wander_episodes: Annotated[int, typer.Option(min=1, help="Learned wandering: 60 s episodes.")] = 15,
-    from_wander_minutes: Annotated[
-        float, typer.Option(min=0.1, help="Learning servoing by watching the wandering: minutes.")
-    ] = 20.0,
+    forage_minutes: Annotated[
+        int, typer.Option(min=1, help="Learning servoing while the hand-coded wandering forages: minutes.")
+    ] = 20,
+    forage_balls: Annotated[int, typer.Option(min=1, help="Balls in the room while foraging.")] = 24,
+    forage_eval_minutes: Annotated[
+        int, typer.Option(min=1, help="Evaluate foraging servoing every N min.")
+    ] = 5,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
     advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 0.2,
     seed: int = 0,
@@ -276,11 +280,12 @@ def nomad(
     plot_path: PlotOpt = None,
     verbose: bool = False,
 ) -> None:
-    """Nomad 200 (Chapter 6): learned visual servoing from scratch, tick cost."""
+    """Nomad 200 (Chapter 6): servoing and wandering learned, servoing from the wandering, tick cost."""
     _logging(verbose)
     cfg = nomad_bench.NomadBenchConfig(
         controllers=controllers, servo_episodes=episodes, eval_every=eval_every, thinks=thinks,
-        wander_episodes=wander_episodes, from_wander_ticks=round(from_wander_minutes * 600),
+        wander_episodes=wander_episodes, forage_minutes=forage_minutes, forage_balls=forage_balls,
+        forage_eval_minutes=min(forage_eval_minutes, forage_minutes),
         advantage_k=advantage_k, seed=seed,
     )  # fmt: skip
     with _progress() as bar:
@@ -300,11 +305,25 @@ def nomad(
          f"{float(np.median(ref['final_error_px'])):.1f} / {ref_goal}"),
         ("servo_final_error_px", result["servo_final_error_px"]),
         ("servo_time_to_goal_s", result["servo_time_to_goal_s"]),
+        ("servo_untrained_px (fresh learners, greedy)", result["servo_untrained_px"]),
+    ]  # fmt: skip
+    scratch = result["servo_from_scratch_same_experiences"]
+    for key, label in (("servo_from_wander", "learned watching the wandering only"),
+                       ("servo_every_second_target", "every second target pursued")):  # fmt: skip
+        f = result[key]
+        for e in f["evaluations"]:
+            to_goal = _num(float(np.nanmedian(e["time_to_goal_s"])))
+            rows.append((f"{label}, {e['minutes']:.0f} min ({np.median(e['experiences']):.0f} experiences): "
+                         "final error px / time to goal s",
+                         f"{np.median(e['final_error_px']):.1f} / {to_goal}"))  # fmt: skip
+        found, reached = np.median(f["targets_found_per_min"]), np.median(f["targets_reached_per_min"])
+        rows.append((f"  {label}: experiences watched / own, targets found / reached per min",
+                     f"{np.median(f['experiences_watched']):.0f} / {np.median(f['experiences_own']):.0f}, "
+                     f"{found:.1f} / {reached:.2f}"))  # fmt: skip
+    rows += [
         ("servo_from_wander_score (final error px, median)", result["servo_from_wander_score"]),
-        ("  its experiences (median) / from scratch with as many: final error px",
-         f"{np.median(result['servo_from_wander']['experiences']):.0f} / "
-         f"{result['servo_from_scratch_same_experiences']['final_error_px']:.1f} "
-         f"({result['servo_from_scratch_same_experiences']['experiences']:.0f} experiences)"),
+        ("  from scratch with about as many experiences: final error px",
+         f"{scratch['final_error_px']:.1f} ({scratch['experiences']:.0f} experiences)"),
     ]  # fmt: skip
     w, h = result["wander"], result["wander_handcoded"]
     rows += [

@@ -10,9 +10,11 @@
   veto (vetoed proposals learned twice); distance travelled per collision and vetoes per
   minute early and late in learning, against the hand-coded wandering (Fig 6.7); a path plot
   like Fig 6.9.
-- Learning servoing from the wandering behaviour (Section 6.6): while the hand-coded wandering
-  drives, the interest operator picks targets and a servo learner learns from the wandering's
-  actions only; it is then evaluated like the servo controllers learned from scratch.
+- Learning servoing from the wandering behaviour (Section 6.6): robots forage (`sims.nomad.forage`)
+  in a room with more balls, the wandering hand-coded; a servo learner learns from the
+  wandering's actions only while the interest operator's targets are tracked (pursuit never
+  dominates), or also pursues every second target; evaluated like the servo controllers learned
+  from scratch, against those at the same experience count and against untrained learners.
 - The cost of a control tick (physics, infrared ring, carpet matrix, tracker, act).
 """
 
@@ -22,12 +24,14 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.nomad import NomadConfig, NomadVec, handcoded_wander
+from sims.base import Ranges
+from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcoded_wander
+from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import ExplorationConfig, LearnerConfig
@@ -60,20 +64,24 @@ class NomadBenchConfig:
     exploration: str = "gaussian"
     wander_episodes: int = 15
     """Learned wandering: 60 s episodes."""
-    from_wander_ticks: int = 12000
-    """Learning servoing from watching the hand-coded wandering: actions (20 minutes)."""
+    forage_minutes: int = 20
+    """Learning servoing while the hand-coded wandering forages: simulated minutes per robot."""
+    forage_balls: int = 24
+    """Balls in the room while foraging (the servo data come from tracking them)."""
+    forage_eval_minutes: int = 5
+    forage_wander: Literal["learned", "handcoded"] = "learned"
+    """The wandering while foraging: learning as it goes (as in the thesis), or hand-coded."""
+    forage_wander_noise: float = 0.0
+    """Hand-coded wandering: Gaussian noise on its commands, in units of each command's limit."""
     task: NomadConfig = field(default_factory=NomadConfig)
     tick_samples: int = 1000
     seed: int = 0
 
 
 def steps(cfg: NomadBenchConfig) -> int:
-    """Progress units: servo and wandering episodes, and minutes of learning from wandering."""
+    """Progress units: servo and wandering episodes, and minutes of foraging (twice)."""
     return (
-        cfg.servo_episodes
-        + cfg.wander_episodes
-        + max(cfg.wander_episodes // 3, 1)
-        + (cfg.from_wander_ticks // WANDER_EPISODE)
+        cfg.servo_episodes + cfg.wander_episodes + max(cfg.wander_episodes // 3, 1) + 2 * cfg.forage_minutes
     )
 
 
@@ -118,13 +126,13 @@ def proportional(x: FloatArray, cfg: NomadConfig) -> FloatArray:
     )  # fmt: skip
 
 
-def _learner(task: NomadVec, cfg: NomadBenchConfig, population: int | None = None) -> WFNN:
-    """The benchmark's learners over a task's declared ranges (one per robot unless told)."""
+def _learner(ranges: NomadVec | Ranges, cfg: NomadBenchConfig, population: int | None = None) -> WFNN:
+    """The benchmark's learners over declared ranges (one per robot of a task unless told)."""
     lcfg = LearnerConfig.for_task(
-        task, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
+        ranges, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
         thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
     )  # fmt: skip
-    return WFNN(lcfg, population=population or task.n)
+    return WFNN(lcfg, population=population or (ranges.n if isinstance(ranges, NomadVec) else 1))
 
 
 def _apply_vetoes(
@@ -242,49 +250,103 @@ def _per_collision(result: dict[str, Any]) -> float | None:
     return float(np.sum(result["distance_m"]) / hits) if hits else None
 
 
-def servo_from_wander(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
-    """A servo learner that only watches the hand-coded wandering pursue nothing (Section 6.6).
+def forage_servo(cfg: NomadBenchConfig, pursue: Pursue, progress: Progress) -> dict[str, Any]:
+    """A servo learner on foraging robots (Section 6.6).
 
-    The wandering drives; whenever no target is tracked the interest operator looks for one;
-    while one is tracked, the servo learner learns (servo state, the wandering's action, next
-    servo state, servo reward). The balls are scattered again every minute.
+    The wandering (learning, or hand-coded: `cfg.forage_wander`) drives until the interest
+    operator finds a target; with `pursue` "never" the servo learner only ever watches (it
+    learns from the wandering's actions while a target is tracked), with "every_second" it
+    pursues every second target (learning from its own actions too). A learning wanderer learns
+    from every action, the servo learner's included. The room holds `forage_balls` balls,
+    scattered again every minute. Greedy step responses (as for the controllers learned from
+    scratch) every `forage_eval_minutes`.
     """
     p = cfg.controllers
-    task = NomadVec(p, replace(cfg.task, behaviour="wander"), seed=cfg.seed + 1)
-    # The servo learner's declared ranges are those of a servoing robot.
-    learner = _learner(NomadVec(1, replace(cfg.task, behaviour="servo")), cfg, p)
+    task = NomadVec(p, replace(cfg.task, behaviour="wander", balls=cfg.forage_balls), seed=cfg.seed + 1)
+    forage = NomadForage(task, ForageConfig(pursue=pursue))
+    learner = _learner(forage.ranges("servo"), cfg, p)
+    wanderer = _learner(task, cfg) if cfg.forage_wander == "learned" else None
     vetoes = [task.veto(i) for i in range(p)]
     rng = np.random.default_rng(cfg.seed + 1)
-    task.reset(rng)
-    experiences = np.zeros(p)
-    for tick in range(cfg.from_wander_ticks):
-        if tick % WANDER_EPISODE == 0 and tick:
-            for i in range(p):
-                for k in range(len(task.ball_geoms)):
-                    task._put_ball(i, k, task._free_spot(rng, 0.4))
-        for lost in np.flatnonzero(task.tracked() < 0):
-            task.acquire(int(lost))
-        s = task.observe("servo")
-        before = task.valid("servo")
-        geoms = task.tracked()
-        proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
-        action, _ = _apply_vetoes(vetoes, s, proposed)
-        task.step(action)
-        s2 = task.observe("servo")
-        ok = before & task.valid("servo") & (task.tracked() == geoms)
-        if ok.any():
-            learner.learn(s, action, s2, task.reward(s, action, s2, "servo"), np.zeros(p, dtype=np.bool_), ok)
-            learner.think()
-            experiences += ok
-        if tick % WANDER_EPISODE == WANDER_EPISODE - 1:
-            progress(1)
-    task.close()
+    x = task.reset(rng)
+    limits = np.asarray(task.action_high)
+    watched, own = np.zeros(p), np.zeros(p)
+    evaluations: list[dict[str, Any]] = []
 
     def greedy(states: FloatArray) -> FloatArray:
         return learner.act(states, explore=False, params=learner.params).action
 
-    ev = step_responses(greedy, cfg, p, cfg.seed + 1000)
-    return {"experiences": experiences, **{k: v for k, v in ev.items() if k != "traces"}}
+    for tick in range(1, cfg.forage_minutes * WANDER_EPISODE + 1):
+        pursuing = forage.driving() == 0
+        s = forage.observe("servo")
+        if wanderer is not None:
+            proposed = wanderer.act(x).action
+        else:
+            proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
+            proposed += rng.normal(0.0, cfg.forage_wander_noise, proposed.shape) * limits
+        if pursuing.any():
+            proposed[pursuing] = learner.act(np.nan_to_num(s)).action[pursuing]
+        executed, vetoed = _apply_vetoes(vetoes, s, proposed)
+        steps = forage.step(executed)
+        for name, who, state in (("wander", wanderer, x), ("servo", learner, s)):
+            tr = steps[name]
+            if who is None or not tr.learnable.any():
+                continue
+            who.learn(state, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
+            # A vetoed proposal is learned too (Eq 5.4) by the behaviour that proposed it.
+            twice = vetoed & tr.learnable & (pursuing if name == "servo" else ~pursuing)
+            if twice.any():
+                r = forage.reward(name, state, proposed, tr.state)
+                who.learn(state, proposed, tr.state, r, tr.terminal, twice)
+            who.think()
+        x = steps["wander"].state
+        ok = steps["servo"].learnable
+        watched += ok & ~pursuing
+        own += ok & pursuing
+        if tick % WANDER_EPISODE == 0:
+            for i in range(p):
+                task.scatter_balls(i, rng)
+            progress(1)
+        if tick % (cfg.forage_eval_minutes * WANDER_EPISODE) == 0:
+            ev = step_responses(greedy, cfg, p, cfg.seed + 1000)
+            evaluations.append({"minutes": tick / WANDER_EPISODE, "experiences": (watched + own).copy(),
+                                **{k: v for k, v in ev.items() if k != "traces"}})  # fmt: skip
+    task.close()
+    last = evaluations[-1]
+    return {
+        "pursue": pursue,
+        "wander": cfg.forage_wander,
+        "balls": cfg.forage_balls,
+        "distance_m": task.distance,
+        "collisions": task.collisions,
+        "experiences_watched": watched,
+        "experiences_own": own,
+        "targets_found_per_min": forage.forage.found / cfg.forage_minutes,
+        "targets_reached_per_min": forage.forage.reached / cfg.forage_minutes,
+        "evaluations": evaluations,
+        "final_error_px": last["final_error_px"],
+        "time_to_goal_s": last["time_to_goal_s"],
+        "divergence_resets": learner.resets.copy(),
+    }
+
+
+def untrained(cfg: NomadBenchConfig) -> dict[str, Any]:
+    """Fresh servo learners' greedy step responses: what a score must beat to be non-trivial."""
+    learner = _learner(NomadVec(1, replace(cfg.task, behaviour="servo")), cfg, cfg.controllers)
+    ev = step_responses(
+        lambda x: learner.act(x, explore=False, params=learner.params).action, cfg, cfg.controllers,
+        cfg.seed + 1000,
+    )  # fmt: skip
+    return {k: v for k, v in ev.items() if k != "traces"}
+
+
+def _scratch_at(servo: dict[str, Any], count: float) -> dict[str, float]:
+    """The from-scratch evaluation whose median experience count is nearest `count`."""
+    nearest = min(servo["evaluations"], key=lambda e: abs(float(np.median(e["experiences"])) - count))
+    return {
+        "experiences": float(np.median(nearest["experiences"])),
+        "final_error_px": float(np.median(nearest["final_error_px"])),
+    }
 
 
 def tick_cost(cfg: NomadBenchConfig) -> dict[str, float]:
@@ -314,10 +376,9 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
     last = servo["evaluations"][-1]
     learned_wander = wander(cfg, True, cfg.wander_episodes, progress)
     handcoded = wander(cfg, False, max(cfg.wander_episodes // 3, 1), progress)
-    from_wander = servo_from_wander(cfg, progress)
-    # From scratch with about as many experiences as the watching learner gathered.
-    count = float(np.median(from_wander["experiences"]))
-    nearest = min(servo["evaluations"], key=lambda e: abs(float(np.median(e["experiences"])) - count))
+    from_wander = forage_servo(cfg, "never", progress)
+    every_second = forage_servo(cfg, "every_second", progress)
+    fresh = untrained(cfg)
     tick = tick_cost(cfg)
     return {
         "benchmark": "nomad",
@@ -335,12 +396,16 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
             "late": learned_wander["m_per_collision_late"],
             "handcoded": _per_collision(handcoded),
         },
+        "servo_untrained": fresh,
+        "servo_untrained_px": float(np.median(fresh["final_error_px"])),
         "servo_from_wander": from_wander,
         "servo_from_wander_score": float(np.median(from_wander["final_error_px"])),
-        "servo_from_scratch_same_experiences": {
-            "experiences": float(np.median(nearest["experiences"])),
-            "final_error_px": float(np.median(nearest["final_error_px"])),
-        },
+        "servo_from_wander_experiences": float(np.median(from_wander["experiences_watched"])),
+        "servo_from_scratch_same_experiences": _scratch_at(
+            servo, float(np.median(from_wander["experiences_watched"]))
+        ),
+        "servo_every_second_target": every_second,
+        "servo_every_second_target_score": float(np.median(every_second["final_error_px"])),
         **tick,
         "wall_s": time.perf_counter() - t0,
     }
@@ -362,10 +427,14 @@ def plot(result: dict[str, Any], path: Path) -> None:
         ax.plot(experiences[:, c], errors[:, c], marker="o", lw=1, color=f"C{c % 10}")
     ax.axhline(float(np.median(result["proportional"]["final_error_px"])), color="k", ls="--",
                label="proportional controller")  # fmt: skip
-    fw = result["servo_from_wander"]
-    ax.scatter(
-        fw["experiences"], fw["final_error_px"], marker="x", color="k", label="learned from wandering only"
-    )
+    forages = (("servo_from_wander", "x", ":", "learned watching the wandering only"),
+               ("servo_every_second_target", "+", "-.", "every second target pursued"))  # fmt: skip
+    for key, marker, ls, label in forages:
+        fe = result[key]["evaluations"]
+        counts = [float(np.median(e["experiences"])) for e in fe]
+        ax.plot(counts, [float(np.median(e["final_error_px"])) for e in fe], marker=marker, color="k", ls=ls,
+                label=f"{label} (median)")  # fmt: skip
+    ax.axhline(result["servo_untrained_px"], color="gray", ls=":", label="untrained (greedy)")
     ax.set(xlabel="experiences learned", ylabel="median final |pixel error| (px)",
            title="learned visual servoing, greedy step responses (one line per controller)")  # fmt: skip
     ax.legend(fontsize=8)

@@ -13,7 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
-from sims.nomad import NomadConfig
+from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.run import ClientConfig, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
@@ -96,7 +96,17 @@ def main(
             "template matching; slower)."
         ),
     ] = "projection",
-    behaviour: Annotated[str, typer.Option(help="nomad: the learned behaviour, servo or wander.")] = "servo",
+    behaviour: Annotated[
+        str,
+        typer.Option(
+            help="nomad: the learned behaviour: servo, wander, or forage (both, one learner each; "
+            "C/S controllers <controller>-servo and <controller>-wander; --weights: their run directory)."
+        ),
+    ] = "servo",
+    balls: Annotated[int, typer.Option(min=1, help="nomad: balls in the room (objects to pursue).")] = 6,
+    every_second_target: Annotated[
+        bool, typer.Option(help="nomad forage: pursue every second target only (the first is watched).")
+    ] = False,
     camera_yaw: Annotated[
         float, typer.Option(help="nomad: camera turned from the direction of travel (degrees, Fig 6.14).")
     ] = 0.0,
@@ -135,10 +145,14 @@ def main(
             joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
             vision=VisionConfig(source=vision),  # type: ignore[arg-type]
         )  # fmt: skip
-        nomad = NomadConfig(behaviour=behaviour, camera_yaw_deg=camera_yaw)  # type: ignore[arg-type]
+        foraging = behaviour == "forage"
+        nomad = NomadConfig(
+            behaviour="wander" if foraging else behaviour, camera_yaw_deg=camera_yaw, balls=balls
+        )  # type: ignore[arg-type]
+        forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
-            hydra=hydra, nomad=nomad,
+            hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
             boat_dt=boat_dt, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn, weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),

@@ -21,13 +21,13 @@ from typing import Any
 
 import numpy as np
 
-from sims.base import VecTask
+from sims.base import Behaviours, Ranges, VecTask
 from sims.hydra import HydraConfig
-from sims.nomad import NomadConfig
+from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.brain import Brain, Experience, LocalBrain
 from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
-from wfnn_client.sims import SIMS, SimSpec
+from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -59,6 +59,10 @@ class ClientConfig:
     """HyDrA's joints, image axes and target regime (`sim` hydra)."""
     nomad: NomadConfig = field(default_factory=NomadConfig)
     """The Nomad's behaviour and camera (`sim` nomad)."""
+    forage: ForageConfig | None = None
+    """nomad: forage instead (learned wandering and learned servoing, Fig 6.3; `nomad.behaviour`
+    must be wander): one learner per behaviour; weights and journals per behaviour, and in C/S
+    mode the controllers `<controller>-servo` and `<controller>-wander`."""
     thinks_per_action: int | None = None
     """Override the learner's thinks per action (local thinking and the announced config)."""
     advantage_k: float | None = None
@@ -105,6 +109,8 @@ class ClientConfig:
             raise ValueError(f"camera_every must be >= 0, got {self.camera_every}")
         if self.camera_every and SIMS[self.sim].views is None:
             raise ValueError(f"camera_every: sim {self.sim!r} has no cameras")
+        if self.forage is not None and (self.sim != "nomad" or self.nomad.behaviour != "wander"):
+            raise ValueError("forage: the nomad sim, configured to wander, only")
 
     @property
     def local(self) -> bool:
@@ -112,8 +118,8 @@ class ClientConfig:
         return self.server == ("local",)
 
 
-def learner_config(task: VecTask, config: ClientConfig) -> LearnerConfig:
-    """The thesis' defaults over the task's declared ranges (with the client's overrides)."""
+def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfig:
+    """The thesis' defaults over the declared ranges (with the client's overrides)."""
     extra: dict[str, Any] = {}
     if config.thinks_per_action is not None:
         extra["thinks_per_action"] = config.thinks_per_action
@@ -123,8 +129,8 @@ def learner_config(task: VecTask, config: ClientConfig) -> LearnerConfig:
     return LearnerConfig.for_task(task, exploration=config.exploration, seed=config.seed, **extra)
 
 
-def make_brain(config: ClientConfig, learner: WFNN) -> Brain:
-    """Local thinking, or the C/S client over a Zenoh bus."""
+def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brain:
+    """Local thinking, or the C/S client over a Zenoh bus (a behaviour of several: its own controller)."""
     if config.local:
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch)
     from wfnn_client.remote import RemoteBrain, RemoteConfig
@@ -132,7 +138,8 @@ def make_brain(config: ClientConfig, learner: WFNN) -> Brain:
 
     net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server))
     remote = RemoteConfig(
-        controller=config.controller, client_id=config.client_id, journal_dir=config.out / "journal",
+        controller=_named(config.controller, behaviour, "-"), client_id=config.client_id,
+        journal_dir=config.out / _named("journal", behaviour),
         key_file=config.key_file, follow=config.follow, lockstep=config.lockstep,
     )  # fmt: skip
     bus = ZenohBus(net)
@@ -161,33 +168,71 @@ def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[s
             close()
 
 
+@dataclass
+class Skill:
+    """One learned behaviour of the robot: its learner, and the brain that acts and learns with it."""
+
+    name: str
+    """"" for a task's only behaviour."""
+    lcfg: LearnerConfig
+    learner: WFNN
+    brain: Brain
+
+
+def _named(base: str, behaviour: str, sep: str = "_") -> str:
+    """`base`, or `base<sep>behaviour` for one behaviour of several."""
+    return f"{base}{sep}{behaviour}" if behaviour else base
+
+
+def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
+    """A behaviour's learner (from saved weights where given) and brain."""
+    lcfg = learner_config(ranges, config)
+    learner = WFNN(lcfg)
+    if config.weights is not None:
+        path = config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
+        saved_cfg, params, _ = load_weights(path)
+        if saved_cfg.spec_hash() != lcfg.spec_hash():
+            raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
+                             f"this task needs {lcfg.spec_hash()}")  # fmt: skip
+        learner = WFNN(lcfg, params=params)
+    return Skill(name, lcfg, learner, make_brain(config, learner, name))
+
+
 def _run(
     config: ClientConfig, spec: SimSpec, task: VecTask, on_status: StatusCallback | None
 ) -> dict[str, Any]:
     rng = np.random.default_rng(config.seed)
-    lcfg = learner_config(task, config)
-    learner = WFNN(lcfg)
-    if config.weights is not None:
-        saved_cfg, params, _ = load_weights(config.weights)
-        if saved_cfg.spec_hash() != lcfg.spec_hash():
-            raise ValueError(f"{config.weights} holds weights for spec {saved_cfg.spec_hash()}, "
-                             f"this task needs {lcfg.spec_hash()}")  # fmt: skip
-        learner = WFNN(lcfg, params=params)
+    reward_of = spec.reward_of(task) if spec.reward_of else None
+    several = spec.behaviours(task, config) if spec.behaviours else None
+    behaviours: Behaviours = several or OneBehaviour(task, reward_of)
+    can_learn_twice = several is not None or reward_of is not None
     period = 1.0 / config.rate_hz if config.rate_hz > 0 else 0.0
     ticks = TickStats()
     ticker = Ticker(period, ticks)
-    safety = SafetyLayer(config.safety, lcfg.action_low, lcfg.action_high, period,
+    first = behaviours.ranges(behaviours.names[0])
+    safety = SafetyLayer(config.safety, first.action_low, first.action_high, period,
                          spec.veto(task) if spec.veto else None)  # fmt: skip
-    reward_of = spec.reward_of(task) if spec.reward_of else None
     frames = FrameWriter(Path(config.out) / "cameras") if config.camera_every else None
     episode_steps = spec.episode_steps(task) if callable(spec.episode_steps) else spec.episode_steps
     tick_count = 0
-    brain = make_brain(config, learner)
-    log.info("learner: %s (spec %s)", lcfg.short_repr(), lcfg.spec_hash())
+    skills: list[Skill] = []
+    try:
+        for name in behaviours.names:
+            skills.append(_skill(config, name, behaviours.ranges(name)))
+    except BaseException:
+        for made in skills:
+            made.brain.stop()
+        raise
+    brains = _Brains(skills)
+    for sk in skills:
+        log.info("learner%s: %s (spec %s)", f" {sk.name}" if sk.name else "", sk.lcfg.short_repr(),
+                 sk.lcfg.spec_hash())  # fmt: skip
     scores: list[float] = []
     rewards: deque[float] = deque(maxlen=RECENT)
     values: deque[float] = deque(maxlen=RECENT)
     learned = lockstep_timeouts = 0
+    driven = np.zeros(len(skills), dtype=np.int64)
+    """Ticks each behaviour drove."""
     outages: list[dict[str, float]] = []
     """Windows without a healthy weights source after the first one (unix times)."""
     outage_late: list[float] = []
@@ -195,63 +240,73 @@ def _run(
     """Ticks before the first weights arrived."""
     task.reset(rng)
     next_status = 0.0
-    brain.start()
+    brains.start()
     start = time.perf_counter()
     try:
-        if config.lockstep and not brain.sync(config.lockstep_timeout_s):  # lock-step acts on weights only
+        if config.lockstep and not brains.sync(config.lockstep_timeout_s):  # lock-step acts on weights only
             raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s")
         start = time.perf_counter()
         for episode in range(config.episodes):
             spec.new_episode(task, rng)
-            x = task.observe()[0]
             total, steps = 0.0, 0
             for _ in range(episode_steps):
                 late = ticker.wait()
-                if brain.connected:
+                d = int(behaviours.driving()[0])
+                driver = skills[d].brain
+                driven[d] += 1
+                if driver.connected:
                     if outages and "end_unix" not in outages[-1]:
                         outages[-1]["end_unix"] = time.time()
-                elif brain.following == "":
+                elif driver.following == "":
                     startup_ticks += 1
                 else:
                     outage_late.append(late)
                     if not outages or "end_unix" in outages[-1]:
                         outages.append({"start_unix": time.time()})
                 t0 = time.perf_counter()
-                acted = brain.act(x, explore=config.learn)
+                xs = [behaviours.observe(sk.name)[0] for sk in skills]
+                acted = driver.act(xs[d], explore=config.learn)
                 proposed = acted.result.action if acted is not None else None
-                decision = safety.decide(proposed, x, ticker.late_now() if period else 0.0)
+                decision = safety.decide(proposed, xs[d], ticker.late_now() if period else 0.0)
                 ticks.latency_s.append(time.perf_counter() - t0)
-                tr = task.step(decision.executed[None])
-                x_next, reward = tr.state[0], float(tr.reward[0])
-                if config.learn and tr.learnable[0]:
-                    terminal = bool(tr.terminal[0])
-                    brain.learn(
-                        Experience(x, decision.executed, x_next, reward, terminal, decision.flags), acted
-                    )
+                transitions = behaviours.step(decision.executed[None])
+                # Every behaviour learns from the executed action, whichever chose it (Section 6.6).
+                for k, sk in enumerate(skills):
+                    tr = transitions[sk.name]
+                    if not (config.learn and tr.learnable[0]):
+                        continue
+                    x, x_next, terminal = xs[k], tr.state[0], bool(tr.terminal[0])
+                    sk.brain.learn(Experience(x, decision.executed, x_next, float(tr.reward[0]), terminal,
+                                              decision.flags), acted if k == d else None)  # fmt: skip
                     learned += 1
-                    if decision.proposed is not None and reward_of is not None and config.safety.learn_twice:
-                        r_proposed = reward_of(x, decision.proposed, x_next)
-                        brain.learn(Experience(x, decision.proposed, x_next, r_proposed, terminal,
-                                               EXP_VETO_PROPOSED), acted)  # fmt: skip
+                    if (
+                        k == d
+                        and decision.proposed is not None
+                        and can_learn_twice
+                        and config.safety.learn_twice
+                    ):
+                        r_proposed = float(behaviours.reward(sk.name, x[None], decision.proposed[None],
+                                                             x_next[None])[0])  # fmt: skip
+                        sk.brain.learn(Experience(x, decision.proposed, x_next, r_proposed, terminal,
+                                                  EXP_VETO_PROPOSED), acted)  # fmt: skip
                         learned += 1
-                    if config.lockstep and not brain.sync(config.lockstep_timeout_s):
-                        lockstep_timeouts += 1
-                        log.warning("lock-step: no snapshot covering experience %d in %.0f s",
-                                    learned, config.lockstep_timeout_s)  # fmt: skip
+                if config.lockstep and config.learn and not brains.sync(config.lockstep_timeout_s):
+                    lockstep_timeouts += 1
+                    log.warning("lock-step: no snapshot covering experience %d in %.0f s",
+                                learned, config.lockstep_timeout_s)  # fmt: skip
                 total += float(spec.metric(task)[0])
-                rewards.append(reward)
+                rewards.append(float(transitions[skills[d].name].reward[0]))
                 if acted is not None:
                     values.append(float(acted.result.value))
                 if frames is not None and spec.views is not None and tick_count % config.camera_every == 0:
                     frames = _save_views(frames, tick_count, spec, task)
                 tick_count += 1
-                x = x_next
                 steps += 1
                 now = time.perf_counter()
                 if now >= next_status:
-                    brain.check()
-                    fields = _status(brain, ticks, safety, rewards, values, episode, scores, now - start)
-                    brain.report(fields)
+                    brains.check()
+                    fields = _status(brains, ticks, safety, rewards, values, episode, scores, now - start)
+                    brains.report(fields)
                     if on_status is not None:
                         on_status(fields)
                     next_status = now + 0.5
@@ -259,24 +314,28 @@ def _run(
                     break
             scores.append(total / max(steps, 1))
             if on_status is not None:
-                on_status(_status(brain, ticks, safety, rewards, values, episode + 1, scores,
+                on_status(_status(brains, ticks, safety, rewards, values, episode + 1, scores,
                                   time.perf_counter() - start))  # fmt: skip
             if config.duration_s is not None and time.perf_counter() - start >= config.duration_s:
                 break
         wall = time.perf_counter() - start
     finally:
-        brain.stop()
+        brains.stop()
         camera_frames = frames.close() if frames is not None else None
-    brain.check()
-    final = _status(brain, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
-    current = getattr(brain, "current", None)  # C/S: the snapshot act used last
-    final_params = learner.params if config.local else (current.params if current is not None else None)
+    brains.check()
+    final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     out = Path(config.out)
-    meta = {"sim": config.sim, "episodes": len(scores), "following": brain.following}
-    if final_params is not None:
-        save_weights(out / "weights.npz", lcfg, final_params, meta)
-    if config.local and config.learn:
-        save_experiences(out / "experiences.npz", lcfg, learner.buffer.contents(0))
+    for sk in skills:
+        current = getattr(sk.brain, "current", None)  # C/S: the snapshot act used last
+        params = sk.learner.params if config.local else (current.params if current is not None else None)
+        meta = {"sim": config.sim, "episodes": len(scores), "following": sk.brain.following,
+                "behaviour": sk.name}  # fmt: skip
+        if params is not None:
+            save_weights(out / f"{_named('weights', sk.name)}.npz", sk.lcfg, params, meta)
+        if config.local and config.learn:
+            save_experiences(
+                out / f"{_named('experiences', sk.name)}.npz", sk.lcfg, sk.learner.buffer.contents(0)
+            )
     metrics: dict[str, Any] = {
         "sim": config.sim,
         "metric": spec.metric_name(task) if callable(spec.metric_name) else spec.metric_name,
@@ -288,23 +347,34 @@ def _run(
         "wall_s": wall,
         "ticks": len(ticks.latency_s),
         "safety": dict(safety.counts),
-        "following": brain.following,
-        "failovers": getattr(brain, "failovers", []),
+        "following": brains.following,
+        "failovers": [f for sk in skills for f in getattr(sk.brain, "failovers", [])],
         "outages": outages,
         "client/tick_jitter_ms_p99_outage": (
             float(np.percentile(outage_late, 99) * 1e3) if outage_late else None
         ),
         "client/outage_ticks": len(outage_late),
         "client/startup_ticks": startup_ticks,
-        "config": {"client": _jsonable_config(config), "learner": lcfg.to_dict()},
+        "config": {"client": _jsonable_config(config), "learner": skills[0].lcfg.to_dict()},
         "camera_frames": camera_frames,
         **final,
     }
+    if several is not None:
+        metrics["behaviours"] = {
+            sk.name: {"learner": sk.lcfg.to_dict(), "ticks_driving": int(driven[k])}
+            for k, sk in enumerate(skills)
+        }
+        forage = getattr(several, "forage", None)
+        if forage is not None:
+            metrics["targets_found"], metrics["targets_reached"] = (
+                int(forage.found[0]),
+                int(forage.reached[0]),
+            )
     if config.timing_trace:
         metrics["trace"] = {
             "tick_lateness_ms": [v * 1e3 for v in ticks.lateness_s],
             "act_latency_ms": [v * 1e3 for v in ticks.latency_s],
-            "snapshot_latency_ms": list(getattr(brain, "apply_latency_ms", [])),
+            "snapshot_latency_ms": [v for sk in skills for v in getattr(sk.brain, "apply_latency_ms", [])],
         }
     from wfnn_bench.common import write_json  # JSON helper shared with the benchmarks
 
@@ -313,6 +383,51 @@ def _run(
         write_json(config.json_stats, metrics)
     plot(metrics, out / "learning_curve.png")
     return metrics
+
+
+class _Brains:
+    """The behaviours' brains handled together (one brain: exactly that brain)."""
+
+    def __init__(self, skills: list[Skill]) -> None:
+        self.skills = skills
+
+    @property
+    def following(self) -> str:
+        """Whose weights act uses; with several behaviours "servo:srv1 wander:srv2"."""
+        if len(self.skills) == 1:
+            return self.skills[0].brain.following
+        return " ".join(f"{sk.name}:{sk.brain.following or '-'}" for sk in self.skills)
+
+    def start(self) -> None:
+        for sk in self.skills:
+            sk.brain.start()
+
+    def stop(self) -> None:
+        for sk in self.skills:
+            sk.brain.stop()
+
+    def sync(self, timeout_s: float) -> bool:
+        return all(sk.brain.sync(timeout_s) for sk in self.skills)
+
+    def check(self) -> None:
+        for sk in self.skills:
+            sk.brain.check()
+
+    def report(self, fields: dict[str, Any]) -> None:
+        for sk in self.skills:
+            sk.brain.report(fields)
+
+    def metrics(self) -> dict[str, float]:
+        """The brain's figures (several: each under `<behaviour>/`)."""
+        if len(self.skills) == 1:
+            return self.skills[0].brain.metrics()
+        each = {sk.name: sk.brain.metrics() for sk in self.skills}
+        totals = {k: sum(m.get(k, 0.0) for m in each.values()) for k in TOTALS}
+        return {**totals, **{f"{name}/{k}": v for name, m in each.items() for k, v in m.items()}}
+
+
+TOTALS = ("think/thinks", "learn/experiences", "learn/divergence_resets")
+"""Brain figures that add up over several behaviours' brains."""
 
 
 def _save_views(frames: FrameWriter, tick: int, spec: SimSpec, task: VecTask) -> FrameWriter | None:
@@ -332,7 +447,7 @@ RECENT = 1000
 
 
 def _status(
-    brain: Brain, ticks: TickStats, safety: SafetyLayer, rewards: deque[float], values: deque[float],
+    brain: _Brains, ticks: TickStats, safety: SafetyLayer, rewards: deque[float], values: deque[float],
     episode: int, scores: list[float], elapsed: float, whole_run: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """Figures of the run; tick timing over the last RECENT ticks, or all with `whole_run`."""

@@ -14,11 +14,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import VecTask
+from sims.base import Behaviours, Ranges, Transition, VecTask
 from sims.boat import BoatConfig, BoatVec
 from sims.cartpole import CartPoleVec
 from sims.hydra import HydraVec
-from sims.nomad import NomadVec
+from sims.nomad import NomadForage, NomadVec
 from sims.positioning import PositioningVec
 from wfnn_client.safety import Veto
 
@@ -56,6 +56,43 @@ class SimSpec:
     thesis' default, 0.2)."""
     views: Callable[[Any], dict[str, NDArray[np.uint8]]] | None = None
     """What the robot's cameras see now ({camera: [h, w, 3] RGB}), for tasks with cameras."""
+    behaviours: Callable[[Any, ClientConfig], Behaviours | None] | None = None
+    """Several learned behaviours over the task instance, one learner each (None: the task's one)."""
+
+
+class OneBehaviour:
+    """A task's single learned behaviour, as `sims.base.Behaviours` (named "")."""
+
+    names: tuple[str, ...] = ("",)
+
+    def __init__(self, task: VecTask, reward_of: RewardOf | None) -> None:
+        self.task = task
+        self.reward_of = reward_of
+
+    def ranges(self, name: str) -> Ranges:
+        """The task's declared ranges."""
+        t = self.task
+        return Ranges(tuple(t.state_low), tuple(t.state_high), tuple(t.action_low), tuple(t.action_high))
+
+    def driving(self) -> NDArray[np.int64]:
+        """Always the one behaviour."""
+        return np.zeros(self.task.n, dtype=np.int64)
+
+    def observe(self, name: str) -> FloatArray:
+        """The task's states."""
+        return self.task.observe()
+
+    def step(self, action: FloatArray) -> dict[str, Transition]:
+        """The task's step."""
+        return {"": self.task.step(action)}
+
+    def reward(self, name: str, state: FloatArray, action: FloatArray, next_state: FloatArray) -> FloatArray:
+        """`reward_of` row by row (the sim must provide one)."""
+        if self.reward_of is None:
+            raise ValueError("this sim cannot reward an action it did not execute")
+        return np.array(
+            [self.reward_of(s, a, s2) for s, a, s2 in zip(state, action, next_state, strict=True)]
+        )
 
 
 def _boat_reward(task: BoatVec) -> RewardOf:
@@ -160,5 +197,6 @@ SIMS["nomad"] = SimSpec(
     rate_hz=10.0,
     exploration="gaussian",
     views=lambda task: task.camera_images(0),
+    behaviours=lambda task, c: NomadForage(task, c.forage) if c.forage is not None else None,
 )
 SIMS["position"] = SIMS["positioning"]

@@ -2,8 +2,8 @@
 
 The hand-coded wandering drives toward the longest uninterrupted vertical strip of carpet in the
 carpet match matrix, or turns on the spot when no carpet is seen. The veto is the robot's safety
-layer (Section 5.4): a command that would drive the base into something its infrared ring sees
-within stopping distance is replaced by turning on the spot away from the nearest obstacle.
+layer (Section 5.4): a command whose arc would bring the base into something its infrared ring
+sees before it could stop is replaced by turning on the spot away from the nearest obstacle.
 """
 
 from __future__ import annotations
@@ -61,34 +61,52 @@ def ir_veto(
     angles: FloatArray,
     measured_speed: Callable[[], float],
     max_deceleration: float,
-    margin: float = 0.12,
-    arc_deg: float = 50.0,
+    radius: float,
+    margin: float = 0.07,
+    clearance: float = 0.05,
     turn: float = 0.5,
 ) -> Callable[[FloatArray, FloatArray], FloatArray | None]:
     """A veto rule over an infrared ring (the readings come from `ir()` when it is consulted).
 
-    A proposed (T, R) is vetoed when a sensor within `arc_deg` of the direction of travel reads
-    less than the stopping distance at the faster of the commanded and measured speed plus
-    `margin`. The replacement stops translating and turns at `turn` rad/s away from the nearest
-    of those readings (for one dead ahead, the way the proposal turned, else left): keeping the
-    proposed rotation could hold the robot against an obstacle its camera does not see.
+    A proposed (T, R) is vetoed when the base, driving the arc it asks for over the stopping
+    distance (at the deceleration limit, from the faster of the commanded and measured speed)
+    plus `margin`, would come nearer than `clearance` to what the infrared sensors see, and
+    nearer than it is now (sliding along a wall it already touches is allowed; moving toward
+    it is not). Arcs matter: a robot turning while it drives sweeps its side into a pillar that
+    a look straight ahead misses. The replacement stops translating and turns at `turn` rad/s
+    away from the nearest seen point (for one dead ahead, the way the proposal turned, else
+    left), and keeps turning that way while the vetoes continue: re-choosing every tick can
+    rock the robot between two obstacles for ever. Keeping the proposed rotation could hold it
+    against an obstacle its camera does not see. Turning on the spot is never vetoed (the base
+    is round).
     """
-    cos_arc = np.cos(np.deg2rad(arc_deg))
+    directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    fractions = np.linspace(0.0, 1.0, 9)[1:]
+    turning = [0.0]
+    """The replacement's turn direction while vetoes continue (0: none vetoed last time)."""
 
     def veto(state: FloatArray, action: FloatArray) -> FloatArray | None:
-        speed = float(action[0])
+        speed, rotation = float(action[0]), float(action[1])
         if speed == 0.0:
+            turning[0] = 0.0
             return None
-        readings = ir()
-        ahead = np.cos(angles) * np.sign(speed) >= cos_arc
+        points = (radius + ir()[:, None]) * directions  # what the ring sees, in the robot's frame
         fastest = max(abs(speed), abs(measured_speed()))
-        stopping = fastest**2 / (2 * max_deceleration) + margin
-        close = ahead & (readings < stopping)
-        if not close.any():
+        length = fastest**2 / (2 * max_deceleration) + margin
+        travelled = fractions * length
+        heading = rotation / abs(speed) * travelled  # the arc's heading after each distance
+        # Position on the arc after each distance (sinc keeps the straight line exact).
+        along = travelled * np.sinc(heading / np.pi)
+        aside = travelled * heading / 2 * np.sinc(heading / (2 * np.pi)) ** 2
+        centres = np.sign(speed) * np.stack([along, aside], axis=1)  # [steps, 2]
+        gaps = np.linalg.norm(points[None, :, :] - centres[:, None, :], axis=2).min(axis=0) - radius
+        now = np.linalg.norm(points, axis=1) - radius
+        if not (gaps.min() < clearance and gaps.min() < now.min() - 1e-3):
+            turning[0] = 0.0
             return None
-        nearest = angles[close][np.argmin(readings[close])]
-        side = np.sin(nearest)
-        direction = -np.sign(side) if abs(side) > 0.1 else (np.sign(action[1]) or 1.0)
-        return np.array([0.0, float(direction * turn)])
+        if not turning[0]:
+            side = np.sin(angles[np.argmin(now)])
+            turning[0] = -np.sign(side) if abs(side) > 0.1 else (np.sign(rotation) or 1.0)
+        return np.array([0.0, float(turning[0] * turn)])
 
     return veto

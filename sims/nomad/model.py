@@ -25,6 +25,7 @@ BALL_COLOURS = (
     (0.9, 0.45, 0.05), (0.6, 0.1, 0.6), (0.95, 0.95, 0.9),
 )  # fmt: skip
 N_BALLS = len(BALL_COLOURS)
+"""Balls in the arena by default (one of each colour)."""
 CARPET = (0.33, 0.36, 0.45)
 """Colour of the carpet (RGB, 0..1)."""
 
@@ -45,12 +46,15 @@ class NomadModelConfig:
     camera_yaw_deg: float = 0.0
     """Camera turned from the direction of travel (misaligned camera, Fig 6.14; positive: left)."""
     fovy_deg: float = 40.0
-    ir_height: float = 0.3
+    ir_height: float = 0.06
+    """Height of the infrared ring (m): low enough to see a person's shoes."""
     arena: tuple[float, float] = (8.0, 6.0)
     """Room size, x by y (m)."""
     wall_colour: tuple[float, float, float] = (0.48, 0.48, 0.55)
     """Close to the carpet's colour, as in the thesis' corridors (a mismatch of about 0.6)."""
     ball_radius: float = 0.1
+    balls: int = N_BALLS
+    """Balls in the arena (colours repeat beyond six)."""
     pillars: tuple[tuple[float, float], ...] = ((-1.5, 1.0), (1.8, -1.2), (2.2, 1.6))
     plant: tuple[float, float] = (-2.4, -1.6)
     timestep: float = 0.002
@@ -60,6 +64,8 @@ class NomadModelConfig:
 
 def nomad_mjcf(cfg: NomadModelConfig) -> str:
     """The MJCF text of the robot and the arena."""
+    if cfg.balls < 1:
+        raise ValueError(f"balls must be >= 1, got {cfg.balls}")
     ax, ay = cfg.arena[0] / 2, cfg.arena[1] / 2
     wall = " ".join(f"{c:.3f}" for c in cfg.wall_colour) + " 1"
     carpet = " ".join(f"{c:.3f}" for c in CARPET) + " 1"
@@ -88,10 +94,10 @@ def nomad_mjcf(cfg: NomadModelConfig) -> str:
         f'rgba="0.15 0.45 0.12 1" group="{GROUP_STATIC}"/>'
     )
     balls = "\n".join(
-        f'<body name="ball{k}" pos="{-3.0 + k} {ay - 0.5} {cfg.ball_radius}"><freejoint name="ball{k}"/>'
-        f'<geom name="ball{k}" type="sphere" size="{cfg.ball_radius}" mass="0.3" '
+        f'<body name="ball{k}" pos="{-3.0 + k % 7} {ay - 0.5 - 0.3 * (k // 7)} {cfg.ball_radius}">'
+        f'<freejoint name="ball{k}"/><geom name="ball{k}" type="sphere" size="{cfg.ball_radius}" mass="0.3" '
         f'rgba="{r} {g} {b} 1" group="{GROUP_OBJECTS}" condim="3" friction="0.8 0.02 0.001"/></body>'
-        for k, (r, g, b) in enumerate(BALL_COLOURS)
+        for k, (r, g, b) in ((k, BALL_COLOURS[k % len(BALL_COLOURS)]) for k in range(cfg.balls))
     )
     # A person: two black shoes and dark trouser legs, moved as one mocap body.
     shoe = f'type="box" size="0.14 0.05 0.04" rgba="0.05 0.05 0.05 1" group="{GROUP_OBJECTS}"'

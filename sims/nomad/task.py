@@ -51,6 +51,8 @@ Behaviour = Literal["servo", "wander"]
 BEHAVIOURS: tuple[Behaviour, ...] = ("servo", "wander")
 WILD_ENCODER = -299_792_458.0
 """What the thesis' encoders once reported: the speed of light, backwards (Section 6.7.1)."""
+PERSON_PATIENCE_S = 3.0
+"""How long the walking person waits for a robot in their way before turning back."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,6 +102,8 @@ class NomadConfig:
     """Infrared readings saturate at this range (m from the robot's surface)."""
     person_speed: float = 0.4
     """The walking person's speed (m/s; 0 keeps them still)."""
+    balls: int = N_BALLS
+    """Balls in the arena (objects to pursue)."""
     vision: NomadVisionConfig = field(default_factory=NomadVisionConfig)
 
     def __post_init__(self) -> None:
@@ -126,7 +130,7 @@ class NomadVec:
         self.config = cfg
         self.model_config = NomadModelConfig(
             timestep=1.0 / (cfg.rate_hz * cfg.substeps), camera_yaw_deg=cfg.camera_yaw_deg,
-            image_size=(cfg.vision.width, cfg.vision.height),
+            image_size=(cfg.vision.width, cfg.vision.height), balls=cfg.balls,
         )  # fmt: skip
         m = self.model = mujoco.MjModel.from_xml_string(nomad_mjcf(self.model_config))
         self.data = [mujoco.MjData(m) for _ in range(n)]
@@ -138,8 +142,10 @@ class NomadVec:
 
         self._q = [joint(j)[0] for j in ("x", "y", "yaw")]
         self._v = [joint(j)[1] for j in ("x", "y", "yaw")]
-        self._balls = [joint(f"ball{k}") for k in range(N_BALLS)]
-        self.ball_geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"ball{k}") for k in range(N_BALLS)]
+        self._balls = [joint(f"ball{k}") for k in range(cfg.balls)]
+        self.ball_geoms = [
+            mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"ball{k}") for k in range(cfg.balls)
+        ]
         self._person = int(m.body_mocapid[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "person")])
         self._base_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "base")
         self._base_geom = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "base")
@@ -178,6 +184,9 @@ class NomadVec:
         self.pixel_velocity = np.full((n, 2), np.nan)
         self._last_frame = np.full((n, 2), np.nan)
         self.time = np.zeros(n)
+        self._person_walked = np.zeros(n)
+        """Metres the person has walked (they wait while a robot is in their way)."""
+        self._person_waited = np.zeros(n)
         self._lost_since = np.zeros(n)
         self.collisions = np.zeros(n, dtype=np.int64)
         self._touching = np.zeros(n, dtype=np.bool_)
@@ -188,27 +197,26 @@ class NomadVec:
         self._renderer: CameraRenderer | None = None
 
     # ------------------------------------------------------------------ declared ranges
+    def state_bounds(self, behaviour: Behaviour | None = None) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Declared (low, high) ends of a behaviour's state variables (None: the configured one)."""
+        cfg, v = self.config, self.config.vision
+        motion = (cfg.max_translation, cfg.max_rotation)
+        if (behaviour or cfg.behaviour) == "servo":
+            gx, gy = v.goal_px
+            pv = cfg.pixel_velocity_range
+            high = (v.width / 2 - gx, v.height / 2 - gy, pv, pv, *motion)
+            return (-v.width / 2 - gx, -v.height / 2 - gy, -pv, -pv, *(-m for m in motion)), high
+        return (0.0,) * (ROWS * COLS) + tuple(-m for m in motion), (1.0,) * (ROWS * COLS) + motion
+
     @property
     def state_low(self) -> tuple[float, ...]:
         """Declared lower ends of the state variables."""
-        cfg, v = self.config, self.config.vision
-        motion = (-cfg.max_translation, -cfg.max_rotation)
-        if cfg.behaviour == "servo":
-            gx, gy = v.goal_px
-            pv = cfg.pixel_velocity_range
-            return (-v.width / 2 - gx, -v.height / 2 - gy, -pv, -pv, *motion)
-        return (0.0,) * (ROWS * COLS) + motion
+        return self.state_bounds()[0]
 
     @property
     def state_high(self) -> tuple[float, ...]:
         """Declared upper ends of the state variables."""
-        cfg, v = self.config, self.config.vision
-        motion = (cfg.max_translation, cfg.max_rotation)
-        if cfg.behaviour == "servo":
-            gx, gy = v.goal_px
-            pv = cfg.pixel_velocity_range
-            return (v.width / 2 - gx, v.height / 2 - gy, pv, pv, *motion)
-        return (1.0,) * (ROWS * COLS) + motion
+        return self.state_bounds()[1]
 
     @property
     def action_low(self) -> tuple[float, ...]:
@@ -243,8 +251,7 @@ class NomadVec:
             mujoco.mj_resetData(self.model, data)
             x, y = self._free_spot(rng, 0.8)
             data.qpos[self._q] = (x, y, rng.uniform(-np.pi, np.pi))
-            for k in range(N_BALLS):
-                self._put_ball(i, k, self._free_spot(rng, 0.4))
+            self.scatter_balls(i, rng)
             self.trackers[i].rng = rng
             self.trackers[i].stop()
             mujoco.mj_forward(self.model, data)
@@ -253,6 +260,8 @@ class NomadVec:
         self.measured[:] = 0.0
         self.carpet[:] = 0.0
         self.time[:] = 0.0
+        self._person_walked[:] = 0.0
+        self._person_waited[:] = 0.0
         self._touching[:] = False
         for i in range(self.n):
             self._sense(i, first=True)
@@ -274,6 +283,16 @@ class NomadVec:
                 return float(x), float(y)
         raise RuntimeError("no free spot in the arena")
 
+    def scatter_balls(self, i: int, rng: np.random.Generator) -> None:
+        """Put robot i's balls at random free places (not under the robot)."""
+        robot = self.data[i].qpos[self._q[:2]]
+        for k in range(len(self._balls)):
+            for _ in range(100):
+                xy = self._free_spot(rng, 0.4)
+                if np.hypot(xy[0] - robot[0], xy[1] - robot[1]) > self.model_config.radius + 0.3:
+                    break
+            self._put_ball(i, k, xy)
+
     def _put_ball(self, i: int, k: int, xy: tuple[float, float]) -> None:
         q, v = self._balls[k]
         data = self.data[i]
@@ -288,7 +307,7 @@ class NomadVec:
         cfg, rng, data = self.config, self._rng, self.data[i]
         x, y, heading = (data.qpos[q] for q in self._q)
         look = heading + np.deg2rad(cfg.camera_yaw_deg)
-        k = int(rng.integers(N_BALLS))
+        k = int(rng.integers(len(self._balls)))
         for _ in range(100):
             dist = rng.uniform(*cfg.target_distance) + self.model_config.camera_forward
             bearing = look + np.deg2rad(rng.uniform(-cfg.target_bearing_deg, cfg.target_bearing_deg))
@@ -302,7 +321,7 @@ class NomadVec:
                 break
         else:  # nowhere in view: turn the robot round and try again next time
             data.qpos[self._q[2]] += np.pi
-        for other in range(N_BALLS):
+        for other in range(len(self._balls)):
             if other != k:
                 self._put_ball(i, other, self._free_spot(rng, 0.4))
         self._put_ball(i, k, (bx, by))
@@ -355,17 +374,30 @@ class NomadVec:
         return Transition(next_state, reward, np.zeros(self.n, dtype=np.bool_), learnable)
 
     def _move_person(self, i: int) -> None:
-        """The person walks to and fro along the south wall."""
+        """The person walks to and fro along the south wall, waiting while the robot is in the way."""
         cfg = self.config
         if cfg.person_speed <= 0:
             return
         ax, ay = (s / 2 for s in self.model_config.arena)
         span = 2 * (ax - 1.0)
-        phase = (cfg.person_speed * self.time[i]) % (2 * span)
+        phase = self._person_walked[i] % (2 * span)
         along = phase if phase < span else 2 * span - phase
+        heading = 1.0 if phase < span else -1.0
+        x, y = -(ax - 1.0) + along, -ay + 0.6
         data = self.data[i]
-        data.mocap_pos[self._person] = (-(ax - 1.0) + along, -ay + 0.6, 0.0)
-        half = 0.0 if phase < span else np.pi
+        # People wait for a robot in their way, and go back the way they came after a while; they
+        # do not walk into it.
+        ahead = (data.qpos[self._q[0]] - x) * heading
+        if -0.2 < ahead < 0.3 + self.model_config.radius + 0.5 and abs(data.qpos[self._q[1]] - y) < 0.7:
+            self._person_waited[i] += 1.0 / cfg.rate_hz
+            if self._person_waited[i] >= PERSON_PATIENCE_S:
+                self._person_walked[i] = 2 * span - phase  # the same place, facing the other way
+                self._person_waited[i] = 0.0
+        else:
+            self._person_waited[i] = 0.0
+            self._person_walked[i] += cfg.person_speed / cfg.rate_hz
+        data.mocap_pos[self._person] = (x, y, 0.0)
+        half = 0.0 if heading > 0 else np.pi
         data.mocap_quat[self._person] = (np.cos(half / 2), 0.0, 0.0, np.sin(half / 2))
 
     def _frame(self, i: int) -> None:
@@ -512,7 +544,9 @@ class NomadVec:
             # A wild encoder reading (Section 6.7.1) is not believed: the command stands in.
             return measured if abs(measured) <= 2 * cfg.max_translation else float(self.command[i, 0])
 
-        return ir_veto(lambda: self.ir[i], self.ir_angles, speed, cfg.max_acceleration[0])
+        return ir_veto(
+            lambda: self.ir[i], self.ir_angles, speed, cfg.max_acceleration[0], self.model_config.radius
+        )
 
     def tracked(self) -> NDArray[np.int64]:
         """The geom each robot's tracker follows [n] (-1: none)."""
@@ -529,6 +563,21 @@ class NomadVec:
         self._frame(i)
         self._lost_since[i] = self.time[i]
         return bool(self.trackers[i].active)
+
+    def collect(self, i: int) -> None:
+        """Robot i has reached its target: a ball is picked up and put somewhere else; tracking stops."""
+        geom = self.trackers[i].geom
+        if geom in self.ball_geoms:
+            k = self.ball_geoms.index(geom)
+            robot = self.data[i].qpos[self._q[:2]]
+            for _ in range(100):  # not straight back into view
+                xy = self._free_spot(self._rng, 0.4)
+                if np.hypot(xy[0] - robot[0], xy[1] - robot[1]) > 2.0:
+                    break
+            self._put_ball(i, k, xy)
+            mujoco.mj_forward(self.model, self.data[i])
+        self.trackers[i].stop()
+        self.pixels[i] = self.pixel_velocity[i] = self._last_frame[i] = np.nan
 
     def reward_components(
         self,

@@ -138,22 +138,39 @@ def test_client_hydra_with_rendered_vision_saves_camera_frames(tmp_path):
     assert "5 camera frames" in proc.stdout
 
 
-@pytest.mark.parametrize("behaviour", ["servo", "wander"])
+@pytest.mark.parametrize("behaviour", ["servo", "wander", "forage"])
 def test_client_nomad_behaviours_run_and_save(tmp_path, behaviour):
     out = tmp_path / "run"
     run([BIN / "wfnn-client", "--sim", "nomad", "--behaviour", behaviour, "--episodes", "1", "--rate-hz", "0",
-         "--thinks", "5", "--out", out])  # fmt: skip
+         "--thinks", "5", "--balls", "24", "--out", out])  # fmt: skip
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["ticks"] == (150 if behaviour == "servo" else 600)
-    assert metrics["experiences_learned"] > 0 and (out / "weights.npz").exists()
-    assert metrics["config"]["client"]["nomad"]["behaviour"] == behaviour
+    assert metrics["experiences_learned"] > 0
     assert metrics["metric"].startswith("mean |pixel" if behaviour == "servo" else "metres")
+    if behaviour != "forage":
+        assert (out / "weights.npz").exists() and metrics["config"]["client"]["nomad"][
+            "behaviour"
+        ] == behaviour
+        return
+    # Foraging: a learner per behaviour, pursuit of every target found.
+    assert metrics["following"] == "servo:local wander:local"
+    driving = {name: b["ticks_driving"] for name, b in metrics["behaviours"].items()}
+    assert driving["servo"] > 0 and driving["servo"] + driving["wander"] == 600
+    assert metrics["targets_found"] >= 1 and metrics["config"]["client"]["forage"]["pursue"] == "every"
+    for name in ("servo", "wander"):
+        assert (out / f"weights_{name}.npz").exists() and metrics[f"{name}/learn/experiences"] > 0
+    # Every action reaches the wanderer (experiences in its replay memory, less encoder glitches).
+    assert metrics["wander/learn/experiences"] >= 590
+    again = tmp_path / "again"  # start both learners from the saved weights
+    run([BIN / "wfnn-client", "--sim", "nomad", "--behaviour", "forage", "--episodes", "1", "--rate-hz", "0",
+         "--thinks", "5", "--weights", out, "--out", again])  # fmt: skip
+    assert (again / "weights_servo.npz").exists()
 
 
 def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     j, p = tmp_path / "nomad.json", tmp_path / "nomad.png"
     out = run([BIN / "wfnn-bench", "nomad", "--controllers", "2", "--episodes", "2", "--eval-every", "1",
-               "--wander-episodes", "3", "--from-wander-minutes", "1", "--thinks", "5", "--json", j,
+               "--wander-episodes", "3", "--forage-minutes", "1", "--thinks", "5", "--json", j,
                "--plot", p])  # fmt: skip
     assert "servo_final_error_px" in out.stdout
     data = json.loads(j.read_text())
@@ -165,6 +182,8 @@ def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     assert len(data["wander"]["distance_m"]) == 2 and len(data["wander"]["distance_m"][0]) == 3
     assert len(data["wander"]["path"]) == 3 * 600
     assert "early" in data["wander_m_per_collision"] and data["servo_from_wander_score"] >= 0
+    assert [e["minutes"] for e in data["servo_every_second_target"]["evaluations"]] == [1]
+    assert 0 <= data["servo_untrained_px"] <= 200
 
 
 def test_client_refuses_an_unknown_vision_source(tmp_path):

@@ -10,6 +10,7 @@ from tests.integration.procs import ServerProcess, client, endpoint, finish, fre
 from wfnn_common.net import NetConfig, ZenohBus
 from wfnn_common.persist import load_weights
 from wfnn_common.protocol import Codec, ExperienceBatch, Keys, ServerStatus, WeightSnapshot
+from wfnn_server.spawn import ServerProcess as _ServerProcess
 from wfnn_server.store import ExperienceStore
 
 pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
@@ -221,3 +222,28 @@ def test_a_client_started_before_its_server_delivers_everything_later(tmp_path):
     store = ExperienceStore(tmp_path / "srv" / "store", "check")
     client_id = json.loads((out / "journal" / "client.json").read_text())["client"]
     assert store.stored_through[client_id] == produced and store.count == produced + 1
+
+
+def test_a_foraging_nomad_learns_both_behaviours_on_their_own_servers(tmp_path):
+    ports = {name: free_port() for name in ("servo", "wander")}
+    servers = {
+        name: _ServerProcess(tmp_path / name, port, server_id=f"s{name[0]}", controller=f"it-{name}")
+        for name, port in ports.items()
+    }
+    out = tmp_path / "client"
+    with servers["servo"], servers["wander"]:
+        finish(client("--sim", "nomad", "--behaviour", "forage", "--every-second-target", "--episodes", "1",
+                      "--balls", "24", "--rate-hz", "0", "--lockstep", "--thinks", "5", "--out", str(out),
+                      *[a for port in ports.values() for a in ("--server", endpoint(port))]))  # fmt: skip
+    m = metrics(out / "metrics.json")
+    assert m["following"] == "servo:ss wander:sw" and m["lockstep_timeouts"] == 0
+    driving = {name: b["ticks_driving"] for name, b in m["behaviours"].items()}
+    assert sum(driving.values()) == m["ticks"] == 600 and driving["wander"] > 0
+    assert m["targets_found"] >= 2 and driving["servo"] > 0  # the second target was pursued
+    for name in ("servo", "wander"):
+        assert (out / f"weights_{name}.npz").exists()
+        store = ExperienceStore(tmp_path / name / "store", "check")
+        client_id = json.loads((out / f"journal_{name}" / "client.json").read_text())["client"]
+        # Every executed action reaches the wanderer; the servoing learns where a target was tracked.
+        assert store.stored_through[client_id] == m[f"{name}/uplink/produced_through"] > 0
+    assert m["wander/uplink/produced_through"] >= 600 - 1

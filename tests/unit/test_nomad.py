@@ -3,8 +3,17 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from sims.nomad import NomadConfig, NomadEnv, NomadVec, WanderConfig, handcoded_wander, ir_veto
+from sims.nomad import (
+    Forage,
+    ForageConfig,
+    NomadConfig,
+    NomadEnv,
+    NomadVec,
+    WanderConfig,
+    handcoded_wander,
+)
 from sims.nomad.behaviours import strip_lengths
+from sims.nomad.model import NomadModelConfig
 from sims.nomad.task import WILD_ENCODER
 from sims.nomad.vision import COLS, ROWS, NomadVisionConfig, interesting_cells, smooth_carpet
 from wfnn_common.config import ExplorationConfig, LearnerConfig
@@ -65,22 +74,51 @@ def test_the_base_follows_velocity_commands_within_its_acceleration_limits():
 
 
 def test_infrared_ring_sees_a_wall_ahead_and_the_veto_stops_driving_into_it():
-    cfg = NomadConfig(behaviour="wander", person_speed=0.0)
+    cfg = NomadConfig(behaviour="wander", person_speed=0.0, encoder_noise=(0.0, 0.0))
     task = NomadVec(1, cfg)
     task.reset(np.random.default_rng(0))
-    placed(task, 3.4, 0.0, 0.0)  # the east wall is 0.6 m ahead of the centre
+    placed(task, 3.5, 0.0, 0.0)  # the east wall is 0.5 m ahead of the centre
     task._sense(0, first=True)
     ahead, behind = task.ir[0, 0], task.ir[0, cfg.ir_sensors // 2]
-    assert ahead == pytest.approx(0.6 - task.model_config.radius, abs=0.01)
+    assert ahead == pytest.approx(0.5 - task.model_config.radius, abs=0.01)
     assert behind == cfg.ir_range
-    veto = ir_veto(lambda: task.ir[0], task.ir_angles, lambda: 0.0, cfg.max_acceleration[0])
+    veto = task.veto(0)
     replaced = veto(np.zeros(37), np.array([0.5, -0.3]))
     assert replaced is not None and replaced.tolist() == [0.0, -0.5]  # stops, turns (its way: wall ahead)
-    placed(task, 3.0, 2.68, 0.0)  # the north wall 0.32 m to the left, the east wall 1 m ahead
+    assert veto(np.zeros(37), np.array([0.2, 0.0])) is None  # slowly: it can stop in time
+    placed(task, 2.0, 2.7, 0.0)  # the north wall 0.3 m to the left, nothing ahead
     task._sense(0, first=True)
-    assert veto(np.zeros(37), np.array([0.4, 0.0])).tolist() == [0.0, -0.5]  # turns right, away from it
+    assert veto(np.zeros(37), np.array([0.4, 0.0])) is None  # along the wall, clear of it
+    assert veto(np.zeros(37), np.array([0.5, 0.8])).tolist() == [0.0, -0.5]  # arcing into it: turn right
     assert veto(np.zeros(37), np.array([-0.3, 0.0])) is None  # backing away is allowed
-    assert veto(np.zeros(37), np.array([0.0, 0.8])) is None
+    assert veto(np.zeros(37), np.array([0.0, 0.8])) is None  # turning on the spot is
+
+
+def test_the_veto_sees_a_pillar_beside_the_arc_the_robot_would_drive():
+    cfg = NomadConfig(behaviour="wander", person_speed=0.0, encoder_noise=(0.0, 0.0))
+    task = NomadVec(1, cfg)
+    task.reset(np.random.default_rng(0))
+    (px, py), half = NomadModelConfig().pillars[0], 0.15
+    placed(task, px - 0.1, py - half - 0.3, 0.0)  # pillar0 on the left, its face 0.3 m from the centre
+    task._sense(0, first=True)
+    veto = task.veto(0)
+    assert veto(np.zeros(37), np.array([0.5, 0.0])) is None  # straight on passes it
+    assert veto(np.zeros(37), np.array([0.5, 0.8])) is not None  # the arc sweeps the side into it
+
+
+def test_the_person_waits_for_a_robot_in_the_way():
+    task = NomadVec(1, NomadConfig(behaviour="wander"))
+    task.reset(np.random.default_rng(0))
+    ax, ay = (s / 2 for s in task.model_config.arena)
+    placed(task, -(ax - 1.0) + 1.0, -ay + 0.6, np.pi / 2)  # 1 m ahead of the person's start, on their line
+    for _ in range(30):
+        task.step(np.zeros((1, 2)))
+    person = task.data[0].mocap_pos[task._person].copy()
+    assert person[0] < -(ax - 1.0) + 0.3 and task.collisions[0] == 0  # stopped short of the robot
+    placed(task, 0.0, 0.0, 0.0)  # out of the way: they walk on
+    for _ in range(10):
+        task.step(np.zeros((1, 2)))
+    assert task.data[0].mocap_pos[task._person][0] > person[0] + 0.3
 
 
 def test_driving_into_a_wall_counts_one_collision():
@@ -186,3 +224,58 @@ def test_a_control_tick_is_deterministic_for_a_seed():
         return np.array([task.step(np.array([[0.3, 0.2]])).state for _ in range(10)])
 
     np.testing.assert_array_equal(run(3), run(3))
+
+
+def test_the_room_holds_the_configured_number_of_balls():
+    task = NomadVec(1, NomadConfig(behaviour="wander", balls=15))
+    assert len(task.ball_geoms) == 15 == len(set(task.ball_geoms))
+    task.reset(np.random.default_rng(0))
+    robot = task.pose()[0, :2]
+    balls = np.array([task.data[0].geom_xpos[g][:2] for g in task.ball_geoms])
+    assert np.all(np.hypot(*(balls - robot).T) > task.model_config.radius + 0.3)  # none under the robot
+    with pytest.raises(ValueError, match="balls"):
+        NomadVec(1, NomadConfig(balls=0))
+
+
+def ball_ahead(task, distance=1.3):
+    """Robot 0 facing west over open carpet with ball 0 `distance` ahead of it."""
+    placed(task, 0.5, -0.2, np.pi)
+    task._put_ball(0, 0, (0.5 - distance, -0.2))
+    mujoco.mj_forward(task.model, task.data[0])
+    task._sense(0, first=True)
+
+
+@pytest.mark.parametrize(
+    ("pursue", "dominant"),
+    [("every", [True, True]), ("every_second", [False, True]), ("never", [False, False])],
+)
+def test_foraging_pursues_the_targets_its_rule_says(pursue, dominant):
+    task = NomadVec(1, NomadConfig(behaviour="wander", person_speed=0.0))
+    task.reset(np.random.default_rng(0))
+    forage = Forage(task, ForageConfig(pursue=pursue))
+    for k, expected in enumerate(dominant):
+        ball_ahead(task)
+        assert forage.update().tolist() == [expected]  # the interest operator found the ball
+        assert task.tracked()[0] == task.ball_geoms[0] and forage.found[0] == k + 1
+        task.trackers[0].stop()  # out of view: wandering takes over
+        task.pixels[0] = np.nan
+        assert forage.pursuing().tolist() == [False]
+
+
+def test_a_target_held_at_the_goal_is_reached_and_moved_away():
+    task = NomadVec(1, NomadConfig(behaviour="wander", person_speed=0.0))
+    task.reset(np.random.default_rng(0))
+    cfg = ForageConfig(collect_px=1000.0, collect_s=0.5, quiet_s=1.0)  # anywhere in view is "at the goal"
+    forage = Forage(task, cfg)
+    ball_ahead(task)
+    pursued = []
+    for _ in range(8):
+        pursued.append(bool(forage.update()[0]))
+        task.step(np.zeros((1, 2)))
+    assert forage.reached[0] == 1 and forage.found[0] == 1
+    assert pursued[:4] == [True] * 4 and not any(pursued[4:])  # reached on its fifth tick (0.5 s), then quiet
+    assert task.tracked()[0] == -1 and np.isnan(task.pixels[0]).all()
+    ball = task.data[0].geom_xpos[task.ball_geoms[0]][:2]
+    assert np.hypot(*(ball - task.pose()[0, :2])) > 2.0  # picked up and put elsewhere
+    with pytest.raises(ValueError, match="pursue"):
+        ForageConfig(pursue="sometimes")  # type: ignore[arg-type]
