@@ -147,8 +147,9 @@ def main(
         )  # fmt: skip
         foraging = behaviour == "forage"
         nomad = NomadConfig(
-            behaviour="wander" if foraging else behaviour, camera_yaw_deg=camera_yaw, balls=balls
-        )  # type: ignore[arg-type]
+            behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
+            camera_yaw_deg=camera_yaw, balls=balls,
+        )  # fmt: skip
         forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
