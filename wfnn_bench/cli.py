@@ -327,8 +327,11 @@ def nomad(
     ]  # fmt: skip
     w, h = result["wander"], result["wander_handcoded"]
     rows += [
-        ("wander_m_per_collision early / late / hand-coded",
+        ("wander_m_per_collision early / late / hand-coded (-: no collision)",
          " / ".join(_num(v) for v in result["wander_m_per_collision"].values())),
+        ("wander collisions early / late (all robots)",
+         f"{w['collisions_early']:.0f} / {w['collisions_late']:.0f}"),
+        ("wander_m_per_veto early / late", " / ".join(_num(v) for v in result["wander_m_per_veto"].values())),
         ("wander vetoes per minute early / late / hand-coded",
          f"{w['vetoes_per_min_early']:.0f} / {w['vetoes_per_min_late']:.0f} / {np.mean(h['vetoes']):.0f}"),
         ("wander metres per minute early / late / hand-coded",

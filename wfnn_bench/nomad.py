@@ -227,14 +227,21 @@ def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progre
     task.close()
     third = max(episodes // 3, 1)
 
-    def per_collision(sl: slice) -> float | None:
-        hits = float(out["collisions"][:, sl].sum())
+    early, late = slice(0, third), slice(episodes - third, episodes)
+
+    def per(events: str, sl: slice) -> float | None:
+        """Metres per event (None without one: no collision, say)."""
+        hits = float(out[events][:, sl].sum())
         return float(out["distance_m"][:, sl].sum() / hits) if hits else None
 
     return {
         **out,
-        "m_per_collision_early": per_collision(slice(0, third)),
-        "m_per_collision_late": per_collision(slice(episodes - third, episodes)),
+        "m_per_collision_early": per("collisions", early),
+        "m_per_collision_late": per("collisions", late),
+        "collisions_early": float(out["collisions"][:, early].sum()),
+        "collisions_late": float(out["collisions"][:, late].sum()),
+        "m_per_veto_early": per("vetoes", early),
+        "m_per_veto_late": per("vetoes", late),
         "vetoes_per_min_early": float(out["vetoes"][:, :third].mean()),
         "vetoes_per_min_late": float(out["vetoes"][:, episodes - third :].mean()),
         "m_per_min_early": float(out["distance_m"][:, :third].mean()),
@@ -395,6 +402,10 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
             "early": learned_wander["m_per_collision_early"],
             "late": learned_wander["m_per_collision_late"],
             "handcoded": _per_collision(handcoded),
+        },
+        "wander_m_per_veto": {
+            "early": learned_wander["m_per_veto_early"],
+            "late": learned_wander["m_per_veto_late"],
         },
         "servo_untrained": fresh,
         "servo_untrained_px": float(np.median(fresh["final_error_px"])),

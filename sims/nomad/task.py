@@ -51,6 +51,8 @@ Behaviour = Literal["servo", "wander"]
 BEHAVIOURS: tuple[Behaviour, ...] = ("servo", "wander")
 WILD_ENCODER = -299_792_458.0
 """What the thesis' encoders once reported: the speed of light, backwards (Section 6.7.1)."""
+IR_BEAM_DEG = 7.5
+"""Half-width of an infrared sensor's beam (degrees; 16 sensors are 22.5 degrees apart)."""
 PERSON_PATIENCE_S = 3.0
 """How long the walking person waits for a robot in their way before turning back."""
 
@@ -163,7 +165,10 @@ class NomadVec:
         angles = 2 * np.pi * np.arange(cfg.ir_sensors) / cfg.ir_sensors
         self.ir_angles = angles
         """Directions of the infrared sensors in the robot's frame (rad, 0 ahead, counter-clockwise)."""
-        self._ir_dirs = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
+        # Each sensor's beam is a cone: rays at its centre and +-IR_BEAM_DEG, the nearest reading
+        # counts (a single ray per sensor slips past a shoe between two sensors).
+        beam = (angles[:, None] + np.deg2rad([0.0, -IR_BEAM_DEG, IR_BEAM_DEG])).ravel()
+        self._ir_dirs = np.stack([np.cos(beam), np.sin(beam), np.zeros_like(beam)], axis=1)
         self._ir_groups = np.ones(6, dtype=np.uint8)
         self._ir_groups[GROUP_FLOOR] = 0
         self.command = np.zeros((n, 2))
@@ -429,14 +434,16 @@ class NomadVec:
         )
         origin = np.array([data.qpos[self._q[0]], data.qpos[self._q[1]], self.model_config.ir_height])
         dirs = self._ir_dirs @ rot.T
-        geoms = np.zeros(cfg.ir_sensors, dtype=np.int32)
-        dist = np.zeros(cfg.ir_sensors)
+        rays = len(dirs)
+        geoms = np.zeros(rays, dtype=np.int32)
+        dist = np.zeros(rays)
         cutoff = self.model_config.radius + cfg.ir_range
         mujoco.mj_multiRay(self.model, data, origin, dirs.ravel(), self._ir_groups, 1, self._base_body,
-                           geoms, dist, None, cfg.ir_sensors, cutoff)  # fmt: skip
-        self.ir[i] = np.where(
+                           geoms, dist, None, rays, cutoff)  # fmt: skip
+        readings = np.where(
             dist >= 0, np.clip(dist - self.model_config.radius, 0, cfg.ir_range), cfg.ir_range
         )
+        self.ir[i] = readings.reshape(cfg.ir_sensors, -1).min(axis=1)
         hit, points = self._looked[i] = self.camera.look(self.model, data)
         self.carpet_raw[i] = carpet_mismatch(self.model, hit, points, cfg.vision, rng)
         v = cfg.vision

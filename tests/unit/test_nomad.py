@@ -86,7 +86,7 @@ def test_infrared_ring_sees_a_wall_ahead_and_the_veto_stops_driving_into_it():
     replaced = veto(np.zeros(37), np.array([0.5, -0.3]))
     assert replaced is not None and replaced.tolist() == [0.0, -0.5]  # stops, turns (its way: wall ahead)
     assert veto(np.zeros(37), np.array([0.2, 0.0])) is None  # slowly: it can stop in time
-    placed(task, 2.0, 2.7, 0.0)  # the north wall 0.3 m to the left, nothing ahead
+    placed(task, 2.0, 2.68, 0.0)  # the north wall 0.32 m to the left, nothing ahead
     task._sense(0, first=True)
     assert veto(np.zeros(37), np.array([0.4, 0.0])) is None  # along the wall, clear of it
     assert veto(np.zeros(37), np.array([0.5, 0.8])).tolist() == [0.0, -0.5]  # arcing into it: turn right
@@ -99,7 +99,7 @@ def test_the_veto_sees_a_pillar_beside_the_arc_the_robot_would_drive():
     task = NomadVec(1, cfg)
     task.reset(np.random.default_rng(0))
     (px, py), half = NomadModelConfig().pillars[0], 0.15
-    placed(task, px - 0.1, py - half - 0.3, 0.0)  # pillar0 on the left, its face 0.3 m from the centre
+    placed(task, px - 0.2, py - half - 0.33, 0.0)  # pillar0 on the left, its face 0.33 m from the centre
     task._sense(0, first=True)
     veto = task.veto(0)
     assert veto(np.zeros(37), np.array([0.5, 0.0])) is None  # straight on passes it
