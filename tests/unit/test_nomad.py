@@ -12,9 +12,10 @@ from sims.nomad import (
     WanderConfig,
     handcoded_wander,
 )
+from sims.nomad import task as nomad_task
 from sims.nomad.behaviours import strip_lengths
 from sims.nomad.model import NomadModelConfig
-from sims.nomad.task import WILD_ENCODER
+from sims.nomad.task import IR_BEAM_DEG, WILD_ENCODER
 from sims.nomad.vision import COLS, ROWS, NomadVisionConfig, interesting_cells, smooth_carpet
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -279,3 +280,17 @@ def test_a_target_held_at_the_goal_is_reached_and_moved_away():
     assert np.hypot(*(ball - task.pose()[0, :2])) > 2.0  # picked up and put elsewhere
     with pytest.raises(ValueError, match="pursue"):
         ForageConfig(pursue="sometimes")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("beam_deg", "seen"), [(0.0, False), (IR_BEAM_DEG, True)])
+def test_an_infrared_beam_sees_a_ball_between_two_sensors_centre_lines(monkeypatch, beam_deg, seen):
+    monkeypatch.setattr(nomad_task, "IR_BEAM_DEG", beam_deg)
+    task = NomadVec(1, NomadConfig(behaviour="wander", person_speed=0.0))
+    task.reset(np.random.default_rng(0))
+    placed(task, 0.0, -0.2, 0.0)  # facing east over open carpet
+    bearing = np.deg2rad(11.25)  # half way between sensors 0 and 1
+    task._put_ball(0, 0, (0.7 * np.cos(bearing), -0.2 + 0.7 * np.sin(bearing)))
+    mujoco.mj_forward(task.model, task.data[0])
+    task._sense(0, first=True)
+    near = min(task.ir[0, 0], task.ir[0, 1])
+    assert (near < 0.5) == seen
