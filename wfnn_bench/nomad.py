@@ -11,9 +11,9 @@
   minute early and late in learning, against the hand-coded wandering (Fig 6.7); a path plot
   like Fig 6.9.
 - Learning servoing from the wandering behaviour (Section 6.6): robots forage (`sims.nomad.forage`)
-  in a room with more balls, the wandering hand-coded; a servo learner learns from the
-  wandering's actions only while the interest operator's targets are tracked (pursuit never
-  dominates), or also pursues every second target; evaluated like the servo controllers learned
+  in a room with more balls, the wandering learning as it goes (or hand-coded); a servo learner
+  learns from the wandering's actions only while the interest operator's targets are tracked
+  (pursuit never dominates), or also pursues every second target; evaluated like the servo controllers learned
   from scratch, against those at the same experience count and against untrained learners.
 - The cost of a control tick (physics, infrared ring, carpet matrix, tracker, act).
 """
@@ -65,7 +65,7 @@ class NomadBenchConfig:
     wander_episodes: int = 15
     """Learned wandering: 60 s episodes."""
     forage_minutes: int = 20
-    """Learning servoing while the hand-coded wandering forages: simulated minutes per robot."""
+    """Learning servoing while the robots forage: simulated minutes per robot."""
     forage_balls: int = 24
     """Balls in the room while foraging (the servo data come from tracking them)."""
     forage_eval_minutes: int = 5
@@ -236,6 +236,7 @@ def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progre
 
     return {
         **out,
+        "m_per_collision": per("collisions", slice(None)),
         "m_per_collision_early": per("collisions", early),
         "m_per_collision_late": per("collisions", late),
         "collisions_early": float(out["collisions"][:, early].sum()),
@@ -249,12 +250,6 @@ def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progre
         "path": path,
         "divergence_resets": learner.resets.copy() if learner is not None else None,
     }
-
-
-def _per_collision(result: dict[str, Any]) -> float | None:
-    """Metres per collision over a whole wandering run (None without a collision)."""
-    hits = float(np.sum(result["collisions"]))
-    return float(np.sum(result["distance_m"]) / hits) if hits else None
 
 
 def forage_servo(cfg: NomadBenchConfig, pursue: Pursue, progress: Progress) -> dict[str, Any]:
@@ -401,7 +396,7 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
         "wander_m_per_collision": {
             "early": learned_wander["m_per_collision_early"],
             "late": learned_wander["m_per_collision_late"],
-            "handcoded": _per_collision(handcoded),
+            "handcoded": handcoded["m_per_collision"],
         },
         "wander_m_per_veto": {
             "early": learned_wander["m_per_veto_early"],

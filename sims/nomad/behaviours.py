@@ -82,13 +82,14 @@ def ir_veto(
     """
     directions = np.stack([np.cos(angles), np.sin(angles)], axis=1)
     fractions = np.linspace(0.0, 1.0, 9)[1:]
-    turning = [0.0]
+    turning = 0.0
     """The replacement's turn direction while vetoes continue (0: none vetoed last time)."""
 
     def veto(state: FloatArray, action: FloatArray) -> FloatArray | None:
+        nonlocal turning
         speed, rotation = float(action[0]), float(action[1])
         if speed == 0.0:
-            turning[0] = 0.0
+            turning = 0.0
             return None
         points = (radius + ir()[:, None]) * directions  # what the ring sees, in the robot's frame
         fastest = max(abs(speed), abs(measured_speed()))
@@ -102,11 +103,11 @@ def ir_veto(
         gaps = np.linalg.norm(points[None, :, :] - centres[:, None, :], axis=2).min(axis=0) - radius
         now = np.linalg.norm(points, axis=1) - radius
         if not (gaps.min() < clearance and gaps.min() < now.min() - 1e-3):
-            turning[0] = 0.0
+            turning = 0.0
             return None
-        if not turning[0]:
+        if not turning:
             side = np.sin(angles[np.argmin(now)])
-            turning[0] = -np.sign(side) if abs(side) > 0.1 else (np.sign(rotation) or 1.0)
-        return np.array([0.0, float(turning[0] * turn)])
+            turning = float(-np.sign(side)) if abs(side) > 0.1 else float(np.sign(rotation) or 1.0)
+        return np.array([0.0, turning * turn])
 
     return veto

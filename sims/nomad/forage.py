@@ -69,14 +69,14 @@ class Forage:
         """Before each action: look for targets, retire reached ones -> pursuit dominates [n]."""
         task, cfg = self.task, self.config
         dt = 1.0 / task.config.rate_hz
-        for i in range(task.n):
-            if task.tracked()[i] < 0 and task.time[i] >= self._quiet_until[i] and task.acquire(i):
+        for i, tracker in enumerate(task.trackers):
+            if not tracker.active and task.time[i] >= self._quiet_until[i] and task.acquire(i):
                 self.found[i] += 1
                 self._pursuing[i] = cfg.pursue == "every" or (
                     cfg.pursue == "every_second" and self.found[i] % 2 == 0
                 )
                 self._at_goal[i] = 0.0
-            if task.tracked()[i] < 0 or not self._pursuing[i]:
+            if not (tracker.active and self._pursuing[i]):
                 continue
             close = float(np.hypot(*task.pixels[i])) < cfg.collect_px
             self._at_goal[i] = self._at_goal[i] + dt if close else 0.0

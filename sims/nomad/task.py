@@ -288,15 +288,19 @@ class NomadVec:
                 return float(x), float(y)
         raise RuntimeError("no free spot in the arena")
 
+    def _spot_away(self, i: int, rng: np.random.Generator, distance: float) -> tuple[float, float]:
+        """A free place for a ball, at least `distance` from robot i's centre (100 tries)."""
+        robot = self.data[i].qpos[self._q[:2]]
+        for _ in range(100):
+            xy = self._free_spot(rng, 0.4)
+            if np.hypot(xy[0] - robot[0], xy[1] - robot[1]) > distance:
+                break
+        return xy
+
     def scatter_balls(self, i: int, rng: np.random.Generator) -> None:
         """Put robot i's balls at random free places (not under the robot)."""
-        robot = self.data[i].qpos[self._q[:2]]
         for k in range(len(self._balls)):
-            for _ in range(100):
-                xy = self._free_spot(rng, 0.4)
-                if np.hypot(xy[0] - robot[0], xy[1] - robot[1]) > self.model_config.radius + 0.3:
-                    break
-            self._put_ball(i, k, xy)
+            self._put_ball(i, k, self._spot_away(i, rng, self.model_config.radius + 0.3))
 
     def _put_ball(self, i: int, k: int, xy: tuple[float, float]) -> None:
         q, v = self._balls[k]
@@ -576,12 +580,7 @@ class NomadVec:
         geom = self.trackers[i].geom
         if geom in self.ball_geoms:
             k = self.ball_geoms.index(geom)
-            robot = self.data[i].qpos[self._q[:2]]
-            for _ in range(100):  # not straight back into view
-                xy = self._free_spot(self._rng, 0.4)
-                if np.hypot(xy[0] - robot[0], xy[1] - robot[1]) > 2.0:
-                    break
-            self._put_ball(i, k, xy)
+            self._put_ball(i, k, self._spot_away(i, self._rng, 2.0))  # not straight back into view
             mujoco.mj_forward(self.model, self.data[i])
         self.trackers[i].stop()
         self.pixels[i] = self.pixel_velocity[i] = self._last_frame[i] = np.nan
