@@ -275,6 +275,10 @@ def nomad(
     ] = 5,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
     advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 0.2,
+    render: Annotated[bool, typer.Option(help="Also check vision from rendered images (needs GL).")] = True,
+    render_ticks: Annotated[
+        int, typer.Option(min=1, help="Rendered-vision check: ticks of hand-coded wandering (2 robots).")
+    ] = 1200,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -286,7 +290,7 @@ def nomad(
         controllers=controllers, servo_episodes=episodes, eval_every=eval_every, thinks=thinks,
         wander_episodes=wander_episodes, forage_minutes=forage_minutes, forage_balls=forage_balls,
         forage_eval_minutes=min(forage_eval_minutes, forage_minutes),
-        advantage_k=advantage_k, seed=seed,
+        advantage_k=advantage_k, render=render, render_wander_ticks=render_ticks, seed=seed,
     )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("nomad episodes", total=nomad_bench.steps(cfg))
@@ -331,6 +335,11 @@ def nomad(
          " / ".join(_num(v) for v in result["wander_m_per_collision"].values())),
         ("wander collisions early / late (all robots)",
          f"{w['collisions_early']:.0f} / {w['collisions_late']:.0f}"),
+        ("without the veto: metres per collision early / late / hand-coded",
+         " / ".join(_num(result["wander_m_per_collision"][k])
+                    for k in ("no_veto_early", "no_veto_late", "no_veto_handcoded"))),
+        ("without the veto: collisions early / late (all robots)",
+         "{collisions_early:.0f} / {collisions_late:.0f}".format(**result["wander_no_veto"])),
         ("wander_m_per_veto early / late", " / ".join(_num(v) for v in result["wander_m_per_veto"].values())),
         ("wander vetoes per minute early / late / hand-coded",
          f"{w['vetoes_per_min_early']:.0f} / {w['vetoes_per_min_late']:.0f} / {np.mean(h['vetoes']):.0f}"),
@@ -338,8 +347,22 @@ def nomad(
          f"{w['m_per_min_early']:.1f} / {w['m_per_min_late']:.1f} / {np.mean(h['distance_m']):.1f}"),
         ("tick_ms_p50 servo", result["tick_ms_p50_servo"]),
         ("tick_ms_p50 wander", result["tick_ms_p50_wander"]),
-        ("wall_s", result["wall_s"]),
     ]  # fmt: skip
+    r = result.get("render")
+    if r is not None and r["available"]:
+        rows += [
+            ("rendered vision: proportional servo final error px / time to goal s",
+             f"{r['servo_final_error_px']:.1f} / {_num(r['servo_time_to_goal_s'])}"),
+            ("rendered vision: carpet cells agreeing with the camera model / mean |difference|",
+             f"{r['carpet_agreement']:.3f} / {r['carpet_mean_abs_difference']:.3f}"),
+            ("rendered vision: ticks with an interesting object, rendered / camera model",
+             f"{r['interest_fraction']['render']:.3f} / {r['interest_fraction']['projection']:.3f}"),
+            ("rendered vision: tick_ms_p50 servo / wander",
+             f"{r['tick_ms_p50_servo']:.2f} / {r['tick_ms_p50_wander']:.2f}"),
+        ]  # fmt: skip
+    elif r is not None:
+        rows.append(("rendered vision", f"not checked: {r['reason']}"))
+    rows.append(("wall_s", result["wall_s"]))
     _table("Nomad 200 (Chapter 6)", rows)
     if json_path:
         write_json(json_path, result)

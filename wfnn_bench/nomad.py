@@ -9,13 +9,18 @@
 - Learned wandering (Section 6.4): controllers learn to wander from scratch under the infrared
   veto (vetoed proposals learned twice); distance travelled per collision and vetoes per
   minute early and late in learning, against the hand-coded wandering (Fig 6.7); a path plot
-  like Fig 6.9.
+  like Fig 6.9. The veto leaves next to no collisions, so the same is run without it too: metres
+  per collision early and late (collisions are in neither the state nor the reward).
 - Learning servoing from the wandering behaviour (Section 6.6): robots forage (`sims.nomad.forage`)
   in a room with more balls, the wandering learning as it goes (or hand-coded); a servo learner
   learns from the wandering's actions only while the interest operator's targets are tracked
   (pursuit never dominates), or also pursues every second target; evaluated like the servo controllers learned
   from scratch, against those at the same experience count and against untrained learners.
 - The cost of a control tick (physics, infrared ring, carpet matrix, tracker, act).
+- Rendered vision (`NomadVisionConfig.source="render"`): the proportional controller's step
+  responses on rendered images against the camera model's; the rendered carpet matrix against the
+  camera model's on the same states while the hand-coded wandering drives; the tick cost with
+  rendering.
 """
 
 from __future__ import annotations
@@ -75,14 +80,22 @@ class NomadBenchConfig:
     """Hand-coded wandering: Gaussian noise on its commands, in units of each command's limit."""
     task: NomadConfig = field(default_factory=NomadConfig)
     tick_samples: int = 1000
+    render: bool = True
+    """Also check rendered vision (needs off-screen GL; reported unavailable otherwise)."""
+    render_wander_ticks: int = 1200
+    """Ticks of hand-coded wandering per robot in the rendered-vision check (2 robots)."""
     seed: int = 0
 
 
 def steps(cfg: NomadBenchConfig) -> int:
-    """Progress units: servo and wandering episodes, and minutes of foraging (twice)."""
+    """Progress units: episodes, foraging minutes and the rendered-vision check.
+
+    Servo episodes, wandering episodes (with and without the veto), minutes of foraging (twice).
+    """
     return (
-        cfg.servo_episodes + cfg.wander_episodes + max(cfg.wander_episodes // 3, 1) + 2 * cfg.forage_minutes
-    )
+        cfg.servo_episodes + 2 * (cfg.wander_episodes + max(cfg.wander_episodes // 3, 1))
+        + 2 * cfg.forage_minutes + (2 if cfg.render else 0)
+    )  # fmt: skip
 
 
 def step_responses(policy: Any, cfg: NomadBenchConfig, population: int, seed: int) -> dict[str, FloatArray]:
@@ -192,12 +205,17 @@ WANDER_EPISODE = 600
 """Actions per wandering episode (60 s at 10 Hz)."""
 
 
-def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progress) -> dict[str, Any]:
-    """Wander (learning, or hand-coded) under the veto: per-episode distance, collisions, vetoes."""
+def wander(
+    cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progress, veto: bool = True
+) -> dict[str, Any]:
+    """Wander (learning, or hand-coded) under the veto or without it.
+
+    Per-episode distance, collisions and vetoes.
+    """
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="wander"), seed=cfg.seed)
     learner = _learner(task, cfg) if learned else None
-    vetoes = [task.veto(i) for i in range(p)]
+    vetoes = [task.veto(i) for i in range(p)] if veto else []
     rng = np.random.default_rng(cfg.seed)
     x = task.reset(rng)
     shape = (p, episodes)
@@ -210,7 +228,7 @@ def wander(cfg: NomadBenchConfig, learned: bool, episodes: int, progress: Progre
                 proposed = learner.act(x).action
             else:
                 proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
-            executed, vetoed = _apply_vetoes(vetoes, x, proposed)
+            executed, vetoed = _apply_vetoes(vetoes, x, proposed) if veto else (proposed, np.zeros(p, bool))
             tr = task.step(executed)
             if learner is not None:
                 learner.learn(x, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
@@ -351,6 +369,57 @@ def _scratch_at(servo: dict[str, Any], count: float) -> dict[str, float]:
     }
 
 
+def _rendered(task: NomadConfig) -> NomadConfig:
+    return replace(task, vision=replace(task.vision, source="render"))
+
+
+def render_check(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
+    """Rendered vision against the camera model: servoing, the carpet matrix, interest, tick cost."""
+    from sims.nomad.vision import carpet_mismatch, interesting_cells
+    from sims.render import RenderUnavailable
+
+    rendered_cfg = replace(cfg, task=_rendered(cfg.task))
+    try:
+        servo = step_responses(lambda x: proportional(x, cfg.task), rendered_cfg, 1, cfg.seed + 1000)
+        progress(1)
+        task = NomadVec(2, replace(rendered_cfg.task, behaviour="wander"), seed=cfg.seed)
+        vetoes = [task.veto(i) for i in range(task.n)]
+        rng = np.random.default_rng(cfg.seed)
+        x = task.reset(rng)
+        agree, difference, found = [], [], {"render": 0, "projection": 0}
+        for _ in range(cfg.render_wander_ticks):
+            proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(task.n)])
+            x = task.step(_apply_vetoes(vetoes, x, proposed)[0]).state
+            for i in range(task.n):
+                # The camera model's raw matrix on the same state (its own noise draws).
+                model_raw = carpet_mismatch(task.model, *task.camera.look(task.model, task.data[i]),
+                                            task.config.vision, rng)  # fmt: skip
+                agree.append(np.mean((model_raw >= 0.5) == (task.carpet_raw[i] >= 0.5)))
+                difference.append(np.abs(model_raw - task.carpet_raw[i]).mean())
+                found["render"] += bool(task.interesting(i))
+                found["projection"] += bool(interesting_cells(model_raw, task.config.vision))
+        minutes, distance = task.time.sum() / 60.0, float(task.distance.sum())
+        task.close()
+        progress(1)
+        tick = tick_cost(replace(rendered_cfg, tick_samples=max(cfg.tick_samples // 4, 50)))
+    except RenderUnavailable as exc:
+        return {"available": False, "reason": str(exc)}
+    ticks = len(agree)
+    return {
+        "available": True,
+        "servo_final_error_px": float(np.median(servo["final_error_px"])),
+        "servo_time_to_goal_s": float(np.nanmedian(servo["time_to_goal_s"])),
+        # Cells both call carpet (< 0.5), or both not, on the same states.
+        "carpet_agreement": float(np.mean(agree)),
+        "carpet_mean_abs_difference": float(np.mean(difference)),
+        # Ticks on which the interest operator finds an object.
+        "interest_fraction": {k: v / ticks for k, v in found.items()},
+        "wander_m_per_min": distance / minutes,
+        "tick_ms_p50_servo": tick["tick_ms_p50_servo"],
+        "tick_ms_p50_wander": tick["tick_ms_p50_wander"],
+    }
+
+
 def tick_cost(cfg: NomadBenchConfig) -> dict[str, float]:
     """Milliseconds per control tick (physics, infrared, carpet matrix, tracker, act), servo and wander."""
     out: dict[str, float] = {}
@@ -364,6 +433,7 @@ def tick_cost(cfg: NomadBenchConfig) -> dict[str, float]:
             u = learner.act(x[0]).action
             x = task.step(u[None]).state
             times[k] = time.perf_counter() - t0
+        task.close()
         out[f"tick_ms_p50_{behaviour}"] = float(np.median(times) * 1e3)
         out[f"tick_ms_p99_{behaviour}"] = float(np.percentile(times, 99) * 1e3)
     out["tick_ms_p50"] = max(out["tick_ms_p50_servo"], out["tick_ms_p50_wander"])
@@ -378,10 +448,14 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
     last = servo["evaluations"][-1]
     learned_wander = wander(cfg, True, cfg.wander_episodes, progress)
     handcoded = wander(cfg, False, max(cfg.wander_episodes // 3, 1), progress)
+    # Without the veto the robots do collide: metres per collision as the wandering is learned.
+    learned_bare = wander(cfg, True, cfg.wander_episodes, progress, veto=False)
+    handcoded_bare = wander(cfg, False, max(cfg.wander_episodes // 3, 1), progress, veto=False)
     from_wander = forage_servo(cfg, "never", progress)
     every_second = forage_servo(cfg, "every_second", progress)
     fresh = untrained(cfg)
     tick = tick_cost(cfg)
+    rendered = render_check(cfg, progress) if cfg.render else None
     return {
         "benchmark": "nomad",
         "config": asdict(cfg),
@@ -397,7 +471,12 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
             "early": learned_wander["m_per_collision_early"],
             "late": learned_wander["m_per_collision_late"],
             "handcoded": handcoded["m_per_collision"],
+            "no_veto_early": learned_bare["m_per_collision_early"],
+            "no_veto_late": learned_bare["m_per_collision_late"],
+            "no_veto_handcoded": handcoded_bare["m_per_collision"],
         },
+        "wander_no_veto": learned_bare,
+        "wander_handcoded_no_veto": handcoded_bare,
         "wander_m_per_veto": {
             "early": learned_wander["m_per_veto_early"],
             "late": learned_wander["m_per_veto_late"],
@@ -413,6 +492,7 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
         "servo_every_second_target": every_second,
         "servo_every_second_target_score": float(np.median(every_second["final_error_px"])),
         **tick,
+        "render": rendered,
         "wall_s": time.perf_counter() - t0,
     }
 
@@ -476,6 +556,11 @@ def plot(result: dict[str, Any], path: Path) -> None:
         label="collisions per minute x10, learned",
     )
     ax.plot(episodes, np.mean(learned["distance_m"], axis=0), marker="^", label="metres per minute, learned")
+    bare = result.get("wander_no_veto")
+    if bare is not None:
+        ax.plot(np.arange(1, np.asarray(bare["collisions"]).shape[1] + 1),
+                np.sum(bare["distance_m"], axis=0) / np.maximum(np.sum(bare["collisions"], axis=0), 1) * 10,
+                marker="v", ls=":", label="metres per collision x10, learned without the veto")  # fmt: skip
     ax.axhline(
         float(np.mean(handcoded["vetoes"])), color="C0", ls="--", label="vetoes per minute, hand-coded"
     )

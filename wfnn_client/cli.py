@@ -14,6 +14,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
+from sims.nomad.vision import NomadVisionConfig
 from wfnn_client.run import ClientConfig, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
@@ -92,7 +93,7 @@ def main(
     vision: Annotated[
         str,
         typer.Option(
-            help="hydra: `projection` (camera model + tracker faults) or `render` (images, "
+            help="hydra, nomad: `projection` (camera model + tracker faults) or `render` (images, "
             "template matching; slower)."
         ),
     ] = "projection",
@@ -149,6 +150,7 @@ def main(
         nomad = NomadConfig(
             behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
             camera_yaw_deg=camera_yaw, balls=balls,
+            vision=NomadVisionConfig(source=vision),  # type: ignore[arg-type]
         )  # fmt: skip
         forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
         config = ClientConfig(

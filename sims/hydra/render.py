@@ -14,14 +14,44 @@ Rendering itself is `sims.render`.
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.hydra.vision import Measurement, VisionConfig
+from sims.hydra.vision import Measurement
 from sims.render import GreyImage, RgbImage
 
 FloatArray = NDArray[np.float64]
+
+
+class TrackerSettings(Protocol):
+    """What an `ImageTracker` reads from its camera's configuration (HyDrA's or the Nomad's)."""
+
+    @property
+    def width(self) -> int:
+        """Image width in image units (pixels)."""
+
+    @property
+    def height(self) -> int:
+        """Image height in image units."""
+
+    @property
+    def render_scale(self) -> float:
+        """Rendered size as a fraction of the image size."""
+
+    @property
+    def window_px(self) -> float:
+        """How far around its last position the target is searched for (image units)."""
+
+    @property
+    def min_correlation(self) -> float:
+        """Least normalised correlation of a match."""
+
+    @property
+    def quantise(self) -> bool:
+        """Whether positions are reported in whole pixels."""
 
 
 MIN_TEMPLATE_CONTRAST = 0.1
@@ -38,14 +68,17 @@ def _peak_offset(before: float, at: float, after: float) -> float:
 
 
 class ImageTracker:
-    """Template matching in one camera's grey images, as the thesis' tracker did.
+    """Template matching in one camera's images, as the thesis' trackers did.
+
+    Images are grey levels [h, w] (HyDrA's monochrome cameras) or colours [h, w, 3] (the Nomad's
+    colour camera), float32 0..1; the correlation is over all colour planes.
 
     Positions are pixels from the image centre (x right, y down) in the configured image size,
     whatever the rendered size. `target` counts acquisitions: the tracker cannot tell targets
     that look alike apart, so every new acquisition may be another object.
     """
 
-    def __init__(self, cfg: VisionConfig) -> None:
+    def __init__(self, cfg: TrackerSettings) -> None:
         self.cfg = cfg
         self.scale = cfg.render_scale
         self.size = (round(cfg.width * cfg.render_scale), round(cfg.height * cfg.render_scale))
@@ -69,14 +102,17 @@ class ImageTracker:
         self.current = -1
         self.position = None
 
-    def acquire(self, image: GreyImage, pixel: FloatArray, radius_px: float) -> bool:
+    def acquire(self, image: GreyImage, pixel: FloatArray, radius_px: float, follow: bool = False) -> bool:
         """Cut the template around a target seen at `pixel` (image units) with this radius.
 
         Returns False (and keeps no template) when the cut would leave the image or holds too
-        little contrast to be matched (nothing there).
+        little contrast to be matched (nothing there). `follow`: the target is tracked from
+        there (the next frame searches around it, not the whole image).
         """
         w, h = self.size
         centre = np.array([w / 2, h / 2]) + np.asarray(pixel) * self.scale
+        if not (np.all(np.isfinite(centre)) and np.isfinite(radius_px)):
+            return False  # not in front of the camera
         half = int(np.ceil(1.2 * radius_px * self.scale)) + 1
         col, row = (int(v) for v in np.floor(centre))
         if col - half < 0 or row - half < 0 or col + half >= w or row + half >= h:
@@ -86,6 +122,10 @@ class ImageTracker:
             return False
         self.template = template
         self._offset = centre - (np.array([col, row]) + 0.5)
+        if follow:
+            self.acquisitions += 1
+            self.current = self.acquisitions
+            self.position = np.array([col, row]) + 0.5
         return True
 
     def share_template(self, other: ImageTracker) -> None:
@@ -103,11 +143,11 @@ class ImageTracker:
         return float(best), centre
 
     def observe(self, image: GreyImage) -> Measurement:
-        """Track for one frame of grey levels [h, w] (rendered size)."""
+        """Track for one frame [h, w] or [h, w, 3] (rendered size)."""
         if self.template is None:
             return Measurement(False, np.zeros(2), -1, False)
         cfg, half = self.cfg, self.half
-        h, w = image.shape
+        h, w = image.shape[:2]
         switched = False
         found = False
         if self.position is not None:

@@ -71,7 +71,7 @@ def nomad_mjcf(cfg: NomadModelConfig) -> str:
     carpet = " ".join(f"{c:.3f}" for c in CARPET) + " 1"
     walls = "\n".join(
         f'<geom name="wall{k}" type="box" size="{sx} {sy} 0.5" pos="{px} {py} 0.5" rgba="{wall}" '
-        f'group="{GROUP_STATIC}"/>'
+        f'material="matte" group="{GROUP_STATIC}"/>'
         for k, (sx, sy, px, py) in enumerate(
             (
                 (ax, 0.05, 0, ay + 0.05),
@@ -120,10 +120,16 @@ def nomad_mjcf(cfg: NomadModelConfig) -> str:
   <option timestep="{cfg.timestep}" integrator="implicitfast"/>
   <visual><global offwidth="{max(640, w)}" offheight="{max(480, h)}"/></visual>
   <default><geom contype="1" conaffinity="1" friction="0.6 0.01 0.001"/></default>
+  <!-- Carpet and walls are matte: a glint of a light moves with the camera's view and would
+       read as "not carpet". -->
+  <asset><material name="matte" specular="0" shininess="0" reflectance="0"/></asset>
   <worldbody>
-    <light pos="0 0 3" dir="0 0 -1" diffuse="0.7 0.7 0.7"/>
-    <light pos="2 2 3" dir="-0.3 -0.3 -1" diffuse="0.3 0.3 0.3"/>
-    <geom name="floor" type="plane" size="{ax} {ay} 0.1" rgba="{carpet}" group="{GROUP_FLOOR}"/>
+    <!-- Directional lights: the floor is lit the same everywhere (spotlights' cones made the
+         carpet three times darker in the room's corners than in its middle). -->
+    <light directional="true" pos="0 0 3" dir="0 0 -1" diffuse="0.6 0.6 0.6"/>
+    <light directional="true" pos="2 2 3" dir="-0.3 -0.3 -1" diffuse="0.3 0.3 0.3"/>
+    <geom name="floor" type="plane" size="{ax} {ay} 0.1" rgba="{carpet}" material="matte"
+          group="{GROUP_FLOOR}"/>
     {walls}
     {pillars}
     {plant}

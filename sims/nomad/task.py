@@ -30,19 +30,22 @@ from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
 from sims.nomad.behaviours import ir_veto
-from sims.nomad.model import GROUP_FLOOR, N_BALLS, NomadModelConfig, nomad_mjcf
+from sims.nomad.model import GROUP_FLOOR, GROUP_OBJECTS, GROUP_STATIC, N_BALLS, NomadModelConfig, nomad_mjcf
 from sims.nomad.vision import (
     COLS,
     ROWS,
     NomadCamera,
     NomadVisionConfig,
     TargetTracker,
+    Track,
     carpet_mismatch,
     interesting_cells,
     smooth_carpet,
 )
 
 if TYPE_CHECKING:  # cv2 and the GL context load only when something is rendered
+    from sims.hydra.render import ImageTracker
+    from sims.nomad.render import CarpetGrid, FloatImage
     from sims.render import CameraRenderer, RgbImage
 
 FloatArray = NDArray[np.float64]
@@ -53,6 +56,9 @@ WILD_ENCODER = -299_792_458.0
 """What the thesis' encoders once reported: the speed of light, backwards (Section 6.7.1)."""
 IR_BEAM_DEG = 7.5
 """Half-width of an infrared sensor's beam (degrees; 16 sensors are 22.5 degrees apart)."""
+Seen = tuple[int, FloatArray, tuple[FloatArray, float] | None]
+"""An interesting object: its geom, the world point seen, and (rendered vision) its pixel and
+radius in the image, where its template is cut."""
 PERSON_PATIENCE_S = 3.0
 """How long the walking person waits for a robot in their way before turning back."""
 
@@ -200,6 +206,22 @@ class NomadVec:
         self.placed = np.zeros(n, dtype=np.int64)
         """Targets placed (servo)."""
         self._renderer: CameraRenderer | None = None
+        """Renders full-size pictures for a person (`camera_images`)."""
+        # Rendered vision: each robot's latest frame, when (sim time) it was rendered, and where a
+        # newly started target's template is to be cut (pixel, radius; image units).
+        self.rendered = cfg.vision.source == "render"
+        self._vision_renderer: CameraRenderer | None = None
+        self._frames: list[FloatImage | None] = [None] * n
+        self._frame_time = np.full(n, -1.0)
+        self._cut: list[tuple[FloatArray, float] | None] = [None] * n
+        self._grid: CarpetGrid | None = None
+        self._image_trackers: list[ImageTracker] = []
+        if self.rendered:
+            from sims.hydra.render import ImageTracker
+            from sims.nomad.render import CarpetGrid
+
+            self._grid = CarpetGrid(cfg.vision)
+            self._image_trackers = [ImageTracker(cfg.vision) for _ in range(n)]
 
     # ------------------------------------------------------------------ declared ranges
     def state_bounds(self, behaviour: Behaviour | None = None) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -259,6 +281,7 @@ class NomadVec:
             self.scatter_balls(i, rng)
             self.trackers[i].rng = rng
             self.trackers[i].stop()
+            self._frame_time[i] = -1.0
             mujoco.mj_forward(self.model, data)
         self.command[:] = 0.0
         self.setpoint[:] = 0.0
@@ -307,6 +330,7 @@ class NomadVec:
         data = self.data[i]
         data.qpos[q : q + 7] = (xy[0], xy[1], self.model_config.ball_radius, 1, 0, 0, 0)
         data.qvel[v : v + 6] = 0.0
+        self._frame_time[i] = -1.0  # the scene changed: a rendered frame is out of date
 
     def _place_target(self, i: int) -> None:
         """Put a ball in view ahead of the camera and start tracking it.
@@ -338,6 +362,9 @@ class NomadVec:
         tracker = self.trackers[i]
         geom = self.ball_geoms[k]
         tracker.start(data, geom, data.geom_xpos[geom].copy())
+        if self.rendered:
+            pixel, depth = self.camera.project(data, data.geom_xpos[geom])
+            self._cut[i] = (pixel, self.model_config.ball_radius * self.camera.focal / max(depth, 1e-6))
         self.placed[i] += 1
         self._last_frame[i] = np.nan
         self._frame(i)
@@ -413,7 +440,7 @@ class NomadVec:
         """One 30 Hz camera frame: the tracker; pixel error to the goal and pixel velocity."""
         data = self.data[i]
         mujoco.mj_camlight(self.model, data)
-        track = self.trackers[i].observe(self.model, data)
+        track = self._track_image(i) if self.rendered else self.trackers[i].observe(self.model, data)
         if track.found:
             error = track.pixel - np.asarray(self.config.vision.goal_px)
             last = self._last_frame[i]
@@ -424,6 +451,60 @@ class NomadVec:
             self.pixels[i] = np.nan
             self.pixel_velocity[i] = np.nan
             self._last_frame[i] = np.nan
+
+    def _vision_frame(self, i: int) -> FloatImage:
+        """Robot i's camera frame now, rendered: colours 0..1 at the rendered size.
+
+        One render per physics state; the first call acquires the carpet templates.
+        """
+        from sims.nomad.render import to_colour
+
+        data, v = self.data[i], self.config.vision
+        if self._frame_time[i] == data.time and (frame := self._frames[i]) is not None:
+            return frame
+        assert self._grid is not None
+        if self._vision_renderer is None:
+            from sims.render import CameraRenderer
+
+            self._vision_renderer = CameraRenderer(self.model, *self._grid.size)
+        if self._grid.template is None:
+            self._grid.acquire(to_colour(self._carpet_view(), v.image_noise, self._rng))
+        frame = to_colour(self._vision_renderer.rgb(data, "camera"), v.image_noise, self._rng)
+        self._frames[i], self._frame_time[i] = frame, data.time
+        return frame
+
+    def _carpet_view(self) -> RgbImage:
+        """Start-up: the camera's view of open carpet from the middle of the room.
+
+        The room's furniture, balls and the person are left out, as if the experimenter had
+        cleared the view.
+        """
+        assert self._vision_renderer is not None
+        data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, data)
+        return self._vision_renderer.rgb(data, "camera", hidden_groups=(GROUP_STATIC, GROUP_OBJECTS))
+
+    def _track_image(self, i: int) -> Track:
+        """One rendered frame of robot i's tracker.
+
+        Template matching around the target's last position; a target not found there is lost
+        (and forgotten).
+        """
+        tracker, image_tracker = self.trackers[i], self._image_trackers[i]
+        if not tracker.active:
+            image_tracker.reset()
+            return Track(False, np.zeros(2))
+        frame = self._vision_frame(i)
+        cut, self._cut[i] = self._cut[i], None
+        if cut is not None and not image_tracker.acquire(frame, cut[0], cut[1], follow=True):
+            tracker.stop()  # nothing to cut a template from (out of view, or too plain)
+            return Track(False, np.zeros(2))
+        measured = image_tracker.observe(frame)
+        if not measured.found or measured.switched:
+            tracker.stop()
+            image_tracker.reset()
+            return Track(False, np.zeros(2))
+        return Track(True, measured.pixel)
 
     def _sense(self, i: int, first: bool = False) -> None:
         """Encoders, infrared ring, carpet matrix and collisions at the end of an action."""
@@ -448,8 +529,12 @@ class NomadVec:
             dist >= 0, np.clip(dist - self.model_config.radius, 0, cfg.ir_range), cfg.ir_range
         )
         self.ir[i] = readings.reshape(cfg.ir_sensors, -1).min(axis=1)
-        hit, points = self._looked[i] = self.camera.look(self.model, data)
-        self.carpet_raw[i] = carpet_mismatch(self.model, hit, points, cfg.vision, rng)
+        if self.rendered:
+            assert self._grid is not None
+            self.carpet_raw[i] = self._grid.mismatch(self._grid.difference(self._vision_frame(i)))
+        else:
+            hit, points = self._looked[i] = self.camera.look(self.model, data)
+            self.carpet_raw[i] = carpet_mismatch(self.model, hit, points, cfg.vision, rng)
         v = cfg.vision
         self.carpet[i] = smooth_carpet(self.carpet_raw[i], None if first else self.carpet[i], v.alpha, v.beta)
         # A collision is the base touching anything but the floor and the balls (which it may
@@ -479,21 +564,46 @@ class NomadVec:
         """The interest operator on robot i's latest raw carpet matrix.
 
         Returns, per interesting object, the geom its rays met most and the mean point where
-        they met it (where a template of it would be taken): [(geom, point [3])].
+        they met it (where a template of it would be taken): [(geom, point [3])]. Rendered
+        vision: the geom and point the ray through the object's pixel meets.
         """
+        return [(geom, point) for geom, point, _ in self._objects(i)]
+
+    def _objects(self, i: int) -> list[Seen]:
+        """`interesting`, with (pixel, radius) where rendered vision saw each object."""
+        if self.rendered:
+            return self._rendered_objects(i)
         # The rays the carpet matrix was measured with: the object is what those cells saw.
         looked = self._looked[i]
         if looked is None:
             return []
         hit, points = looked
-        out = []
+        out: list[Seen] = []
         for cells in interesting_cells(self.carpet_raw[i], self.config.vision):
             geoms = np.concatenate([hit[r, c] for r, c in cells])
             where = np.concatenate([points[r, c] for r, c in cells])
             chosen = geoms[(geoms >= 0) & (geoms != self._floor)]
             if chosen.size:
                 geom = int(np.bincount(chosen).argmax())
-                out.append((geom, where[geoms == geom].mean(axis=0)))
+                out.append((geom, where[geoms == geom].mean(axis=0), None))
+        return out
+
+    def _rendered_objects(self, i: int) -> list[Seen]:
+        """Interesting objects in robot i's latest rendered frame.
+
+        Which geom each is (what the ray through its pixel meets) only says which ball is picked
+        up when it is reached.
+        """
+        assert self._grid is not None
+        difference = self._grid.difference(self._vision_frame(i))
+        out: list[Seen] = []
+        for cells in interesting_cells(self.carpet_raw[i], self.config.vision):
+            seen = self._grid.object_at(difference, cells)
+            if seen is None:
+                continue
+            geom, point = self.camera.ray(self.model, self.data[i], seen[0])
+            if geom >= 0 and geom != self._floor:
+                out.append((geom, point, seen))
         return out
 
     # ------------------------------------------------------------------ pictures
@@ -526,10 +636,11 @@ class NomadVec:
         return {"camera": image}
 
     def close(self) -> None:
-        """Release the renderer's GL context, if one was made."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        """Release the renderers' GL contexts, if any were made."""
+        for renderer in (self._renderer, self._vision_renderer):
+            if renderer is not None:
+                renderer.close()
+        self._renderer = self._vision_renderer = None
 
     # ------------------------------------------------------------------ state and reward
     # Both behaviours' views are kept up to date whichever behaviour is learned, so one can
@@ -565,11 +676,12 @@ class NomadVec:
 
     def acquire(self, i: int) -> bool:
         """Run the interest operator for robot i and track the first interesting object found."""
-        found = self.interesting(i)
+        found = self._objects(i)
         if not found:
             return False
-        geom, point = found[0]
+        geom, point, seen = found[0]
         self.trackers[i].start(self.data[i], geom, point)
+        self._cut[i] = seen
         self._last_frame[i] = np.nan
         self._frame(i)
         self._lost_since[i] = self.time[i]

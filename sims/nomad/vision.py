@@ -13,6 +13,9 @@ is non-carpet, neighbours are smoothed horizontally and frames over time (Eq 6.2
 The interest operator picks an object that is not carpet but is surrounded by carpet; the
 tracker then follows that object's point in the image (as template matching would), losing it
 out of view, hidden, or moving too fast, with whole-pixel quantisation and noise.
+
+From rendered images (`source="render"`, `sims.nomad.render`): the same matrix and tracking
+measured in MuJoCo's images of the camera instead.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from sims.hydra.vision import VISION_SOURCES, VisionSource
 from sims.nomad.model import CARPET
 from sims.pinhole import focal_px, project
 
@@ -36,6 +40,9 @@ ROWS, COLS = 5, 7
 class NomadVisionConfig:
     """The camera image, the carpet matching and the tracker."""
 
+    source: VisionSource = "projection"
+    """`projection`: the camera model's rays and a tracker with faults (fast); `render`: images
+    rendered by MuJoCo, colour template matching for the carpet and the target (sims.nomad.render)."""
     width: int = 320
     height: int = 240
     grid_top: float = 0.2
@@ -65,6 +72,31 @@ class NomadVisionConfig:
     blur_px_per_frame: float = 40.0
     """A target moving faster than this across the image (pixels per 30 Hz frame) is lost."""
     margin_px: float = 6.0
+    render_scale: float = 0.25
+    """render: images are rendered at this fraction of width x height (80 x 60 by default: a cell
+    of the carpet grid is still about 11 x 10 pixels; positions are reported in width x height)."""
+    image_noise: float = 0.01
+    """render: standard deviation of the camera's noise on each colour plane (0..1)."""
+    window_px: float = 24.0
+    """render: the tracker searches this far around the target's last position (pixels); a target
+    that moves further in one frame, or is hidden, is lost."""
+    min_correlation: float = 0.7
+    """render: a match needs at least this normalised correlation with the target's template."""
+
+    def __post_init__(self) -> None:
+        if self.source not in VISION_SOURCES:
+            raise ValueError(f"vision source must be one of {VISION_SOURCES}, got {self.source!r}")
+        if self.width < 16 or self.height < 16:
+            raise ValueError(f"image must be at least 16 x 16 pixels, got {self.width} x {self.height}")
+        if not 0.1 <= self.render_scale <= 1.0:
+            raise ValueError(f"render_scale must be in [0.1, 1], got {self.render_scale}")
+        if (
+            round(self.width * self.render_scale) < 2 * COLS
+            or round(self.height * self.render_scale) < 3 * ROWS
+        ):
+            raise ValueError("render: the rendered image is too small for the 5 x 7 carpet grid")
+        if not 0.0 < self.min_correlation < 1.0:
+            raise ValueError(f"min_correlation must be in (0, 1), got {self.min_correlation}")
 
 
 def cell_pixels(cfg: NomadVisionConfig) -> FloatArray:
@@ -103,20 +135,22 @@ def smooth_carpet(raw: FloatArray, previous: FloatArray | None, alpha: float, be
 def interesting_cells(raw: FloatArray, cfg: NomadVisionConfig) -> list[list[tuple[int, int]]]:
     """Objects that are not carpet but are surrounded by carpet, as lists of cells (row, col).
 
-    An object is a 4-connected group of at most `interest_cells` mismatched cells, none on the
-    grid's edge (it might go on out of view), whose neighbouring cells are all carpet.
+    An object is a 4-connected group of cells that are not carpet (at least `interest_carpet`),
+    one of them clearly not (at least `interest_object`): so the cells it only partly covers
+    belong to it rather than breaking the carpet around it. It is at most `interest_cells`
+    cells and none on the grid's edge (it might go on out of view); every cell beside it is then
+    carpet.
     """
-    objects, count = ndimage.label(raw >= cfg.interest_object)
+    groups, count = ndimage.label(raw >= cfg.interest_carpet)
     found = []
     for label in range(1, count + 1):
-        cells = np.argwhere(objects == label)
+        cells = np.argwhere(groups == label)
         if len(cells) > cfg.interest_cells:
             continue
         rows, cols = cells[:, 0], cells[:, 1]
         if rows.min() == 0 or cols.min() == 0 or rows.max() == ROWS - 1 or cols.max() == COLS - 1:
             continue
-        around = ndimage.binary_dilation(objects == label) & (objects != label)
-        if raw[around].max() < cfg.interest_carpet:
+        if raw[rows, cols].max() >= cfg.interest_object:
             found.append([(int(r), int(c)) for r, c in cells])
     return found
 
@@ -152,6 +186,18 @@ class NomadCamera:
         points = origin + dirs * np.where(self._dist >= 0, self._dist, np.inf)[:, None]
         shape = self.grid.shape[:3]
         return self._geomid.reshape(shape).copy(), points.reshape(*shape, 3)
+
+    def ray(self, model: mujoco.MjModel, data: mujoco.MjData, pixel: FloatArray) -> tuple[int, FloatArray]:
+        """What the ray through `pixel` (x right, y down, from the centre) meets first.
+
+        Returns the geom (-1: nothing) and the point [3] (NaN when nothing).
+        """
+        rot = data.cam_xmat[self.id].reshape(3, 3)
+        direction = rot @ np.array([pixel[0] / self.focal, -pixel[1] / self.focal, -1.0])
+        start = data.cam_xpos[self.id].copy()
+        hit = np.zeros(1, dtype=np.int32)
+        dist = mujoco.mj_ray(model, data, start, direction, self.groups, 1, self.exclude_body, hit)
+        return int(hit[0]), start + direction * dist if dist >= 0 else np.full(3, np.nan)
 
     def visible(self, model: mujoco.MjModel, data: mujoco.MjData, geom: int, point: FloatArray) -> bool:
         """Whether a ray from the camera to `point` meets `geom` first."""

@@ -138,6 +138,23 @@ def test_client_hydra_with_rendered_vision_saves_camera_frames(tmp_path):
     assert "5 camera frames" in proc.stdout
 
 
+def test_client_nomad_forages_on_rendered_vision_and_saves_camera_frames(tmp_path):
+    from tests.fakes import render_problem
+
+    if (problem := render_problem()) is not None:
+        pytest.skip(f"no off-screen rendering here: {problem}")
+    out = tmp_path / "run"
+    run([BIN / "wfnn-client", "--sim", "nomad", "--behaviour", "forage", "--vision", "render",
+         "--episodes", "1", "--rate-hz", "0", "--thinks", "5", "--balls", "24", "--camera-every", "200",
+         "--out", out])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["client"]["nomad"]["vision"]["source"] == "render"
+    assert metrics["ticks"] == 600 and metrics["wander/learn/experiences"] >= 590
+    # Whether the untrained wanderer meets a target in 60 s is luck (the think thread's timing
+    # varies run to run); finding and tracking in rendered images is tested in test_nomad_render.
+    assert metrics["camera_frames"]["written"] == 3
+
+
 @pytest.mark.parametrize("behaviour", ["servo", "wander", "forage"])
 def test_client_nomad_behaviours_run_and_save(tmp_path, behaviour):
     out = tmp_path / "run"
@@ -170,8 +187,8 @@ def test_client_nomad_behaviours_run_and_save(tmp_path, behaviour):
 def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     j, p = tmp_path / "nomad.json", tmp_path / "nomad.png"
     out = run([BIN / "wfnn-bench", "nomad", "--controllers", "2", "--episodes", "2", "--eval-every", "1",
-               "--wander-episodes", "3", "--forage-minutes", "1", "--thinks", "5", "--json", j,
-               "--plot", p])  # fmt: skip
+               "--wander-episodes", "3", "--forage-minutes", "1", "--thinks", "5", "--render-ticks", "20",
+               "--json", j, "--plot", p])  # fmt: skip
     assert "servo_final_error_px" in out.stdout
     data = json.loads(j.read_text())
     assert [e["episode"] for e in data["servo"]["evaluations"]] == [1, 2]
@@ -182,7 +199,14 @@ def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     assert len(data["wander"]["distance_m"]) == 2 and len(data["wander"]["distance_m"][0]) == 3
     assert len(data["wander"]["path"]) == 3 * 600
     assert "early" in data["wander_m_per_collision"] and data["servo_from_wander_score"] >= 0
+    bare = data["wander_no_veto"]  # without the veto every minute is counted, vetoes are none
+    assert sum(map(sum, bare["vetoes"])) == 0 and len(bare["collisions"][0]) == 3
     assert [e["minutes"] for e in data["servo_every_second_target"]["evaluations"]] == [1]
+    rendering = data["render"]
+    if rendering["available"]:  # the proportional servo works on rendered images too
+        assert rendering["servo_final_error_px"] < 15 and 0.5 < rendering["carpet_agreement"] <= 1
+    else:
+        assert "render" in rendering["reason"] or "GL" in rendering["reason"]
     assert 0 <= data["servo_untrained_px"] <= 200
 
 
