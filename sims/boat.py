@@ -152,6 +152,58 @@ def handcoded_boat(
     return np.clip(thrust, -1.0, 1.0)
 
 
+Block = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+"""Experiences in physical units: state [N, 7], action [N, 2], next_state [N, 7], reward [N]."""
+
+_MIRROR_STATE = np.array([0, 1, 2, 3, 4, 6, 5])
+_MIRROR_SIGN = np.array([1.0, -1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+
+
+def mirror(state: FloatArray, action: FloatArray, next_state: FloatArray, reward: FloatArray) -> Block:
+    """The left-right mirror image of experiences: what the mirrored boat would have met.
+
+    The boat is symmetric about its fore-aft axis: swapping the thrusters (A, B) negates the
+    turn, so a target on the left (y) becomes one on the right, the sway and turn rate change
+    sign and the previous thrusts swap. The reward (distance, energy, coarseness) is unchanged.
+    Exact for Eq 3.7-3.8 (`tests/unit/test_boat_transforms.py` checks it against the dynamics).
+    """
+    return (_flip(state), np.asarray(action)[..., ::-1].copy(), _flip(next_state),
+            np.asarray(reward, dtype=np.float64).copy())  # fmt: skip
+
+
+def _flip(state: FloatArray) -> FloatArray:
+    return np.asarray(state, dtype=np.float64)[..., _MIRROR_STATE] * _MIRROR_SIGN
+
+
+def phantom(
+    state: FloatArray,
+    action: FloatArray,
+    next_state: FloatArray,
+    reward: FloatArray,
+    offset: FloatArray,
+    config: BoatConfig | None = None,
+) -> Block:
+    """The same experiences with the target moved by `offset` [N, 2] (Section 3.4.2).
+
+    `offset` is the phantom target's displacement from the real one, in the boat's frame at
+    `state`. The boat turned by dt * turn rate during the step (Eq 3.7's Euler step advances the
+    heading with the old turn rate), so in the next state's frame the displacement is rotated
+    back by that angle; the reward's distance term is recomputed for the phantom target, the
+    energy and coarseness terms stay. Exact for Eq 3.7-3.8.
+    """
+    cfg = config or BoatConfig()
+    state, next_state = np.array(state, dtype=np.float64), np.array(next_state, dtype=np.float64)
+    offset = np.asarray(offset, dtype=np.float64)
+    turned = cfg.dt * state[:, 4]
+    c, s = np.cos(turned), np.sin(turned)
+    moved = np.stack([c * offset[:, 0] + s * offset[:, 1], -s * offset[:, 0] + c * offset[:, 1]], axis=1)
+    before = np.hypot(next_state[:, 0], next_state[:, 1])
+    state[:, :2] += offset
+    next_state[:, :2] += moved
+    after = np.hypot(next_state[:, 0], next_state[:, 1])
+    return state, np.asarray(action).copy(), next_state, reward + cfg.distance_weight * (before - after)
+
+
 class BoatEnv(TaskEnv):
     """Gymnasium boat: one target per episode of `steps_per_target` actions."""
 

@@ -22,8 +22,10 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from wfnn_client.journal import Recorder
 from wfnn_common.architectures import ActLearnThinkMT
 from wfnn_common.learner import WFNN, ActResult
+from wfnn_common.protocol import EXP_EXPLORED
 
 FloatArray = NDArray[np.float64]
 
@@ -99,10 +101,14 @@ class Brain(Protocol):
 class LocalBrain:
     """Thinking in this process: a background think thread, or inline in lock-step mode."""
 
-    def __init__(self, learner: WFNN, lockstep: bool = False, think_batch: int = 50) -> None:
+    def __init__(
+        self, learner: WFNN, lockstep: bool = False, think_batch: int = 50, recorder: Recorder | None = None
+    ) -> None:
         self.learner = learner
         self.lockstep = lockstep
         self.mt = None if lockstep else ActLearnThinkMT(learner, think_batch=think_batch)
+        self.recorder = recorder
+        """Where every experience is recorded (an experience log), if anywhere."""
 
     @property
     def following(self) -> str:
@@ -120,9 +126,11 @@ class LocalBrain:
             self.mt.start()
 
     def stop(self) -> None:
-        """Stop the think thread."""
+        """Stop the think thread; close the record."""
         if self.mt is not None:
             self.mt.stop()
+        if self.recorder is not None:
+            self.recorder.close()
 
     def act(self, state: FloatArray, explore: bool = True) -> Acted | None:
         """Best wire of the newest snapshot (lock-step: of the learner itself)."""
@@ -131,8 +139,12 @@ class LocalBrain:
         return Acted(self.mt.act(state, explore), "local", self.mt.version)
 
     def learn(self, experience: Experience, acted: Acted | None) -> None:
-        """Queue for the think thread, or learn and think now (lock-step)."""
+        """Record; queue for the think thread, or learn and think now (lock-step)."""
         e = experience
+        if self.recorder is not None:
+            flags = e.flags | (EXP_EXPLORED if acted is not None and acted.result.explored else 0)
+            source, version = (acted.source, acted.version) if acted is not None else ("", 0)
+            self.recorder.add(e.state, e.action, e.next_state, e.reward, e.terminal, flags, source, version)
         if self.mt is None:
             self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
             self.learner.think()

@@ -142,7 +142,8 @@ class RemoteBrain:
         self.config = config
         self.bus = bus
         self.keys = Keys(config.controller)
-        self.journal = Journal(config.journal_dir, config.client_id, fsync=config.journal_fsync)
+        self.journal = Journal(config.journal_dir, config.client_id, fsync=config.journal_fsync,
+                               learner_config=learner.config)  # fmt: skip
         self.id = self.journal.client_id
         self.codec = Codec(self.id, load_key(str(config.key_file) if config.key_file else None))
         self.spec_hash = learner.config.spec_hash()

@@ -28,7 +28,8 @@ class PersistError(ValueError):
     """A file is not a wfnn file of the expected kind and version, or does not fit."""
 
 
-def _atomic_savez(path: Path, arrays: dict[str, Any]) -> None:
+def atomic_savez(path: Path, arrays: dict[str, Any]) -> None:
+    """Write an `.npz` so that a crash leaves the old file or the new one, never a torn one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
@@ -62,7 +63,7 @@ def save_weights(
     path: Path, config: LearnerConfig, params: Params, meta: dict[str, Any] | None = None
 ) -> None:
     """Save a population's weights [P, n_params] with the config that defines them."""
-    _atomic_savez(
+    atomic_savez(
         path,
         {
             "format": np.str_(WEIGHTS_FORMAT),
@@ -92,7 +93,7 @@ def load_weights(path: Path) -> tuple[LearnerConfig, Params, dict[str, Any]]:
 
 def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> None:
     """Save a block of experiences [N, ...] (the learner's scaled units, raw rewards)."""
-    _atomic_savez(
+    atomic_savez(
         path,
         {
             "format": np.str_(EXPERIENCE_FORMAT),

@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.status import Status
 
+from wfnn_common.logs import LogFormatError
 from wfnn_common.net import NetConfig
 from wfnn_common.protocol import ServerStatus
 from wfnn_server.config import ServerConfig
@@ -58,6 +59,14 @@ def main(
     checkpoint_period: Annotated[float, typer.Option(help="Checkpoint period (s).")] = 30.0,
     think: Annotated[str, typer.Option(help="budget (thinks per action) or continuous.")] = "budget",
     fsync: Annotated[str, typer.Option(help="always, interval or never.")] = "interval",
+    replay_only: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="Learn from these experience logs (client --record DIR/journal, server DATA_DIR/store; "
+            "repeatable) with no robot: import them into the store, think until each experience has had "
+            "its thinks, checkpoint, stop. Rerun without it to go on learning online.",
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option(help="No live status line.")] = False,
     verbose: bool = False,
 ) -> None:
@@ -78,15 +87,20 @@ def main(
             controller=controller, server_id=server_id, net=net, data_dir=data_dir,
             learner_config=learner_config, key_file=key_file, seed=seed, publish_period_s=publish_period,
             checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
+            replay=tuple(replay_only or ()), replay_only=bool(replay_only),
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     console.print(f"[bold]wfnn-server[/] {config}")
-    if quiet:
-        run(config)
-        return
-    with Status("starting", console=console) as line:
-        run(config, lambda status: line.update(status_line(status)))
+    try:
+        if quiet:
+            run(config)
+            return
+        with Status("starting", console=console) as line:
+            run(config, lambda status: line.update(status_line(status)))
+    except LogFormatError as exc:  # logs that cannot be replayed: nothing was imported
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(2) from exc
 
 
 if __name__ == "__main__":

@@ -46,6 +46,14 @@ class ServerConfig:
     fsync_interval_s: float = 0.02
     """With fsync `interval`: acknowledgements wait at most this long for an fsync."""
     segment_bytes: int = 64 << 20
+    replay: tuple[Path, ...] = ()
+    """Experience logs (client records `DIR/journal`, other servers' `DATA_DIR/store`) imported
+    into the store at start, each client's experiences once; they are owed their thinks like
+    experiences that arrive from robots."""
+    replay_only: bool = False
+    """Serve no robot: learn from the store (with `replay`) until every stored experience has had
+    its thinks, then checkpoint (`DATA_DIR/checkpoint.npz`, a weights file) and stop. Starting the
+    server again on the same data directory without it continues online from there."""
     recovery_thinks_max: int = 2_000_000
     """After a divergence reset, snapshots are flagged diverged until the learner has replayed
     thinks_per_action per stored experience, at most this many thinks."""
@@ -62,3 +70,5 @@ class ServerConfig:
             raise ValueError(f"fsync must be always, interval or never, got {self.fsync!r}")
         if self.think not in ("budget", "continuous"):
             raise ValueError(f"think must be budget or continuous, got {self.think!r}")
+        if self.replay_only and self.think != "budget":
+            raise ValueError("replay_only learns the stored experiences' think budget: think must be budget")

@@ -22,12 +22,14 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
+from wfnn_common.logs import LogFormatError, log_config, read_batches
 from wfnn_common.net import Bus, Channel
 from wfnn_common.persist import PersistError, load_weights, save_weights
 from wfnn_common.protocol import (
@@ -127,10 +129,14 @@ class ThinkServer:
         self._recover_until = 0
         self._staleness: list[int] = []
         self._q_chosen: list[float] = []
+        self.imported = self._import_logs(config.replay) if config.replay else 0
+        """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
         self.last_status: ServerStatus | None = None
         cfg = self._initial_config()
+        if cfg is None and config.replay:  # the logs say what they were recorded for
+            cfg = next((c for c in map(log_config, config.replay) if c is not None), None)
         if cfg is not None:
             self._start_learner(cfg)
 
@@ -152,6 +158,45 @@ class ThinkServer:
         if self.config.seed is not None:
             cfg = LearnerConfig.from_dict({**cfg.to_dict(), "seed": self.config.seed})
         return cfg
+
+    def _import_logs(self, directories: tuple[Path, ...]) -> int:
+        """Store the experiences of logs that the store lacks; -> how many.
+
+        Every log is checked first (readable, one learner spec, the server's own spec where it
+        has one), so a log that does not fit leaves the store untouched.
+        """
+        known = self._initial_config()
+        spec = known.spec_hash() if known is not None else ""
+        for directory in directories:
+            described = log_config(directory)
+            for batch in read_batches(directory, self.codec.key):
+                spec = spec or batch.spec_hash
+                if batch.spec_hash != spec or (described is not None and described.spec_hash() != spec):
+                    raise LogFormatError(
+                        f"{directory}: experiences of learner spec {batch.spec_hash} do not fit spec {spec} "
+                        "(the server's learner config or the other logs)"
+                    )
+        imported = 0
+        for directory in directories:
+            for batch in read_batches(directory, self.codec.key):
+                admitted = self.store.admit(batch)
+                if admitted.gap:
+                    through = self.store.stored_through[batch.client]
+                    log.warning("%s: client %s experiences from %d leave a gap after %d; not imported",
+                                directory, batch.client, batch.first_seq, through)  # fmt: skip
+                if admitted.new is not None:
+                    self.store.append(admitted.new)
+                    imported += len(admitted.new)
+        self.store.sync()
+        log.info("imported %d experiences from %d logs", imported, len(directories))
+        return imported
+
+    def replayed(self) -> bool:
+        """Whether every stored experience has had its thinks (nothing queued or owed)."""
+        return (
+            self.learner is not None and self.budget <= 0 and not self._to_learn and not self._owed
+            and self.learner.thinks[0] >= self._recover_until
+        )  # fmt: skip
 
     def _start_learner(self, cfg: LearnerConfig) -> None:
         """Build the learner, resume the checkpoint if it fits, and load the stored experiences."""
@@ -536,9 +581,13 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
+        if config.replay_only and server.learner is None:
+            raise LogFormatError(
+                "replay-only: no learner config (give --learner-config, or logs whose log.json records one)"
+            )
         server.start()
         shown = None
-        while not stop.wait(0.2) and not server.wait(0):
+        while not stop.wait(0.2) and not server.wait(0) and not (config.replay_only and server.replayed()):
             if on_status is not None and server.last_status is not shown:
                 shown = server.last_status
                 on_status(shown)

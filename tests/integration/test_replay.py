@@ -1,0 +1,72 @@
+"""Passive learning: `wfnn-server --replay-only` learns from recorded experience logs, then serves on."""
+
+import json
+import os
+import subprocess
+
+import pytest
+
+from tests.integration.procs import BIN, endpoint, free_port
+from wfnn_common import logs
+from wfnn_common.persist import load_weights
+
+pytestmark = pytest.mark.multiprocess
+ENV = {**os.environ, "COLUMNS": "160"}
+
+
+def _run(*args, timeout=180):
+    return subprocess.run([str(a) for a in args], capture_output=True, text=True, timeout=timeout, env=ENV)
+
+
+def _record(out, sim="boat", episodes="2"):
+    proc = _run(BIN / "wfnn-client", "--sim", sim, "--episodes", episodes, "--rate-hz", "0", "--lockstep",
+                "--thinks", "3", "--out", out)  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _replay(data_dir, *logs_dirs):
+    args = [BIN / "wfnn-server", "--id", "srv", "--controller", "it", "--listen", endpoint(free_port()),
+            "--data-dir", data_dir, "--quiet"]  # fmt: skip
+    for d in logs_dirs:
+        args += ["--replay-only", d]
+    return _run(*args)
+
+
+def test_replay_only_learns_every_recorded_experience_once_and_refuses_a_foreign_log(tmp_path):
+    _record(tmp_path / "rec")
+    summary = logs.summarise(tmp_path / "rec" / "journal")
+    assert summary.experiences == 400 and summary.learner_config is not None
+    proc = _replay(tmp_path / "d", tmp_path / "rec" / "journal")
+    assert proc.returncode == 0, proc.stdout + proc.stderr  # stopped by itself
+    config, _, meta = load_weights(tmp_path / "d" / "checkpoint.npz")
+    (client,) = summary.clients
+    assert meta["stored_through"] == meta["learned_through"] == {client: 399}
+    assert meta["thinks"] == config.thinks_per_action * 400 and config.thinks_per_action == 3
+    # The store is an experience log too; replaying the same record again adds nothing.
+    assert logs.summarise(tmp_path / "d" / "store").experiences == 400
+    assert _replay(tmp_path / "d", tmp_path / "rec" / "journal").returncode == 0
+    _, _, again = load_weights(tmp_path / "d" / "checkpoint.npz")
+    assert again["thinks"] == meta["thinks"] and logs.summarise(tmp_path / "d" / "store").experiences == 400
+    # A record of another task (learner spec) is refused with a clear error; nothing is stored.
+    _record(tmp_path / "cartpole", sim="cartpole", episodes="1")
+    proc = _replay(tmp_path / "d", tmp_path / "cartpole" / "journal")
+    assert proc.returncode == 2 and "spec" in proc.stdout + proc.stderr
+    assert logs.summarise(tmp_path / "d" / "store").experiences == 400
+    proc = _replay(tmp_path / "other", tmp_path / "nowhere")
+    assert proc.returncode == 2 and "no experience log" in proc.stdout + proc.stderr
+
+
+def test_wfnn_logs_inspects_merges_and_exports_records(tmp_path):
+    _record(tmp_path / "a")
+    _record(tmp_path / "b", episodes="1")
+    proc = _run(BIN / "wfnn-logs", "inspect", "--json", tmp_path / "a" / "journal")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["experiences"] == 400
+    proc = _run(BIN / "wfnn-logs", "merge", tmp_path / "a" / "journal", tmp_path / "b" / "journal",
+                "--out", tmp_path / "all")  # fmt: skip
+    assert proc.returncode == 0 and "600 experiences" in proc.stdout
+    proc = _run(BIN / "wfnn-logs", "export", tmp_path / "all", "--out", tmp_path / "all.npz")
+    assert proc.returncode == 0 and (tmp_path / "all.npz").exists()
+    proc = _run(BIN / "wfnn-logs", "inspect", tmp_path / "missing")
+    assert proc.returncode == 1 and "no experience log" in proc.stdout

@@ -1,0 +1,96 @@
+"""Experience logs: recording, summary, merge, split, export, and refusing what does not fit."""
+
+import numpy as np
+import pytest
+
+from sims.boat import BoatVec
+from sims.cartpole import CartPoleVec
+from wfnn_client.journal import Recorder
+from wfnn_common import logs
+from wfnn_common.config import LearnerConfig
+from wfnn_common.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
+
+
+def record(directory, task_type=BoatVec, n=300, client="robot1", source="local", seed=0):
+    """Record n random experiences of a task; -> the arrays recorded."""
+    rng = np.random.default_rng(seed)
+    config = LearnerConfig.for_task(task_type)
+    recorder = Recorder(directory, config, client, batch_max=64)
+    s = rng.uniform(-1, 1, (n, config.state_dim))
+    a = rng.uniform(-1, 1, (n, config.action_dim))
+    sn = rng.uniform(-1, 1, (n, config.state_dim))
+    r = rng.normal(size=n)
+    flags = np.where(np.arange(n) % 10 == 0, EXP_EXPLORED, 0) | np.where(
+        np.arange(n) % 50 == 1, EXP_VETO_ACTUAL, 0
+    )
+    for i in range(n):
+        recorder.add(s[i], a[i], sn[i], r[i], False, int(flags[i]), source, i // 100)
+    recorder.close()
+    return config, (s, a, sn, r, flags)
+
+
+def test_a_record_reads_back_exactly_with_its_behaviour_metadata(tmp_path):
+    config, (s, a, sn, r, flags) = record(tmp_path / "log")
+    assert logs.log_config(tmp_path / "log").spec_hash() == config.spec_hash()
+    batches = list(logs.read_batches(tmp_path / "log"))
+    assert [b.first_seq for b in batches] == [0, 64, 128, 192, 256]
+    np.testing.assert_array_equal(np.concatenate([b.state for b in batches]), s)
+    np.testing.assert_array_equal(np.concatenate([b.reward for b in batches]), r)
+    np.testing.assert_array_equal(np.concatenate([b.action for b in batches]), a)
+    np.testing.assert_array_equal(np.concatenate([b.next_state for b in batches]), sn)
+    np.testing.assert_array_equal(np.concatenate([b.flags for b in batches]), flags)
+    assert np.concatenate([b.weights_version for b in batches]).tolist() == [i // 100 for i in range(300)]
+    summary = logs.summarise(tmp_path / "log")
+    assert summary.experiences == 300 and summary.clients["robot1"].last_seq == 299
+    assert summary.clients["robot1"].gaps == summary.clients["robot1"].duplicates == 0
+    assert summary.flags["explored"] == 30 and summary.flags["vetoed"] == 6
+    assert summary.behaviour == {"local": 300} and summary.learner_config == config.to_dict()
+    # A recorder on the same directory continues the client's numbering.
+    again = Recorder(tmp_path / "log", config, batch_max=64)
+    assert again.journal.client_id == "robot1" and again.journal.next_seq == 300
+    again.close()
+
+
+def test_merge_keeps_each_experience_once_and_export_gives_plain_arrays(tmp_path):
+    config, (s, *_) = record(tmp_path / "a", n=200)
+    record(tmp_path / "b", n=150, client="robot2", source="handcoded", seed=1)
+    # The same client's log twice (a journal and a server's copy of it): stored once.
+    n = logs.merge([tmp_path / "a", tmp_path / "b", tmp_path / "a"], tmp_path / "all")
+    assert n == 350
+    summary = logs.summarise(tmp_path / "all")
+    assert {c: r.experiences for c, r in summary.clients.items()} == {"robot1": 200, "robot2": 150}
+    assert summary.behaviour == {"local": 200, "handcoded": 150}
+    with pytest.raises(logs.LogFormatError, match="already holds"):
+        logs.merge([tmp_path / "a"], tmp_path / "all")
+    count = logs.export([tmp_path / "all"], tmp_path / "all.npz")
+    with np.load(tmp_path / "all.npz", allow_pickle=False) as data:
+        assert count == 350 and data["state"].shape == (350, config.state_dim)
+        robot1 = data["client"] == list(data["clients"]).index("robot1")
+        np.testing.assert_array_equal(data["state"][robot1], s)
+        np.testing.assert_array_equal(data["seq"][robot1], np.arange(200))
+        assert str(data["spec_hash"]) == config.spec_hash()
+
+
+def test_split_by_client_behaviour_and_count(tmp_path):
+    record(tmp_path / "a", n=200)
+    record(tmp_path / "b", n=150, client="robot2", source="handcoded", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "all")
+    assert logs.split(tmp_path / "all", tmp_path / "by_client") == {"robot1": 200, "robot2": 150}
+    assert logs.split(tmp_path / "all", tmp_path / "by_source", by="behaviour") == {
+        "local": 200,
+        "handcoded": 150,
+    }
+    parts = logs.split(tmp_path / "all", tmp_path / "parts", by="count", every=128)
+    assert sum(parts.values()) == 350 and len(parts) == 3
+    assert logs.log_config(tmp_path / "by_client" / "robot2") is not None
+    with pytest.raises(ValueError):
+        logs.split(tmp_path / "all", tmp_path / "x", by="colour")
+
+
+def test_logs_of_different_learner_specs_are_refused(tmp_path):
+    record(tmp_path / "boat")
+    record(tmp_path / "cartpole", task_type=CartPoleVec)
+    with pytest.raises(logs.LogFormatError, match="spec"):
+        logs.merge([tmp_path / "boat", tmp_path / "cartpole"], tmp_path / "mixed")
+    with pytest.raises(logs.LogFormatError, match="no experience log"):
+        list(logs.read_batches(tmp_path / "nowhere"))

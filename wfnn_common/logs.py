@@ -1,0 +1,346 @@
+"""Experience logs: the one on-disk format of a client's record and of a server's store.
+
+A log is a directory of segment files (`00000000.seg`, ...; `wfnn_common.segments`: CRC-framed
+records, torn tails cut on open). Every record is one protocol frame (`wfnn_common.protocol`,
+itself CRC-checked, HMAC-tagged where a key is configured) holding an `ExperienceBatch`:
+
+- experiences numbered 0, 1, 2, ... per client (`client`, `first_seq`), in physical units:
+  `state` [N, S], `action` [N, A] (as executed), `next_state` [N, S], `reward` [N] (raw),
+  `terminal` [N];
+- the behaviour policy: `weights_source` names what chose the batch's actions (a server
+  `id:incarnation`, `local`, or a controller such as `handcoded`) and `weights_version` [N] the
+  snapshot of it (0: none); `flags` [N] the `EXP_*` bits: exploration changed the action, the
+  safe action ran, a veto replaced the proposal (and the proposal's own learn-twice record),
+  the action filter changed it;
+- `spec_hash`: the learner spec (state and action ranges) the experiences are for.
+
+Beside the segments, `log.json` says what the log is: `{"format": "wfnn-log", "version": 1,
+"learner_config": {...} | null}`. A client's journal (`--record DIR`: `DIR/journal/`) writes
+it; a server's store (`DATA_DIR/store/`) has its learner config in `DATA_DIR/learner_config.json`
+instead, which `log_config` also finds.
+
+This module reads, writes, summarises, merges, splits and exports logs (`wfnn-logs`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wfnn_common.config import LearnerConfig
+from wfnn_common.persist import atomic_savez
+from wfnn_common.protocol import (
+    EXP_EXPLORED,
+    EXP_FILTERED,
+    EXP_SAFE_ACTION,
+    EXP_VETO_ACTUAL,
+    EXP_VETO_PROPOSED,
+    Codec,
+    ExperienceBatch,
+    ProtocolError,
+    decode,
+)
+from wfnn_common.segments import SegmentLog
+
+log = logging.getLogger(__name__)
+
+LOG_JSON = "log.json"
+LOG_FORMAT = "wfnn-log"
+LOG_VERSION = 1
+EXPORT_FORMAT = "wfnn-log-export"
+FLAG_NAMES = {
+    EXP_EXPLORED: "explored", EXP_SAFE_ACTION: "safe_action", EXP_VETO_ACTUAL: "vetoed",
+    EXP_VETO_PROPOSED: "veto_proposal", EXP_FILTERED: "filtered",
+}  # fmt: skip
+
+
+class LogFormatError(ValueError):
+    """A directory is not a usable experience log (or logs that do not fit together)."""
+
+
+def is_log(directory: Path) -> bool:
+    """Whether `directory` holds segment files."""
+    return Path(directory).is_dir() and any(Path(directory).glob("*.seg"))
+
+
+def write_log_json(directory: Path, config: LearnerConfig | None) -> None:
+    """Say what the log in `directory` is (its learner config, when known)."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    info = {"format": LOG_FORMAT, "version": LOG_VERSION,
+            "learner_config": config.to_dict() if config is not None else None}  # fmt: skip
+    tmp = directory / (LOG_JSON + ".tmp")
+    tmp.write_text(json.dumps(info, indent=1))
+    tmp.replace(directory / LOG_JSON)
+
+
+def log_config(directory: Path) -> LearnerConfig | None:
+    """The learner config a log was recorded for, or None when nothing says.
+
+    From the log's `log.json`, or a server's `learner_config.json` beside its store.
+    """
+    directory = Path(directory)
+    info = directory / LOG_JSON
+    if info.exists():
+        data = json.loads(info.read_text())
+        if data.get("format") != LOG_FORMAT or not 1 <= int(data.get("version", 0)) <= LOG_VERSION:
+            raise LogFormatError(f"{info}: not a {LOG_FORMAT} version <= {LOG_VERSION} description")
+        if data.get("learner_config") is not None:
+            return LearnerConfig.from_dict(data["learner_config"])
+    server = directory.parent / "learner_config.json"
+    if server.exists():
+        return LearnerConfig.from_dict(json.loads(server.read_text()))
+    return None
+
+
+@dataclass
+class ReadCounts:
+    """What reading a log met besides batches."""
+
+    unreadable: int = 0
+    """Records intact on disk (segment CRC) whose frame is not a valid experience batch."""
+
+
+def read_batches(
+    directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
+) -> Iterator[ExperienceBatch]:
+    """Every experience batch in a log, oldest first; unreadable records are counted and skipped."""
+    if not is_log(directory):
+        raise LogFormatError(f"{directory}: no experience log here (no .seg files)")
+    segments = SegmentLog(directory, fsync="never")
+    try:
+        for position, frame in segments.read():
+            try:
+                _, _, batch = decode(frame, key, expect=ExperienceBatch)
+            except ProtocolError as exc:
+                if counts is not None:
+                    counts.unreadable += 1
+                log.error(
+                    "%s: record at %s is not an experience batch (%s); skipped", directory, position, exc
+                )
+                continue
+            assert isinstance(batch, ExperienceBatch)
+            yield batch
+    finally:
+        segments.close()
+
+
+@dataclass
+class ClientRun:
+    """One client's experiences in a log."""
+
+    experiences: int = 0
+    first_seq: int = -1
+    last_seq: int = -1
+    gaps: int = 0
+    """Places where the numbering skips (experiences missing from the log)."""
+    duplicates: int = 0
+    """Experiences present more than once."""
+
+
+@dataclass
+class Summary:
+    """What a log holds (`wfnn-logs inspect`)."""
+
+    experiences: int = 0
+    batches: int = 0
+    clients: dict[str, ClientRun] = field(default_factory=dict)
+    spec_hashes: Counter[str] = field(default_factory=Counter)
+    behaviour: Counter[str] = field(default_factory=Counter)
+    """Experiences per `weights_source` (what chose the actions)."""
+    flags: Counter[str] = field(default_factory=Counter)
+    """Experiences per EXP_* flag name."""
+    terminal: int = 0
+    reward_mean: float = float("nan")
+    unreadable: int = 0
+    learner_config: dict[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {
+            "experiences": self.experiences, "batches": self.batches,
+            "clients": {c: vars(r) for c, r in self.clients.items()},
+            "spec_hashes": dict(self.spec_hashes), "behaviour": dict(self.behaviour),
+            "flags": dict(self.flags),
+            "terminal": self.terminal, "reward_mean": self.reward_mean, "unreadable": self.unreadable,
+            "learner_config": self.learner_config,
+        }  # fmt: skip
+
+
+def summarise(directory: Path, key: bytes | None = None) -> Summary:
+    """Count a log's experiences per client, behaviour policy and flag; find gaps and duplicates."""
+    out = Summary()
+    counts = ReadCounts()
+    reward_sum = 0.0
+    for batch in read_batches(directory, key, counts):
+        n = len(batch)
+        out.batches += 1
+        out.experiences += n
+        run = out.clients.setdefault(batch.client, ClientRun())
+        if run.last_seq >= 0:
+            if batch.first_seq > run.last_seq + 1:
+                run.gaps += 1
+            run.duplicates += max(0, min(run.last_seq, batch.last_seq) - batch.first_seq + 1)
+        run.first_seq = batch.first_seq if run.first_seq < 0 else min(run.first_seq, batch.first_seq)
+        run.last_seq = max(run.last_seq, batch.last_seq)
+        run.experiences += n
+        out.spec_hashes[batch.spec_hash] += n
+        out.behaviour[batch.weights_source or "(none)"] += n
+        for bit, name in FLAG_NAMES.items():
+            out.flags[name] += int(np.count_nonzero(batch.flags & bit))
+        out.terminal += int(np.count_nonzero(batch.terminal))
+        reward_sum += float(batch.reward.sum())
+    out.unreadable = counts.unreadable
+    out.reward_mean = reward_sum / out.experiences if out.experiences else float("nan")
+    config = log_config(directory)
+    out.learner_config = config.to_dict() if config is not None else None
+    return out
+
+
+def write_log(
+    directory: Path,
+    batches: Iterable[ExperienceBatch],
+    config: LearnerConfig | None,
+    sender: str = "wfnn-logs",
+) -> int:
+    """Write batches as a new log (refuses a directory that already holds one); -> experiences."""
+    directory = Path(directory)
+    if is_log(directory):
+        raise LogFormatError(f"{directory} already holds a log; write to a new directory")
+    codec = Codec(sender)
+    segments = SegmentLog(directory, fsync="never")
+    written = 0
+    try:
+        for batch in batches:
+            segments.append(codec.encode(batch))
+            written += len(batch)
+        segments.sync()
+    finally:
+        segments.close()
+    write_log_json(directory, config)
+    return written
+
+
+def _common_config(directories: Iterable[Path]) -> LearnerConfig | None:
+    """The learner config of logs that must agree on their spec (None if none says)."""
+    found: LearnerConfig | None = None
+    for directory in directories:
+        config = log_config(directory)
+        if config is None:
+            continue
+        if found is not None and config.spec_hash() != found.spec_hash():
+            raise LogFormatError(
+                f"{directory}: learner spec {config.spec_hash()} differs from the others' {found.spec_hash()}"
+            )
+        found = found or config
+    return found
+
+
+def merged(directories: Iterable[Path], key: bytes | None = None) -> Iterator[ExperienceBatch]:
+    """The batches of several logs, each client's experiences once (the first copy of each number).
+
+    Logs of the same client (its journal and a server's store, say) overlap: what one has already
+    given is trimmed from the others. Batches of a spec other than the first batch's are refused.
+    """
+    through: dict[str, set[int]] = {}
+    spec = ""
+    for directory in directories:
+        for batch in read_batches(directory, key):
+            spec = spec or batch.spec_hash
+            if batch.spec_hash != spec:
+                raise LogFormatError(f"{directory}: a batch of spec {batch.spec_hash} among spec {spec}")
+            seen = through.setdefault(batch.client, set())
+            keep = np.array([s not in seen for s in range(batch.first_seq, batch.last_seq + 1)])
+            if not keep.any():
+                continue
+            seen.update(range(batch.first_seq, batch.last_seq + 1))
+            if keep.all():
+                yield batch
+                continue
+            # Keep each contiguous run of new experiences as its own batch.
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], keep.astype(np.int8), [0]])))
+            for start, stop in zip(edges[::2], edges[1::2], strict=True):
+                yield _part(batch, int(start), int(stop))
+
+
+def _part(batch: ExperienceBatch, start: int, stop: int) -> ExperienceBatch:
+    """Experiences [start, stop) of a batch, renumbered from first_seq + start."""
+    import dataclasses
+
+    return dataclasses.replace(
+        batch, first_seq=batch.first_seq + start, state=batch.state[start:stop],
+        action=batch.action[start:stop],
+        next_state=batch.next_state[start:stop], reward=batch.reward[start:stop],
+        terminal=batch.terminal[start:stop], weights_version=batch.weights_version[start:stop],
+        flags=batch.flags[start:stop],
+    )  # fmt: skip
+
+
+def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
+    """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
+    return write_log(out, merged(sources, key), _common_config(sources))
+
+
+def split(
+    source: Path, out: Path, by: str = "client", every: int = 0, key: bytes | None = None
+) -> dict[str, int]:
+    """Split a log into new logs under `out`; -> experiences per new log.
+
+    One log per client (`by="client"`) or per behaviour policy (`by="behaviour"`), or chunks of
+    about `every` experiences (`by="count"`; whole batches).
+    """
+    if by not in ("client", "behaviour", "count"):
+        raise ValueError(f"split by client, behaviour or count, not {by!r}")
+    if by == "count" and every < 1:
+        raise ValueError("split by count needs every >= 1")
+    config = log_config(source)
+    groups: dict[str, list[ExperienceBatch]] = {}
+    done = 0
+    for batch in read_batches(source, key):
+        if by == "client":
+            name = batch.client
+        elif by == "behaviour":
+            name = batch.weights_source.replace(":", "_") or "none"
+        else:
+            name = f"part{done // every:04d}"
+        groups.setdefault(name, []).append(batch)
+        done += len(batch)
+    return {name: write_log(Path(out) / name, batches, config) for name, batches in groups.items()}
+
+
+def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
+    """The experiences of logs (merged) as flat numpy arrays [N, ...] with their numbering."""
+    batches = list(merged(sources, key))
+    if not batches:
+        raise LogFormatError(f"no experiences in {', '.join(map(str, sources))}")
+    clients = sorted({b.client for b in batches})
+    sources_names = sorted({b.weights_source for b in batches})
+    cat = np.concatenate
+    return {
+        "state": cat([b.state for b in batches]), "action": cat([b.action for b in batches]),
+        "next_state": cat([b.next_state for b in batches]), "reward": cat([b.reward for b in batches]),
+        "terminal": cat([b.terminal for b in batches]), "flags": cat([b.flags for b in batches]),
+        "weights_version": cat([b.weights_version for b in batches]),
+        "seq": cat([np.arange(b.first_seq, b.last_seq + 1) for b in batches]),
+        "client": cat([np.full(len(b), clients.index(b.client), dtype=np.int32) for b in batches]),
+        "weights_source": cat([np.full(len(b), sources_names.index(b.weights_source), dtype=np.int32)
+                               for b in batches]),
+        "clients": np.array(clients), "weights_sources": np.array(sources_names),
+        "spec_hash": np.str_(batches[0].spec_hash),
+    }  # fmt: skip
+
+
+def export(sources: list[Path], out: Path, key: bytes | None = None) -> int:
+    """Write logs' experiences as one `.npz` of plain arrays (`to_arrays`); -> experiences."""
+    arrays = to_arrays(sources, key)
+    config = _common_config(sources)
+    atomic_savez(out, {"format": np.str_(EXPORT_FORMAT), "format_version": np.int64(1),
+                       "learner_config": np.str_(config.to_json() if config else ""), **arrays})  # fmt: skip
+    return int(arrays["reward"].shape[0])

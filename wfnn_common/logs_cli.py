@@ -1,0 +1,121 @@
+"""`wfnn-logs`: inspect, merge, split and export experience logs (client records, server stores)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.table import Table
+
+from wfnn_common import logs
+from wfnn_common.protocol import load_key
+
+app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.")
+console = Console()
+KeyOpt = Annotated[Path | None, typer.Option(help="Shared key file, where the frames carry HMAC tags.")]
+
+
+def _key(path: Path | None) -> bytes | None:
+    return load_key(str(path)) if path is not None else None
+
+
+def _fail(exc: Exception) -> typer.Exit:
+    console.print(f"[red]error:[/] {exc}")
+    return typer.Exit(1)
+
+
+@app.callback()
+def _setup(verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
+        handlers=[RichHandler(console=Console(stderr=True), show_path=False)],
+    )  # fmt: skip
+
+
+@app.command()
+def inspect(
+    log_dir: Path,
+    key_file: KeyOpt = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
+) -> None:
+    """What a log holds: experiences per client and behaviour policy, flags, gaps, its learner spec."""
+    try:
+        summary = logs.summarise(log_dir, _key(key_file))
+    except (logs.LogFormatError, ValueError, OSError) as exc:
+        raise _fail(exc) from exc
+    if json_out:
+        print(json.dumps(summary.to_dict(), indent=1))
+        return
+    table = Table(title=f"{log_dir}: {summary.experiences:,} experiences in {summary.batches:,} batches")
+    table.add_column("")
+    table.add_column("", justify="right")
+    for client, run in summary.clients.items():
+        table.add_row(f"client {client}", f"{run.experiences:,} (seq {run.first_seq}..{run.last_seq}, "
+                      f"{run.gaps} gaps, {run.duplicates} duplicates)")  # fmt: skip
+    for source, n in summary.behaviour.items():
+        table.add_row(f"chosen by {source}", f"{n:,}")
+    for name, n in summary.flags.items():
+        table.add_row(f"flag {name}", f"{n:,}")
+    table.add_row("terminal", f"{summary.terminal:,}")
+    table.add_row("mean reward", f"{summary.reward_mean:.4f}")
+    table.add_row("learner spec", ", ".join(summary.spec_hashes) or "-")
+    table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
+    if summary.unreadable:
+        table.add_row("[red]unreadable records[/]", str(summary.unreadable))
+    console.print(table)
+
+
+@app.command()
+def merge(
+    sources: Annotated[
+        list[Path], typer.Argument(help="Logs to merge (each client's experiences kept once).")
+    ],
+    out: Annotated[Path, typer.Option(help="The new log's directory (must not hold a log).")],
+    key_file: KeyOpt = None,
+) -> None:
+    """Merge logs into a new one."""
+    try:
+        n = logs.merge(sources, out, _key(key_file))
+    except (logs.LogFormatError, ValueError, OSError) as exc:
+        raise _fail(exc) from exc
+    console.print(f"{n:,} experiences merged into {out}")
+
+
+@app.command()
+def split(
+    source: Path,
+    out: Annotated[Path, typer.Option(help="Directory for the new logs (one subdirectory each).")],
+    by: Annotated[str, typer.Option(help="client, behaviour (weights source) or count.")] = "client",
+    every: Annotated[int, typer.Option(help="by count: experiences per part (whole batches).")] = 0,
+    key_file: KeyOpt = None,
+) -> None:
+    """Split a log by client, by behaviour policy, or into parts."""
+    try:
+        parts = logs.split(source, out, by, every, _key(key_file))
+    except (logs.LogFormatError, ValueError, OSError) as exc:
+        raise _fail(exc) from exc
+    for name, n in parts.items():
+        console.print(f"{out / name}: {n:,} experiences")
+
+
+@app.command()
+def export(
+    sources: Annotated[list[Path], typer.Argument(help="Logs to export (merged).")],
+    out: Annotated[Path, typer.Option(help="The .npz file to write.")],
+    key_file: KeyOpt = None,
+) -> None:
+    """Write logs' experiences as plain numpy arrays in one .npz (np.load(..., allow_pickle=False))."""
+    try:
+        n = logs.export(sources, out, _key(key_file))
+    except (logs.LogFormatError, ValueError, OSError) as exc:
+        raise _fail(exc) from exc
+    console.print(f"{n:,} experiences exported to {out}")
+
+
+if __name__ == "__main__":
+    app()
