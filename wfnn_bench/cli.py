@@ -24,6 +24,7 @@ from wfnn_bench import boat as boat_bench
 from wfnn_bench import cartpole as cartpole_bench
 from wfnn_bench import hydra as hydra_bench
 from wfnn_bench import nomad as nomad_bench
+from wfnn_bench import passive as passive_bench
 from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
 from wfnn_bench.common import write_json
@@ -422,6 +423,64 @@ def transport(
         write_json(json_path, result)
     if plot_path:
         transport_bench.plot(result, plot_path)
+
+
+@app.command()
+def passive(
+    controllers: Annotated[int, typer.Option(min=1, help="Learners per condition.")] = 8,
+    dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
+    log_targets: Annotated[int, typer.Option(min=1, help="Targets per logged boat and policy.")] = 10,
+    passive_thinks: Annotated[int, typer.Option(min=1000, help="Replays per passive learner.")] = 400_000,
+    online_targets: Annotated[int, typer.Option(min=10, help="Targets of the online conditions.")] = 40,
+    thinks: Annotated[int, typer.Option(min=0, help="Online replays per action.")] = 200,
+    eval_targets: Annotated[int, typer.Option(min=1, help="Targets of each greedy evaluation.")] = 10,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """Boat: passive learning from logs, phantom targets, mirror images (learning from data)."""
+    _logging(verbose)
+    cfg = passive_bench.PassiveBenchConfig(
+        controllers=controllers, dt=dt, log_targets=log_targets, passive_thinks=passive_thinks,
+        online_targets=online_targets, thinks=thinks, eval_targets=eval_targets, seed=seed,
+    )  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("passive", total=passive_bench.steps(cfg))
+        result = passive_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = [
+        (f"log policy {k}: score", v) for k, v in result["logs"]["policy_scores"].items()
+    ]
+    for key, label in (("passive", "passive"), ("passive_phantom_only", "passive, phantom targets only")):
+        for c in result[key]["curve"]:
+            rows.append(
+                (
+                    f"{label}: greedy score after {c['thinks']:,} thinks (median)",
+                    float(np.median(c["scores"])),
+                )
+            )
+        d = result[key]["diagnosis"]
+        rows.append((f"{label}: value of the greedy / logged action (median over logged states)",
+                     f"{d['greedy_value']:.3f} / {d['logged_action_value']:.3f}"))  # fmt: skip
+    ratio = result["mirror_experience_ratio"]
+    rows += [
+        ("handcoded_score", result["handcoded_score"]),
+        ("passive_score", result["passive_score"]),
+        ("passive_phantom_only_score", result["passive_phantom_only_score"]),
+        ("online: last-10 median / greedy",
+         f"{result['online']['score_last10']:.3f} / {result['online']['greedy']:.3f}"),
+        ("online + mirror: last-10 median / greedy",
+         f"{result['online_mirror']['score_last10']:.3f} / {result['online_mirror']['greedy']:.3f}"),
+        ("phantom_only_score (online, last-10 median)", result["phantom_only_score"]),
+        ("mirror_experience_ratio (experiences to reach the plain learners' last-10 score)",
+         "-" if ratio is None else f"{ratio:.2f}"),
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    _table("Passive and off-policy learning (boat)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        passive_bench.plot(result, plot_path)
 
 
 if __name__ == "__main__":

@@ -340,3 +340,19 @@ def test_bench_hydra_writes_table71_and_tick_cost(tmp_path):
         assert (tmp_path / "hydra_cameras.png").stat().st_size > 10_000
     else:
         assert "render" in rendering["reason"] or "GL" in rendering["reason"]
+
+
+def test_bench_passive_writes_its_figures(tmp_path):
+    j, p = tmp_path / "passive.json", tmp_path / "passive.png"
+    out = run([BIN / "wfnn-bench", "passive", "--controllers", "2", "--log-targets", "2", "--passive-thinks",
+               "4000", "--online-targets", "10", "--thinks", "5", "--eval-targets", "2", "--json", j,
+               "--plot", p])  # fmt: skip
+    assert "passive_score" in out.stdout
+    data = json.loads(j.read_text())
+    for key in ("handcoded_score", "passive_score", "phantom_only_score", "passive_phantom_only_score"):
+        assert data[key] > 0
+    assert 0.1 < data["handcoded_score"] < 0.5  # the hand-coded controller's Section 4.2 figure
+    # Three behaviour policies, four logged boats each, two targets of 200 actions: all read back.
+    assert sum(data["logs"]["experiences"].values()) == 3 * 4 * 2 * 200
+    assert [c["thinks"] for c in data["passive"]["curve"]] == [1000, 2000, 3000, 4000]
+    assert "mirror_experience_ratio" in data and p.stat().st_size > 10_000

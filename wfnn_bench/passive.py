@@ -1,0 +1,296 @@
+"""Passive and off-policy learning on the boat (thesis Sections 2.x, 3.4.2; issue: learn from data).
+
+- Logs: the hand-coded boat controller and noisy variants of it (Gaussian noise on its thrusts)
+  drive boats through the Section 4.2 protocol; every experience is recorded in the experience
+  log format (`wfnn_client.journal.Recorder`, one log per behaviour policy, named in each
+  batch's `weights_source`, noisy actions flagged as explored) and read back from disk.
+- Passive: learners that never act learn from those logs only (all experiences stored, then
+  `think`), and are scored greedily on the Section 4.2 protocol, learning off; also with the
+  logs' experiences re-targeted to phantom targets only (the real target never learned).
+- Phantom targets, as in the thesis (Section 3.4.2): learners act online on the protocol but
+  learn each experience only as copies re-targeted to random phantom targets.
+- Mirror images: learners act online and learn each experience and its left-right mirror image;
+  the real experiences they need to reach the plain learners' final score, as a ratio.
+- Diagnosis: in states of the logs, the value of the greedy (best-wire) action against the
+  values of the logged actions (a greedy value far above every logged action's is an
+  extrapolation to actions the data never tried).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sims.base import Transition
+from sims.boat import BoatConfig, BoatVec, handcoded_boat, mirror, phantom
+from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_client.journal import Recorder
+from wfnn_common import logs
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+from wfnn_common.protocol import EXP_EXPLORED
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PassiveBenchConfig:
+    """Options of `wfnn-bench passive`."""
+
+    controllers: int = 8
+    """Learners per condition (a population learning at once)."""
+    dt: float = 0.1
+    """Boat time per action (see sims.boat)."""
+    noise: tuple[float, ...] = (0.0, 0.3, 1.0)
+    """Behaviour policies of the logs: the hand-coded controller with this Gaussian noise on its
+    thrusts (0: the controller itself)."""
+    log_boats: int = 4
+    log_targets: int = 10
+    """Each behaviour policy drives `log_boats` boats through this many targets (200 actions each)."""
+    passive_thinks: int = 400_000
+    """Replays per passive learner."""
+    passive_checks: int = 4
+    """Greedy evaluations along the passive thinking (a curve)."""
+    online_targets: int = 40
+    thinks: int = 200
+    """Replays per action of the online learners."""
+    phantoms: int = 1
+    """Phantom copies learned per real experience."""
+    phantom_radius: float = 1.0
+    """Phantom targets lie uniformly in a disc of this radius around the real target."""
+    eval_targets: int = 10
+    advantage_k: float = 0.2
+    seed: int = 0
+
+
+def _config(cfg: PassiveBenchConfig, capacity: int) -> LearnerConfig:
+    bench = BoatBenchConfig(thinks=cfg.thinks, dt=cfg.dt)
+    return replace(learner_config(bench, cfg.advantage_k, cfg.seed + 11), replay_capacity=capacity)
+
+
+def _boat(cfg: PassiveBenchConfig, n: int) -> BoatVec:
+    return BoatVec(n, BoatConfig(dt=cfg.dt))
+
+
+def greedy_score(learner: WFNN, cfg: PassiveBenchConfig) -> FloatArray:
+    """Each learner's median score over `eval_targets` fresh targets, greedy, learning off [P]."""
+    frozen = learner.snapshot()
+    boat = _boat(cfg, learner.population)
+    rng = np.random.default_rng(cfg.seed + 99)
+    boat.reset(rng)
+    scores = run_protocol(
+        boat, cfg.eval_targets, rng, lambda x: learner.act(x, explore=False, params=frozen).action
+    )
+    return np.asarray(np.median(scores, axis=1))
+
+
+def record_logs(cfg: PassiveBenchConfig, directory: Path) -> dict[str, Any]:
+    """Drive boats with each behaviour policy, recording experience logs; their protocol scores."""
+    rng = np.random.default_rng(cfg.seed)
+    config = _config(cfg, 1)
+    scores: dict[str, float] = {}
+    for sigma in cfg.noise:
+        name = "handcoded" if sigma == 0 else f"handcoded_noise{sigma:g}"
+        boats = _boat(cfg, cfg.log_boats)
+        boats.reset(rng)
+        recorders = [
+            Recorder(directory / f"{name}_{b}", config, f"{name[:10]}{b}") for b in range(cfg.log_boats)
+        ]
+
+        def policy(x: FloatArray, sigma: float = sigma) -> FloatArray:
+            return np.clip(handcoded_boat(x) + rng.normal(0.0, sigma, (x.shape[0], 2)), -1.0, 1.0)
+
+        def keep(
+            x: FloatArray, u: FloatArray, tr: Transition, name: str = name, sigma: float = sigma,
+            recorders: list[Recorder] = recorders,
+        ) -> None:  # fmt: skip
+            for b, recorder in enumerate(recorders):
+                recorder.add(x[b], u[b], tr.state[b], float(tr.reward[b]), bool(tr.terminal[b]),
+                             EXP_EXPLORED if sigma > 0 else 0, name, 0)  # fmt: skip
+
+        scores[name] = float(np.median(run_protocol(boats, cfg.log_targets, rng, policy, keep)))
+        for recorder in recorders:
+            recorder.close()
+    return {"policy_scores": scores, "logs": sorted(str(p) for p in directory.iterdir())}
+
+
+def _phantom_offsets(rng: np.random.Generator, n: int, radius: float) -> FloatArray:
+    """Uniform in a disc [n, 2]."""
+    angle = rng.uniform(-np.pi, np.pi, n)
+    r = radius * np.sqrt(rng.uniform(0.0, 1.0, n))
+    return np.stack([r * np.cos(angle), r * np.sin(angle)], axis=1)
+
+
+def passive(
+    cfg: PassiveBenchConfig, arrays: dict[str, Any], phantom_only: bool, progress: Progress
+) -> dict[str, Any]:
+    """Learn from the logs only (or only from their phantom-target copies); a greedy curve."""
+    s, a, sn, r = (
+        np.asarray(arrays[k], dtype=np.float64) for k in ("state", "action", "next_state", "reward")
+    )
+    terminal = np.asarray(arrays["terminal"], dtype=np.bool_)
+    if phantom_only:
+        rng = np.random.default_rng(cfg.seed + 5)
+        boat_cfg = BoatConfig(dt=cfg.dt)
+        copies = [phantom(s, a, sn, r, _phantom_offsets(rng, len(r), cfg.phantom_radius), boat_cfg)
+                  for _ in range(max(cfg.phantoms, 1))]  # fmt: skip
+        s, a, sn, r = (np.concatenate(part) for part in zip(*copies, strict=True))
+        terminal = np.tile(terminal, len(copies))
+    learner = WFNN(_config(cfg, len(r) + 1), population=cfg.controllers)
+    stored = int(learner.learn_many(s, a, sn, r, terminal).sum())
+    curve: list[dict[str, Any]] = []
+    per_check = cfg.passive_thinks // cfg.passive_checks
+    for _ in range(cfg.passive_checks):
+        for _ in range(per_check // 1000):
+            learner.think(1000)
+        learner.think(per_check % 1000)
+        scores = greedy_score(learner, cfg)
+        curve.append({"thinks": int(learner.thinks[0]), "scores": scores})
+        progress(1)
+    return {"experiences": stored, "curve": curve, "score": float(np.median(scores)),
+            "diagnosis": value_gap(learner, s, a, cfg.seed)}  # fmt: skip
+
+
+def value_gap(
+    learner: WFNN, state: FloatArray, action: FloatArray, seed: int, n: int = 300
+) -> dict[str, float]:
+    """Median over logged states of the greedy action's value and the logged action's value."""
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(state), size=min(n, len(state)), replace=False)
+    p = learner.population
+    greedy = learner.greedy_values(state[idx]).T  # [n, P]
+    logged = np.array([learner.q_value(np.repeat(state[i][None], p, 0), np.repeat(action[i][None], p, 0))
+                       for i in idx]).reshape(len(idx), p)  # fmt: skip
+    return {"greedy_value": float(np.median(greedy)), "logged_action_value": float(np.median(logged)),
+            "greedy_above_logged_fraction": float(np.mean(greedy > logged + 0.1))}  # fmt: skip
+
+
+def online(cfg: PassiveBenchConfig, kind: str, progress: Progress) -> dict[str, Any]:
+    """Learners act on the protocol and learn as `kind` says.
+
+    `plain`: each experience; `mirror`: each experience and its mirror image; `phantom`: each
+    experience only as phantom-target copies.
+    """
+    p = cfg.controllers
+    capacity = cfg.online_targets * 200 * (2 if kind == "mirror" else max(cfg.phantoms, 1))
+    learner = WFNN(_config(cfg, capacity), population=p)
+    boat = _boat(cfg, p)
+    rng = np.random.default_rng(cfg.seed + 3)
+    boat.reset(rng)
+    boat_cfg = BoatConfig(dt=cfg.dt)
+
+    def after_step(x: FloatArray, u: FloatArray, tr: Transition) -> None:
+        executed = np.clip(u, -1.0, 1.0)
+        if kind == "phantom":
+            for _ in range(max(cfg.phantoms, 1)):
+                offsets = _phantom_offsets(rng, p, cfg.phantom_radius)
+                ps, pu, psn, pr = phantom(x, executed, tr.state, tr.reward, offsets, boat_cfg)
+                learner.learn(ps, pu, psn, pr, tr.terminal, tr.learnable)
+        else:
+            learner.learn(x, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
+            if kind == "mirror":
+                ms, mu, msn, mr = mirror(x, executed, tr.state, tr.reward)
+                learner.learn(ms, mu, msn, mr, tr.terminal, tr.learnable)
+        learner.think()
+
+    choose: Callable[[FloatArray], FloatArray] = lambda x: learner.act(x).action  # noqa: E731
+    scores = run_protocol(boat, cfg.online_targets, rng, choose, after_step, progress)
+    greedy = float(np.median(greedy_score(learner, cfg)))
+    return {"scores": scores, "median_per_target": np.median(scores, axis=0),
+            "score_last10": float(np.median(scores[:, -10:])), "greedy": greedy}  # fmt: skip
+
+
+def experiences_to_reach(median_per_target: FloatArray, level: float, window: int = 5) -> int | None:
+    """Real experiences until the running median score first reaches `level` (None if never).
+
+    200 experiences per target; the median runs over `window` targets.
+    """
+    m = np.asarray(median_per_target)
+    for t in range(window - 1, len(m)):
+        if np.median(m[t - window + 1 : t + 1]) <= level:
+            return (t + 1) * 200
+    return None
+
+
+def run(cfg: PassiveBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """All conditions -> a JSON-ready dict."""
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="wfnn-passive-") as tmp:
+        recorded = record_logs(cfg, Path(tmp))
+        sources = [Path(p) for p in recorded["logs"]]
+        summary = {p.name: logs.summarise(p).experiences for p in sources}
+        arrays = logs.to_arrays(sources)
+    progress(1)
+    passive_plain = passive(cfg, arrays, False, progress)
+    passive_phantom = passive(cfg, arrays, True, progress)
+    plain, mirrored, phantom_online = (online(cfg, kind, progress) for kind in ("plain", "mirror", "phantom"))
+    level = plain["score_last10"]
+    plain_n = experiences_to_reach(plain["median_per_target"], level)
+    mirror_n = experiences_to_reach(mirrored["median_per_target"], level)
+    handcoded = recorded["policy_scores"]["handcoded"] if 0.0 in cfg.noise else float("nan")
+    return {
+        "benchmark": "passive",
+        "config": asdict(cfg),
+        "machine": machine_info(),
+        "logs": {"experiences": summary, "policy_scores": recorded["policy_scores"]},
+        "handcoded_score": handcoded,
+        "passive": passive_plain,
+        "passive_score": passive_plain["score"],
+        "passive_phantom_only": passive_phantom,
+        "passive_phantom_only_score": passive_phantom["score"],
+        "online": plain,
+        "online_mirror": mirrored,
+        "online_phantom_only": phantom_online,
+        "phantom_only_score": phantom_online["score_last10"],
+        "mirror_level": level,
+        "mirror_experiences": {"plain": plain_n, "mirror": mirror_n},
+        "mirror_experience_ratio": (mirror_n / plain_n) if plain_n and mirror_n else None,
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def steps(cfg: PassiveBenchConfig) -> int:
+    """Progress units: logs, passive checks (twice), online targets (three conditions)."""
+    return 1 + 2 * cfg.passive_checks + 3 * cfg.online_targets
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Passive learning curves and the online conditions per target, against the hand-coded score."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
+    ax = axes[0]
+    for key, label in (("passive", "from the logs"), ("passive_phantom_only", "from phantom targets only")):
+        curve = result[key]["curve"]
+        thinks = [c["thinks"] for c in curve]
+        scores = np.array([c["scores"] for c in curve])
+        ax.plot(thinks, np.median(scores, axis=1), marker="o", label=f"passive, {label} (median)")
+        ax.fill_between(thinks, *np.percentile(scores, [25, 75], axis=1), alpha=0.2)
+    ax.axhline(result["handcoded_score"], color="k", ls="--", label="hand-coded controller")
+    ax.set(xlabel="thinks per learner", ylabel="greedy score (mean distance to target)", yscale="log",
+           title="passive learning from the hand-coded controller's logs")  # fmt: skip
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    for key, label in (("online", "online"), ("online_mirror", "online + mirror images"),
+                       ("online_phantom_only", "online, phantom targets only")):  # fmt: skip
+        m = np.asarray(result[key]["median_per_target"])
+        ax.plot(np.arange(1, len(m) + 1) * 200, m, label=label)
+    ax.axhline(result["handcoded_score"], color="k", ls="--", label="hand-coded controller")
+    ax.set(xlabel="real experiences", ylabel="median score per target", yscale="log",
+           title="learning while acting (Section 4.2 protocol)")  # fmt: skip
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
