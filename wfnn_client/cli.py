@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from sims.gym import make_env
 from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
@@ -85,6 +86,12 @@ def main(
         float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
     ] = None,
     boat_dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
+    env: Annotated[
+        str | None,
+        typer.Option(
+            help="A Gymnasium task with Box observations and actions (e.g. Pendulum-v1); sets --sim gym."
+        ),
+    ] = None,
     joints: Annotated[str, typer.Option(help="hydra: included joints (pan,tilt,left,right).")] = "right",
     axes: Annotated[
         str, typer.Option(help="hydra: included image axes (left_x,left_y,right_x,right_y).")
@@ -135,6 +142,12 @@ def main(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
+    if env is not None:
+        sim = "gym"
+        try:
+            make_env(env).close()
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--env") from exc
     if sim not in SIMS:
         raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
     rate = rate_hz if rate_hz is not None else (0.0 if lockstep else SIMS[sim].rate_hz)
@@ -156,7 +169,8 @@ def main(
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
             hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
-            boat_dt=boat_dt, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn, weights=weights,
+            boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
+            weights=weights,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),
             controller=controller, client_id=client_id, follow=follow,

@@ -55,6 +55,8 @@ class ClientConfig:
     lockstep_timeout_s: float = 30.0
     boat_dt: float = 0.1
     """Boat time per action (see sims.boat)."""
+    env: str | None = None
+    """`sim` gym: the Gymnasium task id (Box observations and actions), e.g. Pendulum-v1."""
     hydra: HydraConfig = field(default_factory=HydraConfig)
     """HyDrA's joints, image axes and target regime (`sim` hydra)."""
     nomad: NomadConfig = field(default_factory=NomadConfig)
@@ -97,6 +99,8 @@ class ClientConfig:
     def __post_init__(self) -> None:
         if self.sim not in SIMS:
             raise ValueError(f"unknown sim {self.sim!r}; choose from {', '.join(SIMS)}")
+        if (self.sim == "gym") != (self.env is not None):
+            raise ValueError("a Gymnasium task needs sim gym and an env id (wfnn-client --env ID)")
         if self.lockstep and self.rate_hz != 0:
             raise ValueError("lock-step runs as fast as possible: set rate_hz to 0")
         if self.episodes < 1:

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from sims.base import Behaviours, Ranges, Transition, VecTask
 from sims.boat import BoatConfig, BoatVec
 from sims.cartpole import CartPoleVec
+from sims.gym import GymVec
 from sims.hydra import HydraVec
 from sims.nomad import NomadForage, NomadVec
 from sims.positioning import PositioningVec
@@ -200,3 +201,11 @@ SIMS["nomad"] = SimSpec(
     behaviours=lambda task, c: NomadForage(task, c.forage) if c.forage is not None else None,
 )
 SIMS["position"] = SIMS["positioning"]
+SIMS["gym"] = SimSpec(
+    make=lambda c: GymVec(c.env or "", seed=c.seed),
+    # One client episode per time limit; an episode the task ends early restarts inside it.
+    episode_steps=lambda task: task.max_episode_steps,
+    new_episode=lambda task, rng: None,
+    metric=lambda task: task.last_reward,
+    metric_name="mean reward per step (x time limit = return)",
+)

@@ -356,3 +356,15 @@ def test_bench_passive_writes_its_figures(tmp_path):
     assert sum(data["logs"]["experiences"].values()) == 3 * 4 * 2 * 200
     assert [c["thinks"] for c in data["passive"]["curve"]] == [1000, 2000, 3000, 4000]
     assert "mirror_experience_ratio" in data and p.stat().st_size > 10_000
+
+
+def test_client_drives_a_gymnasium_task(tmp_path):
+    out = tmp_path / "run"
+    run([BIN / "wfnn-client", "--env", "Pendulum-v1", "--episodes", "2", "--rate-hz", "0", "--lockstep",
+         "--thinks", "5", "--out", out])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["client"]["env"] == "Pendulum-v1" and metrics["ticks"] == 400
+    assert metrics["experiences_learned"] == 400 and -16.3 <= min(metrics["scores"]) <= 0
+    proc = subprocess.run([BIN / "wfnn-client", "--env", "CartPole-v1", "--out", tmp_path / "x"],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode != 0 and "Box" in proc.stdout + proc.stderr
