@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
@@ -210,3 +211,7 @@ class BoatEnv(TaskEnv):
     def __init__(self, config: BoatConfig | None = None) -> None:
         task = BoatVec(1, config)
         super().__init__(task, task.config.steps_per_target)
+
+
+# The boat as a Gymnasium task (for third-party learners: `gym.make("wfnn/Boat-v0")`).
+gym.register(id="wfnn/Boat-v0", entry_point="sims.boat:BoatEnv")

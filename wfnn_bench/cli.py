@@ -27,6 +27,7 @@ from wfnn_bench import nomad as nomad_bench
 from wfnn_bench import passive as passive_bench
 from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
+from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 
 app = typer.Typer(
@@ -481,6 +482,62 @@ def passive(
         write_json(json_path, result)
     if plot_path:
         passive_bench.plot(result, plot_path)
+
+
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(v.strip() for v in text.split(",") if v.strip())
+
+
+@app.command("vs-sb3")
+def vs_sb3(
+    tasks: Annotated[
+        str, typer.Option(help="Gymnasium task ids, comma-separated.")
+    ] = "wfnn/Boat-v0,Pendulum-v1",
+    steps: Annotated[str, typer.Option(help="Environment steps per task, comma-separated.")] = "8000,15000",
+    algorithms: Annotated[str, typer.Option(help="Of wfnn, sac, td3.")] = "wfnn,sac,td3",
+    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    eval_every: Annotated[int, typer.Option(min=1, help="Steps between greedy evaluations.")] = 2000,
+    eval_episodes: Annotated[int, typer.Option(min=1)] = 3,
+    thinks: Annotated[int, typer.Option(min=0, help="WFNN replays per action.")] = 200,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """WFNN beside Stable-Baselines3 SAC and TD3: return vs steps, seconds per step, act latency."""
+    _logging(verbose)
+    try:
+        cfg = vs_sb3_bench.VsSb3Config(
+            tasks=_names(tasks), steps=tuple(int(v) for v in _names(steps)), algorithms=_names(algorithms),
+            seeds=seeds, eval_every=eval_every, eval_episodes=eval_episodes, thinks=thinks, seed=seed,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    with _progress() as bar:
+        task = bar.add_task("vs-sb3 runs", total=vs_sb3_bench.steps_total(cfg))
+        result = vs_sb3_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = []
+    for env_id, algos in result["tasks"].items():
+        for algorithm, r in algos.items():
+            if not isinstance(r, dict):
+                continue
+            if "skipped" in r:
+                rows.append((f"{env_id} {algorithm}", f"skipped: {r['skipped']}"))
+                continue
+            curve = " / ".join(f"{v:.0f}" for v in r["return_median"])
+            rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
+            rows.append((f"{env_id} {algorithm}: s_per_step / act_us",
+                         f"{r['s_per_step'] * 1e3:.2f} ms / {r['act_us']:.1f} us"))  # fmt: skip
+        if "sac_act_over_wfnn_act" in algos:
+            rows.append(
+                (f"{env_id}: SAC predict / WFNN act latency", f"{algos['sac_act_over_wfnn_act']:.1f}x")
+            )
+    rows.append(("wall_s", result["wall_s"]))
+    _table("WFNN vs Stable-Baselines3", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        vs_sb3_bench.plot(result, plot_path)
 
 
 if __name__ == "__main__":

@@ -368,3 +368,21 @@ def test_client_drives_a_gymnasium_task(tmp_path):
     proc = subprocess.run([BIN / "wfnn-client", "--env", "CartPole-v1", "--out", tmp_path / "x"],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode != 0 and "Box" in proc.stdout + proc.stderr
+
+
+def test_bench_vs_sb3_reports_curves_step_cost_and_act_latency(tmp_path):
+    j, p = tmp_path / "vs.json", tmp_path / "vs.png"
+    run([BIN / "wfnn-bench", "vs-sb3", "--tasks", "wfnn/Boat-v0", "--steps", "400", "--seeds", "2",
+         "--eval-every", "200", "--eval-episodes", "1", "--thinks", "2",
+         "--json", j, "--plot", p])  # fmt: skip
+    data = json.loads(j.read_text())
+    boat = data["tasks"]["wfnn/Boat-v0"]
+    for algorithm in ("wfnn", "sac", "td3"):
+        r = boat[algorithm]
+        if "skipped" in r:  # Stable-Baselines3 is an optional dependency
+            assert algorithm != "wfnn" and "stable-baselines3" in r["skipped"]
+            continue
+        assert r["steps"] == [200, 400] and len(r["return_median"]) == 2
+        assert r["return_q25"][-1] <= r["return_median"][-1] <= r["return_q75"][-1] < 0
+        assert r["s_per_step"] > 0 and r["act_us"] > 0
+    assert p.stat().st_size > 10_000

@@ -1,0 +1,217 @@
+"""WFNN beside Stable-Baselines3 SAC and TD3 on the same Gymnasium tasks and step budgets.
+
+For each task and algorithm, several seeds learn for the same number of environment steps;
+every `eval_every` steps the current policy is scored greedily (SB3: `predict(...,
+deterministic=True)`; WFNN: the best wire, no exploration) on `eval_episodes` fresh episodes of
+a separate environment instance. Reported per task and algorithm: the evaluation return's
+quartiles over seeds at each point, the wall-clock seconds per training step (acting, learning
+and, for WFNN, `thinks_per_action` replays), and the act latency: one observation in, one
+action out (WFNN `act` on numpy, SB3 `predict` on torch), median over many calls.
+
+WFNN runs with the thesis' defaults over the task's declared ranges (`sims.gym.GymVec`), as
+`wfnn-client --env` would. SB3 runs with its defaults for the algorithm (MlpPolicy), as a user
+of it would start. Stable-Baselines3 is an optional dependency (`pip install
+stable-baselines3`); without it only WFNN runs and the SB3 rows say why.
+
+The boat is registered as the Gymnasium task `wfnn/Boat-v0` (`sims.boat.BoatEnv`: one target
+per 200-action episode, the boat starting at rest).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from numpy.typing import NDArray
+
+from sims.gym import GymVec
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learner import WFNN
+
+FloatArray = NDArray[np.float64]
+ALGORITHMS = ("wfnn", "sac", "td3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class VsSb3Config:
+    """Options of `wfnn-bench vs-sb3`."""
+
+    tasks: tuple[str, ...] = ("wfnn/Boat-v0", "Pendulum-v1")
+    steps: tuple[int, ...] = (8000, 15000)
+    """Environment steps per task (same order as `tasks`)."""
+    algorithms: tuple[str, ...] = ALGORITHMS
+    seeds: int = 3
+    eval_every: int = 2000
+    eval_episodes: int = 3
+    thinks: int = 200
+    """WFNN replays per action (the thesis' boat figure)."""
+    act_calls: int = 2000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if len(self.tasks) != len(self.steps):
+            raise ValueError("give one step budget per task")
+        unknown = set(self.algorithms) - set(ALGORITHMS)
+        if unknown:
+            raise ValueError(f"unknown algorithms {sorted(unknown)}; choose from {ALGORITHMS}")
+
+
+def sb3_problem() -> str | None:
+    """Why Stable-Baselines3 cannot run here, or None."""
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError as exc:
+        return f"stable-baselines3 is not installed ({exc}); pip install stable-baselines3"
+    return None
+
+
+def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> float:
+    """Mean return of `policy(obs) -> action` over fresh episodes."""
+    env = gym.make(env_id)
+    total = 0.0
+    for k in range(episodes):
+        obs, _ = env.reset(seed=seed + k)
+        done = False
+        while not done:
+            obs, reward, terminated, truncated, _ = env.step(policy(obs))
+            total += float(reward)
+            done = terminated or truncated
+    env.close()
+    return total / episodes
+
+
+def _act_us(policy: Any, obs: FloatArray, calls: int) -> float:
+    """Median microseconds of one `policy(obs)` call."""
+    for _ in range(50):
+        policy(obs)
+    times = np.empty(calls)
+    for k in range(calls):
+        t0 = time.perf_counter()
+        policy(obs)
+        times[k] = time.perf_counter() - t0
+    return float(np.median(times) * 1e6)
+
+
+def run_wfnn(env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, Any]:
+    """One WFNN learner on the task: evaluation returns along the way, seconds per step, act latency."""
+    task = GymVec(env_id, seed=seed)
+    learner = WFNN(LearnerConfig.for_task(task, thinks_per_action=cfg.thinks, seed=seed))
+    rng = np.random.default_rng(seed)
+    x = task.reset(rng)[0]
+
+    def greedy(obs: FloatArray) -> FloatArray:
+        return learner.act(np.asarray(obs, dtype=np.float64), explore=False).action
+
+    points, returns, train_s = [], [], 0.0
+    for step in range(1, steps + 1):
+        t0 = time.perf_counter()
+        u = learner.act(x).action
+        tr = task.step(u[None])
+        learner.learn(x, u, tr.state[0], tr.reward[0], tr.terminal[0], tr.learnable[0])
+        learner.think()
+        x = task.observe()[0]
+        train_s += time.perf_counter() - t0
+        if step % cfg.eval_every == 0 or step == steps:
+            points.append(step)
+            returns.append(_evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed))
+    act = _act_us(greedy, x, cfg.act_calls)
+    task.close()
+    return {"steps": points, "returns": returns, "s_per_step": train_s / steps, "act_us": act}
+
+
+def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, Any]:
+    """One SB3 model (defaults, MlpPolicy) on the task, trained in chunks between evaluations."""
+    import torch
+    from stable_baselines3 import SAC, TD3
+
+    torch.set_num_threads(1)  # the comparison is per core, as WFNN's learner runs on one
+    model = {"sac": SAC, "td3": TD3}[algorithm]("MlpPolicy", gym.make(env_id), seed=seed, verbose=0)
+
+    def greedy(obs: FloatArray) -> FloatArray:
+        return model.predict(obs, deterministic=True)[0]
+
+    points, returns, train_s, done = [], [], 0.0, 0
+    while done < steps:
+        chunk = min(cfg.eval_every, steps - done)
+        t0 = time.perf_counter()
+        model.learn(total_timesteps=chunk, reset_num_timesteps=False)
+        train_s += time.perf_counter() - t0
+        done += chunk
+        points.append(done)
+        returns.append(_evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed))
+    obs, _ = gym.make(env_id).reset(seed=seed)
+    return {"steps": points, "returns": returns, "s_per_step": train_s / steps,
+            "act_us": _act_us(greedy, obs, cfg.act_calls)}  # fmt: skip
+
+
+def steps_total(cfg: VsSb3Config) -> int:
+    """Progress units: one per (task, algorithm, seed)."""
+    return len(cfg.tasks) * len(cfg.algorithms) * cfg.seeds
+
+
+def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
+    """Every task x algorithm x seed -> a JSON-ready dict."""
+    import sims.boat  # noqa: F401  # registers wfnn/Boat-v0
+
+    t0 = time.perf_counter()
+    problem = sb3_problem()
+    out: dict[str, Any] = {"benchmark": "vs-sb3", "config": asdict(cfg), "machine": machine_info(),
+                           "sb3": problem or "available", "tasks": {}}  # fmt: skip
+    for env_id, steps in zip(cfg.tasks, cfg.steps, strict=True):
+        out["tasks"][env_id] = {}
+        for algorithm in cfg.algorithms:
+            if algorithm != "wfnn" and problem is not None:
+                out["tasks"][env_id][algorithm] = {"skipped": problem}
+                progress(cfg.seeds)
+                continue
+            runs = []
+            for k in range(cfg.seeds):
+                seed = cfg.seed + k
+                runs.append(run_wfnn(env_id, steps, seed, cfg) if algorithm == "wfnn"
+                            else run_sb3(algorithm, env_id, steps, seed, cfg))  # fmt: skip
+                progress(1)
+            returns = np.array([r["returns"] for r in runs])  # [seeds, points]
+            q25, q50, q75 = np.percentile(returns, [25, 50, 75], axis=0)
+            out["tasks"][env_id][algorithm] = {
+                "steps": runs[0]["steps"], "return_q25": q25, "return_median": q50, "return_q75": q75,
+                "returns": returns, "final_return_median": float(q50[-1]),
+                "s_per_step": float(np.median([r["s_per_step"] for r in runs])),
+                "act_us": float(np.median([r["act_us"] for r in runs])),
+            }  # fmt: skip
+        task = out["tasks"][env_id]
+        if "wfnn" in task and "sac" in task and "act_us" in task["sac"]:
+            task["sac_act_over_wfnn_act"] = task["sac"]["act_us"] / task["wfnn"]["act_us"]
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Return versus environment steps per task: median and quartiles over seeds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = result["tasks"]
+    fig, axes = plt.subplots(1, len(tasks), figsize=(6 * len(tasks), 4.2), squeeze=False)
+    for ax, (env_id, algos) in zip(axes[0], tasks.items(), strict=True):
+        for algorithm, r in algos.items():
+            if not isinstance(r, dict) or "steps" not in r:
+                continue
+            ax.plot(
+                r["steps"], r["return_median"], marker="o", label=f"{algorithm} ({r['act_us']:.0f} us/act)"
+            )
+            ax.fill_between(r["steps"], r["return_q25"], r["return_q75"], alpha=0.2)
+        ax.set(
+            xlabel="environment steps", ylabel="greedy return (median, quartiles over seeds)", title=env_id
+        )
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
