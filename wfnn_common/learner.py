@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.exploration import Explorer
-from wfnn_common.kernels import think_incremental
+from wfnn_common.kernels import think_incremental, think_incremental_one
 from wfnn_common.network import Params, Scaler, forward, init_params, layer_rates, reinit, split_wires
 from wfnn_common.replay import Experiences, ReplayBuffer
 from wfnn_common.update import UpdateStats, squash_reward, wfnn_update
@@ -350,7 +350,8 @@ class WFNN:
         self, exp: Experiences, idx: NDArray[np.int64], active: BoolArray, p: Params
     ) -> UpdateStats:
         cfg = self.config
-        q, td = think_incremental(
+        kernel = think_incremental_one if self.population == 1 else think_incremental
+        q, td = kernel(
             p.W1, p.b1, p.W2, p.b2, self.rates[0], self.rates[1],
             exp.state, exp.action, exp.next_state, exp.reward, exp.terminal, idx, active,
             cfg.n_wires, cfg.gamma, cfg.advantage_k, cfg.smoothing_c, cfg.eps,

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
+from sims.boat import BoatVec
 from tests.fakes import random_experiences, small_config
-from wfnn_common.config import ExplorationConfig
+from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.exploration import Explorer
 from wfnn_common.learner import WFNN, DivergenceMonitor
 from wfnn_common.network import forward, split_wires
@@ -188,3 +189,24 @@ def test_invalid_states_neither_extend_nor_end_a_run_of_high_values():
     learner.act(np.zeros(3), explore=False)
     assert learner.resets[0] == 0
     assert learner.act(np.zeros(3), explore=False).diverged and learner.resets[0] == 1
+
+
+def test_a_population_of_one_thinks_exactly_as_the_population_kernel_does():
+    from wfnn_common.kernels import think_incremental, think_incremental_one
+
+    cfg = LearnerConfig.for_task(BoatVec, thinks_per_action=50, seed=3)
+    learner = WFNN(cfg)
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        learner.learn(rng.uniform(-1, 1, 7), rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 7), rng.normal())
+    exp, idx = learner.buffer.arrays(), learner.buffer.sample_indices(rng, 200)
+    results = []
+    for kernel in (think_incremental, think_incremental_one):
+        p = learner.params.copy()
+        q, td = kernel(p.W1, p.b1, p.W2, p.b2, learner.rates[0], learner.rates[1], exp.state, exp.action,
+                       exp.next_state, exp.reward, exp.terminal, idx, np.ones(1, dtype=np.bool_), cfg.n_wires,
+                       cfg.gamma, cfg.advantage_k, cfg.smoothing_c, cfg.eps, False, True)  # fmt: skip
+        results.append((p.flat.copy(), q, td))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    assert not np.array_equal(results[0][0], learner.params.flat)  # the weights did change
+    np.testing.assert_array_equal(results[0][1], results[1][1])
