@@ -334,7 +334,7 @@ def nomad(
     w, h = result["wander"], result["wander_handcoded"]
     rows += [
         ("wander_m_per_collision early / late / hand-coded (-: no collision)",
-         " / ".join(_num(v) for v in result["wander_m_per_collision"].values())),
+         " / ".join(_num(result["wander_m_per_collision"][k]) for k in ("early", "late", "handcoded"))),
         ("wander collisions early / late (all robots)",
          f"{w['collisions_early']:.0f} / {w['collisions_late']:.0f}"),
         ("without the veto: metres per collision early / late / hand-coded",

@@ -12,7 +12,7 @@ are quantised to whole pixels plus Gaussian noise.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import mujoco
 import numpy as np
@@ -25,6 +25,18 @@ FloatArray = NDArray[np.float64]
 
 VisionSource = Literal["projection", "render"]
 VISION_SOURCES: tuple[VisionSource, ...] = ("projection", "render")
+
+
+def check_camera(cfg: Any) -> None:
+    """Refuse camera settings (HyDrA's or the Nomad's vision config) that cannot work."""
+    if cfg.source not in VISION_SOURCES:
+        raise ValueError(f"vision source must be one of {VISION_SOURCES}, got {cfg.source!r}")
+    if cfg.width < 16 or cfg.height < 16:
+        raise ValueError(f"image must be at least 16 x 16 pixels, got {cfg.width} x {cfg.height}")
+    if not 0.1 <= cfg.render_scale <= 1.0:
+        raise ValueError(f"render_scale must be in [0.1, 1], got {cfg.render_scale}")
+    if not 0.0 < cfg.min_correlation < 1.0:
+        raise ValueError(f"min_correlation must be in (0, 1), got {cfg.min_correlation}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -56,14 +68,7 @@ class VisionConfig:
     """render: a match needs at least this normalised correlation with the template."""
 
     def __post_init__(self) -> None:
-        if self.source not in VISION_SOURCES:
-            raise ValueError(f"vision source must be one of {VISION_SOURCES}, got {self.source!r}")
-        if self.width < 16 or self.height < 16:
-            raise ValueError(f"image must be at least 16 x 16 pixels, got {self.width} x {self.height}")
-        if not 0.1 <= self.render_scale <= 1.0:
-            raise ValueError(f"render_scale must be in [0.1, 1], got {self.render_scale}")
-        if not 0.0 < self.min_correlation < 1.0:
-            raise ValueError(f"min_correlation must be in (0, 1), got {self.min_correlation}")
+        check_camera(self)
 
 
 @dataclass

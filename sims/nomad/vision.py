@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from sims.hydra.vision import VISION_SOURCES, VisionSource
+from sims.hydra.vision import VisionSource, check_camera
 from sims.nomad.model import CARPET
 from sims.pinhole import focal_px, project
 
@@ -84,19 +84,12 @@ class NomadVisionConfig:
     """render: a match needs at least this normalised correlation with the target's template."""
 
     def __post_init__(self) -> None:
-        if self.source not in VISION_SOURCES:
-            raise ValueError(f"vision source must be one of {VISION_SOURCES}, got {self.source!r}")
-        if self.width < 16 or self.height < 16:
-            raise ValueError(f"image must be at least 16 x 16 pixels, got {self.width} x {self.height}")
-        if not 0.1 <= self.render_scale <= 1.0:
-            raise ValueError(f"render_scale must be in [0.1, 1], got {self.render_scale}")
+        check_camera(self)
         if (
             round(self.width * self.render_scale) < 2 * COLS
             or round(self.height * self.render_scale) < 3 * ROWS
         ):
             raise ValueError("render: the rendered image is too small for the 5 x 7 carpet grid")
-        if not 0.0 < self.min_correlation < 1.0:
-            raise ValueError(f"min_correlation must be in (0, 1), got {self.min_correlation}")
 
 
 def cell_pixels(cfg: NomadVisionConfig) -> FloatArray:
