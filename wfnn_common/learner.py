@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.exploration import Explorer
-from wfnn_common.kernels import think_incremental, think_incremental_one
+from wfnn_common.kernels import act_one, think_incremental, think_incremental_one
 from wfnn_common.network import Params, Scaler, forward, init_params, layer_rates, reinit, split_wires
 from wfnn_common.replay import Experiences, ReplayBuffer
 from wfnn_common.update import UpdateStats, squash_reward, wfnn_update
@@ -127,6 +127,11 @@ class WFNN:
         self.thinks = np.zeros(population, dtype=np.int64)
         """Weight updates performed per learner."""
         self.last_think = UpdateStats(np.zeros(population), np.zeros(population))
+        if population == 1:  # load the compiled act now, not in a robot's first control tick
+            W1, b1, W2, b2 = self.params.single
+            z = np.zeros(config.state_dim)
+            act_one(W1, b1, W2, b2, z, z, z + 1.0, 1.0, config.n_wires, config.action_dim, z.copy(),
+                    np.empty(W1.shape[0]), np.empty(W2.shape[0]))  # fmt: skip
 
     # ------------------------------------------------------------------ shapes
     def _rows(self, a: ArrayLike, width: int) -> tuple[FloatArray, bool]:
@@ -201,21 +206,19 @@ class WFNN:
     def _act_one(self, s: FloatArray, explore: bool, params: Params) -> ActResult:
         """`act` for a single learner: the robot's hot path, with as few array calls as possible."""
         cfg = self.config
-        x = (s - self.state_scaler.mid) / self.state_scaler.half
-        valid = bool(np.abs(x).max() <= self._limit)  # False for NaN and inf
+        W1, b1, W2, b2 = params.single
+        # Fresh buffers per call: act may run on several threads (a snapshot each).
+        x, hidden, out = np.empty(cfg.state_dim), np.empty(W1.shape[0]), np.empty(W2.shape[0])
+        scaler = self.state_scaler
+        valid, best, value = act_one(W1, b1, W2, b2, s, scaler.mid, scaler.half, self._limit,
+                                     cfg.n_wires, cfg.action_dim, x, hidden, out)  # fmt: skip
         if valid:
             self._last_valid = x[None]
-        else:
+        else:  # act on the best estimate: already scaled, so through an identity scaling
             x = self._best_estimate(x[None], np.zeros(1, dtype=np.bool_))[0]
-        W1, b1, W2, b2 = params.single
-        hidden = W1 @ x
-        hidden += b1
-        out = W2 @ np.tanh(hidden, out=hidden)
-        out += b2
-        np.tanh(out, out=out)
-        n_act = cfg.n_wires * cfg.action_dim
-        best = int(out[n_act:].argmax())
-        value = float(out[n_act + best])
+            identity = np.zeros(cfg.state_dim), np.ones(cfg.state_dim)
+            _, best, value = act_one(W1, b1, W2, b2, x, *identity, np.inf, cfg.n_wires, cfg.action_dim,
+                                     x.copy(), hidden, out)  # fmt: skip
         u = out[best * cfg.action_dim : (best + 1) * cfg.action_dim]
         explored = False
         if explore and cfg.exploration.kind != "none":
