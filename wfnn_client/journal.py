@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.logs import write_log_json
+from wfnn_common.logs import log_config, write_log_json
 from wfnn_common.protocol import Codec, ExperienceBatch, ProtocolError, check_id, decode
 from wfnn_common.segments import FsyncPolicy, Position, SegmentLog
 
@@ -41,7 +41,17 @@ class Journal:
     ) -> None:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        write_log_json(directory, learner_config)
+        recorded = log_config(directory)
+        if (
+            learner_config is not None
+            and recorded is not None
+            and recorded.spec_hash() != learner_config.spec_hash()
+        ):
+            raise ValueError(
+                f"{directory} records experiences of learner spec {recorded.spec_hash()}, not "
+                f"{learner_config.spec_hash()} (another task or ranges): use another run directory"
+            )
+        write_log_json(directory, learner_config or recorded)
         meta = directory / "client.json"
         if meta.exists():
             stored = json.loads(meta.read_text())["client"]

@@ -94,3 +94,10 @@ def test_logs_of_different_learner_specs_are_refused(tmp_path):
         logs.merge([tmp_path / "boat", tmp_path / "cartpole"], tmp_path / "mixed")
     with pytest.raises(logs.LogFormatError, match="no experience log"):
         list(logs.read_batches(tmp_path / "nowhere"))
+
+
+def test_a_record_of_one_task_is_not_continued_by_another(tmp_path):
+    record(tmp_path / "log")
+    with pytest.raises(ValueError, match="another run directory"):
+        Recorder(tmp_path / "log", LearnerConfig.for_task(CartPoleVec))
+    assert logs.summarise(tmp_path / "log").experiences == 300
