@@ -32,7 +32,7 @@ from sims.base import Transition
 from sims.boat import BoatConfig, BoatVec, handcoded_boat, mirror, phantom
 from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_client.journal import Recorder
+from wfnn_client.brain import Experience, Recorder
 from wfnn_common import logs
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
@@ -113,8 +113,9 @@ def record_logs(cfg: PassiveBenchConfig, directory: Path) -> dict[str, Any]:
             recorders: list[Recorder] = recorders,
         ) -> None:  # fmt: skip
             for b, recorder in enumerate(recorders):
-                recorder.add(x[b], u[b], tr.state[b], float(tr.reward[b]), bool(tr.terminal[b]),
-                             EXP_EXPLORED if sigma > 0 else 0, name, 0)  # fmt: skip
+                experience = Experience(x[b], u[b], tr.state[b], float(tr.reward[b]), bool(tr.terminal[b]),
+                                        EXP_EXPLORED if sigma > 0 else 0)  # fmt: skip
+                recorder.add(experience, name, 0)
 
         scores[name] = float(np.median(run_protocol(boats, cfg.log_targets, rng, policy, keep)))
         for recorder in recorders:

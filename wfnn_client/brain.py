@@ -16,16 +16,19 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from wfnn_client.journal import Recorder
+from wfnn_client.journal import Journal
 from wfnn_common.architectures import ActLearnThinkMT
+from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN, ActResult
-from wfnn_common.protocol import EXP_EXPLORED
+from wfnn_common.protocol import EXP_EXPLORED, Codec, ExperienceBatch
 
 FloatArray = NDArray[np.float64]
 
@@ -50,6 +53,82 @@ class Experience:
     reward: float
     terminal: bool = False
     flags: int = 0
+
+
+def as_recorded(experience: Experience, acted: Acted | None) -> tuple[Experience, str, int]:
+    """An experience as it is recorded and sent, with the weights that chose its action.
+
+    Flagged explored where exploration changed its action; (source, version) of the weights
+    ("", 0: the safe action).
+    """
+    if acted is None:
+        return experience, "", 0
+    if acted.result.explored:
+        experience = replace(experience, flags=experience.flags | EXP_EXPLORED)
+    return experience, acted.source, acted.version
+
+
+def experience_batch(
+    client: str, spec_hash: str, first_seq: int, source: str, experiences: Sequence[Experience],
+    versions: Sequence[int],
+) -> ExperienceBatch:  # fmt: skip
+    """Experiences numbered from `first_seq`, all chosen by weights of `source`, as one batch."""
+    e = experiences
+    return ExperienceBatch(
+        client=client, spec_hash=spec_hash, first_seq=first_seq, weights_source=source,
+        state=np.stack([x.state for x in e]), action=np.stack([x.action for x in e]),
+        next_state=np.stack([x.next_state for x in e]), reward=np.array([x.reward for x in e]),
+        terminal=np.array([x.terminal for x in e], dtype=np.bool_),
+        weights_version=np.array(versions, dtype=np.uint64),
+        flags=np.array([x.flags for x in e], dtype=np.uint8),
+    )  # fmt: skip
+
+
+class Recorder:
+    """A local run's experience record: experiences batched into a journal (an experience log).
+
+    `add` only buffers; a batch is encoded and appended every `batch_max` experiences or when
+    the weights that chose the actions change source, and the rest at `close`. Appends are
+    left to the OS (they survive the process dying, not a power cut) and synced at `close`.
+    """
+
+    def __init__(
+        self, directory: Path, config: LearnerConfig, client_id: str | None = None, batch_max: int = 256
+    ) -> None:
+        self.journal = Journal(directory, client_id, fsync="never", learner_config=config)
+        self.codec = Codec(self.journal.client_id)
+        self.spec_hash = config.spec_hash()
+        self.batch_max = batch_max
+        self._experiences: list[Experience] = []
+        self._versions: list[int] = []
+        self._source = ""
+        self.recorded = 0
+
+    def add(self, experience: Experience, source: str, version: int) -> None:
+        """Record one experience (physical units), chosen by weights `version` of `source`."""
+        if self._experiences and source != self._source:
+            self.flush()
+        self._source = source
+        self._experiences.append(experience)
+        self._versions.append(version)
+        if len(self._experiences) >= self.batch_max:
+            self.flush()
+
+    def flush(self) -> None:
+        """Append the buffered experiences as one batch."""
+        if not self._experiences:
+            return
+        batch = experience_batch(self.journal.client_id, self.spec_hash, self.journal.next_seq, self._source,
+                                 self._experiences, self._versions)  # fmt: skip
+        self.journal.append(self.codec.encode(batch), batch.last_seq)
+        self.recorded += len(batch)
+        self._experiences.clear()
+        self._versions.clear()
+
+    def close(self) -> None:
+        """Flush, sync and close."""
+        self.flush()
+        self.journal.close()
 
 
 class Brain(Protocol):
@@ -142,9 +221,7 @@ class LocalBrain:
         """Record; queue for the think thread, or learn and think now (lock-step)."""
         e = experience
         if self.recorder is not None:
-            flags = e.flags | (EXP_EXPLORED if acted is not None and acted.result.explored else 0)
-            source, version = (acted.source, acted.version) if acted is not None else ("", 0)
-            self.recorder.add(e.state, e.action, e.next_state, e.reward, e.terminal, flags, source, version)
+            self.recorder.add(*as_recorded(e, acted))
         if self.mt is None:
             self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
             self.learner.think()

@@ -5,7 +5,7 @@ no server was reachable, or lost on the way, are re-sent from here, and a server
 late catches up from here. The journal continues across client restarts: the client id and the
 next sequence number are recovered from it. The journal is also the run's experience record,
 an experience log (`wfnn_common.logs`: the same format as a server store). A local run, which
-sends nothing, records its experiences in the same format with `Recorder`.
+sends nothing, records its experiences in the same format (`wfnn_client.brain.Recorder`).
 """
 
 from __future__ import annotations
@@ -16,11 +16,9 @@ import logging
 import secrets
 from pathlib import Path
 
-import numpy as np
-
 from wfnn_common.config import LearnerConfig
 from wfnn_common.logs import log_config, write_log_json
-from wfnn_common.protocol import Codec, ExperienceBatch, ProtocolError, check_id, decode
+from wfnn_common.protocol import ExperienceBatch, ProtocolError, check_id, decode
 from wfnn_common.segments import FsyncPolicy, Position, SegmentLog
 
 log = logging.getLogger(__name__)
@@ -120,57 +118,3 @@ class Journal:
     def close(self) -> None:
         """Sync and close."""
         self.log.close()
-
-
-class Recorder:
-    """A local run's experience record: experiences batched into a journal (an experience log).
-
-    `add` only buffers; a batch is encoded and appended every `batch_max` experiences or when
-    the weights that chose the actions change source, and the rest at `close`. Appends are
-    left to the OS (they survive the process dying, not a power cut) and synced at `close`.
-    """
-
-    def __init__(
-        self, directory: Path, config: LearnerConfig, client_id: str | None = None, batch_max: int = 256
-    ) -> None:
-        self.journal = Journal(directory, client_id, fsync="never", learner_config=config)
-        self.codec = Codec(self.journal.client_id)
-        self.spec_hash = config.spec_hash()
-        self.batch_max = batch_max
-        self._items: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, bool, int, int]] = []
-        self._source = ""
-        self.recorded = 0
-
-    def add(
-        self, state: np.ndarray, action: np.ndarray, next_state: np.ndarray, reward: float, terminal: bool,
-        flags: int, source: str, version: int,
-    ) -> None:  # fmt: skip
-        """Record one experience (physical units), chosen by weights `version` of `source`."""
-        if self._items and source != self._source:
-            self.flush()
-        self._source = source
-        self._items.append(
-            (state, action, next_state, float(reward), bool(terminal), int(flags), int(version))
-        )
-        if len(self._items) >= self.batch_max:
-            self.flush()
-
-    def flush(self) -> None:
-        """Append the buffered experiences as one batch."""
-        if not self._items:
-            return
-        s, a, sn, r, t, f, v = zip(*self._items, strict=True)
-        batch = ExperienceBatch(
-            client=self.journal.client_id, spec_hash=self.spec_hash, first_seq=self.journal.next_seq,
-            weights_source=self._source, state=np.stack(s), action=np.stack(a), next_state=np.stack(sn),
-            reward=np.array(r), terminal=np.array(t, dtype=np.bool_),
-            weights_version=np.array(v, dtype=np.uint64), flags=np.array(f, dtype=np.uint8),
-        )  # fmt: skip
-        self.journal.append(self.codec.encode(batch), batch.last_seq)
-        self.recorded += len(batch)
-        self._items.clear()
-
-    def close(self) -> None:
-        """Flush, sync and close."""
-        self.flush()
-        self.journal.close()

@@ -25,17 +25,15 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_client.brain import Acted, Experience
+from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
 from wfnn_common.learner import WFNN
 from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params, Shapes
 from wfnn_common.protocol import (
-    EXP_EXPLORED,
     Ack,
     ClientStatus,
     Codec,
-    ExperienceBatch,
     Keys,
     ProtocolError,
     ServerStatus,
@@ -285,12 +283,7 @@ class RemoteBrain:
 
     def learn(self, experience: Experience, acted: Acted | None) -> None:
         """Queue an experience for the uplink (never blocks)."""
-        flags = experience.flags | (EXP_EXPLORED if acted is not None and acted.result.explored else 0)
-        if flags != experience.flags:
-            experience = Experience(experience.state, experience.action, experience.next_state,
-                                    experience.reward, experience.terminal, flags)  # fmt: skip
-        source, version = (acted.source, acted.version) if acted is not None else ("", 0)
-        self._pending.append(_Pending(experience, source, version))
+        self._pending.append(_Pending(*as_recorded(experience, acted)))
         self.produced_through += 1
         self._wake_up.set()
 
@@ -369,16 +362,8 @@ class RemoteBrain:
             self._pending and len(items) < self.config.batch_max and self._pending[0].source == first.source
         ):
             items.append(self._pending.popleft())
-        seq = self.journal.next_seq
-        e = [p.experience for p in items]
-        batch = ExperienceBatch(
-            client=self.id, spec_hash=self.spec_hash, first_seq=seq, weights_source=first.source,
-            state=np.stack([x.state for x in e]), action=np.stack([x.action for x in e]),
-            next_state=np.stack([x.next_state for x in e]), reward=np.array([x.reward for x in e]),
-            terminal=np.array([x.terminal for x in e], dtype=np.bool_),
-            weights_version=np.array([p.version for p in items], dtype=np.uint64),
-            flags=np.array([x.flags for x in e], dtype=np.uint8),
-        )  # fmt: skip
+        batch = experience_batch(self.id, self.spec_hash, self.journal.next_seq, first.source,
+                                 [p.experience for p in items], [p.version for p in items])  # fmt: skip
         frame = self.codec.encode(batch)
         self.journal.append(frame, batch.last_seq)
         self.bus.put(self.keys.experiences(self.id), frame, Channel.DATA)

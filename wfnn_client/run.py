@@ -136,7 +136,7 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
 def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brain:
     """Local thinking, or the C/S client over a Zenoh bus (a behaviour of several: its own controller)."""
     if config.local:
-        from wfnn_client.journal import Recorder
+        from wfnn_client.brain import Recorder
 
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id)
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)

@@ -5,7 +5,7 @@ import pytest
 
 from sims.boat import BoatVec
 from sims.cartpole import CartPoleVec
-from wfnn_client.journal import Recorder
+from wfnn_client.brain import Experience, Recorder
 from wfnn_common import logs
 from wfnn_common.config import LearnerConfig
 from wfnn_common.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
@@ -24,7 +24,7 @@ def record(directory, task_type=BoatVec, n=300, client="robot1", source="local",
         np.arange(n) % 50 == 1, EXP_VETO_ACTUAL, 0
     )
     for i in range(n):
-        recorder.add(s[i], a[i], sn[i], r[i], False, int(flags[i]), source, i // 100)
+        recorder.add(Experience(s[i], a[i], sn[i], r[i], False, int(flags[i])), source, i // 100)
     recorder.close()
     return config, (s, a, sn, r, flags)
 
