@@ -188,6 +188,8 @@ class NomadVec:
         self.carpet_raw = np.zeros((n, ROWS, COLS))
         self._looked: list[tuple[NDArray[np.int32], FloatArray] | None] = [None] * n
         """What each robot's grid rays met when carpet_raw was computed (geoms, points)."""
+        self._difference: list[FloatImage | None] = [None] * n
+        """Rendered vision: the per-pixel carpet difference carpet_raw was computed from."""
         self.carpet = np.zeros((n, ROWS, COLS))
         """Filtered carpet mismatch (Eq 6.2), 0 carpet .. 1 not carpet."""
         self.pixels = np.full((n, 2), np.nan)
@@ -531,7 +533,8 @@ class NomadVec:
         self.ir[i] = readings.reshape(cfg.ir_sensors, -1).min(axis=1)
         if self.rendered:
             assert self._grid is not None
-            self.carpet_raw[i] = self._grid.mismatch(self._grid.difference(self._vision_frame(i)))
+            difference = self._difference[i] = self._grid.difference(self._vision_frame(i))
+            self.carpet_raw[i] = self._grid.mismatch(difference)
         else:
             hit, points = self._looked[i] = self.camera.look(self.model, data)
             self.carpet_raw[i] = carpet_mismatch(self.model, hit, points, cfg.vision, rng)
@@ -594,8 +597,10 @@ class NomadVec:
         Which geom each is (what the ray through its pixel meets) only says which ball is picked
         up when it is reached.
         """
-        assert self._grid is not None
-        difference = self._grid.difference(self._vision_frame(i))
+        # The image the carpet matrix was measured in: the object is what those cells saw.
+        difference = self._difference[i]
+        if self._grid is None or difference is None:
+            return []
         out: list[Seen] = []
         for cells in interesting_cells(self.carpet_raw[i], self.config.vision):
             seen = self._grid.object_at(difference, cells)
