@@ -228,7 +228,7 @@ def write_log(
     return written
 
 
-def _common_config(directories: Iterable[Path]) -> LearnerConfig | None:
+def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
     """The learner config of logs that must agree on their spec (None if none says)."""
     found: LearnerConfig | None = None
     for directory in directories:
@@ -243,19 +243,23 @@ def _common_config(directories: Iterable[Path]) -> LearnerConfig | None:
     return found
 
 
-def merged(directories: Iterable[Path], key: bytes | None = None) -> Iterator[ExperienceBatch]:
+def merged(
+    directories: Iterable[Path], key: bytes | None = None, spec: str = ""
+) -> Iterator[ExperienceBatch]:
     """The batches of several logs, each client's experiences once (the first copy of each number).
 
     Logs of the same client (its journal and a server's store, say) overlap: what one has already
-    given is trimmed from the others. Batches of a spec other than the first batch's are refused.
+    given is trimmed from the others. Batches of a learner spec other than `spec` (without one:
+    the first batch's) are refused.
     """
     through: dict[str, set[int]] = {}
-    spec = ""
     for directory in directories:
         for batch in read_batches(directory, key):
             spec = spec or batch.spec_hash
             if batch.spec_hash != spec:
-                raise LogFormatError(f"{directory}: a batch of spec {batch.spec_hash} among spec {spec}")
+                raise LogFormatError(
+                    f"{directory}: experiences of learner spec {batch.spec_hash}, not {spec}"
+                )
             seen = through.setdefault(batch.client, set())
             keep = np.array([s not in seen for s in range(batch.first_seq, batch.last_seq + 1)])
             if not keep.any():
@@ -267,25 +271,12 @@ def merged(directories: Iterable[Path], key: bytes | None = None) -> Iterator[Ex
             # Keep each contiguous run of new experiences as its own batch.
             edges = np.flatnonzero(np.diff(np.concatenate([[0], keep.astype(np.int8), [0]])))
             for start, stop in zip(edges[::2], edges[1::2], strict=True):
-                yield _part(batch, int(start), int(stop))
-
-
-def _part(batch: ExperienceBatch, start: int, stop: int) -> ExperienceBatch:
-    """Experiences [start, stop) of a batch, renumbered from first_seq + start."""
-    import dataclasses
-
-    return dataclasses.replace(
-        batch, first_seq=batch.first_seq + start, state=batch.state[start:stop],
-        action=batch.action[start:stop],
-        next_state=batch.next_state[start:stop], reward=batch.reward[start:stop],
-        terminal=batch.terminal[start:stop], weights_version=batch.weights_version[start:stop],
-        flags=batch.flags[start:stop],
-    )  # fmt: skip
+                yield batch.slice(int(start), int(stop))
 
 
 def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
-    return write_log(out, merged(sources, key), _common_config(sources))
+    return write_log(out, merged(sources, key), common_config(sources))
 
 
 def split(
@@ -340,7 +331,7 @@ def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
 def export(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Write logs' experiences as one `.npz` of plain arrays (`to_arrays`); -> experiences."""
     arrays = to_arrays(sources, key)
-    config = _common_config(sources)
+    config = common_config(sources)
     atomic_savez(out, {"format": np.str_(EXPORT_FORMAT), "format_version": np.int64(1),
                        "learner_config": np.str_(config.to_json() if config else ""), **arrays})  # fmt: skip
     return int(arrays["reward"].shape[0])

@@ -206,12 +206,13 @@ class ExperienceBatch:
             if getattr(self, name).shape != shape:
                 raise MalformedBody(f"{name}: expected shape {shape}, found {getattr(self, name).shape}")
 
-    def slice(self, start: int) -> ExperienceBatch:
-        """The experiences from index `start` on (renumbered accordingly)."""
+    def slice(self, start: int, stop: int | None = None) -> ExperienceBatch:
+        """The experiences of indices [start, stop) (to the end without `stop`), renumbered."""
+        part = slice(start, stop)
         return dataclasses.replace(
-            self, first_seq=self.first_seq + start, state=self.state[start:], action=self.action[start:],
-            next_state=self.next_state[start:], reward=self.reward[start:], terminal=self.terminal[start:],
-            weights_version=self.weights_version[start:], flags=self.flags[start:],
+            self, first_seq=self.first_seq + start, state=self.state[part], action=self.action[part],
+            next_state=self.next_state[part], reward=self.reward[part], terminal=self.terminal[part],
+            weights_version=self.weights_version[part], flags=self.flags[part],
         )  # fmt: skip
 
 

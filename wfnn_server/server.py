@@ -29,7 +29,7 @@ import numpy as np
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
-from wfnn_common.logs import LogFormatError, log_config, read_batches
+from wfnn_common.logs import LogFormatError, common_config, merged
 from wfnn_common.net import Bus, Channel
 from wfnn_common.persist import PersistError, load_weights, save_weights
 from wfnn_common.protocol import (
@@ -129,14 +129,12 @@ class ThinkServer:
         self._recover_until = 0
         self._staleness: list[int] = []
         self._q_chosen: list[float] = []
-        self.imported = self._import_logs(config.replay) if config.replay else 0
+        self.imported, replay_config = self._import_logs(config.replay) if config.replay else (0, None)
         """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
         self.last_status: ServerStatus | None = None
-        cfg = self._initial_config()
-        if cfg is None and config.replay:  # the logs say what they were recorded for
-            cfg = next((c for c in map(log_config, config.replay) if c is not None), None)
+        cfg = self._initial_config() or replay_config  # or what the logs say they were recorded for
         if cfg is not None:
             self._start_learner(cfg)
 
@@ -159,37 +157,35 @@ class ThinkServer:
             cfg = LearnerConfig.from_dict({**cfg.to_dict(), "seed": self.config.seed})
         return cfg
 
-    def _import_logs(self, directories: tuple[Path, ...]) -> int:
-        """Store the experiences of logs that the store lacks; -> how many.
+    def _import_logs(self, directories: tuple[Path, ...]) -> tuple[int, LearnerConfig | None]:
+        """Store the experiences of logs that the store lacks.
 
-        Every log is checked first (readable, one learner spec, the server's own spec where it
-        has one), so a log that does not fit leaves the store untouched.
+        Every log is read through first (readable, one learner spec, the server's own spec where
+        it has one), so a log that does not fit leaves the store untouched. Returns how many
+        experiences were imported and the learner config the logs were recorded for (if said).
         """
-        known = self._initial_config()
+        known, described = self._initial_config(), common_config(directories)
         spec = known.spec_hash() if known is not None else ""
-        for directory in directories:
-            described = log_config(directory)
-            for batch in read_batches(directory, self.codec.key):
-                spec = spec or batch.spec_hash
-                if batch.spec_hash != spec or (described is not None and described.spec_hash() != spec):
-                    raise LogFormatError(
-                        f"{directory}: experiences of learner spec {batch.spec_hash} do not fit spec {spec} "
-                        "(the server's learner config or the other logs)"
-                    )
+        if described is not None and spec and described.spec_hash() != spec:
+            raise LogFormatError(
+                f"the logs were recorded for learner spec {described.spec_hash()}, this server's is {spec}"
+            )
+        spec = spec or (described.spec_hash() if described is not None else "")
+        for _ in merged(directories, self.codec.key, spec):
+            pass
         imported = 0
-        for directory in directories:
-            for batch in read_batches(directory, self.codec.key):
-                admitted = self.store.admit(batch)
-                if admitted.gap:
-                    through = self.store.stored_through[batch.client]
-                    log.warning("%s: client %s experiences from %d leave a gap after %d; not imported",
-                                directory, batch.client, batch.first_seq, through)  # fmt: skip
-                if admitted.new is not None:
-                    self.store.append(admitted.new)
-                    imported += len(admitted.new)
+        for batch in merged(directories, self.codec.key, spec):
+            admitted = self.store.admit(batch)
+            if admitted.gap:
+                through = self.store.stored_through[batch.client]
+                log.warning("client %s experiences from %d leave a gap after %d; not imported",
+                            batch.client, batch.first_seq, through)  # fmt: skip
+            if admitted.new is not None:
+                self.store.append(admitted.new)
+                imported += len(admitted.new)
         self.store.sync()
         log.info("imported %d experiences from %d logs", imported, len(directories))
-        return imported
+        return imported, described
 
     def replayed(self) -> bool:
         """Whether every stored experience has had its thinks (nothing queued or owed)."""
