@@ -9,6 +9,8 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
+from wfnn_common.symmetry import Symmetry
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
@@ -76,6 +78,8 @@ class Ranges:
     state_high: tuple[float, ...]
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
+    symmetries: tuple[Symmetry, ...] = ()
+    """The behaviour's declared symmetries (`wfnn_common.symmetry`), if any."""
 
 
 class Behaviours(Protocol):

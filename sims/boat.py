@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
+from wfnn_common.symmetry import Symmetry
 
 FloatArray = NDArray[np.float64]
 
@@ -43,8 +44,18 @@ class BoatConfig:
     """Reward Eq 3.8: -w_d |target| - w_e (A^2 + B^2) - w_c ((A - a)^2 + (B - b)^2)."""
 
 
+MIRROR = Symmetry(
+    name="mirror",
+    state_index=(0, 1, 2, 3, 4, 6, 5), state_sign=(1.0, -1.0, 1.0, -1.0, -1.0, 1.0, 1.0),
+    action_index=(1, 0), action_sign=(1.0, 1.0),
+)  # fmt: skip
+"""The boat's left-right mirror (see `mirror`), declared as data for the learner config."""
+
+
 class BoatVec:
     """n boats, each with its own target, as arrays."""
+
+    symmetries: tuple[Symmetry, ...] = (MIRROR,)
 
     state_low: tuple[float, ...] = (-2.0, -2.0, -1.5, -1.5, -1.5, -1.0, -1.0)
     state_high: tuple[float, ...] = (2.0, 2.0, 1.5, 1.5, 1.5, 1.0, 1.0)
@@ -156,9 +167,6 @@ def handcoded_boat(
 Block = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
 """Experiences in physical units: state [N, 7], action [N, 2], next_state [N, 7], reward [N]."""
 
-_MIRROR_STATE = np.array([0, 1, 2, 3, 4, 6, 5])
-_MIRROR_SIGN = np.array([1.0, -1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
-
 
 def mirror(state: FloatArray, action: FloatArray, next_state: FloatArray, reward: FloatArray) -> Block:
     """The left-right mirror image of experiences: what the mirrored boat would have met.
@@ -168,12 +176,7 @@ def mirror(state: FloatArray, action: FloatArray, next_state: FloatArray, reward
     sign and the previous thrusts swap. The reward (distance, energy, coarseness) is unchanged.
     Exact for Eq 3.7-3.8 (`tests/unit/test_boat_transforms.py` checks it against the dynamics).
     """
-    return (_flip(state), np.asarray(action)[..., ::-1].copy(), _flip(next_state),
-            np.asarray(reward, dtype=np.float64).copy())  # fmt: skip
-
-
-def _flip(state: FloatArray) -> FloatArray:
-    return np.asarray(state, dtype=np.float64)[..., _MIRROR_STATE] * _MIRROR_SIGN
+    return MIRROR(state, action, next_state, reward)
 
 
 def phantom(

@@ -16,7 +16,7 @@ from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.vision import NomadVisionConfig
-from wfnn_client.run import ClientConfig, run
+from wfnn_client.run import ClientConfig, SetupError, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
@@ -85,6 +85,9 @@ def main(
     advantage_k: Annotated[
         float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
     ] = None,
+    symmetries: Annotated[
+        bool, typer.Option(help="Also learn each experience's images under the task's declared symmetries.")
+    ] = False,
     boat_dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     env: Annotated[
         str | None,
@@ -170,7 +173,7 @@ def main(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
             hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
             boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
-            weights=weights,
+            weights=weights, symmetries=symmetries,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),
             controller=controller, client_id=client_id, follow=follow,
@@ -188,7 +191,12 @@ def main(
         TextColumn("{task.fields[line]}"), console=console,
     ) as bar:  # fmt: skip
         task = bar.add_task(f"{sim} episodes", total=episodes, line="")
-        metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)))
+        try:
+            metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)))
+        except SetupError as exc:
+            bar.stop()
+            console.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(2) from exc
     scores = metrics["scores"]
     trend = (
         f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f}"

@@ -69,6 +69,9 @@ class ClientConfig:
     """Override the learner's thinks per action (local thinking and the announced config)."""
     advantage_k: float | None = None
     """Override the advantage-learning constant (1: plain Q-learning); None: the sim's default."""
+    symmetries: bool = False
+    """Learn each experience also as its images under the task's declared symmetries (the
+    boat's mirror; `wfnn_common.symmetry`); they travel in the learner config to the servers."""
     think_batch: int = 50
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     learn: bool = True
@@ -122,6 +125,10 @@ class ClientConfig:
         return self.server == ("local",)
 
 
+class SetupError(ValueError):
+    """The run cannot start as configured (nothing was run); the message says why."""
+
+
 def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfig:
     """The thesis' defaults over the declared ranges (with the client's overrides)."""
     extra: dict[str, Any] = {}
@@ -130,6 +137,11 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
     k = config.advantage_k if config.advantage_k is not None else SIMS[config.sim].advantage_k
     if k is not None:
         extra["advantage_k"] = k
+    if config.symmetries:
+        declared = tuple(getattr(task, "symmetries", ()))
+        if not declared:
+            raise ValueError(f"{config.env or config.sim} declares no symmetries: drop --symmetries")
+        extra["symmetries"] = declared
     return LearnerConfig.for_task(task, exploration=config.exploration, seed=config.seed, **extra)
 
 
@@ -226,9 +238,11 @@ def _run(
     try:
         for name in behaviours.names:
             skills.append(_skill(config, name, behaviours.ranges(name)))
-    except BaseException:
+    except BaseException as exc:
         for made in skills:
             made.brain.stop()
+        if isinstance(exc, ValueError):  # options that do not fit this task or run directory
+            raise SetupError(str(exc)) from exc
         raise
     brains = _Brains(skills)
     for sk in skills:

@@ -9,6 +9,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from wfnn_common.symmetry import Symmetry
+
 ExplorationKind = Literal["none", "uniform", "gaussian", "smooth"]
 
 
@@ -95,6 +97,10 @@ class LearnerConfig:
     """Exploration strategy used by `act` when exploring."""
     seed: int = 0
     """Seed of the learner's random streams (weights, replay sampling, exploration)."""
+    symmetries: tuple[Symmetry, ...] = ()
+    """Declared symmetries of the task: each experience learned is also learned transformed
+    by each of them (e.g. the boat's mirror image). The store and logs keep only the real
+    experiences; the thinks owed per action are unchanged."""
 
     def __post_init__(self) -> None:
         s_lo, s_hi, a_lo, a_hi = self.state_low, self.state_high, self.action_low, self.action_high
@@ -127,6 +133,11 @@ class LearnerConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"{message} (config: {self.short_repr()})")
+        for symmetry in self.symmetries:
+            try:
+                symmetry.check_dims(self.state_dim, self.action_dim)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from exc
 
     @classmethod
     def for_task(cls, task: Any, **overrides: Any) -> LearnerConfig:
@@ -174,6 +185,13 @@ class LearnerConfig:
                 data[key] = tuple(float(v) for v in data[key])
         if isinstance(exploration, dict):
             data["exploration"] = ExplorationConfig(**exploration)
+        if "symmetries" in data:
+            try:
+                data["symmetries"] = tuple(
+                    s if isinstance(s, Symmetry) else Symmetry.from_dict(s) for s in data["symmetries"]
+                )
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from exc
         return cls(**data)
 
     def to_json(self) -> str:

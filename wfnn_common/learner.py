@@ -290,6 +290,15 @@ class WFNN:
         exp, ok = self.to_experiences(state, action, next_state, reward, terminal, valid)
         self.buffer.add(exp, ok)
         self.rejected += ~ok & self._per_learner(valid, np.bool_)
+        if self.config.symmetries:  # the mirrored experiences of those stored
+            cfg = self.config
+            rows = (
+                self._rows(state, cfg.state_dim)[0], self._rows(action, cfg.action_dim)[0],
+                self._rows(next_state, cfg.state_dim)[0], self._per_learner(reward, np.float64),
+            )  # fmt: skip
+            for symmetry in self.config.symmetries:
+                mirrored, mirrored_ok = self.to_experiences(*symmetry(*rows), terminal, ok)
+                self.buffer.add(mirrored, mirrored_ok)
         return ok[0] if np.ndim(state) == 1 else ok
 
     def learn_many(
@@ -312,9 +321,13 @@ class WFNN:
         r = np.asarray(reward, dtype=np.float64).reshape(n)
         term = np.asarray(terminal, dtype=np.bool_).reshape(n)
         exp, ok = self._check(s, a, sn, r, term, np.ones(n, dtype=np.bool_))
-        kept = Experiences._make(field[ok] for field in exp)
-        for i in range(self.population):
-            self.buffer.extend(i, kept)
+        blocks = [Experiences._make(field[ok] for field in exp)]
+        for symmetry in cfg.symmetries:  # the mirrored experiences of those stored
+            mirrored, mirrored_ok = self._check(*symmetry(s, a, sn, r), term, ok.copy())
+            blocks.append(Experiences._make(field[mirrored_ok] for field in mirrored))
+        for kept in blocks:
+            for i in range(self.population):
+                self.buffer.extend(i, kept)
         self.rejected += int(n - ok.sum())
         return ok
 

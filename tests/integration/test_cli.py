@@ -314,6 +314,26 @@ def test_client_refuses_bad_options(tmp_path):
     )  # fmt: skip
     assert proc.returncode != 0 and "lock-step" in proc.stdout + proc.stderr
     assert not (tmp_path / "metrics.json").exists()
+    proc = subprocess.run(
+        [BIN / "wfnn-client", "--sim", "cartpole", "--symmetries", "--rate-hz", "0", "--out", tmp_path],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "declares no symmetries" in proc.stdout
+    assert "Traceback" not in proc.stdout + proc.stderr and not (tmp_path / "metrics.json").exists()
+
+
+def test_client_learns_the_boats_mirror_images_when_asked(tmp_path):
+    out = tmp_path / "run"
+    run([BIN / "wfnn-client", "--sim", "boat", "--symmetries", "--episodes", "2", "--rate-hz", "0",
+         "--thinks", "5", "--out", out])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert [s["name"] for s in metrics["config"]["learner"]["symmetries"]] == ["mirror"]
+    from wfnn_common.persist import load_experiences, load_weights
+
+    cfg, _, _ = load_weights(out / "weights.npz")
+    stored = load_experiences(out / "experiences.npz", cfg)
+    n = metrics["experiences_learned"]
+    assert n > 0 and stored.reward.shape[0] == 2 * n  # each real experience and its mirror image
 
 
 def test_bench_hydra_writes_table71_and_tick_cost(tmp_path):
