@@ -16,6 +16,7 @@ from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.vision import NomadVisionConfig
+from wfnn_client.controllers import LEARNER, parse_mix
 from wfnn_client.run import ClientConfig, SetupError, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
@@ -85,6 +86,14 @@ def main(
     advantage_k: Annotated[
         float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
     ] = None,
+    behaviour_policy: Annotated[
+        str,
+        typer.Option(
+            help="Who drives each episode, drawn by share: wfnn (the learner), handcoded, random, "
+            "weights:PATH (a saved WFNN, greedy), e.g. 'wfnn=0.5,handcoded=0.3,random=0.2'. "
+            "The learner learns off-policy from every episode.",
+        ),
+    ] = "wfnn",
     symmetries: Annotated[
         bool, typer.Option(help="Also learn each experience's images under the task's declared symmetries.")
     ] = False,
@@ -158,6 +167,12 @@ def main(
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
         raise typer.BadParameter(f"unknown exploration {exploration!r}", param_hint="--exploration")
     try:
+        mix = parse_mix(behaviour_policy)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--behaviour-policy") from exc
+    if [m.name for m in mix] == [LEARNER]:
+        mix = ()  # the learner alone: the usual run
+    try:
         hydra = HydraConfig(
             joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
             vision=VisionConfig(source=vision),  # type: ignore[arg-type]
@@ -173,7 +188,7 @@ def main(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
             hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
             boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
-            weights=weights, symmetries=symmetries,
+            weights=weights, symmetries=symmetries, behaviour_policy=mix,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),
             controller=controller, client_id=client_id, follow=follow,

@@ -25,6 +25,7 @@ from sims.base import Behaviours, Ranges, VecTask
 from sims.hydra import HydraConfig
 from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.brain import Brain, Experience, LocalBrain
+from wfnn_client.controllers import LEARNER, Controllers, PolicyShare, source_name
 from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
@@ -72,6 +73,10 @@ class ClientConfig:
     symmetries: bool = False
     """Learn each experience also as its images under the task's declared symmetries (the
     boat's mirror; `wfnn_common.symmetry`); they travel in the learner config to the servers."""
+    behaviour_policy: tuple[PolicyShare, ...] = ()
+    """Which controller drives each episode, drawn by share (`wfnn_client.controllers`): the
+    learner, the task's hand-coded controller, random actions or a saved WFNN; the learner
+    learns off-policy from whatever drove. Empty: the learner always."""
     think_batch: int = 50
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     learn: bool = True
@@ -118,6 +123,8 @@ class ClientConfig:
             raise ValueError(f"camera_every: sim {self.sim!r} has no cameras")
         if self.forage is not None and (self.sim != "nomad" or self.nomad.behaviour != "wander"):
             raise ValueError("forage: the nomad sim, configured to wander, only")
+        if self.behaviour_policy and self.forage is not None:
+            raise ValueError("behaviour_policy: one learned behaviour only (not forage)")
 
     @property
     def local(self) -> bool:
@@ -235,9 +242,16 @@ def _run(
     episode_steps = spec.episode_steps(task) if callable(spec.episode_steps) else spec.episode_steps
     tick_count = 0
     skills: list[Skill] = []
+    controllers: Controllers | None = None
     try:
         for name in behaviours.names:
             skills.append(_skill(config, name, behaviours.ranges(name)))
+        if config.behaviour_policy:
+            handcoded = spec.handcoded(task) if spec.handcoded is not None else None
+            controllers = Controllers(
+                config.behaviour_policy, skills[0].lcfg.spec_hash(), np.array(first.action_low),
+                np.array(first.action_high), handcoded, np.random.default_rng(config.seed + 7),
+            )  # fmt: skip
     except BaseException as exc:
         for made in skills:
             made.brain.stop()
@@ -259,6 +273,8 @@ def _run(
     outage_late: list[float] = []
     startup_ticks = 0
     """Ticks before the first weights arrived."""
+    episode_policies: list[str] = []
+    """The behaviour policy that drove each episode."""
     task.reset(rng)
     next_status = 0.0
     brains.start()
@@ -269,6 +285,8 @@ def _run(
         start = time.perf_counter()
         for episode in range(config.episodes):
             spec.new_episode(task, rng)
+            policy = controllers.choose() if controllers is not None else LEARNER
+            episode_policies.append(source_name(policy))
             total, steps = 0.0, 0
             for _ in range(episode_steps):
                 late = ticker.wait()
@@ -286,7 +304,11 @@ def _run(
                         outages.append({"start_unix": time.time()})
                 t0 = time.perf_counter()
                 xs = [behaviours.observe(sk.name)[0] for sk in skills]
-                acted = driver.act(xs[d], explore=config.learn)
+                if policy == LEARNER:
+                    acted = driver.act(xs[d], explore=config.learn)
+                else:  # another controller drives; the learner learns from its actions
+                    assert controllers is not None
+                    acted = controllers.act(policy, xs[d])
                 proposed = acted.result.action if acted is not None else None
                 decision = safety.decide(proposed, xs[d], ticker.late_now() if period else 0.0)
                 ticks.latency_s.append(time.perf_counter() - t0)
@@ -317,7 +339,7 @@ def _run(
                                 learned, config.lockstep_timeout_s)  # fmt: skip
                 total += float(spec.metric(task)[0])
                 rewards.append(float(transitions[skills[d].name].reward[0]))
-                if acted is not None:
+                if acted is not None and policy == LEARNER:
                     values.append(float(acted.result.value))
                 if frames is not None and spec.views is not None and tick_count % config.camera_every == 0:
                     frames = _save_views(frames, tick_count, spec, task)
@@ -361,6 +383,7 @@ def _run(
         "sim": config.sim,
         "metric": spec.metric_name(task) if callable(spec.metric_name) else spec.metric_name,
         "scores": scores,
+        "episode_policies": episode_policies[: len(scores)],
         "first10_median": float(np.median(scores[:10])),
         "last10_median": float(np.median(scores[-10:])),
         "experiences_learned": learned,

@@ -15,18 +15,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import Behaviours, Ranges, Transition, VecTask
-from sims.boat import BoatConfig, BoatVec
+from sims.boat import BoatConfig, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleVec
 from sims.gym import GymVec
 from sims.hydra import HydraVec
-from sims.nomad import NomadForage, NomadVec
-from sims.positioning import PositioningVec
+from sims.nomad import NomadForage, NomadVec, handcoded_wander
+from sims.positioning import PositioningVec, handcoded_positioning
 from wfnn_client.safety import Veto
 
 if TYPE_CHECKING:
     from wfnn_client.run import ClientConfig
 
 FloatArray = NDArray[np.float64]
+Policy = Callable[[FloatArray], FloatArray]
+"""A controller: state [S] -> action [A] (physical units)."""
 RewardOf = Callable[[FloatArray, FloatArray, FloatArray], float]
 """reward_of(state [S], action [A], next_state [S]) -> reward, for an action not executed."""
 
@@ -59,6 +61,9 @@ class SimSpec:
     """What the robot's cameras see now ({camera: [h, w, 3] RGB}), for tasks with cameras."""
     behaviours: Callable[[Any, ClientConfig], Behaviours | None] | None = None
     """Several learned behaviours over the task instance, one learner each (None: the task's one)."""
+    handcoded: Callable[[Any], Policy | None] | None = None
+    """The task's hand-coded controller for a task instance (state [S] -> action [A]), for
+    `--behaviour-policy handcoded`."""
 
 
 class OneBehaviour:
@@ -144,6 +149,7 @@ SIMS: dict[str, SimSpec] = {
         metric=lambda task: task.distance(),
         metric_name="mean distance to target",
         reward_of=_boat_reward,
+        handcoded=lambda task: lambda state: handcoded_boat(state[None])[0],
     ),
     "positioning": SimSpec(
         make=lambda c: PositioningVec(1),
@@ -153,6 +159,7 @@ SIMS: dict[str, SimSpec] = {
         metric_name="mean position error",
         reward_of=_positioning_reward,
         veto=positioning_wall_veto,
+        handcoded=lambda task: lambda state: handcoded_positioning(state[None])[0],
     ),
     "cartpole": SimSpec(
         make=lambda c: CartPoleVec(1),
@@ -200,6 +207,10 @@ SIMS["nomad"] = SimSpec(
     exploration="gaussian",
     views=lambda task: task.camera_images(0),
     behaviours=lambda task, c: NomadForage(task, c.forage) if c.forage is not None else None,
+    # Wandering toward the longest strip of carpet (Section 6.5); servoing has no hand-coded rule.
+    handcoded=lambda task: (
+        (lambda state: handcoded_wander(task.carpet[0])) if task.config.behaviour == "wander" else None
+    ),
 )
 SIMS["position"] = SIMS["positioning"]
 SIMS["gym"] = SimSpec(

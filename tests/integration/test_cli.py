@@ -319,6 +319,11 @@ def test_client_refuses_bad_options(tmp_path):
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 2 and "declares no symmetries" in proc.stdout
+    proc = subprocess.run(
+        [BIN / "wfnn-client", "--sim", "boat", "--behaviour-policy", "wfnn=1,pid=1", "--out", tmp_path],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "unknown behaviour policy 'pid'" in proc.stdout + proc.stderr
     assert "Traceback" not in proc.stdout + proc.stderr and not (tmp_path / "metrics.json").exists()
 
 

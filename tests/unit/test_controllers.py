@@ -1,0 +1,90 @@
+"""Behaviour policies other than the learner: parsing a mix, drawing per episode, off-policy runs."""
+
+import numpy as np
+import pytest
+
+from sims.boat import BoatVec, handcoded_boat
+from wfnn_client.controllers import Controllers, PolicyShare, parse_mix, source_name
+from wfnn_client.run import ClientConfig, SetupError, learner_config, run
+from wfnn_common import logs
+from wfnn_common.learner import WFNN
+from wfnn_common.persist import save_weights
+
+
+def test_a_mix_is_parsed_with_shares_and_bad_ones_are_named():
+    assert parse_mix("wfnn=0.5, handcoded=0.3,random") == (
+        PolicyShare("wfnn", 0.5), PolicyShare("handcoded", 0.3), PolicyShare("random", 1.0),
+    )  # fmt: skip
+    assert parse_mix("weights:runs/a=b/weights.npz=2") == (PolicyShare("weights:runs/a=b/weights.npz", 2.0),)
+    for text, message in (("pid", "unknown behaviour policy"), ("wfnn=x", "must be a number"),
+                          ("wfnn=0", "must be > 0"), ("", "empty"), ("random,random=2", "twice"),
+                          ("weights:", "unknown")):  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            parse_mix(text)
+    assert source_name("weights:/tmp/x/w.npz") == "weights:w.npz" and source_name("random") == "random"
+
+
+def _controllers(mix, tmp_path=None, handcoded=None, seed=0):
+    cfg = learner_config(BoatVec(1), ClientConfig(sim="boat"))
+    low, high = np.array(cfg.action_low), np.array(cfg.action_high)
+    return Controllers(
+        parse_mix(mix), cfg.spec_hash(), low, high, handcoded, np.random.default_rng(seed)
+    ), cfg
+
+
+def test_episodes_are_drawn_by_share_and_each_controller_acts_as_itself(tmp_path):
+    boat = BoatVec(1)
+    handcoded = lambda s: handcoded_boat(s[None])[0]  # noqa: E731
+    cfg = learner_config(boat, ClientConfig(sim="boat"))
+    saved = WFNN(cfg)
+    save_weights(tmp_path / "w.npz", cfg, saved.params, {})
+    mix, _ = _controllers(f"wfnn=1,handcoded=2,random=1,weights:{tmp_path / 'w.npz'}=4", handcoded=handcoded)
+    drawn = [mix.choose() for _ in range(4000)]
+    for name, share in (("wfnn", 1 / 8), ("handcoded", 2 / 8), ("random", 1 / 8)):
+        assert abs(drawn.count(name) / 4000 - share) < 0.03
+    x = np.array([1.0, -0.5, 0.1, 0.0, 0.2, 0.0, 0.0])
+    acted = mix.act("handcoded", x)
+    np.testing.assert_array_equal(acted.result.action, handcoded_boat(x[None])[0])
+    assert acted.source == "handcoded" and acted.version == 0 and not acted.result.explored
+    greedy = mix.act(f"weights:{tmp_path / 'w.npz'}", x)
+    np.testing.assert_array_equal(greedy.result.action, saved.act(x, explore=False).action)
+    assert greedy.source == "weights:w.npz"
+    randoms = np.array([mix.act("random", x).result.action for _ in range(200)])
+    assert (np.abs(randoms) <= 1.0).all() and randoms.std() > 0.4
+
+
+def test_a_controller_the_task_lacks_or_weights_of_another_task_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="no hand-coded controller"):
+        _controllers("handcoded")
+    other = learner_config(BoatVec(1), ClientConfig(sim="boat"))
+    other = type(other).from_dict({**other.to_dict(), "n_hidden": 3})
+    save_weights(tmp_path / "other.npz", other, WFNN(other).params, {})
+    with pytest.raises(ValueError, match="learner spec"):
+        _controllers(f"weights:{tmp_path / 'other.npz'}")
+    with pytest.raises(ValueError, match="cannot load"):
+        _controllers(f"weights:{tmp_path / 'missing.npz'}")
+    with pytest.raises(SetupError, match="no hand-coded"):
+        run(ClientConfig(sim="cartpole", rate_hz=0, episodes=1, behaviour_policy=parse_mix("handcoded"),
+                         out=tmp_path / "c"))  # fmt: skip
+
+
+def test_the_learner_learns_off_policy_from_a_mix_and_the_log_names_who_drove(tmp_path):
+    out = tmp_path / "run"
+    metrics = run(ClientConfig(
+        sim="boat", rate_hz=0, episodes=6, thinks_per_action=2, out=out, seed=3,
+        behaviour_policy=parse_mix("wfnn=1,handcoded=1,random=1"),
+    ))  # fmt: skip
+    drove = metrics["episode_policies"]
+    assert len(drove) == 6 and set(drove) <= {"wfnn", "handcoded", "random"} and len(set(drove)) >= 2
+    summary = logs.summarise(out / "journal")
+    steps = 200
+    for name in ("handcoded", "random"):
+        assert summary.behaviour.get(name, 0) == steps * drove.count(name)
+    assert summary.behaviour.get("local", 0) == steps * drove.count("wfnn")
+    assert metrics["experiences_learned"] == 6 * steps
+    # The hand-coded controller steers the boat to its targets; random thrusts do not (seed 3
+    # draws both).
+    by = {
+        name: [s for d, s in zip(drove, metrics["scores"], strict=True) if d == name] for name in set(drove)
+    }
+    assert max(by["handcoded"]) < 0.5 < min(by["random"])

@@ -1,0 +1,118 @@
+"""Behaviour policies other than the learner: what may drive the robot while the learner watches.
+
+Q-learning is off-policy: the learner learns from executed actions whatever chose them
+(thesis Sections 2.5, 6.6). `wfnn-client --behaviour-policy` draws, for each episode, which
+controller drives: the learner (`wfnn`), the task's hand-coded controller (`handcoded`), uniform
+random actions (`random`, a scripted exploration policy) or a saved WFNN acting greedily
+(`weights:PATH`). Their actions still pass the safety layer, and every experience is recorded
+with the controller's name as its behaviour policy (`weights_source` in the logs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wfnn_client.brain import Acted
+from wfnn_client.sims import Policy
+from wfnn_common.learner import WFNN, ActResult
+from wfnn_common.persist import load_weights
+
+FloatArray = NDArray[np.float64]
+
+LEARNER = "wfnn"
+KINDS = (LEARNER, "handcoded", "random", "weights:PATH")
+
+
+@dataclass(frozen=True)
+class PolicyShare:
+    """One controller of the mix and its share of the episodes."""
+
+    name: str
+    """`wfnn`, `handcoded`, `random` or `weights:PATH`."""
+    share: float
+
+
+def parse_mix(text: str) -> tuple[PolicyShare, ...]:
+    """`"wfnn=0.5,handcoded=0.3,random=0.2"` (a name without `=` has share 1) -> shares.
+
+    Raises ValueError naming what is wrong.
+    """
+    mix: list[PolicyShare] = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        name, _, share_text = part.rpartition("=") if "=" in part else (part, "", "1")
+        try:
+            share = float(share_text)
+        except ValueError:
+            raise ValueError(f"behaviour policy {part!r}: the share must be a number") from None
+        if not (name in KINDS[:3] or (name.startswith("weights:") and len(name) > len("weights:"))):
+            raise ValueError(f"unknown behaviour policy {name!r}; choose from {', '.join(KINDS)}")
+        if not (share > 0 and np.isfinite(share)):
+            raise ValueError(f"behaviour policy {name!r}: the share must be > 0, got {share_text}")
+        mix.append(PolicyShare(name, share))
+    if not mix:
+        raise ValueError("an empty behaviour-policy mix")
+    if len({m.name for m in mix}) != len(mix):
+        raise ValueError(f"behaviour policy named twice in {text!r}")
+    return tuple(mix)
+
+
+def source_name(name: str) -> str:
+    """The behaviour-policy name recorded with the experiences (a saved WFNN: `weights:<file>`)."""
+    return f"weights:{Path(name[len('weights:') :]).name}" if name.startswith("weights:") else name
+
+
+class Controllers:
+    """The policies of a mix, built once for a task; `choose` draws one per episode.
+
+    `handcoded` is the task's hand-coded controller (None where the task has none: refused).
+    """
+
+    def __init__(
+        self, mix: tuple[PolicyShare, ...], learner_spec: str, action_low: FloatArray,
+        action_high: FloatArray, handcoded: Policy | None, rng: np.random.Generator,
+    ) -> None:  # fmt: skip
+        self.mix = mix
+        self.rng = rng
+        self.policies: dict[str, Policy] = {}
+        low, high = np.asarray(action_low, dtype=np.float64), np.asarray(action_high, dtype=np.float64)
+        for m in mix:
+            if m.name == "handcoded":
+                if handcoded is None:
+                    raise ValueError("this task has no hand-coded controller (behaviour policy handcoded)")
+                self.policies[m.name] = handcoded
+            elif m.name == "random":
+                self.policies[m.name] = lambda _state: rng.uniform(low, high)
+            elif m.name.startswith("weights:"):
+                self.policies[m.name] = _saved(Path(m.name[len("weights:") :]), learner_spec)
+        shares = np.array([m.share for m in mix])
+        self._p = shares / shares.sum()
+
+    def choose(self) -> str:
+        """The controller that drives the next episode."""
+        return self.mix[int(self.rng.choice(len(self.mix), p=self._p))].name
+
+    def act(self, name: str, state: FloatArray) -> Acted:
+        """The action of controller `name` (not the learner) for `state` [S]."""
+        action = np.asarray(self.policies[name](state), dtype=np.float64)
+        result = ActResult(action, np.float64(np.nan), np.bool_(True), np.bool_(False), np.bool_(False))
+        return Acted(result, source_name(name), 0)
+
+
+def _saved(path: Path, learner_spec: str) -> Policy:
+    """A saved WFNN acting greedily (numpy, like the learner's own act)."""
+    try:
+        cfg, params, _ = load_weights(path)
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"behaviour policy weights:{path}: cannot load ({exc})") from exc
+    if cfg.spec_hash() != learner_spec:
+        raise ValueError(
+            f"behaviour policy weights:{path} is for learner spec {cfg.spec_hash()}, not {learner_spec}"
+        )
+    saved = WFNN(cfg, params=params)
+    return lambda state: saved.act(state, explore=False).action
