@@ -14,7 +14,7 @@ from rich.status import Status
 from wfnn_common.logs import LogFormatError
 from wfnn_common.net import NetConfig
 from wfnn_common.protocol import ServerStatus
-from wfnn_server.config import ServerConfig
+from wfnn_server.config import DashboardConfig, ServerConfig
 from wfnn_server.server import run
 
 app = typer.Typer(help="Think server: stores robots' experiences, replays them, publishes weights.")
@@ -67,6 +67,15 @@ def main(
             "its thinks, checkpoint, stop. Rerun without it to go on learning online.",
         ),
     ] = None,
+    dashboard: Annotated[
+        int | None,
+        typer.Option(
+            min=0, max=65535, help="Serve a live read-only web view on this port (0: any free port)."
+        ),
+    ] = None,
+    dashboard_host: Annotated[
+        str, typer.Option(help="Interface the dashboard binds (loopback unless you mean to share it).")
+    ] = "127.0.0.1",
     quiet: Annotated[bool, typer.Option(help="No live status line.")] = False,
     verbose: bool = False,
 ) -> None:
@@ -88,6 +97,7 @@ def main(
             learner_config=learner_config, key_file=key_file, seed=seed, publish_period_s=publish_period,
             checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
             replay=tuple(replay_only or ()), replay_only=bool(replay_only),
+            dashboard=DashboardConfig(port=dashboard, host=dashboard_host) if dashboard is not None else None,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

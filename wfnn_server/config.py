@@ -12,6 +12,30 @@ from wfnn_common.segments import FsyncPolicy
 
 
 @dataclass(frozen=True, kw_only=True)
+class DashboardConfig:
+    """Where the dashboard listens and what it keeps."""
+
+    port: int
+    """TCP port (0: any free port; `Dashboard.port` says which)."""
+    host: str = "127.0.0.1"
+    """Interface to bind; loopback unless a person asks for more."""
+    update_hz: float = 4.0
+    """How often the page asks for new figures (and the most the view is recomputed)."""
+    history: int = 2400
+    """Samples kept per series (one per server status: 20 minutes at the default 0.5 s)."""
+    surface_points: int = 41
+    """Grid points per action variable of the action-value surface."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"dashboard port must be in 0..65535, got {self.port}")
+        if not 0.1 <= self.update_hz <= 30.0:
+            raise ValueError(f"dashboard update_hz must be in [0.1, 30], got {self.update_hz}")
+        if self.history < 10 or self.surface_points < 3:
+            raise ValueError("dashboard history must be >= 10 and surface_points >= 3")
+
+
+@dataclass(frozen=True, kw_only=True)
 class ServerConfig:
     """Everything a `wfnn-server` needs; the CLI only builds this and calls `run`."""
 
@@ -54,6 +78,8 @@ class ServerConfig:
     """Serve no robot: learn from the store (with `replay`) until every stored experience has had
     its thinks, then checkpoint (`DATA_DIR/checkpoint.npz`, a weights file) and stop. Starting the
     server again on the same data directory without it continues online from there."""
+    dashboard: DashboardConfig | None = None
+    """Serve a live, read-only web view of this server (`wfnn_server.dashboard`); None: off."""
     recovery_thinks_max: int = 2_000_000
     """After a divergence reset, snapshots are flagged diverged until the learner has replayed
     thinks_per_action per stored experience, at most this many thinks."""

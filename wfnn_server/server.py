@@ -21,16 +21,19 @@ import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
 from wfnn_common.logs import LogFormatError, common_config, merged
 from wfnn_common.net import Bus, Channel
+from wfnn_common.network import Params
 from wfnn_common.persist import PersistError, load_weights, save_weights
 from wfnn_common.protocol import (
     Ack,
@@ -46,6 +49,11 @@ from wfnn_common.protocol import (
 )
 from wfnn_server.config import ServerConfig
 from wfnn_server.store import ExperienceStore
+
+if TYPE_CHECKING:
+    from wfnn_server.dashboard import Dashboard
+
+FloatArray = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +119,18 @@ class ThinkServer:
         """Per client: when its heartbeat (status) last arrived (monotonic)."""
         self._silent: set[str] = set()
         self.error: BaseException | None = None
+        # What a read-only view (the dashboard) may look at; written by one thread each, replaced
+        # whole rather than changed in place so that a reader never sees half an update.
+        self.clients: dict[str, ClientStatus] = {}
+        """Per client: its latest status heartbeat (ingest thread)."""
+        self.latest_state: dict[str, FloatArray] = {}
+        """Per client: the newest state it sent, physical units [S] (learner thread)."""
+        self.published: Params | None = None
+        """A copy of the weights of the newest snapshot (learner thread)."""
+        self.status_listeners: list[Callable[[ServerStatus], None]] = []
+        """Called with every status published (learner thread): must be quick."""
+        self.dashboard: Dashboard | None = None
+        """The live web view, while serving with `config.dashboard`."""
 
         self.store = ExperienceStore(
             self.data_dir / "store", self.id, fsync=config.fsync,
@@ -129,6 +149,7 @@ class ThinkServer:
         self._recover_until = 0
         self._staleness: list[int] = []
         self._q_chosen: list[float] = []
+        self._rewards: list[float] = []
         self.imported, replay_config = self._import_logs(config.replay) if config.replay else (0, None)
         """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
@@ -246,6 +267,10 @@ class ThinkServer:
             thread = threading.Thread(target=self._guard(target), name=f"wfnn-{name}", daemon=True)
             thread.start()
             self._threads.append(thread)
+        if self.config.dashboard is not None:
+            from wfnn_server.dashboard import Dashboard  # the web view loads only when asked for
+
+            self.dashboard = Dashboard(self.config.dashboard, self).start()
         log.info(
             "server %s (incarnation %d) serving controller %s; %d experiences stored",
             self.id, self.incarnation, self.config.controller, self.store.count,
@@ -267,6 +292,9 @@ class ThinkServer:
         """Stop the threads, write a final checkpoint and close the store."""
         self._stop.set()
         self._wake.set()
+        if self.dashboard is not None:
+            self.dashboard.stop()
+            self.dashboard = None
         for thread in self._threads:
             thread.join(timeout=30)
         self._threads.clear()
@@ -349,6 +377,7 @@ class ThinkServer:
             return
         self.counters["ingest/client_status"] += 1
         self._heard[status.client] = time.monotonic()
+        self.clients = {**self.clients, status.client: status}
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:
@@ -422,6 +451,8 @@ class ThinkServer:
         """Q of the actions the current weights choose in the new states; divergence; staleness."""
         values = learner.greedy_values(batch.next_state)[0]
         self._q_chosen.extend(values.tolist())
+        self._rewards.extend(batch.reward.tolist())
+        self.latest_state = {**self.latest_state, batch.client: batch.next_state[-1].copy()}
         if batch.weights_source == f"{self.id}:{self.incarnation}":
             self._staleness.extend((self.version - batch.weights_version.astype(np.int64)).tolist())
         monitor = learner.monitor
@@ -478,6 +509,7 @@ class ThinkServer:
         )  # fmt: skip
         frame = self.codec.encode(snapshot)
         self._latest_frame = frame
+        self.published = learner.params.copy()
         self.bus.put(self.keys.weights(self.id), frame, Channel.LATEST)
 
     def _check_clients(self) -> int:
@@ -515,6 +547,9 @@ class ThinkServer:
             q = np.asarray(self._q_chosen)
             metrics.update({"learn/q_chosen_mean": float(q.mean()), "learn/q_chosen_max": float(q.max())})
             self._q_chosen.clear()
+        if self._rewards:
+            metrics["learn/reward_mean"] = float(np.mean(self._rewards))
+            self._rewards.clear()
         if self._staleness:
             lag = np.asarray(self._staleness)
             for p in (50, 90, 99):
@@ -527,6 +562,8 @@ class ThinkServer:
         )  # fmt: skip
         self.last_status = status
         self.bus.put(self.keys.server_status(self.id), self.codec.encode(status), Channel.LATEST)
+        for listener in self.status_listeners:
+            listener(status)
 
     def checkpoint(self) -> None:
         """Save weights, counters and config atomically (resumed at the next start)."""

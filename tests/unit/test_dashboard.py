@@ -1,0 +1,96 @@
+"""The dashboard's JSON view and HTTP surface (in-process server on the in-memory bus)."""
+
+import json
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+
+from tests.fakes import Hub, small_config, wait_for
+from tests.unit.test_server import KEYS, Listener, batch, make_server, send
+from wfnn_common.learner import WFNN
+from wfnn_common.protocol import ClientStatus, Codec
+from wfnn_server.config import DashboardConfig
+
+
+def _get(port, path):
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as response:
+        return response.status, response.headers.get("Content-Type"), response.read()
+
+
+def _heartbeat(hub, cfg, client="c1", jitter=0.2):
+    status = ClientStatus(
+        client=client, spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="s1",
+        weights_version=3, produced_through=5, acked={},
+        metrics={"client/tick_jitter_ms_p99": jitter, "client/overruns": 1.0, "reward_mean": -0.5},
+    )  # fmt: skip
+    hub.bus().put(KEYS.client_status(client), Codec(client).encode(status), None)
+
+
+def test_the_view_has_the_servers_figures_clients_and_the_action_value_surface(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=0, update_hz=30)) as server:
+        port = server.dashboard.port
+        status, kind, page = _get(port, "/")
+        assert status == 200 and kind.startswith("text/html") and b"/static/plotly.min.js" in page
+        assert b"Plotly" in _get(port, "/static/plotly.min.js")[2][:5000]
+        b = batch(cfg, 0, 6)
+        send(hub, b)
+        _heartbeat(hub, cfg)
+        assert listener.wait(lambda: listener.acked() == 5)
+        assert wait_for(lambda: "c1" in json.loads(_get(port, "/api/view")[2])["clients"])
+
+        def view(since=0):
+            return json.loads(_get(port, f"/api/view?since={since}")[2])
+
+        assert wait_for(lambda: view()["surface"] is not None and len(view()["samples"]) >= 2)
+        v = view()
+        assert v["server"] == "s1" and v["figures"]["store/experiences"] == 6
+        assert v["figures"]["learn/reward_mean"] == pytest.approx(float(b.reward.mean()), abs=1e-6)
+        assert (
+            v["clients"]["c1"]["following"] == "s1" and v["clients"]["c1"]["metrics"]["client/overruns"] == 1
+        )
+        last = v["samples"][-1]
+        assert last["clients"]["c1"]["jitter_p99_ms"] == pytest.approx(0.2)
+        # Only samples newer than `since` come back.
+        newer = view(last["seq"])["samples"]
+        assert all(s["seq"] > last["seq"] for s in newer)
+        # The surface: Q over both actions at the newest state, as the learner's own wire fitting says.
+        surface = v["surface"]
+        assert surface["client"] == "c1" and surface["dims"] == [0, 1]
+        q = np.array(surface["q"])
+        assert q.shape == (41, 41) and len(surface["wire_value"]) == cfg.n_wires
+        learner = WFNN(cfg, params=server.published)
+        state = np.array(surface["state"])
+        np.testing.assert_allclose(state, b.next_state[-1], atol=1e-6)
+        j, i = 7, 30
+        expected = learner.q_value(state, [surface["axes"][0][i], surface["axes"][1][j]])
+        assert q[j, i] == pytest.approx(float(expected), abs=1e-3)  # the server may have thought on since
+        assert v["cpu"]["dashboard_s"] > 0 and v["requests"] >= 3
+
+
+def test_bad_requests_are_refused_and_nothing_can_be_changed(tmp_path):
+    hub, cfg = Hub(), small_config()
+    with make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=0)) as server:
+        port = server.dashboard.port
+        for path, code in (("/nothing", 404), ("/api/view?since=x", 400)):
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                _get(port, path)
+            assert refused.value.code == code
+        for method in ("POST", "PUT", "DELETE"):
+            request = urllib.request.Request(f"http://127.0.0.1:{port}/api/view", data=b"{}", method=method)
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(request, timeout=5)
+            assert refused.value.code == 405 and refused.value.headers["Allow"] == "GET"
+    with pytest.raises(urllib.error.URLError):  # stopped with the server
+        _get(port, "/")
+
+
+def test_the_dashboard_is_off_by_default_and_checks_its_config(tmp_path):
+    with make_server(tmp_path, Hub(), small_config()) as server:
+        assert server.dashboard is None
+    for bad in ({"port": 70000}, {"port": 0, "update_hz": 0.0}, {"port": 0, "history": 2}):
+        with pytest.raises(ValueError):
+            DashboardConfig(**bad)

@@ -1,0 +1,242 @@
+"""A live, read-only web view of a think server (`wfnn-server --dashboard PORT`).
+
+The page (`static/dashboard.html`, drawn with Plotly.js, served from the installed `plotly`
+package so it works with no network) asks `/api/view?since=N` a few times a second and gets
+JSON: the samples of the server's figures newer than N (reward and Q of chosen actions,
+thinks/s, experiences stored, divergence resets, frames rejected by reason), each client's
+latest heartbeat figures (tick jitter, overruns, the server it follows) and the action-value
+surface of the newest state a client sent, with the wires marked.
+
+Read-only by construction: only GET is served, and the view only reads what the server's
+threads publish (whole objects replaced, never changed in place). The HTTP server is the
+standard library's, one thread per connection (keep-alive), bound to 127.0.0.1 unless told
+otherwise. The CPU time the dashboard's threads spend is counted (`cpu_s`) and reported in the
+view, so its cost next to the server's own is measured where it runs.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import math
+import threading
+import time
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+from urllib.parse import parse_qs, urlparse
+
+import numpy as np
+
+from wfnn_common.protocol import ServerStatus
+from wfnn_common.surface import action_value_surface
+from wfnn_server.config import DashboardConfig
+
+if TYPE_CHECKING:
+    from wfnn_server.server import ThinkServer
+
+log = logging.getLogger(__name__)
+
+SERIES = {
+    "reward": "learn/reward_mean",
+    "q_chosen": "learn/q_chosen_mean",
+    "thinks_per_s": "think/thinks_per_s",
+    "stored": "store/experiences",
+    "resets": "learn/divergence_resets",
+}
+"""Plotted server figures: name on the page -> ServerStatus metric."""
+
+CLIENT_SERIES = {
+    "reward": "reward_mean",
+    "q": "q_mean",
+    "jitter_p99_ms": "client/tick_jitter_ms_p99",
+    "overruns": "client/overruns",
+}
+"""Plotted client figures: name on the page -> ClientStatus metric."""
+
+
+def _number(value: float | None) -> float | None:
+    """JSON has no NaN or infinity: they travel as null (a gap in a curve)."""
+    return None if value is None or not math.isfinite(value) else round(float(value), 6)
+
+
+class Dashboard:
+    """Serves the page and its JSON view of one `ThinkServer` from background threads."""
+
+    def __init__(self, config: DashboardConfig, server: ThinkServer) -> None:
+        self.config = config
+        self.server = server
+        self._lock = threading.Lock()
+        self._seq = 0
+        self._samples: collections.deque[dict[str, Any]] = collections.deque(maxlen=config.history)
+        self._cached: tuple[float, dict[str, Any]] | None = None
+        self.cpu_s = 0.0
+        """CPU time spent by the dashboard (requests and sampling), seconds."""
+        self.requests = 0
+        self._started = time.time()
+        self.page = resources.files("wfnn_server").joinpath("static", "dashboard.html").read_bytes()
+        self.script = resources.files("wfnn_server").joinpath("static", "dashboard.js").read_bytes()
+        self.plotly = _plotly_js()
+        handler = type("Handler", (_Handler,), {"dashboard": self})
+        self._http = ThreadingHTTPServer((config.host, config.port), handler)
+        self._http.daemon_threads = True
+        self.port = int(self._http.server_address[1])
+        self._thread = threading.Thread(target=self._http.serve_forever, name="dashboard", daemon=True)
+        server.status_listeners.append(self._sample)
+
+    def start(self) -> Dashboard:
+        """Serve in a background thread."""
+        self._thread.start()
+        log.warning("dashboard on http://%s:%d/ (read-only)", self.config.host, self.port)
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and close the socket."""
+        self._http.shutdown()
+        self._http.server_close()
+        self._thread.join(timeout=5.0)
+
+    # ------------------------------------------------------------------ sampling (learner thread)
+    def _sample(self, status: ServerStatus) -> None:
+        t0 = time.thread_time()
+        m = status.metrics
+        clients = {
+            cid: {
+                **{name: _number(c.metrics.get(key)) for name, key in CLIENT_SERIES.items()},
+                "following": c.following,
+                "weights_version": c.weights_version,
+            }
+            for cid, c in self.server.clients.items()
+        }
+        sample = {
+            "t": round(time.time() - self._started, 3),
+            **{name: _number(m.get(key)) for name, key in SERIES.items()},
+            "clients": clients,
+        }
+        with self._lock:
+            self._seq += 1
+            sample["seq"] = self._seq
+            self._samples.append(sample)
+            self.cpu_s += time.thread_time() - t0
+
+    # ------------------------------------------------------------------ the view (HTTP threads)
+    def view(self, since: int = 0) -> dict[str, Any]:
+        """Everything the page shows, with only the samples newer than `since`."""
+        now = time.monotonic()
+        cached = self._cached
+        if cached is None or now - cached[0] >= 1.0 / self.config.update_hz:
+            cached = (now, self._current())  # recomputed at most update_hz times a second
+            self._cached = cached
+        with self._lock:
+            samples = [s for s in self._samples if s["seq"] > since]
+            cpu = self.cpu_s
+        server_cpu = time.process_time()
+        return {**cached[1], "samples": samples, "cpu": {"dashboard_s": cpu, "process_s": server_cpu},
+                "requests": self.requests}  # fmt: skip
+
+    def _current(self) -> dict[str, Any]:
+        srv = self.server
+        status = srv.last_status
+        cfg = srv.learner_config
+        view: dict[str, Any] = {
+            "server": srv.id,
+            "incarnation": srv.incarnation,
+            "controller": srv.config.controller,
+            "learner": cfg.short_repr() if cfg is not None else None,
+            "update_hz": self.config.update_hz,
+            "weights_version": srv.version,
+            "rejected": dict(status.rejected) if status is not None else {},
+            "figures": {k: _number(v) for k, v in status.metrics.items()} if status is not None else {},
+            "clients": {
+                cid: {
+                    "following": c.following,
+                    "weights_version": c.weights_version,
+                    "metrics": {k: _number(v) for k, v in c.metrics.items()},
+                }
+                for cid, c in srv.clients.items()
+            },
+            "surface": None,
+        }
+        params, states = srv.published, srv.latest_state
+        if cfg is not None and params is not None and states:
+            client = sorted(states)[0]
+            state = states[client]
+            dims = (0, 1) if cfg.action_dim >= 2 else (0,)
+            surface = action_value_surface(cfg, params, state, dims, self.config.surface_points)
+            view["surface"] = {
+                "client": client,
+                "state": [_number(v) for v in state],
+                "dims": list(surface.dims),
+                "axes": [np.round(a, 6).tolist() for a in surface.axes],
+                "q": np.round(surface.q, 6).tolist(),
+                "wire_action": np.round(surface.wire_action, 6).tolist(),
+                "wire_value": np.round(surface.wire_value, 6).tolist(),
+                "best": surface.best,
+            }
+        return view
+
+
+def _plotly_js() -> bytes:
+    """Plotly.js as the installed `plotly` package ships it (no network needed)."""
+    import plotly
+
+    return (Path(plotly.__file__).parent / "package_data" / "plotly.min.js").read_bytes()
+
+
+class _Handler(BaseHTTPRequestHandler):
+    """GET only: the page, its script, Plotly.js and the JSON view."""
+
+    dashboard: Dashboard
+    protocol_version = "HTTP/1.1"  # keep-alive: a polling page reuses one connection
+    server_version = "wfnn-dashboard"
+
+    def do_GET(self) -> None:
+        t0 = time.thread_time()
+        d = self.dashboard
+        url = urlparse(self.path)
+        try:
+            if url.path in ("/", "/index.html"):
+                self._send(d.page, "text/html; charset=utf-8")
+            elif url.path == "/static/dashboard.js":
+                self._send(d.script, "text/javascript; charset=utf-8")
+            elif url.path == "/static/plotly.min.js":
+                self._send(d.plotly, "text/javascript; charset=utf-8", cache=True)
+            elif url.path == "/api/view":
+                try:
+                    since = int(parse_qs(url.query).get("since", ["0"])[0])
+                except ValueError:
+                    self._send(
+                        b'{"error": "since must be an integer"}', "application/json", HTTPStatus.BAD_REQUEST
+                    )
+                    return
+                body = json.dumps(d.view(since), separators=(",", ":")).encode()
+                self._send(body, "application/json")
+            else:
+                self._send(b"not found", "text/plain", HTTPStatus.NOT_FOUND)
+        finally:
+            with d._lock:
+                d.requests += 1
+                d.cpu_s += time.thread_time() - t0
+
+    def _refuse(self) -> None:
+        self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")
+
+    do_POST = do_PUT = do_DELETE = do_PATCH = _refuse  # noqa: N815 (the standard library's names)
+
+    def _send(
+        self, body: bytes, kind: str, status: HTTPStatus = HTTPStatus.OK, cache: bool = False, allow: str = ""
+    ) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
+        if allow:
+            self.send_header("Allow", allow)
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        log.debug("dashboard: " + format, *args)
