@@ -22,6 +22,7 @@ from rich.table import Table
 
 from wfnn_bench import boat as boat_bench
 from wfnn_bench import cartpole as cartpole_bench
+from wfnn_bench import dashboard as dashboard_bench
 from wfnn_bench import hydra as hydra_bench
 from wfnn_bench import nomad as nomad_bench
 from wfnn_bench import passive as passive_bench
@@ -424,6 +425,46 @@ def transport(
         write_json(json_path, result)
     if plot_path:
         transport_bench.plot(result, plot_path)
+
+
+@app.command()
+def dashboard(
+    seconds: Annotated[float, typer.Option(min=1.0, help="Measured window per run.")] = 60.0,
+    warmup: Annotated[float, typer.Option(min=1.0, help="Warm-up before each window (s).")] = 15.0,
+    repeats: Annotated[int, typer.Option(min=1, help="Off/on pairs of runs.")] = 2,
+    update_hz: Annotated[float, typer.Option(min=0.1, max=30.0, help="View updates per second.")] = 4.0,
+    think: Annotated[
+        str, typer.Option(help="The server's --think: budget (light) or continuous (busy).")
+    ] = "budget",
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """What the dashboard costs a think server serving the HyDrA robot (CPU, off vs on)."""
+    _logging(verbose)
+    if think not in ("budget", "continuous"):
+        raise typer.BadParameter("budget or continuous", param_hint="--think")
+    cfg = dashboard_bench.DashboardBenchConfig(seconds=seconds, warmup_s=warmup, repeats=repeats,
+                                               update_hz=update_hz, think=think)  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("dashboard", total=dashboard_bench.steps(cfg))
+        result = dashboard_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = [
+        ("dashboard CPU / server's other CPU (attributed, median)", result["added_fraction_attributed"]),
+        ("server CPU per experience, on / off - 1 (A/B, medians)", result["added_fraction_ab"]),
+        ("server CPU ms per experience, off", result["server_cpu_ms_per_experience_off"]),
+        ("server CPU ms per experience, on", result["server_cpu_ms_per_experience_on"]),
+        ("dashboard CPU ms per update", result["dashboard_cpu_ms_per_update"]),
+        ("server CPU (fraction of a core), runs", " ".join(
+            f"{r['server_cpu_fraction_of_a_core']:.3f}{'*' * r['dashboard']}" for r in result["runs"])),
+        (f"goal {result['goal']['goal']}", "met" if result["goal"]["met"] else "NOT met"),
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    _table(f"dashboard cost (think server, --think {think}, serving HyDrA at 15 Hz; * = dashboard on)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        dashboard_bench.plot(result, plot_path)
 
 
 @app.command()

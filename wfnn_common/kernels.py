@@ -270,3 +270,35 @@ def act_one(W1, b1, W2, b2, s, mid, half, limit, n_wires, action_dim, x, hidden,
             best = w
             value = out[n_act + w]
     return True, best, value
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def surface_q(W1, b1, W2, b2, x, grid_u, on_axis, n_wires, action_dim, c, eps, hidden, out, q):  # type: ignore[no-untyped-def]
+    """Wire-fitted Q (Eq 3.1) at scaled state x [S] over actions grid_u [G, A] into q [G] -> best wire.
+
+    Action variables not `on_axis` [A] take the best wire's action (grid_u's values there are
+    ignored). `out` [O] receives the network's outputs (wire actions, then values); `hidden` [H]
+    is scratch. One call instead of some fifty numpy calls: a live view draws this several times
+    a second next to a think server's own work.
+    """
+    _forward(W1, b1, W2, b2, x, hidden, out)
+    n_act = n_wires * action_dim
+    best = 0
+    qmax = out[n_act]
+    for w in range(1, n_wires):
+        if out[n_act + w] > qmax:
+            qmax = out[n_act + w]
+            best = w
+    for g in range(grid_u.shape[0]):
+        num = 0.0
+        den = 0.0
+        for w in range(n_wires):
+            d = c * (qmax - out[n_act + w]) + eps
+            for a in range(action_dim):
+                u = grid_u[g, a] if on_axis[a] else out[best * action_dim + a]
+                diff = out[w * action_dim + a] - u
+                d += diff * diff
+            num += out[n_act + w] / d
+            den += 1.0 / d
+        q[g] = num / den
+    return best

@@ -12,8 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.network import Params, Scaler, forward, split_wires
-from wfnn_common.wirefit import wirefit_q
+from wfnn_common.kernels import surface_q
+from wfnn_common.network import Params, Scaler, split_wires
 
 FloatArray = NDArray[np.float64]
 
@@ -39,32 +39,56 @@ class Surface:
     best: int
 
 
+class SurfaceGrid:
+    """Q(x, u) over `points` values of each action variable in `dims`, for any state and weights.
+
+    The grid, the scalers and the work arrays are made once, and each surface is one compiled
+    call (`kernels.surface_q`): a live view draws it several times a second.
+    """
+
+    def __init__(self, config: LearnerConfig, dims: tuple[int, ...] = (0,), points: int = 41) -> None:
+        if (
+            not 1 <= len(dims) <= 2
+            or len(set(dims)) != len(dims)
+            or not all(0 <= d < config.action_dim for d in dims)
+        ):
+            raise ValueError(
+                f"dims must be one or two distinct action indices < {config.action_dim}, got {dims}"
+            )
+        self.config, self.dims = config, tuple(dims)
+        self.states = Scaler(config.state_low, config.state_high)
+        self.actions = Scaler(config.action_low, config.action_high)
+        self.limit = 1.0 + 2.0 * config.valid_margin
+        grid = np.linspace(-1.0, 1.0, points)
+        mesh = np.meshgrid(*([grid] * len(dims)), indexing="xy")
+        self.shape = mesh[0].shape
+        self.grid_u = np.zeros((mesh[0].size, config.action_dim))
+        self.on_axis = np.zeros(config.action_dim, dtype=np.bool_)
+        for k, d in enumerate(dims):
+            self.grid_u[:, d] = mesh[k].ravel()
+            self.on_axis[d] = True
+        self.axes = tuple(grid * self.actions.half[d] + self.actions.mid[d] for d in dims)
+        self._hidden = np.empty(config.n_hidden)
+        self._out = np.empty(config.n_outputs)
+
+    def __call__(self, params: Params, state: FloatArray) -> Surface:
+        """The surface of the first network of `params` at `state` [S], physical units.
+
+        The state is clipped to the sanity limits, as `act` sees it.
+        """
+        cfg = self.config
+        x = np.clip(np.nan_to_num(self.states.to_unit(state)), -self.limit, self.limit)
+        W1, b1, W2, b2 = params.single
+        q = np.empty(self.grid_u.shape[0])
+        best = surface_q(W1, b1, W2, b2, x, self.grid_u, self.on_axis, cfg.n_wires, cfg.action_dim,
+                         cfg.smoothing_c, cfg.eps, self._hidden, self._out, q)  # fmt: skip
+        wire_u, wire_q = split_wires(self._out, cfg.n_wires, cfg.action_dim)
+        wires = self.actions.from_unit(wire_u)
+        return Surface(self.dims, self.axes, q.reshape(self.shape), wires, wire_q.copy(), int(best))
+
+
 def action_value_surface(
     config: LearnerConfig, params: Params, state: FloatArray, dims: tuple[int, ...] = (0,), points: int = 41
 ) -> Surface:
-    """Q(state, u) over `points` values of each action variable in `dims` (first network of `params`).
-
-    `state` [S] in physical units (clipped to the sanity limits as `act` sees it).
-    """
-    if (
-        not 1 <= len(dims) <= 2
-        or len(set(dims)) != len(dims)
-        or not all(0 <= d < config.action_dim for d in dims)
-    ):
-        raise ValueError(f"dims must be one or two distinct action indices < {config.action_dim}, got {dims}")
-    x = Scaler(config.state_low, config.state_high).to_unit(np.asarray(state, dtype=np.float64))
-    limit = 1.0 + 2.0 * config.valid_margin
-    x = np.nan_to_num(np.clip(x, -limit, limit))
-    single = Params(params.flat[:1], params.shapes)
-    _, out = forward(single, x[None, None, :])
-    wire_u, wire_q = split_wires(out[0, 0], config.n_wires, config.action_dim)  # [W, A], [W]
-    best = int(np.argmax(wire_q))
-    grid = np.linspace(-1.0, 1.0, points)
-    mesh = np.meshgrid(*([grid] * len(dims)), indexing="xy")
-    u = np.broadcast_to(wire_u[best], (*mesh[0].shape, config.action_dim)).copy()
-    for k, d in enumerate(dims):
-        u[..., d] = mesh[k]
-    q = wirefit_q(wire_u, wire_q, u, config.smoothing_c, config.eps)
-    actions = Scaler(config.action_low, config.action_high)
-    axes = tuple(grid * actions.half[d] + actions.mid[d] for d in dims)
-    return Surface(tuple(dims), axes, q, actions.from_unit(wire_u), wire_q.copy(), best)
+    """Q(state, u) over `points` values of each action variable in `dims` (first network of `params`)."""
+    return SurfaceGrid(config, dims, points)(params, state)

@@ -76,6 +76,9 @@ def main(
     dashboard_host: Annotated[
         str, typer.Option(help="Interface the dashboard binds (loopback unless you mean to share it).")
     ] = "127.0.0.1",
+    dashboard_hz: Annotated[
+        float, typer.Option(min=0.1, max=30.0, help="Dashboard updates per second.")
+    ] = 4.0,
     quiet: Annotated[bool, typer.Option(help="No live status line.")] = False,
     verbose: bool = False,
 ) -> None:
@@ -97,7 +100,8 @@ def main(
             learner_config=learner_config, key_file=key_file, seed=seed, publish_period_s=publish_period,
             checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
             replay=tuple(replay_only or ()), replay_only=bool(replay_only),
-            dashboard=DashboardConfig(port=dashboard, host=dashboard_host) if dashboard is not None else None,
+            dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
+                       if dashboard is not None else None),
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -16,6 +16,7 @@ view, so its cost next to the server's own is measured where it runs.
 
 from __future__ import annotations
 
+import base64
 import collections
 import json
 import logging
@@ -32,7 +33,7 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from wfnn_common.protocol import ServerStatus
-from wfnn_common.surface import action_value_surface
+from wfnn_common.surface import SurfaceGrid
 from wfnn_server.config import DashboardConfig
 
 if TYPE_CHECKING:
@@ -49,6 +50,10 @@ SERIES = {
 }
 """Plotted server figures: name on the page -> ServerStatus metric."""
 
+FIGURES = ("think/thinks_per_s", "store/experiences", "learn/divergence_resets", "learn/reward_mean",
+           "learn/q_chosen_mean")  # fmt: skip
+"""Server figures shown as numbers (the view sends only what the page shows)."""
+
 CLIENT_SERIES = {
     "reward": "reward_mean",
     "q": "q_mean",
@@ -60,7 +65,15 @@ CLIENT_SERIES = {
 
 def _number(value: float | None) -> float | None:
     """JSON has no NaN or infinity: they travel as null (a gap in a curve)."""
-    return None if value is None or not math.isfinite(value) else round(float(value), 6)
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _f32(values: np.ndarray) -> str:
+    """An array as base64 of little-endian float32, which the page reads as a Float32Array.
+
+    A 41 x 41 surface encodes in microseconds rather than the JSON of 1,681 floats.
+    """
+    return base64.b64encode(np.ascontiguousarray(values, dtype="<f4").tobytes()).decode()
 
 
 class Dashboard:
@@ -72,7 +85,10 @@ class Dashboard:
         self._lock = threading.Lock()
         self._seq = 0
         self._samples: collections.deque[dict[str, Any]] = collections.deque(maxlen=config.history)
-        self._cached: tuple[float, dict[str, Any]] | None = None
+        self._cached: tuple[float, bytes] | None = None
+        """(when, the view without samples as JSON bytes): made at most update_hz times a second."""
+        self._grid: SurfaceGrid | None = None
+        self.stopping = threading.Event()
         self.cpu_s = 0.0
         """CPU time spent by the dashboard (requests and sampling), seconds."""
         self.requests = 0
@@ -94,7 +110,8 @@ class Dashboard:
         return self
 
     def stop(self) -> None:
-        """Stop serving and close the socket."""
+        """Stop serving (open streams end) and close the socket."""
+        self.stopping.set()
         self._http.shutdown()
         self._http.server_close()
         self._thread.join(timeout=5.0)
@@ -125,17 +142,26 @@ class Dashboard:
     # ------------------------------------------------------------------ the view (HTTP threads)
     def view(self, since: int = 0) -> dict[str, Any]:
         """Everything the page shows, with only the samples newer than `since`."""
+        view: dict[str, Any] = json.loads(self.view_json(since))
+        return view
+
+    def view_json(self, since: int = 0) -> bytes:
+        """`view` as the JSON bytes the page gets."""
+        return self._view_json(since)[0]
+
+    def _view_json(self, since: int) -> tuple[bytes, int]:
+        """(`view_json`, the newest sample's number in it, or `since` if none)."""
         now = time.monotonic()
         cached = self._cached
         if cached is None or now - cached[0] >= 1.0 / self.config.update_hz:
-            cached = (now, self._current())  # recomputed at most update_hz times a second
+            cached = (now, json.dumps(self._current(), separators=(",", ":")).encode())
             self._cached = cached
         with self._lock:
             samples = [s for s in self._samples if s["seq"] > since]
-            cpu = self.cpu_s
-        server_cpu = time.process_time()
-        return {**cached[1], "samples": samples, "cpu": {"dashboard_s": cpu, "process_s": server_cpu},
-                "requests": self.requests}  # fmt: skip
+            extra = {"samples": samples, "requests": self.requests,
+                     "cpu": {"dashboard_s": self.cpu_s, "process_s": time.process_time()}}  # fmt: skip
+        newest = samples[-1]["seq"] if samples else since
+        return json.dumps(extra, separators=(",", ":")).encode()[:-1] + b"," + cached[1][1:], newest
 
     def _current(self) -> dict[str, Any]:
         srv = self.server
@@ -149,12 +175,12 @@ class Dashboard:
             "update_hz": self.config.update_hz,
             "weights_version": srv.version,
             "rejected": dict(status.rejected) if status is not None else {},
-            "figures": {k: _number(v) for k, v in status.metrics.items()} if status is not None else {},
+            "figures": {k: _number(status.metrics.get(k)) for k in FIGURES} if status is not None else {},
             "clients": {
                 cid: {
                     "following": c.following,
                     "weights_version": c.weights_version,
-                    "metrics": {k: _number(v) for k, v in c.metrics.items()},
+                    "metrics": {k: _number(c.metrics.get(k)) for k in CLIENT_SERIES.values()},
                 }
                 for cid, c in srv.clients.items()
             },
@@ -164,16 +190,19 @@ class Dashboard:
         if cfg is not None and params is not None and states:
             client = sorted(states)[0]
             state = states[client]
-            dims = (0, 1) if cfg.action_dim >= 2 else (0,)
-            surface = action_value_surface(cfg, params, state, dims, self.config.surface_points)
+            if self._grid is None or self._grid.config is not cfg:
+                dims = (0, 1) if cfg.action_dim >= 2 else (0,)
+                self._grid = SurfaceGrid(cfg, dims, self.config.surface_points)
+            surface = self._grid(params, state)
             view["surface"] = {
                 "client": client,
-                "state": [_number(v) for v in state],
+                "state": [_number(v) for v in state.tolist()],
                 "dims": list(surface.dims),
-                "axes": [np.round(a, 6).tolist() for a in surface.axes],
-                "q": np.round(surface.q, 6).tolist(),
-                "wire_action": np.round(surface.wire_action, 6).tolist(),
-                "wire_value": np.round(surface.wire_value, 6).tolist(),
+                "axes": [a.tolist() for a in surface.axes],
+                "q_f32": _f32(surface.q),
+                "shape": list(surface.q.shape),
+                "wire_action": surface.wire_action.tolist(),
+                "wire_value": surface.wire_value.tolist(),
                 "best": surface.best,
             }
         return view
@@ -191,12 +220,23 @@ class _Handler(BaseHTTPRequestHandler):
 
     dashboard: Dashboard
     protocol_version = "HTTP/1.1"  # keep-alive: a polling page reuses one connection
+    # Headers and body leave in one segment: with Nagle's algorithm and delayed ACKs a small
+    # body written after the headers waits ~40 ms on a keep-alive connection.
+    disable_nagle_algorithm = True
+    wbufsize = 1 << 16
     server_version = "wfnn-dashboard"
 
     def do_GET(self) -> None:
         t0 = time.thread_time()
         d = self.dashboard
         url = urlparse(self.path)
+        if url.path == "/api/stream":  # counts its own CPU time, message by message
+            try:
+                since = int(parse_qs(url.query).get("since", ["0"])[0])
+            except ValueError:
+                since = 0
+            self._stream(since, t0)
+            return
         try:
             if url.path in ("/", "/index.html"):
                 self._send(d.page, "text/html; charset=utf-8")
@@ -212,14 +252,44 @@ class _Handler(BaseHTTPRequestHandler):
                         b'{"error": "since must be an integer"}', "application/json", HTTPStatus.BAD_REQUEST
                     )
                     return
-                body = json.dumps(d.view(since), separators=(",", ":")).encode()
-                self._send(body, "application/json")
+                self._send(d.view_json(since), "application/json")
             else:
                 self._send(b"not found", "text/plain", HTTPStatus.NOT_FOUND)
         finally:
             with d._lock:
                 d.requests += 1
                 d.cpu_s += time.thread_time() - t0
+
+    def _stream(self, since: int, t0: float) -> None:
+        """Server-sent events: the view, update_hz times a second, until the page goes away.
+
+        One request per page instead of one per update: the per-request header parsing is
+        paid once.
+        """
+        d = self.dashboard
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "text/event-stream")
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        period = 1.0 / d.config.update_hz
+        next_at = time.monotonic()
+        while not d.stopping.is_set():
+            body, since = d._view_json(since)
+            try:
+                self.wfile.write(b"data: " + body + b"\n\n")
+                self.wfile.flush()
+            except OSError:  # the page went away
+                break
+            finally:
+                t1 = time.thread_time()
+                with d._lock:
+                    d.requests += 1
+                    d.cpu_s += t1 - t0
+            next_at += period
+            if d.stopping.wait(max(0.0, next_at - time.monotonic())):
+                break
+            t0 = time.thread_time()
+        self.close_connection = True
 
     def _refuse(self) -> None:
         self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")

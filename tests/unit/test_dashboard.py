@@ -1,5 +1,6 @@
 """The dashboard's JSON view and HTTP surface (in-process server on the in-memory bus)."""
 
+import base64
 import json
 import urllib.error
 import urllib.request
@@ -48,7 +49,9 @@ def test_the_view_has_the_servers_figures_clients_and_the_action_value_surface(t
         assert wait_for(lambda: view()["surface"] is not None and len(view()["samples"]) >= 2)
         v = view()
         assert v["server"] == "s1" and v["figures"]["store/experiences"] == 6
-        assert v["figures"]["learn/reward_mean"] == pytest.approx(float(b.reward.mean()), abs=1e-6)
+        # The mean reward of the status window the batch arrived in (later windows have none).
+        rewards = [s["reward"] for s in v["samples"] if s["reward"] is not None]
+        assert rewards == [pytest.approx(float(b.reward.mean()), abs=1e-9)]
         assert (
             v["clients"]["c1"]["following"] == "s1" and v["clients"]["c1"]["metrics"]["client/overruns"] == 1
         )
@@ -60,14 +63,14 @@ def test_the_view_has_the_servers_figures_clients_and_the_action_value_surface(t
         # The surface: Q over both actions at the newest state, as the learner's own wire fitting says.
         surface = v["surface"]
         assert surface["client"] == "c1" and surface["dims"] == [0, 1]
-        q = np.array(surface["q"])
+        q = np.frombuffer(base64.b64decode(surface["q_f32"]), dtype="<f4").reshape(surface["shape"])
         assert q.shape == (41, 41) and len(surface["wire_value"]) == cfg.n_wires
         learner = WFNN(cfg, params=server.published)
         state = np.array(surface["state"])
         np.testing.assert_allclose(state, b.next_state[-1], atol=1e-6)
         j, i = 7, 30
         expected = learner.q_value(state, [surface["axes"][0][i], surface["axes"][1][j]])
-        assert q[j, i] == pytest.approx(float(expected), abs=1e-3)  # the server may have thought on since
+        assert q[j, i] == pytest.approx(float(expected), abs=2e-3)  # the server may have thought on since
         assert v["cpu"]["dashboard_s"] > 0 and v["requests"] >= 3
 
 

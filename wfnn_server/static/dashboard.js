@@ -1,11 +1,10 @@
-// Live view of a think server: polls /api/view for the samples it has not seen and redraws
+// Live view of a think server: a stream of views (each with the samples not seen yet), redrawn
 // with Plotly.react. Read-only: it only ever sends GET requests.
 "use strict";
 
 const history = { t: [], reward: [], q_chosen: [], thinks_per_s: [], stored: [], resets: [] };
 const clientHistory = {};  // client -> { t, jitter_p99_ms, overruns, reward, q }
 let seq = 0;
-let periodMs = 250;
 const plotConfig = { displayModeBar: false, responsive: true };
 const margin = { l: 55, r: 55, t: 35, b: 40 };
 let revision = 0;  // the curves' arrays grow in place: Plotly.react redraws when this changes
@@ -61,6 +60,11 @@ function drawClients() {
     legend: { orientation: "h", y: -0.25 } }, plotConfig);
 }
 
+function float32(base64) {
+  const bytes = Uint8Array.from(atob(base64), (c) => c.charCodeAt(0));
+  return Array.from(new Float32Array(bytes.buffer));
+}
+
 function drawSurface(surface) {
   if (!surface) {
     Plotly.react("chart-surface", [], { title: { text: "action-value surface: no state yet", font: { size: 14 } },
@@ -68,20 +72,23 @@ function drawSurface(surface) {
     return;
   }
   const d = surface.dims;
+  const flat = float32(surface.q_f32);
+  const q = d.length === 1 ? flat
+    : Array.from({ length: surface.shape[0] }, (_, j) => flat.slice(j * surface.shape[1], (j + 1) * surface.shape[1]));
   const title = `Q(x, u) of ${surface.client}'s newest state, wires marked`;
   const wires = surface.wire_action;
   const best = surface.best;
   const markerColour = wires.map((_, i) => (i === best ? "crimson" : "black"));
   if (d.length === 1) {
     Plotly.react("chart-surface", [
-      { x: surface.axes[0], y: surface.q, name: "Q(x, u)", mode: "lines" },
+      { x: surface.axes[0], y: q, name: "Q(x, u)", mode: "lines" },
       { x: wires.map((w) => w[d[0]]), y: surface.wire_value, name: "wires (best in red)", mode: "markers",
         marker: { size: 9, color: markerColour } },
     ], { title: { text: title, font: { size: 14 } }, margin, xaxis: { title: { text: `action ${d[0]}` } },
          yaxis: { title: { text: "Q" } }, legend: { orientation: "h", y: -0.25 } }, plotConfig);
   } else {
     Plotly.react("chart-surface", [
-      { type: "heatmap", x: surface.axes[0], y: surface.axes[1], z: surface.q, colorscale: "Viridis",
+      { type: "heatmap", x: surface.axes[0], y: surface.axes[1], z: q, colorscale: "Viridis",
         colorbar: { title: { text: "Q" } } },
       { x: wires.map((w) => w[d[0]]), y: wires.map((w) => w[d[1]]), mode: "markers", name: "wires",
         text: surface.wire_value.map((v) => `value ${v.toFixed(3)}`),
@@ -136,19 +143,25 @@ function show(view) {
   drawSurface(view.surface);
   drawRejected(view.rejected);
   drawClientTable(view.clients);
-  periodMs = 1000 / view.update_hz;
 }
 
-async function poll() {
-  try {
-    const response = await fetch(`/api/view?since=${seq}`, { cache: "no-store" });
-    if (!response.ok) throw new Error(`HTTP ${response.status}`);
-    show(await response.json());
+// One server-sent-events stream per page: the server pushes the view update_hz times a second.
+// After an error the page starts afresh: a restarted server numbers its samples from 1 again and
+// sends back the history it keeps.
+function connect() {
+  for (const key of Object.keys(history)) history[key].length = 0;
+  for (const client of Object.keys(clientHistory)) delete clientHistory[client];
+  seq = 0;
+  const source = new EventSource("/api/stream");
+  source.onmessage = (event) => {
+    show(JSON.parse(event.data));
     document.getElementById("status").textContent = `live, updated ${new Date().toLocaleTimeString()}`;
-  } catch (err) {
-    document.getElementById("status").textContent = `server not answering (${err.message}); retrying`;
-  }
-  setTimeout(poll, periodMs);
+  };
+  source.onerror = () => {
+    source.close();
+    document.getElementById("status").textContent = "server not answering; reconnecting";
+    setTimeout(connect, 1000);
+  };
 }
 
-poll();
+connect();

@@ -1,0 +1,213 @@
+"""What the dashboard costs the think server (`wfnn-bench dashboard`).
+
+A think server serves a robot learning in real time (the main job: HyDrA, 1-DOF visual servoing
+at 15 Hz, `wfnn-client` in another process); the server's CPU time is read from /proc over a
+window after a warm-up, with the dashboard off and with it on and watched the way the page
+watches it (one server-sent-events stream, `update_hz` views a second). Runs alternate off/on
+`repeats` times.
+
+Figures:
+- `added_fraction_attributed`: CPU time the dashboard's own threads spent (counted by the
+  dashboard: request handling, JSON, the action-value surface, sampling) over the server's
+  other CPU time in the same window. This is the criterion's measure (< 5%): it does not
+  depend on run-to-run noise.
+- `added_fraction_ab`: server CPU per stored experience, on vs off, minus 1 (medians over the
+  repeats): includes effects outside the dashboard's threads (e.g. the GIL), and noise.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import subprocess
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_server.spawn import BIN, ServerProcess, free_port, wait_listening
+
+
+@dataclass(frozen=True, kw_only=True)
+class DashboardBenchConfig:
+    """One benchmark run."""
+
+    seconds: float = 60.0
+    """Measured window per run."""
+    warmup_s: float = 15.0
+    """Before the window: the server starts, the robot connects, learning starts."""
+    repeats: int = 2
+    """Off/on pairs."""
+    update_hz: float = 4.0
+    """How often the view is polled (the page's default)."""
+    rate_hz: float = 15.0
+    """The robot's control rate."""
+    think: str = "budget"
+    """The server's thinking (`wfnn-server --think`): `budget` (the main job's: thinks_per_action
+    per experience, then idle: a light server) or `continuous` (replaying whenever idle: a busy one)."""
+
+
+def steps(cfg: DashboardBenchConfig) -> int:
+    """Progress units: one per run."""
+    return 2 * cfg.repeats
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class _Watcher:
+    """Watches the dashboard like the page: one server-sent-events stream, read in a thread."""
+
+    def __init__(self, port: int) -> None:
+        self.connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        self.connection.request("GET", "/api/stream")
+        self.response = self.connection.getresponse()
+        self.latest: dict[str, Any] = {}
+        self.messages = 0
+        self.bytes = 0
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        try:
+            for line in self.response:
+                if line.startswith(b"data: "):
+                    self.latest = json.loads(line[6:])
+                    self.messages += 1
+                    self.bytes += len(line)
+        except (OSError, ValueError):  # the server stopped
+            return
+
+    def dashboard_cpu_s(self) -> float:
+        """The dashboard's own CPU seconds, as of its newest message."""
+        return float(self.latest.get("cpu", {}).get("dashboard_s", 0.0))
+
+    def close(self) -> None:
+        self.connection.close()
+
+
+def _stored(server: ServerProcess) -> int:
+    """Experiences in the server's store, read from its log files (the same way on and off)."""
+    from wfnn_common.logs import summarise
+
+    return summarise(server.data_dir / "store").experiences
+
+
+def _one(cfg: DashboardBenchConfig, on: bool, work: Path) -> dict[str, Any]:
+    port, web = free_port(), free_port()
+    args = (
+        "--think",
+        cfg.think,
+        *(("--dashboard", str(web), "--dashboard-hz", str(cfg.update_hz)) if on else ()),
+    )
+    run_dir = work / f"{'on' if on else 'off'}-{port}"
+    with ServerProcess(run_dir / "server", port, *args, server_id="bench") as server:
+        assert server.proc is not None
+        duration = cfg.warmup_s + cfg.seconds + 10.0
+        robot = subprocess.Popen(
+            [str(BIN / "wfnn-client"), "--sim", "hydra", "--rate-hz", str(cfg.rate_hz), "--episodes", "1000",
+             "--duration", str(duration), "--server", server.endpoint, "--out", str(run_dir / "client")],
+            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        try:
+            watcher = None
+            if on:
+                wait_listening(web)
+                watcher = _Watcher(web)
+            time.sleep(cfg.warmup_s)
+            # The dashboard's count is as of its newest message (at most 1/update_hz old).
+            window = {"cpu0": _cpu_s(server.proc.pid), "t0": time.monotonic(), "stored0": _stored(server),
+                      "dash0": watcher.dashboard_cpu_s() if watcher else 0.0}  # fmt: skip
+            time.sleep(cfg.seconds)
+            window.update(cpu1=_cpu_s(server.proc.pid), t1=time.monotonic(), stored1=_stored(server),
+                          dash1=watcher.dashboard_cpu_s() if watcher else 0.0)  # fmt: skip
+            messages = watcher.messages if watcher else 0
+            kib = watcher.bytes / 1024 / max(messages, 1) if watcher else 0.0
+        finally:
+            if watcher is not None:
+                watcher.close()
+            robot.terminate()
+            robot.wait(timeout=30)
+    cpu = window["cpu1"] - window["cpu0"]
+    dash = window["dash1"] - window["dash0"]
+    stored = window["stored1"] - window["stored0"]
+    return {
+        "dashboard": on,
+        "window_s": window["t1"] - window["t0"],
+        "server_cpu_s": cpu,
+        "server_cpu_fraction_of_a_core": cpu / (window["t1"] - window["t0"]),
+        "experiences_stored": stored,
+        "server_cpu_ms_per_experience": 1e3 * cpu / max(stored, 1),
+        "dashboard_cpu_s": dash,
+        "messages": messages,
+        "kib_per_message": kib,
+    }
+
+
+def run(cfg: DashboardBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """Alternate off/on runs; the cost figures."""
+    t0 = time.perf_counter()
+    runs: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="wfnn-dash-") as tmp:
+        for _ in range(cfg.repeats):
+            for dashboard_on in (False, True):
+                runs.append(_one(cfg, dashboard_on, Path(tmp)))
+                progress(1)
+    off = [r for r in runs if not r["dashboard"]]
+    on = [r for r in runs if r["dashboard"]]
+    attributed = [r["dashboard_cpu_s"] / max(r["server_cpu_s"] - r["dashboard_cpu_s"], 1e-9) for r in on]
+    per_exp_off = float(np.median([r["server_cpu_ms_per_experience"] for r in off]))
+    per_exp_on = float(np.median([r["server_cpu_ms_per_experience"] for r in on]))
+    added = float(np.median(attributed))
+    return {
+        "config": asdict(cfg),
+        "machine": machine_info(),
+        "runs": runs,
+        "added_fraction_attributed": added,
+        "added_fraction_ab": per_exp_on / per_exp_off - 1.0,
+        "server_cpu_ms_per_experience_off": per_exp_off,
+        "server_cpu_ms_per_experience_on": per_exp_on,
+        "dashboard_cpu_ms_per_update": float(
+            np.median([1e3 * r["dashboard_cpu_s"] / (r["window_s"] * cfg.update_hz) for r in on])
+        ),
+        "goal": {"goal": "< 5% of the think server's CPU time at 4 updates/s", "met": added < 0.05},
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Server CPU per experience off/on, and the dashboard's attributed share."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    runs = result["runs"]
+    for on, colour in ((False, "tab:blue"), (True, "tab:orange")):
+        values = [r["server_cpu_ms_per_experience"] for r in runs if r["dashboard"] == on]
+        a.scatter([int(on)] * len(values), values, color=colour, s=40)
+    a.set_xticks([0, 1], ["dashboard off", f"on, {result['config']['update_hz']:g} updates/s"])
+    a.set_ylabel("server CPU ms per experience")
+    a.set_title(f"think server CPU (HyDrA at 15 Hz, --think {result['config']['think']})")
+    shares = [100 * r["dashboard_cpu_s"] / max(r["server_cpu_s"] - r["dashboard_cpu_s"], 1e-9)
+              for r in runs if r["dashboard"]]  # fmt: skip
+    b.bar(range(len(shares)), shares, color="tab:orange")
+    b.axhline(5.0, color="crimson", ls="--", label="5% goal")
+    b.set_ylabel("dashboard CPU / server's other CPU (%)")
+    b.set_xlabel("run")
+    b.set_title("dashboard's attributed cost")
+    b.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
