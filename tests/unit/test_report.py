@@ -1,0 +1,53 @@
+"""`wfnn report`: self-contained HTML of a finished run or benchmark."""
+
+import json
+import re
+
+import pytest
+from typer.testing import CliRunner
+
+from wfnn_bench.report import ReportConfig, ReportError, app, run
+from wfnn_client.controllers import parse_mix
+from wfnn_client.run import ClientConfig
+from wfnn_client.run import run as run_client
+
+
+def test_a_runs_report_has_its_figures_curves_log_and_config(tmp_path):
+    out = tmp_path / "run"
+    metrics = run_client(ClientConfig(sim="boat", rate_hz=0, episodes=4, thinks_per_action=2, out=out, seed=3,
+                                      behaviour_policy=parse_mix("wfnn=1,handcoded=1")))  # fmt: skip
+    html_path = run(ReportConfig(path=out))
+    assert html_path == out / "report.html" and (out / "report.png").stat().st_size > 10_000
+    html = html_path.read_text()
+    assert "<h2>Run</h2>" in html and "Experience log journal" in html and "Learner config" in html
+    assert f"<td>experiences learned</td><td>{metrics['experiences_learned']}</td>" in html
+    # Self-contained: every picture inline, nothing fetched.
+    assert re.search(r'src="data:image/png;base64,[A-Za-z0-9+/=]{1000,}"', html)
+    assert not re.search(r'src="(http|/)', html)
+    assert "behaviour policy handcoded" in html and "episodes driven by" in html
+
+
+def test_benchmark_reports_show_scalars_and_the_benchmarks_plot(tmp_path):
+    (tmp_path / "b.json").write_text(json.dumps({"score": 0.25, "goal": {"met": True, "goal": "x < 1"},
+                                                 "curve": [1, 2, 3], "machine": {"cpus": 2}}))  # fmt: skip
+    (tmp_path / "b.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"0" * 100)
+    (tmp_path / "c.json").write_text(json.dumps({"n": 3}))
+    one = run(ReportConfig(path=tmp_path / "b.json"))
+    html = one.read_text()
+    assert one.name == "b_report.html" and "<td>score</td><td>0.25</td>" in html
+    assert "<td>goal.met</td><td>yes</td>" in html and "curve" not in html and "cpus 2" in html
+    assert "data:image/png;base64," in html
+    both = run(ReportConfig(path=tmp_path, out=tmp_path / "all.html")).read_text()
+    assert "<h2>b</h2>" in both and "<h2>c</h2>" in both
+
+
+def test_unusable_input_is_refused_with_the_reason(tmp_path):
+    with pytest.raises(ReportError, match="give a run directory"):
+        run(ReportConfig(path=tmp_path / "missing"))
+    with pytest.raises(ReportError, match=r"neither metrics\.json"):
+        run(ReportConfig(path=tmp_path))
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ReportError, match="not readable JSON"):
+        run(ReportConfig(path=tmp_path / "bad.json"))
+    result = CliRunner().invoke(app, ["report", str(tmp_path / "missing")])
+    assert result.exit_code == 2 and "give a run directory" in result.output

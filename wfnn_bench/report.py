@@ -1,0 +1,263 @@
+"""`wfnn report PATH`: a self-contained HTML report (and a PNG) of a finished run or benchmark.
+
+PATH may be
+- a client run directory (`wfnn-client --out DIR`, the main job's `runs/main`): the run's
+  figures, its learning curve with a running median (who drove each episode, where a behaviour
+  policy mix was used), box plots of the scores of the first and last episodes, the experience
+  log's behaviour policies and flags, the learner config, and the first and last camera pictures;
+- a benchmark's JSON (`wfnn-bench ... --json FILE`): its scalar figures, goals and the plot the
+  benchmark drew beside it (FILE with .png);
+- a directory of benchmark JSONs (`docs/results/`): one section per benchmark.
+
+Pictures are embedded (base64), so the HTML file stands alone. Written beside the input unless
+told otherwise: `report.html`, and for a run `report.png` (the curve and box plots).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+import jinja2
+import numpy as np
+import typer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReportConfig:
+    """What to report on and where to write it."""
+
+    path: Path
+    """A client run directory, a benchmark JSON, or a directory of benchmark JSONs."""
+    out: Path | None = None
+    """The HTML file (default: `report.html` in the run directory or beside the JSON)."""
+
+
+class ReportError(ValueError):
+    """The path is not something a report can be made of (the message says why)."""
+
+
+@dataclass
+class Section:
+    """One part of the report: a title, a table of figures, pictures and notes."""
+
+    title: str
+    rows: list[tuple[str, str]]
+    images: list[tuple[str, str]]
+    """(caption, data URI)."""
+    notes: list[str]
+
+
+TEMPLATE = jinja2.Environment(autoescape=True).from_string("""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>{{ title }}</title>
+<style>
+ body { font-family: system-ui, sans-serif; margin: 1.2rem auto; max-width: 1100px; color: #222; }
+ h1 { font-size: 1.4rem; } h2 { font-size: 1.15rem; border-bottom: 1px solid #ddd; padding-bottom: 0.2rem; }
+ table { border-collapse: collapse; font-size: 0.9rem; margin: 0.4rem 0 0.8rem 0; }
+ td { padding: 0.15rem 0.7rem; border-bottom: 1px solid #eee; vertical-align: top; }
+ td:first-child { color: #555; } td:last-child { font-variant-numeric: tabular-nums; }
+ figure { margin: 0.5rem 0 1rem 0; } figcaption { color: #555; font-size: 0.85rem; }
+ img { max-width: 100%; border: 1px solid #eee; } .note { color: #444; font-size: 0.9rem; }
+</style></head><body>
+<h1>{{ title }}</h1>
+<p class="note">{{ subtitle }}</p>
+{% for s in sections %}
+<h2>{{ s.title }}</h2>
+{% for n in s.notes %}<p class="note">{{ n }}</p>{% endfor %}
+{% if s.rows %}<table>
+{% for k, v in s.rows %}<tr><td>{{ k }}</td><td>{{ v }}</td></tr>{% endfor %}
+</table>{% endif %}
+{% for caption, uri in s.images %}
+<figure><img src="{{ uri }}" alt="{{ caption }}"><figcaption>{{ caption }}</figcaption></figure>
+{% endfor %}
+{% endfor %}
+</body></html>
+""")
+
+
+def _uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode()
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return "-" if not np.isfinite(value) else f"{value:.4g}"
+    if isinstance(value, bool) or value is None:
+        return {True: "yes", False: "no", None: "-"}[value]
+    return str(value)
+
+
+def _scalars(data: dict[str, Any], prefix: str = "", depth: int = 0) -> list[tuple[str, str]]:
+    """The plain figures of a JSON object: numbers, strings and booleans.
+
+    Nested objects are followed one level deep; lists are left out.
+    """
+    rows: list[tuple[str, str]] = []
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and depth < 1 and key not in ("config", "machine", "trace"):
+            rows += _scalars(value, f"{name}.", depth + 1)
+        elif isinstance(value, int | float | str | bool) or value is None:
+            rows.append((name, _fmt(value)))
+    return rows
+
+
+def _run_figure(metrics: dict[str, Any]) -> bytes:
+    """Learning curve (with a running median) and box plots of the first and last episodes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scores = np.asarray([np.nan if s is None else s for s in metrics["scores"]], dtype=np.float64)
+    episodes = np.arange(1, len(scores) + 1)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [3, 1]})
+    policies = metrics.get("episode_policies") or []
+    if policies and len(set(policies)) > 1:
+        for name in sorted(set(policies)):
+            mask = np.array([p == name for p in policies])
+            a.scatter(episodes[mask], scores[mask], s=14, label=f"driven by {name}")
+    else:
+        a.plot(episodes, scores, marker="o", ms=3, lw=0.8, label="episode")
+    window = max(1, min(10, len(scores) // 4))
+    if len(scores) >= 3:
+        running = [np.nanmedian(scores[max(0, i - window + 1) : i + 1]) for i in range(len(scores))]
+        a.plot(episodes, running, color="black", lw=1.6, label=f"running median of {window}")
+    a.set_xlabel("episode")
+    a.set_ylabel(metrics.get("metric", "score"))
+    a.set_title(f"{metrics.get('sim', 'run')}: learning curve")
+    a.legend(fontsize=8)
+    k = max(1, min(10, len(scores) // 2))
+    first, last = scores[:k], scores[-k:]
+    b.boxplot([first[np.isfinite(first)], last[np.isfinite(last)]])
+    b.set_xticks([1, 2], [f"first {k}", f"last {k}"])
+    b.set_title("episode scores")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+RUN_FIGURES = (
+    ("sim", "sim"), ("metric", "metric"), ("episodes", "episode"), ("first-10 median", "first10_median"),
+    ("last-10 median", "last10_median"), ("experiences learned", "experiences_learned"),
+    ("thinking in", "following"), ("wall time (s)", "wall_s"), ("control ticks", "ticks"),
+    ("tick jitter p99 (ms)", "client/tick_jitter_ms_p99"), ("overruns", "client/overruns"),
+    ("act latency p99 (ms)", "client/act_latency_ms_p99"), ("safe actions", "safe_actions"),
+    ("vetoes", "vetoes"), ("divergence resets (server)", "server/learn/divergence_resets"),
+    ("server thinks/s", "server/think/thinks_per_s"), ("failovers", "downlink/failovers"),
+)  # fmt: skip
+
+
+def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
+    metrics = json.loads((directory / "metrics.json").read_text())
+    if "scores" not in metrics:
+        raise ReportError(f"{directory / 'metrics.json'} is not a client run's metrics (no scores)")
+    figure = _run_figure(metrics)
+    rows = [(name, _fmt(metrics[key])) for name, key in RUN_FIGURES if key in metrics]
+    sections = [Section("Run", rows, [("learning curve and episode scores", _uri(figure))], [])]
+    policies = metrics.get("episode_policies") or []
+    if policies and len(set(policies)) > 1:
+        counts = {p: policies.count(p) for p in sorted(set(policies))}
+        sections[0].notes.append("episodes driven by: " + ", ".join(f"{p} {n}" for p, n in counts.items()))
+    for journal in sorted(directory.glob("journal*")):
+        sections.append(_journal_section(journal))
+    learner = metrics.get("config", {}).get("learner")
+    if learner:
+        sections.append(Section("Learner config", [(k, _fmt(v)) for k, v in learner.items()
+                                                   if not isinstance(v, dict | list)], [], []))  # fmt: skip
+    cameras = sorted((directory / "cameras").glob("*.png")) if (directory / "cameras").is_dir() else []
+    if cameras:
+        chosen = [cameras[0], cameras[-1]] if len(cameras) > 1 else cameras
+        sections.append(Section("Cameras", [("pictures saved", str(len(cameras)))],
+                                [(f"{p.name}", _uri(p.read_bytes())) for p in chosen], []))  # fmt: skip
+    return sections, figure
+
+
+def _journal_section(journal: Path) -> Section:
+    from wfnn_common.logs import summarise
+
+    try:
+        s = summarise(journal)
+    except (OSError, ValueError) as exc:
+        return Section(f"Experience log {journal.name}", [], [], [f"unreadable: {exc}"])
+    rows = [("experiences", str(s.experiences)), ("batches", str(s.batches)),
+            ("mean reward", _fmt(s.reward_mean)), ("terminal", str(s.terminal))]  # fmt: skip
+    rows += [(f"behaviour policy {name}", str(n)) for name, n in sorted(s.behaviour.items())]
+    rows += [(f"flag {name}", str(n)) for name, n in sorted(s.flags.items()) if n]
+    return Section(f"Experience log {journal.name}", rows, [], [])
+
+
+def _bench_section(path: Path) -> Section:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ReportError(f"{path}: not readable JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ReportError(f"{path}: a benchmark result is a JSON object")
+    png = path.with_suffix(".png")
+    images = [(png.name, _uri(png.read_bytes()))] if png.exists() else []
+    notes = []
+    machine = data.get("machine")
+    if isinstance(machine, dict):
+        notes.append("measured on: " + ", ".join(f"{k} {v}" for k, v in machine.items()))
+    return Section(path.stem, _scalars(data), images, notes)
+
+
+def run(config: ReportConfig) -> Path:
+    """Write the report; returns the HTML file's path. Raises ReportError for unusable input."""
+    path = config.path
+    figure: bytes | None = None
+    if path.is_dir() and (path / "metrics.json").exists():
+        sections, figure = _run_sections(path)
+        title, out = f"wfnn run {path.name}", config.out or path / "report.html"
+    elif path.is_dir():
+        found = sorted(p for p in path.glob("*.json") if not p.name.startswith("."))
+        if not found:
+            raise ReportError(f"{path} holds neither metrics.json (a run) nor benchmark JSON files")
+        sections = [_bench_section(p) for p in found]
+        title, out = f"wfnn benchmarks in {path}", config.out or path / "report.html"
+    elif path.suffix == ".json" and path.exists():
+        sections = [_bench_section(path)]
+        title, out = f"wfnn benchmark {path.stem}", config.out or path.with_name(f"{path.stem}_report.html")
+    else:
+        raise ReportError(
+            f"{path}: give a run directory (with metrics.json), a benchmark JSON or a folder of them"
+        )
+    html = TEMPLATE.render(title=title, subtitle=f"from {path.resolve()}", sections=sections)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(html)
+    if figure is not None:
+        out.with_suffix(".png").write_bytes(figure)
+    log.info("wrote %s", out)
+    return out
+
+
+app = typer.Typer(help="wfnn tools for finished runs.", no_args_is_help=True)
+
+
+@app.callback()
+def _tools() -> None:
+    """Tools for finished runs and benchmarks."""
+
+
+@app.command()
+def report(
+    path: Annotated[Path, typer.Argument(help="A run directory, a benchmark JSON, or a folder of them.")],
+    out: Annotated[Path | None, typer.Option(help="The HTML file to write.")] = None,
+) -> None:
+    """Render a self-contained HTML report (and a PNG of a run's curves)."""
+    try:
+        written = run(ReportConfig(path=path, out=out))
+    except ReportError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(f"wrote {written}")
