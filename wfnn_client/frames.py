@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -24,8 +25,12 @@ RgbImage = NDArray[np.uint8]
 class FrameWriter:
     """Writes `<directory>/<tick>.png`: a tick's camera views side by side (in name order)."""
 
-    def __init__(self, directory: Path, queue_size: int = 8) -> None:
+    def __init__(
+        self, directory: Path, queue_size: int = 8, on_png: Callable[[int, bytes], None] | None = None
+    ) -> None:
         self.directory = Path(directory)
+        self.on_png = on_png
+        """Also handed each tick's PNG (from the writer thread): a C/S client publishes it."""
         self.directory.mkdir(parents=True, exist_ok=True)
         self.written = 0
         self.dropped = 0
@@ -49,11 +54,21 @@ class FrameWriter:
             image = np.concatenate([views[name] for name in sorted(views)], axis=1)
             path = self.directory / f"{tick:07d}.png"
             # cv2 encodes without the GIL, so the control loop keeps running meanwhile.
-            if cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+            encoded, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+            try:
+                if not encoded:
+                    raise OSError("PNG encoding failed")
+                path.write_bytes(png.tobytes())
                 self.written += 1
-            else:
+            except OSError as exc:
                 self.failed += 1
-                log.warning("could not write camera frame %s", path)
+                log.warning("could not write camera frame %s: %s", path, exc)
+                continue
+            if self.on_png is not None:
+                try:
+                    self.on_png(tick, png.tobytes())
+                except Exception:  # a picture for people watching must never stop the robot
+                    log.exception("could not publish camera frame %d", tick)
 
     def close(self) -> dict[str, int]:
         """Write what is queued, stop the thread; returns the counts."""

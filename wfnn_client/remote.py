@@ -32,6 +32,7 @@ from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params, Shapes
 from wfnn_common.protocol import (
     Ack,
+    CameraView,
     ClientStatus,
     Codec,
     Keys,
@@ -301,6 +302,12 @@ class RemoteBrain:
                     self.counters["lockstep/timeouts"] += 1
                     return False
                 self._learned.wait(min(remaining, 0.1))
+
+    def publish_view(self, tick: int, png: bytes) -> None:
+        """Publish what the cameras saw (a PNG) for people watching the servers' dashboards."""
+        view = CameraView(client=self.id, tick=tick, png=np.frombuffer(png, dtype=np.uint8))
+        self.bus.put(self.keys.camera_view(self.id), self.codec.encode(view), Channel.LATEST)
+        self.counters["camera/views_sent"] += 1
 
     def report(self, metrics: dict[str, Any]) -> None:
         """Control-loop figures for the status heartbeat."""

@@ -259,6 +259,8 @@ def _run(
             raise SetupError(str(exc)) from exc
         raise
     brains = _Brains(skills)
+    if frames is not None:  # C/S: the pictures also go to the servers' dashboards
+        frames.on_png = getattr(skills[0].brain, "publish_view", None)
     for sk in skills:
         log.info("learner%s: %s (spec %s)", f" {sk.name}" if sk.name else "", sk.lcfg.short_repr(),
                  sk.lcfg.spec_hash())  # fmt: skip

@@ -126,6 +126,7 @@ class MsgType(IntEnum):
     WEIGHTS = 3
     SERVER_STATUS = 4
     CLIENT_STATUS = 5
+    CAMERA_VIEW = 6
 
 
 MAX_BODY: dict[MsgType, int] = {
@@ -134,6 +135,7 @@ MAX_BODY: dict[MsgType, int] = {
     MsgType.WEIGHTS: 32 << 20,
     MsgType.SERVER_STATUS: 1 << 20,
     MsgType.CLIENT_STATUS: 1 << 20,
+    MsgType.CAMERA_VIEW: 4 << 20,
 }
 """Body size limit per message type (bytes)."""
 
@@ -282,10 +284,30 @@ class ClientStatus:
     metrics: dict[str, float]
 
 
-Message = ExperienceBatch | Ack | WeightSnapshot | ServerStatus | ClientStatus
-M = TypeVar("M", ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class CameraView:
+    """What a robot's cameras saw at one tick, side by side, as a PNG file's bytes.
+
+    Sent now and then (with the pictures the client saves) for people watching; never learned.
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.CAMERA_VIEW
+    client: str
+    tick: int
+    png: NDArray[np.uint8] = field(metadata=_U1_1)
+
+    def __post_init__(self) -> None:
+        if bytes(self.png[: len(PNG_SIGNATURE)]) != PNG_SIGNATURE:
+            raise MalformedBody("png: not a PNG file")
+
+
+Message = ExperienceBatch | Ack | WeightSnapshot | ServerStatus | ClientStatus | CameraView
+M = TypeVar("M", ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus, CameraView)
 MESSAGES: dict[MsgType, type[Any]] = {
-    cls.TYPE: cls for cls in (ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus)
+    cls.TYPE: cls for cls in (ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus, CameraView)
 }
 
 
@@ -584,6 +606,10 @@ class Keys:
     def client_status(self, client: str = "*") -> str:
         """A client's status heartbeat."""
         return f"{self.root}/status/client/{client}"
+
+    def camera_view(self, client: str = "*") -> str:
+        """What a client's cameras saw (now and then, for people watching)."""
+        return f"{self.root}/camera/{client}"
 
     def server_alive(self, server: str = "*") -> str:
         """Liveliness token of a server."""

@@ -185,6 +185,7 @@ class Dashboard:
                 for cid, c in srv.clients.items()
             },
             "surface": None,
+            "cameras": {cid: v.tick for cid, v in srv.camera_views.items()},
         }
         params, states = srv.published, srv.latest_state
         if cfg is not None and params is not None and states:
@@ -244,6 +245,12 @@ class _Handler(BaseHTTPRequestHandler):
                 self._send(d.script, "text/javascript; charset=utf-8")
             elif url.path == "/static/plotly.min.js":
                 self._send(d.plotly, "text/javascript; charset=utf-8", cache=True)
+            elif url.path.startswith("/api/camera/") and url.path.endswith(".png"):
+                view = d.server.camera_views.get(url.path[len("/api/camera/") : -len(".png")])
+                if view is None:
+                    self._send(b"no pictures from that client", "text/plain", HTTPStatus.NOT_FOUND)
+                else:
+                    self._send(view.png.tobytes(), "image/png")
             elif url.path == "/api/view":
                 try:
                     since = int(parse_qs(url.query).get("since", ["0"])[0])

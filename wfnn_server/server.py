@@ -37,6 +37,7 @@ from wfnn_common.network import Params
 from wfnn_common.persist import PersistError, load_weights, save_weights
 from wfnn_common.protocol import (
     Ack,
+    CameraView,
     ClientStatus,
     Codec,
     ExperienceBatch,
@@ -123,6 +124,8 @@ class ThinkServer:
         # whole rather than changed in place so that a reader never sees half an update.
         self.clients: dict[str, ClientStatus] = {}
         """Per client: its latest status heartbeat (ingest thread)."""
+        self.camera_views: dict[str, CameraView] = {}
+        """Per client: what its cameras saw last, when it sends pictures (ingest thread)."""
         self.latest_state: dict[str, FloatArray] = {}
         """Per client: the newest state it sent, physical units [S] (learner thread)."""
         self.published: Params | None = None
@@ -261,6 +264,8 @@ class ThinkServer:
         bus.subscribe(keys.experiences(), lambda key, data: self._inbox.put(("exp", data)))
         bus.subscribe(keys.resend(self.id), lambda key, data: self._inbox.put(("exp", data)))
         bus.subscribe(keys.client_status(), lambda key, data: self._inbox.put(("status", data)))
+        if self.config.dashboard is not None:  # pictures only for people watching
+            bus.subscribe(keys.camera_view(), lambda key, data: self._inbox.put(("camera", data)))
         bus.queryable(keys.weights(self.id), lambda: self._latest_frame)
         bus.declare_token(keys.server_alive(self.id))
         for name, target in (("ingest", self._ingest_loop), ("learner", self._learner_loop)):
@@ -323,6 +328,8 @@ class ThinkServer:
                 self._ingest(data)
             elif kind == "status":
                 self._client_status(data)
+            elif kind == "camera":
+                self._camera_view(data)
             if self.store.due():
                 for client, through in self.store.sync().items():
                     self._ack(client, through)
@@ -394,6 +401,18 @@ class ThinkServer:
         log.info("adopting the learner config of client %s", status.client)
         self._pending_config = cfg
         self._wake.set()
+
+    def _camera_view(self, frame: bytes) -> None:
+        try:
+            sender, view = self.codec.decode(frame, CameraView)
+        except ProtocolError as exc:
+            self.rejected[exc.reason] += 1
+            return
+        if sender != view.client:
+            self.rejected["sender"] += 1
+            return
+        self.counters["ingest/camera_views"] += 1
+        self.camera_views = {**self.camera_views, view.client: view}
 
     def _ack(self, client: str, through: int) -> None:
         ack = Ack(client=client, server=self.id, incarnation=self.incarnation, stored_through=through)

@@ -109,3 +109,48 @@ def test_the_dashboard_refuses_to_change_anything(tmp_path):
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(request, timeout=5)
         assert refused.value.code == 405
+
+
+def test_the_dashboard_shows_what_a_hydra_clients_cameras_saw(tmp_path):
+    from tests.fakes import render_problem
+
+    if (problem := render_problem()) is not None:
+        pytest.skip(f"no off-screen rendering here: {problem}")
+    port, web = free_port(), free_port()
+    with ServerProcess(tmp_path / "srv", port, "--dashboard", str(web)):
+        robot = client("--sim", "hydra", "--rate-hz", "15", "--duration", "40", "--camera-every", "15",
+                       "--server", endpoint(port), "--out", str(tmp_path / "run"))  # fmt: skip
+        browser = None
+        try:
+            wait_listening(web)
+            ticks = _wait(lambda: _view(web).get("cameras"), 60, "a camera picture to reach the server")
+            browser = _browser()
+            browser.get(f"http://127.0.0.1:{web}/")
+            # The picture on the page: both cameras side by side, as the client saved them.
+            size = _wait(lambda: browser.execute_script(
+                "const i = document.getElementById('camera');"
+                "return i.complete && i.naturalWidth > 0 ? [i.naturalWidth, i.naturalHeight] : null;"
+            ), 30, "the camera picture on the page")  # fmt: skip
+            client_id, tick = next(iter(ticks.items()))
+            saved = tmp_path / "run" / "cameras" / f"{tick:07d}.png"
+            import cv2
+
+            height, width = cv2.imread(str(saved)).shape[:2]
+            assert size == [width, height] and width > height  # two cameras side by side
+            later = _wait(lambda: _view(web)["cameras"][client_id] > tick and _view(web)["cameras"], 30,
+                          "a newer picture")  # fmt: skip
+            assert later[client_id] % 15 == 0
+            browser.save_screenshot(str(tmp_path / "dashboard-hydra.png"))
+        finally:
+            if browser is not None:
+                browser.quit()
+            robot.terminate()
+            robot.wait(timeout=30)
+
+
+def _view(port: int) -> dict:  # type: ignore[type-arg]
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/view", timeout=2) as response:
+            return dict(json.load(response))
+    except OSError:
+        return {}

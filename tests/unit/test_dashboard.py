@@ -97,3 +97,31 @@ def test_the_dashboard_is_off_by_default_and_checks_its_config(tmp_path):
     for bad in ({"port": 70000}, {"port": 0, "update_hz": 0.0}, {"port": 0, "history": 2}):
         with pytest.raises(ValueError):
             DashboardConfig(**bad)
+
+
+def test_a_clients_camera_pictures_are_shown_as_they_arrive(tmp_path):
+    import cv2
+
+    from wfnn_common.protocol import CameraView
+
+    hub, cfg = Hub(), small_config()
+    picture = np.zeros((12, 20, 3), dtype=np.uint8)
+    picture[:, :10] = 255
+    png = cv2.imencode(".png", picture)[1].ravel()
+    with make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=0, update_hz=30)) as server:
+        port = server.dashboard.port
+        with pytest.raises(urllib.error.HTTPError) as missing:
+            _get(port, "/api/camera/c1.png")
+        assert missing.value.code == 404
+        hub.bus().put(
+            KEYS.camera_view("c1"), Codec("c1").encode(CameraView(client="c1", tick=75, png=png)), None
+        )
+        # A picture claiming to be another client's is refused.
+        hub.bus().put(
+            KEYS.camera_view("c2"), Codec("c1").encode(CameraView(client="c2", tick=1, png=png)), None
+        )
+        assert wait_for(lambda: json.loads(_get(port, "/api/view")[2])["cameras"] == {"c1": 75})
+        assert wait_for(lambda: server.rejected["sender"] == 1)
+        status, kind, body = _get(port, "/api/camera/c1.png")
+        assert status == 200 and kind == "image/png"
+        np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR), picture)

@@ -14,10 +14,12 @@ from wfnn_common.protocol import (
     MAC_SIZE,
     MAGIC,
     MAX_BODY,
+    PNG_SIGNATURE,
     PROTOCOL_VERSION,
     Ack,
     AuthError,
     BadMagic,
+    CameraView,
     ClientStatus,
     Codec,
     CorruptFrame,
@@ -107,7 +109,12 @@ def make_client_status():
     )
 
 
-MAKERS = [make_batch, make_ack, make_weights, make_server_status, make_client_status]
+def make_camera_view():
+    png = np.frombuffer(PNG_SIGNATURE + bytes(range(40)), dtype=np.uint8).copy()
+    return CameraView(client="robot1", tick=450, png=png)
+
+
+MAKERS = [make_batch, make_ack, make_weights, make_server_status, make_client_status, make_camera_view]
 
 
 def assert_same_message(got, want):
@@ -340,7 +347,7 @@ def test_expect_mismatch_is_unknown_type():
 
 def test_unknown_type_code_is_unknown_type():
     body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
-    for code in (0, 6, 255):
+    for code in (0, 7, 255):
         with pytest.raises(UnknownType):
             decode(raw_frame(body, msg_type=code))
         assert peek_type(raw_frame(body, msg_type=code)) is None
@@ -634,3 +641,11 @@ def test_check_id_rejects_invalid_ids(name):
 def test_check_id_rejects_trailing_newline(name):
     with pytest.raises(ValueError):
         check_id(name)
+
+
+def test_a_camera_view_must_carry_a_png():
+    view = make_camera_view()
+    body = to_body(view)
+    body["png"]["data"] = b"GIF89a" + body["png"]["data"][6:]
+    with pytest.raises(MalformedBody, match="not a PNG"):
+        decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.CAMERA_VIEW))

@@ -122,6 +122,21 @@ function drawClientTable(clients) {
   }
 }
 
+let cameraShown = "";
+
+function drawCamera(cameras) {
+  const clients = Object.keys(cameras).sort();
+  if (clients.length === 0) return;
+  const client = clients[0];
+  const shown = `${client}:${cameras[client]}`;
+  if (shown === cameraShown) return;  // fetch a picture only when a new one has arrived
+  cameraShown = shown;
+  document.getElementById("camera-panel").hidden = false;
+  document.getElementById("camera-client").textContent = client;
+  document.getElementById("camera-tick").textContent = cameras[client];
+  document.getElementById("camera").src = `/api/camera/${encodeURIComponent(client)}.png?tick=${cameras[client]}`;
+}
+
 function show(view) {
   take(view.samples);
   revision += 1;
@@ -143,6 +158,7 @@ function show(view) {
   drawSurface(view.surface);
   drawRejected(view.rejected);
   drawClientTable(view.clients);
+  drawCamera(view.cameras);
 }
 
 // One server-sent-events stream per page: the server pushes the view update_hz times a second.
