@@ -26,6 +26,7 @@ from wfnn_bench import dashboard as dashboard_bench
 from wfnn_bench import hydra as hydra_bench
 from wfnn_bench import nomad as nomad_bench
 from wfnn_bench import passive as passive_bench
+from wfnn_bench import relearn as relearn_bench
 from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
@@ -465,6 +466,50 @@ def dashboard(
         write_json(json_path, result)
     if plot_path:
         dashboard_bench.plot(result, plot_path)
+
+
+@app.command()
+def relearn(
+    controllers: Annotated[int, typer.Option(min=1, help="Controllers learning at once.")] = 2,
+    episodes: Annotated[int, typer.Option(min=1, help="30 s episodes of online learning.")] = 40,
+    eval_every: Annotated[int, typer.Option(min=1, help="Episodes between greedy evaluations.")] = 5,
+    thinks: Annotated[int, typer.Option(min=1, help="Thinks per action.")] = 200,
+    advantage_k: Annotated[float, typer.Option(min=0.01, max=1.0, help="Advantage learning k.")] = 0.2,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """HyDrA 4-DOF: relearning from the stored experiences after a divergence reset vs learning online."""
+    _logging(verbose)
+    if episodes < eval_every:
+        raise typer.BadParameter(
+            "needs at least one evaluation: episodes >= eval-every", param_hint="--episodes"
+        )
+    cfg = relearn_bench.RelearnBenchConfig(controllers=controllers, episodes=episodes, eval_every=eval_every,
+                                           thinks=thinks, advantage_k=advantage_k, seed=seed)  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("relearn", total=relearn_bench.steps(cfg))
+        result = relearn_bench.run(cfg, lambda k: bar.advance(task, k))
+    rows: list[tuple[str, Any]] = [("relearn_fraction (median, thinks relearning / thinks originally)",
+                                    result["relearn_fraction"])]  # fmt: skip
+    for i, c in enumerate(result["controllers"]):
+        rows += [
+            (f"controller {i}: pre-divergence / untrained error px",
+             f"{c['pre_divergence_error_px']:.1f} / {c['untrained_error_px']:.1f}"),
+            (f"controller {i}: online thinks (robot s) to reach", f"{c['online_thinks_to_reach']} "
+             f"({c['online_robot_s_to_reach']})"),
+            (f"controller {i}: relearning thinks (wall s) to reach", f"{c['relearn_thinks_to_reach']} "
+             f"({c['relearn_wall_s_to_reach'] and round(c['relearn_wall_s_to_reach'], 1)})"),
+        ]  # fmt: skip
+    rows += [("online divergence resets", str(result["online_divergence_resets"].tolist())),
+             ("server recovery thinks for this store", str(result["server_recovery_thinks"].tolist())),
+             ("online wall_s", result["online_wall_s"])]  # fmt: skip
+    _table("relearning from stored experiences after a divergence reset (HyDrA 4-DOF)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        relearn_bench.plot(result, plot_path)
 
 
 @app.command()

@@ -273,14 +273,21 @@ def act_one(W1, b1, W2, b2, s, mid, half, limit, n_wires, action_dim, x, hidden,
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def surface_q(W1, b1, W2, b2, x, grid_u, on_axis, n_wires, action_dim, c, eps, hidden, out, q):  # type: ignore[no-untyped-def]
-    """Wire-fitted Q (Eq 3.1) at scaled state x [S] over actions grid_u [G, A] into q [G] -> best wire.
+def surface_q(  # type: ignore[no-untyped-def]
+    W1, b1, W2, b2, s, mid, half, limit, grid_u, on_axis, n_wires, action_dim, c, eps, x, hidden, out, q
+):
+    """Wire-fitted Q (Eq 3.1) at state s [S] over actions grid_u [G, A] into q [G] -> best wire.
 
+    The state is scaled by (mid, half) into x [S] and clipped to +-limit (not finite: 0), as
+    `act` sees it.
     Action variables not `on_axis` [A] take the best wire's action (grid_u's values there are
     ignored). `out` [O] receives the network's outputs (wire actions, then values); `hidden` [H]
     is scratch. One call instead of some fifty numpy calls: a live view draws this several times
     a second next to a think server's own work.
     """
+    for i in range(s.shape[0]):
+        v = (s[i] - mid[i]) / half[i]
+        x[i] = min(max(v, -limit), limit) if math.isfinite(v) else 0.0
     _forward(W1, b1, W2, b2, x, hidden, out)
     n_act = n_wires * action_dim
     best = 0

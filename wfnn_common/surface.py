@@ -68,23 +68,26 @@ class SurfaceGrid:
             self.grid_u[:, d] = mesh[k].ravel()
             self.on_axis[d] = True
         self.axes = tuple(grid * self.actions.half[d] + self.actions.mid[d] for d in dims)
+        self._x = np.empty(config.state_dim)
         self._hidden = np.empty(config.n_hidden)
         self._out = np.empty(config.n_outputs)
+        self._q = np.empty(self.grid_u.shape[0])
 
     def __call__(self, params: Params, state: FloatArray) -> Surface:
         """The surface of the first network of `params` at `state` [S], physical units.
 
         The state is clipped to the sanity limits, as `act` sees it.
         """
-        cfg = self.config
-        x = np.clip(np.nan_to_num(self.states.to_unit(state)), -self.limit, self.limit)
+        cfg, st = self.config, self.states
         W1, b1, W2, b2 = params.single
-        q = np.empty(self.grid_u.shape[0])
-        best = surface_q(W1, b1, W2, b2, x, self.grid_u, self.on_axis, cfg.n_wires, cfg.action_dim,
-                         cfg.smoothing_c, cfg.eps, self._hidden, self._out, q)  # fmt: skip
+        best = surface_q(W1, b1, W2, b2, np.asarray(state, dtype=np.float64), st.mid, st.half, self.limit,
+                         self.grid_u, self.on_axis, cfg.n_wires, cfg.action_dim, cfg.smoothing_c, cfg.eps,
+                         self._x, self._hidden, self._out, self._q)  # fmt: skip
         wire_u, wire_q = split_wires(self._out, cfg.n_wires, cfg.action_dim)
         wires = self.actions.from_unit(wire_u)
-        return Surface(self.dims, self.axes, q.reshape(self.shape), wires, wire_q.copy(), int(best))
+        return Surface(
+            self.dims, self.axes, self._q.reshape(self.shape).copy(), wires, wire_q.copy(), int(best)
+        )
 
 
 def action_value_surface(

@@ -413,3 +413,31 @@ def test_bench_vs_sb3_reports_curves_step_cost_and_act_latency(tmp_path):
         assert r["return_q25"][-1] <= r["return_median"][-1] <= r["return_q75"][-1] < 0
         assert r["s_per_step"] > 0 and r["act_us"] > 0
     assert p.stat().st_size > 10_000
+
+
+def test_bench_relearn_resets_and_relearns_from_the_store(tmp_path):
+    j, p = tmp_path / "relearn.json", tmp_path / "relearn.png"
+    out = run([BIN / "wfnn-bench", "relearn", "--controllers", "2", "--episodes", "2", "--eval-every", "1",
+               "--thinks", "3", "--json", j, "--plot", p])  # fmt: skip
+    assert "relearn_fraction" in out.stdout
+    data = json.loads(j.read_text())
+    assert data["stored_experiences"] == [2 * 450, 2 * 450]
+    assert len(data["online_error_px"]) == 2 and 1 <= len(data["relearn_error_px"]) <= 2
+    for c in data["controllers"]:
+        assert c["pre_divergence_error_px"] > 0 and c["online_thinks_to_reach"] in (2700, 5400, None)
+        if c["relearn_thinks_to_reach"] is not None:  # relearning thinks in chunks of one interval
+            assert c["relearn_thinks_to_reach"] % 1350 == 0
+    assert p.stat().st_size > 10_000
+
+
+def test_bench_dashboard_measures_what_the_dashboard_costs(tmp_path):
+    j, p = tmp_path / "dashboard.json", tmp_path / "dashboard.png"
+    out = run([BIN / "wfnn-bench", "dashboard", "--seconds", "4", "--warmup", "6", "--repeats", "1",
+               "--json", j, "--plot", p])  # fmt: skip
+    assert "dashboard CPU" in out.stdout
+    data = json.loads(j.read_text())
+    off, on = data["runs"]
+    assert not off["dashboard"] and on["dashboard"] and on["messages"] >= 4 * (4 + 6) - 8
+    assert off["dashboard_cpu_s"] == 0 and on["dashboard_cpu_s"] > 0 and on["server_cpu_s"] > 0
+    assert off["experiences_stored"] > 0 and on["experiences_stored"] > 0
+    assert data["added_fraction_attributed"] > 0 and p.stat().st_size > 10_000
