@@ -63,13 +63,20 @@ def test_the_view_has_the_servers_figures_clients_and_the_action_value_surface(t
         # The surface: Q over both actions at the newest state, as the learner's own wire fitting says.
         surface = v["surface"]
         assert surface["client"] == "c1" and surface["dims"] == [0, 1]
-        q = np.frombuffer(base64.b64decode(surface["q_f32"]), dtype="<f4").reshape(surface["shape"])
-        assert q.shape == (41, 41) and len(surface["wire_value"]) == cfg.n_wires
+
+        def f32(key):
+            return np.frombuffer(base64.b64decode(surface[f"{key}_f32"]), dtype="<f4")
+
+        q = f32("q").reshape(surface["shape"])
+        assert q.shape == (41, 41) and len(f32("wire_value")) == surface["n_wires"] == cfg.n_wires
+        assert f32("wire_action").shape == (cfg.n_wires * 2,)
+        axes = [np.linspace(*a) for a in surface["axes"]]
         learner = WFNN(cfg, params=server.published)
-        state = np.array(surface["state"])
+        state = f32("state").astype(np.float64)
         np.testing.assert_allclose(state, b.next_state[-1], atol=1e-6)
+        state = b.next_state[-1]
         j, i = 7, 30
-        expected = learner.q_value(state, [surface["axes"][0][i], surface["axes"][1][j]])
+        expected = learner.q_value(state, [axes[0][i], axes[1][j]])
         assert q[j, i] == pytest.approx(float(expected), abs=2e-3)  # the server may have thought on since
         assert v["cpu"]["dashboard_s"] > 0 and v["requests"] >= 3
 

@@ -65,6 +65,10 @@ function float32(base64) {
   return Array.from(new Float32Array(bytes.buffer));
 }
 
+function linspace([low, high, n]) {
+  return Array.from({ length: n }, (_, i) => low + (high - low) * i / (n - 1));
+}
+
 function drawSurface(surface) {
   if (!surface) {
     Plotly.react("chart-surface", [], { title: { text: "action-value surface: no state yet", font: { size: 14 } },
@@ -72,26 +76,29 @@ function drawSurface(surface) {
     return;
   }
   const d = surface.dims;
+  const axes = surface.axes.map(linspace);
   const flat = float32(surface.q_f32);
   const q = d.length === 1 ? flat
     : Array.from({ length: surface.shape[0] }, (_, j) => flat.slice(j * surface.shape[1], (j + 1) * surface.shape[1]));
-  const title = `Q(x, u) of ${surface.client}'s newest state, wires marked`;
-  const wires = surface.wire_action;
+  const actions = float32(surface.wire_action_f32);
+  const values = float32(surface.wire_value_f32);
+  const width = actions.length / surface.n_wires;  // action variables per wire
+  const wire = (i, k) => actions[i * width + k];
   const best = surface.best;
-  const markerColour = wires.map((_, i) => (i === best ? "crimson" : "black"));
+  const markerColour = values.map((_, i) => (i === best ? "crimson" : "black"));
+  const title = `Q(x, u) of ${surface.client}'s newest state, wires marked`;
   if (d.length === 1) {
     Plotly.react("chart-surface", [
-      { x: surface.axes[0], y: q, name: "Q(x, u)", mode: "lines" },
-      { x: wires.map((w) => w[d[0]]), y: surface.wire_value, name: "wires (best in red)", mode: "markers",
+      { x: axes[0], y: q, name: "Q(x, u)", mode: "lines" },
+      { x: values.map((_, i) => wire(i, d[0])), y: values, name: "wires (best in red)", mode: "markers",
         marker: { size: 9, color: markerColour } },
     ], { title: { text: title, font: { size: 14 } }, margin, xaxis: { title: { text: `action ${d[0]}` } },
          yaxis: { title: { text: "Q" } }, legend: { orientation: "h", y: -0.25 } }, plotConfig);
   } else {
     Plotly.react("chart-surface", [
-      { type: "heatmap", x: surface.axes[0], y: surface.axes[1], z: q, colorscale: "Viridis",
-        colorbar: { title: { text: "Q" } } },
-      { x: wires.map((w) => w[d[0]]), y: wires.map((w) => w[d[1]]), mode: "markers", name: "wires",
-        text: surface.wire_value.map((v) => `value ${v.toFixed(3)}`),
+      { type: "heatmap", x: axes[0], y: axes[1], z: q, colorscale: "Viridis", colorbar: { title: { text: "Q" } } },
+      { x: values.map((_, i) => wire(i, d[0])), y: values.map((_, i) => wire(i, d[1])), mode: "markers",
+        name: "wires", text: values.map((v) => `value ${v.toFixed(3)}`),
         marker: { size: 10, color: markerColour, line: { color: "white", width: 1.5 } } },
     ], { title: { text: `${title} (other actions at the best wire)`, font: { size: 13 } }, margin,
          xaxis: { title: { text: `action ${d[0]}` } }, yaxis: { title: { text: `action ${d[1]}` } },
