@@ -491,19 +491,19 @@ def relearn(
     with _progress() as bar:
         task = bar.add_task("relearn", total=relearn_bench.steps(cfg))
         result = relearn_bench.run(cfg, lambda k: bar.advance(task, k))
-    rows: list[tuple[str, Any]] = [("relearn_fraction (median, thinks relearning / thinks originally)",
+    rows: list[tuple[str, Any]] = [("relearn_fraction (robot time after a reset, store kept / from scratch)",
                                     result["relearn_fraction"])]  # fmt: skip
     for i, c in enumerate(result["controllers"]):
         rows += [
             (f"controller {i}: pre-divergence / untrained error px",
              f"{c['pre_divergence_error_px']:.1f} / {c['untrained_error_px']:.1f}"),
-            (f"controller {i}: online thinks (robot s) to reach", f"{c['online_thinks_to_reach']} "
-             f"({c['online_robot_s_to_reach']})"),
-            (f"controller {i}: relearning thinks (wall s) to reach", f"{c['relearn_thinks_to_reach']} "
-             f"({c['relearn_wall_s_to_reach'] and round(c['relearn_wall_s_to_reach'], 1)})"),
+            (f"controller {i}: robot s to reach: from scratch / store kept",
+             f"{c['online_robot_s_to_reach']} / {c['with_store_robot_s_to_reach']}"),
+            (f"controller {i}: store alone: thinks to reach / best error px",
+             f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
         ]  # fmt: skip
     rows += [("online divergence resets", str(result["online_divergence_resets"].tolist())),
-             ("server recovery thinks for this store", str(result["server_recovery_thinks"].tolist())),
+             ("stored experiences", str(result["stored_experiences"].tolist())),
              ("online wall_s", result["online_wall_s"])]  # fmt: skip
     _table("relearning from stored experiences after a divergence reset (HyDrA 4-DOF)", rows)
     if json_path:

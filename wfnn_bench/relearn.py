@@ -5,13 +5,19 @@ the weights and relearn from the experiences already stored, without the robot. 
 (both cameras, all joints, target on elastic, advantage learning k 0.2: the setting that learns
 4-DOF in the HyDrA benchmark), several controllers at once:
 
-1. Learn online for `episodes` episodes of 30 s, with a greedy evaluation (learning off, fixed
-   targets) every `eval_every` episodes: the pre-divergence score is the last evaluation.
-2. Reset every controller's weights (as the divergence monitor does) and think on the stored
-   experiences only, in chunks of one evaluation interval's thinks, evaluating after each.
-3. Per controller: the thinks (and robot time) the original learning needed to first come within
-   `tolerance` of its pre-divergence score, against the thinks (and wall time, no robot) the
-   relearning needed. `relearn_fraction` is the median ratio of thinks.
+1. Learn online from scratch for `episodes` episodes of 30 s, with a greedy evaluation
+   (learning off, fixed targets) every `eval_every` episodes: the pre-divergence score is the
+   last evaluation.
+2. Diagnosis: the trained weights think on the store alone; does replay keep the controller?
+   (`trained_then_store_only_error_px`). Then the trained weights are put back and:
+3. Reset every controller's weights (as the divergence monitor does) and think on the stored
+   experiences alone (no robot), in chunks of one evaluation interval's thinks, evaluating after
+   each: passive relearning.
+4. Reset again and learn online as in 1, the store kept (the robot's new experiences join it):
+   what the thesis did after each divergence (Section 7.6.2) and what a think server does.
+5. Per controller: the robot time the learning from scratch needed to first come within
+   `tolerance` (and 2 px) of its pre-divergence score, against the robot time with the store
+   kept (`relearn_fraction`, median over controllers); and whether the store alone got there.
 """
 
 from __future__ import annotations
@@ -60,7 +66,7 @@ class RelearnBenchConfig:
 def steps(cfg: RelearnBenchConfig) -> int:
     """Progress units: episodes learned and evaluations."""
     evals = cfg.episodes // cfg.eval_every
-    return cfg.episodes + 2 * evals + 1
+    return 2 * (cfg.episodes + evals) + 2 * evals
 
 
 def greedy_error(learner: WFNN, cfg: RelearnBenchConfig) -> np.ndarray:
@@ -87,19 +93,11 @@ def _first_reached(errors: np.ndarray, goal: np.ndarray) -> list[int | None]:
     return out
 
 
-def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
-    """Learn, reset, relearn from the store; the figures."""
-    p = cfg.controllers
-    task = HydraVec(p, FOUR_DOF, seed=cfg.seed)
-    lcfg = LearnerConfig.for_task(
-        task, exploration=ExplorationConfig(kind="gaussian", sigma=cfg.sigma), thinks_per_action=cfg.thinks,
-        replay_capacity=cfg.episodes * EPISODE, advantage_k=cfg.advantage_k, seed=cfg.seed,
-    )  # fmt: skip
-    learner = WFNN(lcfg, population=p)
-    rng = np.random.default_rng(cfg.seed)
-    task.reset(rng)
-    online_errors, online_thinks = [], []
-    t0 = time.perf_counter()
+def _learn_online(
+    learner: WFNN, task: HydraVec, rng: np.random.Generator, cfg: RelearnBenchConfig, progress: Progress
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """`episodes` of acting, learning and thinking; greedy errors and thinks at each evaluation."""
+    errors, thinks = [], []
     for ep in range(cfg.episodes):
         x = task.new_targets(rng)
         for _ in range(EPISODE):
@@ -110,9 +108,25 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
             x = tr.state
         progress(1)
         if (ep + 1) % cfg.eval_every == 0:
-            online_errors.append(greedy_error(learner, cfg))
-            online_thinks.append(learner.thinks.copy())
+            errors.append(greedy_error(learner, cfg))
+            thinks.append(learner.thinks.copy())
             progress(1)
+    return errors, thinks
+
+
+def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
+    """Learn, reset, relearn from the store (alone, then while acting again); the figures."""
+    p = cfg.controllers
+    task = HydraVec(p, FOUR_DOF, seed=cfg.seed)
+    lcfg = LearnerConfig.for_task(
+        task, exploration=ExplorationConfig(kind="gaussian", sigma=cfg.sigma), thinks_per_action=cfg.thinks,
+        replay_capacity=2 * cfg.episodes * EPISODE, advantage_k=cfg.advantage_k, seed=cfg.seed,
+    )  # fmt: skip
+    learner = WFNN(lcfg, population=p)
+    rng = np.random.default_rng(cfg.seed)
+    task.reset(rng)
+    t0 = time.perf_counter()
+    online_errors, online_thinks = _learn_online(learner, task, rng, cfg, progress)
     online_wall = time.perf_counter() - t0
     before = online_errors[-1]
     goal = before * (1.0 + cfg.tolerance) + 2.0
@@ -120,37 +134,56 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
     resets_online = learner.resets.copy()
     chunk = int(np.median(np.diff([np.zeros(p), *online_thinks], axis=0)))  # thinks per interval
 
-    # The divergence reset: new random weights, the stored experiences kept.
+    # Diagnosis: the trained weights, thinking on the store alone (does replay keep them?).
+    trained = learner.params.flat.copy()
+    kept_errors = []
+    for _ in range(cfg.max_relearn_chunks or len(online_errors)):
+        learner.think(chunk)
+        kept_errors.append(greedy_error(learner, cfg))
+        progress(1)
+    learner.params.flat[:] = trained
+
+    # The divergence reset: new random weights, the stored experiences kept. First the store
+    # alone (no robot), in chunks of one evaluation interval's thinks.
     learner.reset_weights(np.ones(p, dtype=np.bool_))
     thinks_at_reset = learner.thinks.copy()
     untrained = greedy_error(learner, cfg)
-    relearn_errors, relearn_thinks, relearn_wall = [], [], []
+    passive_errors, passive_thinks, passive_wall = [], [], []
     thinking_s = 0.0
-    chunks = cfg.max_relearn_chunks or len(online_errors)
-    for _ in range(chunks):
+    for _ in range(cfg.max_relearn_chunks or len(online_errors)):
         t1 = time.perf_counter()
         learner.think(chunk)
         thinking_s += time.perf_counter() - t1  # the evaluations are not part of relearning
-        relearn_wall.append(thinking_s)
-        relearn_errors.append(greedy_error(learner, cfg))
-        relearn_thinks.append(learner.thinks - thinks_at_reset)
+        passive_wall.append(thinking_s)
+        passive_errors.append(greedy_error(learner, cfg))
+        passive_thinks.append(learner.thinks - thinks_at_reset)
         progress(1)
-        if (np.array(relearn_errors) <= goal).any(axis=0).all():
+        if (np.array(passive_errors) <= goal).any(axis=0).all():
             break
+    # Then as the thesis did (Section 7.6.2) and a think server does: reset again and learn
+    # actively with the store kept, the robot's new experiences joining it.
+    learner.reset_weights(np.ones(p, dtype=np.bool_))
+    thinks_at_reset = learner.thinks.copy()
+    active_errors, active_thinks = _learn_online(learner, task, rng, cfg, progress)
+    active_thinks = [t - thinks_at_reset for t in active_thinks]
+
     online_hit = _first_reached(np.array(online_errors), goal)
-    relearn_hit = _first_reached(np.array(relearn_errors), goal)
+    passive_hit = _first_reached(np.array(passive_errors), goal)
+    active_hit = _first_reached(np.array(active_errors), goal)
+    robot_s = cfg.eval_every * EPISODE / FOUR_DOF.rate_hz  # robot time per evaluation interval
     per: list[dict[str, Any]] = []
     for i in range(p):
-        o, r = online_hit[i], relearn_hit[i]
-        fraction = int(relearn_thinks[r - 1][i]) / int(online_thinks[o - 1][i]) if o and r else None
+        o, r, a = online_hit[i], passive_hit[i], active_hit[i]
         per.append({
             "pre_divergence_error_px": float(before[i]),
             "untrained_error_px": float(untrained[i]),
+            "online_robot_s_to_reach": o * robot_s if o else None,
             "online_thinks_to_reach": int(online_thinks[o - 1][i]) if o else None,
-            "online_robot_s_to_reach": o * cfg.eval_every * EPISODE / FOUR_DOF.rate_hz if o else None,
-            "relearn_thinks_to_reach": int(relearn_thinks[r - 1][i]) if r else None,
-            "relearn_wall_s_to_reach": float(relearn_wall[r - 1]) if r else None,
-            "relearn_fraction": fraction,
+            "store_only_thinks_to_reach": int(passive_thinks[r - 1][i]) if r else None,
+            "store_only_wall_s_to_reach": float(passive_wall[r - 1]) if r else None,
+            "store_only_best_error_px": float(np.min(np.array(passive_errors)[:, i])),
+            "with_store_robot_s_to_reach": a * robot_s if a else None,
+            "relearn_fraction": a / o if o and a else None,
         })  # fmt: skip
     fractions = [c["relearn_fraction"] for c in per if c["relearn_fraction"] is not None]
     return {
@@ -158,14 +191,17 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
         "machine": machine_info(),
         "controllers": per,
         "relearn_fraction": float(np.median(fractions)) if fractions else None,
-        "relearned": sum(r is not None for r in relearn_hit),
+        "store_only_relearned": sum(r is not None for r in passive_hit),
         "stored_experiences": stored,
         "server_recovery_thinks": np.minimum(cfg.thinks * stored, 2_000_000),
         "online_error_px": np.array(online_errors),
         "online_thinks": np.array(online_thinks),
-        "relearn_error_px": np.array(relearn_errors),
-        "relearn_thinks": np.array(relearn_thinks),
-        "relearn_wall_s": relearn_wall,
+        "store_only_error_px": np.array(passive_errors),
+        "store_only_thinks": np.array(passive_thinks),
+        "store_only_wall_s": passive_wall,
+        "with_store_error_px": np.array(active_errors),
+        "trained_then_store_only_error_px": np.array(kept_errors),
+        "with_store_thinks": np.array(active_thinks),
         "online_wall_s": online_wall,
         "online_divergence_resets": resets_online,
         "goal_px": goal,
@@ -173,26 +209,40 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
-    """Greedy error against thinks: online learning, and relearning after the reset."""
+    """Greedy error against robot time: learning from scratch, and after the reset with the store."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    online, relearn = np.asarray(result["online_error_px"]), np.asarray(result["relearn_error_px"])
-    t_on, t_re = np.asarray(result["online_thinks"]), np.asarray(result["relearn_thinks"])
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
+    cfg = result["config"]
+    robot_min = cfg["eval_every"] * EPISODE / FOUR_DOF.rate_hz / 60
+    online, active = np.asarray(result["online_error_px"]), np.asarray(result["with_store_error_px"])
+    store, t_store = np.asarray(result["store_only_error_px"]), np.asarray(result["store_only_thinks"])
+    chunk_m = float(t_store[0, 0]) / 1e6  # thinks per evaluation interval, millions
     for i in range(online.shape[1]):
-        line = ax.plot(t_on[:, i] / 1e6, online[:, i], marker="o", label=f"controller {i}: online")[0]
-        ax.plot(t_re[:, i] / 1e6, relearn[:, i], marker="s", ls="--", color=line.get_color(),
-                label=f"controller {i}: relearning from the store after the reset")  # fmt: skip
-        ax.axhline(result["goal_px"][i], color=line.get_color(), lw=0.6, ls=":")
-    ax.set_xlabel("thinks (millions)")
-    ax.set_ylabel("greedy mean |pixel error| (px)")
+        minutes = robot_min * np.arange(1, online.shape[0] + 1)
+        line = a.plot(minutes, online[:, i], marker="o", label=f"controller {i}: from scratch")[0]
+        a.plot(robot_min * np.arange(1, active.shape[0] + 1), active[:, i], marker="s", ls="--",
+               color=line.get_color(), label=f"controller {i}: after the reset, store kept")  # fmt: skip
+        a.axhline(result["goal_px"][i], color=line.get_color(), lw=0.6, ls=":")
+        b.plot(t_store[:, i] / 1e6, store[:, i], marker="s", color=line.get_color(),
+               label=f"controller {i}: reset weights")  # fmt: skip
+        kept = np.asarray(result["trained_then_store_only_error_px"])
+        b.plot(chunk_m * np.arange(1, kept.shape[0] + 1), kept[:, i], marker="^", ls="--",
+               color=line.get_color(), label=f"controller {i}: its trained weights")  # fmt: skip
+        b.axhline(result["goal_px"][i], color=line.get_color(), lw=0.6, ls=":")
+    a.set_xlabel("robot time (minutes)")
+    a.set_ylabel("greedy mean |pixel error| (px)")
     fraction = result["relearn_fraction"]
-    ax.set_title("HyDrA 4-DOF: relearning after a divergence reset"
-                 + (f" (median {fraction:.2f} of the thinks)" if fraction is not None else ""))  # fmt: skip
-    ax.legend(fontsize=7)
+    a.set_title(
+        "HyDrA 4-DOF: learning online" + (f" (relearning {fraction:.2f} of the time)" if fraction else "")
+    )
+    a.legend(fontsize=7)
+    b.set_xlabel("thinks on the store alone (millions)")
+    b.set_title("thinking on the store alone (no robot)")
+    b.legend(fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -106,6 +106,8 @@ def main(
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     console.print(f"[bold]wfnn-server[/] {config}")
+    if dashboard:  # port 0: the address is logged (--verbose) once bound
+        console.print(f"live dashboard (read-only): http://{dashboard_host}:{dashboard}/")
     try:
         if quiet:
             run(config)

@@ -1,11 +1,13 @@
 """A live, read-only web view of a think server (`wfnn-server --dashboard PORT`).
 
 The page (`static/dashboard.html`, drawn with Plotly.js, served from the installed `plotly`
-package so it works with no network) asks `/api/view?since=N` a few times a second and gets
-JSON: the samples of the server's figures newer than N (reward and Q of chosen actions,
-thinks/s, experiences stored, divergence resets, frames rejected by reason), each client's
-latest heartbeat figures (tick jitter, overruns, the server it follows) and the action-value
-surface of the newest state a client sent, with the wires marked.
+package so it works with no network) opens one server-sent-events stream (`/api/stream`) and
+gets the view `update_hz` times a second as JSON: the samples of the server's figures it has not
+seen yet (reward and Q of chosen actions, thinks/s, experiences stored, divergence resets),
+frames rejected by reason, each client's latest heartbeat figures (tick jitter, overruns, the
+server it follows), the action-value surface of the newest state a client sent with the wires
+marked, and which camera pictures have arrived (`/api/camera/<client>.png`). `/api/view?since=N`
+answers the same view once.
 
 Read-only by construction: only GET is served, and the view only reads what the server's
 threads publish (whole objects replaced, never changed in place). The HTTP server is the
@@ -107,7 +109,7 @@ class Dashboard:
     def start(self) -> Dashboard:
         """Serve in a background thread."""
         self._thread.start()
-        log.warning("dashboard on http://%s:%d/ (read-only)", self.config.host, self.port)
+        log.info("dashboard on http://%s:%d/ (read-only)", self.config.host, self.port)
         return self
 
     def stop(self) -> None:
