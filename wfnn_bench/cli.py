@@ -502,7 +502,10 @@ def relearn(
             (f"controller {i}: store alone: thinks to reach / best error px",
              f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
         ]  # fmt: skip
-    rows += [("online divergence resets", str(result["online_divergence_resets"].tolist())),
+    rows += [("competent controllers / relearned with the store kept / with the store alone",
+              f"{result['competent_controllers']} / {result['relearned_with_store']} / "
+              f"{result['relearned_store_only']}"),
+             ("online divergence resets", str(result["online_divergence_resets"].tolist())),
              ("stored experiences", str(result["stored_experiences"].tolist())),
              ("online wall_s", result["online_wall_s"])]  # fmt: skip
     _table("relearning from stored experiences after a divergence reset (HyDrA 4-DOF)", rows)
