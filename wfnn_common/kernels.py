@@ -244,6 +244,16 @@ def think_incremental_one(  # type: ignore[no-untyped-def]
     return q_mean, td_mean
 
 
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
+def _best_wire(out, n_act, n_wires):  # type: ignore[no-untyped-def]
+    # The first wire of the highest value (outputs: wire actions, then the n_wires values).
+    best = 0
+    for w in range(1, n_wires):
+        if out[n_act + w] > out[n_act + best]:
+            best = w
+    return best
+
+
 @njit(cache=True, nogil=True, fastmath=False)
 def act_one(W1, b1, W2, b2, s, mid, half, limit, n_wires, action_dim, x, hidden, out):  # type: ignore[no-untyped-def]
     """One learner's greedy wire for one state, compiled: the robot's `act` hot path.
@@ -262,14 +272,8 @@ def act_one(W1, b1, W2, b2, s, mid, half, limit, n_wires, action_dim, x, hidden,
     if not valid:
         return False, -1, 0.0
     _forward(W1, b1, W2, b2, x, hidden, out)
-    n_act = n_wires * action_dim
-    best = 0
-    value = out[n_act]
-    for w in range(1, n_wires):
-        if out[n_act + w] > value:
-            best = w
-            value = out[n_act + w]
-    return True, best, value
+    best = _best_wire(out, n_wires * action_dim, n_wires)
+    return True, best, out[n_wires * action_dim + best]
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -290,12 +294,8 @@ def surface_q(  # type: ignore[no-untyped-def]
         x[i] = min(max(v, -limit), limit) if math.isfinite(v) else 0.0
     _forward(W1, b1, W2, b2, x, hidden, out)
     n_act = n_wires * action_dim
-    best = 0
-    qmax = out[n_act]
-    for w in range(1, n_wires):
-        if out[n_act + w] > qmax:
-            qmax = out[n_act + w]
-            best = w
+    best = _best_wire(out, n_act, n_wires)
+    qmax = out[n_act + best]
     for g in range(grid_u.shape[0]):
         num = 0.0
         den = 0.0

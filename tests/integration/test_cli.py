@@ -330,7 +330,7 @@ def test_client_refuses_bad_options(tmp_path):
 def test_client_learns_the_boats_mirror_images_when_asked(tmp_path):
     out = tmp_path / "run"
     run([BIN / "wfnn-client", "--sim", "boat", "--symmetries", "--episodes", "2", "--rate-hz", "0",
-         "--thinks", "5", "--out", out])  # fmt: skip
+         "--lockstep", "--thinks", "5", "--out", out])  # fmt: skip
     metrics = json.loads((out / "metrics.json").read_text())
     assert [s["name"] for s in metrics["config"]["learner"]["symmetries"]] == ["mirror"]
     from wfnn_common.persist import load_experiences, load_weights
@@ -338,6 +338,7 @@ def test_client_learns_the_boats_mirror_images_when_asked(tmp_path):
     cfg, _, _ = load_weights(out / "weights.npz")
     stored = load_experiences(out / "experiences.npz", cfg)
     n = metrics["experiences_learned"]
+    # Lock-step: every experience is learned before the next action, so the replay holds them all.
     assert n > 0 and stored.reward.shape[0] == 2 * n  # each real experience and its mirror image
 
 
