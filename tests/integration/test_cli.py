@@ -398,6 +398,16 @@ def test_client_drives_a_gymnasium_task(tmp_path):
     assert proc.returncode != 0 and "Box" in proc.stdout + proc.stderr
 
 
+def test_client_drives_a_gymnasium_mujoco_task(tmp_path):
+    out = tmp_path / "run"
+    run([BIN / "wfnn-client", "--env", "InvertedPendulum-v5", "--episodes", "1", "--rate-hz", "0",
+         "--lockstep", "--thinks", "2", "--out", out])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    # 1,000 steps of the time limit; the pole falls and its episodes restart inside the client's.
+    assert metrics["ticks"] == 1000 and metrics["experiences_learned"] == 1000
+    assert len(metrics["config"]["learner"]["state_low"]) == 4 and 0 < metrics["scores"][0] <= 1.0
+
+
 def test_bench_vs_sb3_reports_curves_step_cost_and_act_latency(tmp_path):
     j, p = tmp_path / "vs.json", tmp_path / "vs.png"
     run([BIN / "wfnn-bench", "vs-sb3", "--tasks", "wfnn/Boat-v0", "--steps", "400", "--seeds", "2",
