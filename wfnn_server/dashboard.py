@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import base64
 import collections
-import json
 import logging
-import math
 import threading
 import time
 from http import HTTPStatus
@@ -33,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
+import orjson
 
 from wfnn_common.protocol import ServerStatus
 from wfnn_common.surface import SurfaceGrid
@@ -50,7 +49,8 @@ SERIES = {
     "stored": "store/experiences",
     "resets": "learn/divergence_resets",
 }
-"""Plotted server figures: name on the page -> ServerStatus metric."""
+"""Plotted server figures: name on the page -> ServerStatus metric (JSON by orjson: NaN and a
+missing figure both travel as null, a gap in a curve)."""
 
 FIGURES = ("think/thinks_per_s", "store/experiences", "learn/divergence_resets", "learn/reward_mean",
            "learn/q_chosen_mean")  # fmt: skip
@@ -63,11 +63,6 @@ CLIENT_SERIES = {
     "overruns": "client/overruns",
 }
 """Plotted client figures: name on the page -> ClientStatus metric."""
-
-
-def _number(value: float | None) -> float | None:
-    """JSON has no NaN or infinity: they travel as null (a gap in a curve)."""
-    return value if value is not None and math.isfinite(value) else None
 
 
 def _f32(values: np.ndarray) -> str:
@@ -125,7 +120,7 @@ class Dashboard:
         m = status.metrics
         clients = {
             cid: {
-                **{name: _number(c.metrics.get(key)) for name, key in CLIENT_SERIES.items()},
+                **{name: c.metrics.get(key) for name, key in CLIENT_SERIES.items()},
                 "following": c.following,
                 "weights_version": c.weights_version,
             }
@@ -133,7 +128,7 @@ class Dashboard:
         }
         sample = {
             "t": round(time.time() - self._started, 3),
-            **{name: _number(m.get(key)) for name, key in SERIES.items()},
+            **{name: m.get(key) for name, key in SERIES.items()},
             "clients": clients,
         }
         with self._lock:
@@ -145,7 +140,7 @@ class Dashboard:
     # ------------------------------------------------------------------ the view (HTTP threads)
     def view(self, since: int = 0) -> dict[str, Any]:
         """Everything the page shows, with only the samples newer than `since`."""
-        view: dict[str, Any] = json.loads(self.view_json(since))
+        view: dict[str, Any] = orjson.loads(self.view_json(since))
         return view
 
     def view_json(self, since: int = 0) -> bytes:
@@ -157,14 +152,14 @@ class Dashboard:
         now = time.monotonic()
         cached = self._cached
         if cached is None or now - cached[0] >= 1.0 / self.config.update_hz:
-            cached = (now, json.dumps(self._current(), separators=(",", ":")).encode())
+            cached = (now, orjson.dumps(self._current()))
             self._cached = cached
         with self._lock:
             samples = [s for s in self._samples if s["seq"] > since]
             extra = {"samples": samples, "requests": self.requests,
                      "cpu": {"dashboard_s": self.cpu_s, "process_s": time.process_time()}}  # fmt: skip
         newest = samples[-1]["seq"] if samples else since
-        return json.dumps(extra, separators=(",", ":")).encode()[:-1] + b"," + cached[1][1:], newest
+        return orjson.dumps(extra)[:-1] + b"," + cached[1][1:], newest
 
     def _current(self) -> dict[str, Any]:
         srv = self.server
@@ -179,12 +174,12 @@ class Dashboard:
             **self._static[1],
             "weights_version": srv.version,
             "rejected": dict(status.rejected) if status is not None else {},
-            "figures": {k: _number(status.metrics.get(k)) for k in FIGURES} if status is not None else {},
+            "figures": {k: status.metrics.get(k) for k in FIGURES} if status is not None else {},
             "clients": {
                 cid: {
                     "following": c.following,
                     "weights_version": c.weights_version,
-                    "metrics": {k: _number(c.metrics.get(k)) for k in CLIENT_SERIES.values()},
+                    "metrics": {k: c.metrics.get(k) for k in CLIENT_SERIES.values()},
                 }
                 for cid, c in srv.clients.items()
             },
@@ -282,13 +277,13 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Content-Type", "text/event-stream")
         self.send_header("Cache-Control", "no-store")
         self.end_headers()
+        self.wfile.flush()  # the messages go straight to the socket, one send each
         period = 1.0 / d.config.update_hz
         next_at = time.monotonic()
         while not d.stopping.is_set():
             body, since = d._view_json(since)
             try:
-                self.wfile.write(b"data: " + body + b"\n\n")
-                self.wfile.flush()
+                self.connection.sendall(b"data: " + body + b"\n\n")
             except OSError:  # the page went away
                 break
             finally:
