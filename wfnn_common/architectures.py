@@ -141,11 +141,20 @@ class ActLearnThinkMT:
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Stop the think thread and wait for it."""
+        """Stop the think thread and wait for it; experiences still queued join the replay buffer.
+
+        A robot that outran its think thread keeps every experience it handed over (saved with
+        the learner, thought about by whatever learns next), though not every replay owed.
+        """
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
+            if self._thread.is_alive():  # still in a long think: leave the queue to it
+                return
             self._thread = None
+        while self._queue:
+            stored = self.learner.learn(*self._queue.popleft())
+            self.budget += self.learner.config.thinks_per_action * int(np.sum(stored))
 
     def __enter__(self) -> ActLearnThinkMT:
         return self.start()

@@ -78,3 +78,16 @@ def test_mt_act_is_not_blocked_by_a_long_think():
         still_thinking = int(learner.thinks[0]) == thinks_before
     assert acts == 200
     assert still_thinking, "act waited for the think call to finish"
+
+
+def test_mt_stop_keeps_the_experiences_the_think_thread_had_not_taken_yet():
+    learner = WFNN(small_config(thinks_per_action=5))
+    mt = ActLearnThinkMT(learner)  # never started: everything stays queued until stop
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        mt.learn(rng.uniform(-1, 1, 3), rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 3), -0.2)
+    mt.learn(np.full(3, np.nan), np.zeros(2), np.zeros(3), -0.2)  # refused by the sanity limits
+    assert mt.queued == 41 and learner.buffer.count[0] == 0
+    mt.stop()
+    assert mt.queued == 0 and learner.buffer.count[0] == 40
+    assert mt.budget == 40 * 5 and learner.thinks[0] == 0  # stored, not yet replayed
