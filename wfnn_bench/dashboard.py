@@ -45,7 +45,7 @@ class DashboardBenchConfig:
     repeats: int = 2
     """Off/on pairs."""
     update_hz: float = 4.0
-    """How often the view is polled (the page's default)."""
+    """View updates per second on the stream the benchmark watches (the page's default)."""
     rate_hz: float = 15.0
     """The robot's control rate."""
     think: str = "budget"

@@ -83,6 +83,23 @@ def _learner(task: HydraVec, population: int, cfg: HydraBenchConfig, episodes: i
     return WFNN(lcfg, population=population)
 
 
+def learn_episode(learner: WFNN, task: HydraVec, rng: np.random.Generator) -> FloatArray:
+    """One 30 s episode with new targets, acting, learning and thinking every tick.
+
+    Returns each head's mean |pixel error| over the episode [P].
+    """
+    error = np.zeros(task.n)
+    x = task.new_targets(rng)
+    for _ in range(EPISODE):
+        u = learner.act(x).action
+        tr = task.step(u)
+        learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+        learner.think()
+        error += task.pixel_error() / EPISODE
+        x = tr.state
+    return error
+
+
 def train(
     hydra: HydraConfig, population: int, episodes: int, cfg: HydraBenchConfig, progress: Progress
 ) -> dict[str, Any]:
@@ -94,14 +111,7 @@ def train(
     curve = np.zeros((population, episodes))
     t0 = time.perf_counter()
     for ep in range(episodes):
-        x = task.new_targets(rng)
-        for _ in range(EPISODE):
-            u = learner.act(x).action
-            tr = task.step(u)
-            learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
-            learner.think()
-            curve[:, ep] += task.pixel_error() / EPISODE
-            x = tr.state
+        curve[:, ep] = learn_episode(learner, task, rng)
         progress(1)
     return {
         "learner": learner,

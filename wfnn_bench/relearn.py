@@ -32,7 +32,7 @@ import numpy as np
 
 from sims.hydra import HydraConfig, HydraVec
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_bench.hydra import EPISODE
+from wfnn_bench.hydra import EPISODE, learn_episode
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
 
@@ -103,13 +103,7 @@ def _learn_online(
     """`episodes` of acting, learning and thinking; greedy errors and thinks at each evaluation."""
     errors, thinks = [], []
     for ep in range(cfg.episodes):
-        x = task.new_targets(rng)
-        for _ in range(EPISODE):
-            u = learner.act(x).action
-            tr = task.step(u)
-            learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
-            learner.think()
-            x = tr.state
+        learn_episode(learner, task, rng)
         progress(1)
         if (ep + 1) % cfg.eval_every == 0:
             errors.append(greedy_error(learner, cfg))
