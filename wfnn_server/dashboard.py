@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import base64
 import collections
+import itertools
 import logging
 import threading
 import time
@@ -155,7 +156,9 @@ class Dashboard:
             cached = (now, orjson.dumps(self._current()))
             self._cached = cached
         with self._lock:
-            samples = [s for s in self._samples if s["seq"] > since]
+            # The newest first, back to `since`: work in proportion to what is new, not to the
+            # history kept (a page that keeps up gets one or two samples an update).
+            samples = list(itertools.takewhile(lambda s: s["seq"] > since, reversed(self._samples)))[::-1]
             extra = {"samples": samples, "requests": self.requests,
                      "cpu": {"dashboard_s": self.cpu_s, "process_s": time.process_time()}}  # fmt: skip
         newest = samples[-1]["seq"] if samples else since
@@ -230,11 +233,13 @@ class _Handler(BaseHTTPRequestHandler):
         t0 = time.thread_time()
         d = self.dashboard
         url = urlparse(self.path)
-        if url.path == "/api/stream":  # counts its own CPU time, message by message
+        since: int | None = 0
+        if url.path in ("/api/view", "/api/stream"):
             try:
                 since = int(parse_qs(url.query).get("since", ["0"])[0])
             except ValueError:
-                since = 0
+                since = None
+        if url.path == "/api/stream" and since is not None:  # counts its own CPU time, message by message
             self._stream(since, t0)
             return
         try:
@@ -250,14 +255,11 @@ class _Handler(BaseHTTPRequestHandler):
                     self._send(b"no pictures from that client", "text/plain", HTTPStatus.NOT_FOUND)
                 else:
                     self._send(view.png.tobytes(), "image/png")
+            elif since is None:
+                self._send(
+                    b'{"error": "since must be an integer"}', "application/json", HTTPStatus.BAD_REQUEST
+                )
             elif url.path == "/api/view":
-                try:
-                    since = int(parse_qs(url.query).get("since", ["0"])[0])
-                except ValueError:
-                    self._send(
-                        b'{"error": "since must be an integer"}', "application/json", HTTPStatus.BAD_REQUEST
-                    )
-                    return
                 self._send(d.view_json(since), "application/json")
             else:
                 self._send(b"not found", "text/plain", HTTPStatus.NOT_FOUND)

@@ -85,7 +85,7 @@ def test_bad_requests_are_refused_and_nothing_can_be_changed(tmp_path):
     hub, cfg = Hub(), small_config()
     with make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=0)) as server:
         port = server.dashboard.port
-        for path, code in (("/nothing", 404), ("/api/view?since=x", 400)):
+        for path, code in (("/nothing", 404), ("/api/view?since=x", 400), ("/api/stream?since=x", 400)):
             with pytest.raises(urllib.error.HTTPError) as refused:
                 _get(port, path)
             assert refused.value.code == code
