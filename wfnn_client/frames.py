@@ -54,11 +54,12 @@ class FrameWriter:
             image = np.concatenate([views[name] for name in sorted(views)], axis=1)
             path = self.directory / f"{tick:07d}.png"
             # cv2 encodes without the GIL, so the control loop keeps running meanwhile.
-            encoded, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+            encoded, buffer = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+            png = buffer.tobytes()
             try:
                 if not encoded:
                     raise OSError("PNG encoding failed")
-                path.write_bytes(png.tobytes())
+                path.write_bytes(png)
                 self.written += 1
             except OSError as exc:
                 self.failed += 1
@@ -66,7 +67,7 @@ class FrameWriter:
                 continue
             if self.on_png is not None:
                 try:
-                    self.on_png(tick, png.tobytes())
+                    self.on_png(tick, png)
                 except Exception:  # a picture for people watching must never stop the robot
                     log.exception("could not publish camera frame %d", tick)
 
