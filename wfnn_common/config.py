@@ -80,6 +80,14 @@ class LearnerConfig:
     """Experiences per update in minibatch mode."""
     minibatch_dtype: Literal["float32", "float64"] = "float32"
     """Arithmetic of minibatch updates (torch); float64 matches the numpy reference."""
+    bc_weight: float = 0.0
+    """Behaviour-cloning pull on the best wire (TD3+BC's idea, Fujimoto and Gu 2021, for
+    wires): each replay also moves the best wire's action toward the experience's action by
+    this fraction of their difference (in scaled units), beside the wire-fitting update. 0 is
+    the thesis' learner. For passive learning (logs of other controllers, `--replay-only`):
+    with no robot to try the greedy action, nothing corrects a wire over-valued at an action
+    the data never took, and the greedy controller drives the robot out of the data;
+    `wfnn-bench passive` measures it."""
     squash_reward: bool = True
     """Apply Eq 3.6, r = (1 - gamma) tanh(raw reward), before learning."""
     replay_capacity: int = 100_000
@@ -120,6 +128,7 @@ class LearnerConfig:
             (self.alpha > 0.0, "alpha must be > 0"),
             (self.smoothing_c >= 0.0, "smoothing_c must be >= 0"),
             (self.eps > 0.0, "eps must be > 0"),
+            (math.isfinite(self.bc_weight) and self.bc_weight >= 0.0, "bc_weight must be finite and >= 0"),
             (self.thinks_per_action >= 0, "thinks_per_action must be >= 0"),
             (self.batch_size >= 1, "batch_size must be >= 1"),
             (self.replay_capacity >= 1, "replay_capacity must be >= 1"),

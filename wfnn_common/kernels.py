@@ -67,6 +67,7 @@ def _think_learner(  # type: ignore[no-untyped-def]
     eps,
     exact,
     squash,
+    bc,
 ):
     n_hidden = W1.shape[0]
     n_out = W2.shape[0]
@@ -129,6 +130,9 @@ def _think_learner(  # type: ignore[no-untyped-def]
             correction += rho_w * spread
         if exact:
             err[n_act + top] -= c * correction * delta_q
+        if bc != 0.0:  # behaviour-cloning pull: the best wire's action toward the action taken
+            for j in range(action_dim):
+                err[top * action_dim + j] += bc * (u[j] - out[top * action_dim + j])
         # Part 3c: incremental backpropagation toward the new wires.
         for o in range(n_out):
             err[o] *= 1.0 - out[o] * out[o]
@@ -174,6 +178,7 @@ def think_incremental(  # type: ignore[no-untyped-def]
     eps,
     exact,
     squash,
+    bc,
 ):
     """Replay T experiences per learner, one update each, in order; weights change in place.
 
@@ -184,7 +189,8 @@ def think_incremental(  # type: ignore[no-untyped-def]
             (a replay buffer's arrays, read in place: no gather copy).
         idx [P,T]: which experiences each learner replays, in order.
         active [P] bool: learners to update.
-        n_wires, gamma, k, c, eps, exact, squash: as in `LearnerConfig` (exact, squash: bool).
+        n_wires, gamma, k, c, eps, exact, squash, bc: as in `LearnerConfig` (exact, squash:
+            bool; bc: `bc_weight`).
 
     Returns:
         (q_mean [P], td_abs_mean [P]) over the replayed experiences.
@@ -215,6 +221,7 @@ def think_incremental(  # type: ignore[no-untyped-def]
                 eps,
                 exact,
                 squash,
+                bc,
             )
             q_mean[p] = q_sum / n_thinks
             td_mean[p] = td_sum / n_thinks
@@ -223,7 +230,27 @@ def think_incremental(  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def think_incremental_one(  # type: ignore[no-untyped-def]
-    W1, b1, W2, b2, lr1, lr2, xs, us, xns, rs, terms, idx, active, n_wires, gamma, k, c, eps, exact, squash
+    W1,
+    b1,
+    W2,
+    b2,
+    lr1,
+    lr2,
+    xs,
+    us,
+    xns,
+    rs,
+    terms,
+    idx,
+    active,
+    n_wires,
+    gamma,
+    k,
+    c,
+    eps,
+    exact,
+    squash,
+    bc,
 ):
     """`think_incremental` for a population of one learner, outside a parallel region.
 
@@ -237,7 +264,7 @@ def think_incremental_one(  # type: ignore[no-untyped-def]
     if active[0] and n_thinks > 0:
         q_sum, td_sum = _think_learner(
             W1[0], b1[0], W2[0], b2[0], lr1, lr2, xs[0], us[0], xns[0], rs[0], terms[0], idx[0],
-            n_wires, gamma, k, c, eps, exact, squash,
+            n_wires, gamma, k, c, eps, exact, squash, bc,
         )  # fmt: skip
         q_mean[0] = q_sum / n_thinks
         td_mean[0] = td_sum / n_thinks

@@ -355,7 +355,7 @@ class WFNN:
                 self.params, self.rates, self.buffer.arrays(), idx, active,
                 n_wires=cfg.n_wires, gamma=cfg.gamma, advantage_k=cfg.advantage_k,
                 c=cfg.smoothing_c, eps=cfg.eps, exact=cfg.derivatives == "exact",
-                squash=cfg.squash_reward, dtype=cfg.minibatch_dtype,
+                squash=cfg.squash_reward, bc_weight=cfg.bc_weight, dtype=cfg.minibatch_dtype,
             )  # fmt: skip
             self.thinks += active * n
             stats = UpdateStats(q, td)
@@ -371,7 +371,7 @@ class WFNN:
             p.W1, p.b1, p.W2, p.b2, self.rates[0], self.rates[1],
             exp.state, exp.action, exp.next_state, exp.reward, exp.terminal, idx, active,
             cfg.n_wires, cfg.gamma, cfg.advantage_k, cfg.smoothing_c, cfg.eps,
-            cfg.derivatives == "exact", cfg.squash_reward,
+            cfg.derivatives == "exact", cfg.squash_reward, cfg.bc_weight,
         )  # fmt: skip
         self.thinks += active * idx.shape[1]
         return UpdateStats(q, td)
@@ -392,6 +392,7 @@ class WFNN:
             p, self.rates, exp.state, exp.action, exp.next_state, reward, exp.terminal,
             n_wires=cfg.n_wires, gamma=cfg.gamma, advantage_k=cfg.advantage_k,
             c=cfg.smoothing_c, eps=cfg.eps, derivatives=cfg.derivatives, active=active,
+            bc_weight=cfg.bc_weight,
         )  # fmt: skip
         self.thinks += active
         return stats

@@ -41,6 +41,7 @@ def minibatch_think(
     eps: float,
     exact: bool,
     squash: bool,
+    bc_weight: float = 0.0,
     dtype: str = "float32",
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Run len(idx) minibatch updates; params are updated in place.
@@ -51,6 +52,7 @@ def minibatch_think(
         buffer: experience arrays [P, N, ...] (scaled units, raw rewards).
         idx: [U, P, B] experience indices of U updates of B experiences per learner.
         active: [P] learners to update.
+        bc_weight: `LearnerConfig.bc_weight` (the best wire's action pulled toward the action taken).
         dtype: "float32" (fast) or "float64" (matches the numpy reference to rounding).
 
     Returns:
@@ -96,6 +98,9 @@ def minibatch_think(
         backed_up = r + torch.where(term, 0.0, gamma * value_next)
         delta_q = q_max + (backed_up - q_max) / advantage_k - q
         err_u = (-2.0 * rho_w * spread * delta_q.unsqueeze(-1)).unsqueeze(-1) * diff
+        if bc_weight:
+            best = torch.nn.functional.one_hot(top, n_wires).to(tdt).unsqueeze(-1)  # [P, B, W, 1]
+            err_u = err_u - bc_weight * best * diff  # diff of the best wire = its action - u
         err = torch.cat([err_u.flatten(-2), dq * delta_q.unsqueeze(-1)], dim=-1) * mask
         # Backpropagation of the batch-mean error through both tanh layers.
         delta_out = err * (1.0 - out * out)

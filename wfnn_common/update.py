@@ -64,6 +64,7 @@ def wfnn_update(
     eps: float,
     derivatives: Literal["approx", "exact"],
     active: BoolArray | None = None,
+    bc_weight: float = 0.0,
 ) -> UpdateStats:
     """Move every network's output toward the wire-fitter targets of a batch, in place.
 
@@ -76,7 +77,7 @@ def wfnn_update(
         u: scaled actions taken, [P, B, A].
         reward: squashed rewards, [P, B].
         terminal: [P, B]; no next state is used where True.
-        n_wires, gamma, advantage_k, c, eps, derivatives: as in `LearnerConfig`.
+        n_wires, gamma, advantage_k, c, eps, derivatives, bc_weight: as in `LearnerConfig`.
         active: [P]; learners where False are left unchanged.
 
     Returns:
@@ -94,10 +95,12 @@ def wfnn_update(
     target = q_target(reward, value_next, wire_q.max(axis=-1), terminal, gamma, advantage_k)
     delta_q = target - fit.q  # [P, B]
     # Eq 3.2-3.3: the change in each wire, which becomes the network's output error.
-    err = np.concatenate(
-        [(fit.du * delta_q[..., None, None]).reshape(*delta_q.shape, -1), fit.dq * delta_q[..., None]],
-        axis=-1,
-    )
+    err_u = fit.du * delta_q[..., None, None]  # [P, B, W, A]
+    if bc_weight:  # the best wire's action is also pulled toward the action taken
+        best = np.arange(n_wires) == np.argmax(wire_q, axis=-1)[..., None]  # [P, B, W] one-hot
+        best_u = np.einsum("pbw,pbwa->pba", best, wire_u)
+        err_u = err_u + bc_weight * best[..., None] * (u - best_u)[..., None, :]
+    err = np.concatenate([err_u.reshape(*delta_q.shape, -1), fit.dq * delta_q[..., None]], axis=-1)
     if active is not None:
         err = err * active[:, None, None]
     # Backpropagation through the two tanh layers.

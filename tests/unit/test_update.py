@@ -35,9 +35,9 @@ def _exp_block(rng, cfg, p, t):
 
 
 @pytest.mark.parametrize("derivatives", ["approx", "exact"])
-@pytest.mark.parametrize("advantage_k", [1.0, 0.2])
-def test_compiled_incremental_think_equals_numpy_reference(derivatives, advantage_k):
-    cfg = small_config(derivatives=derivatives, advantage_k=advantage_k)
+@pytest.mark.parametrize(("advantage_k", "bc_weight"), [(1.0, 0.0), (0.2, 0.0), (0.2, 0.5)])
+def test_compiled_incremental_think_equals_numpy_reference(derivatives, advantage_k, bc_weight):
+    cfg = small_config(derivatives=derivatives, advantage_k=advantage_k, bc_weight=bc_weight)
     rng = np.random.default_rng(0)
     learner = WFNN(cfg, population=3)
     ref = learner.params.copy()
@@ -59,12 +59,14 @@ def test_compiled_incremental_think_equals_numpy_reference(derivatives, advantag
             c=cfg.smoothing_c,
             eps=cfg.eps,
             derivatives=derivatives,
+            bc_weight=bc_weight,
         )
     np.testing.assert_allclose(learner.params.flat, ref.flat, atol=1e-12)
     assert np.abs(learner.params.flat - WFNN(cfg, population=3).params.flat).max() > 1e-4  # it moved
 
 
-def test_torch_minibatch_float64_equals_numpy_reference():
+@pytest.mark.parametrize("bc_weight", [0.0, 0.3])
+def test_torch_minibatch_float64_equals_numpy_reference(bc_weight):
     pytest.importorskip("torch")
     from wfnn_common.torch_update import minibatch_think
 
@@ -88,6 +90,7 @@ def test_torch_minibatch_float64_equals_numpy_reference():
         eps=cfg.eps,
         exact=True,
         squash=True,
+        bc_weight=bc_weight,
         dtype="float64",
     )
     rows = np.arange(2)[:, None]
@@ -108,6 +111,7 @@ def test_torch_minibatch_float64_equals_numpy_reference():
             eps=cfg.eps,
             derivatives="exact",
             active=active,
+            bc_weight=bc_weight,
         )
     np.testing.assert_allclose(params.flat, ref.flat, atol=1e-10)
     np.testing.assert_array_equal(params.flat[1], init_params(cfg, 2, np.random.default_rng(1)).flat[1])
@@ -145,3 +149,19 @@ def test_an_update_moves_q_toward_its_target():
         errors.append(abs(q_now(params) - target))
     assert errors[1] < errors[0]
     assert errors[-1] < 0.1 * errors[0]
+
+
+def test_the_bc_pull_draws_the_best_wire_to_the_action_taken():
+    # With the pull, replaying one experience over and over brings the greedy action to the
+    # action the experience took; without it the best wire is wherever the values put it.
+    x = np.array([0.3, -0.2, 0.5])
+    taken = np.array([0.7])
+    gaps = {}
+    for bc in (0.0, 0.5):
+        learner = WFNN(small_config(action_dim=1, bc_weight=bc, gamma=0.0, seed=4))
+        learner.learn(x, taken, x, 0.0, terminal=True)
+        start = abs(learner.act(x, explore=False).action[0] - taken[0])
+        learner.think(3000)
+        gaps[bc] = (start, abs(learner.act(x, explore=False).action[0] - taken[0]))
+    assert gaps[0.5][1] < 0.02 < gaps[0.5][0]
+    assert gaps[0.0][1] > 0.1
