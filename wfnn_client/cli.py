@@ -86,6 +86,14 @@ def main(
     advantage_k: Annotated[
         float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
     ] = None,
+    bc_weight: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            help="Pull the best wire toward the actions taken (learning from other "
+            "controllers, e.g. with --behaviour-policy) [thesis 0].",
+        ),
+    ] = None,
     behaviour_policy: Annotated[
         str,
         typer.Option(
@@ -187,7 +195,8 @@ def main(
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
             hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
-            boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
+            boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, bc_weight=bc_weight,
+            learn=learn,
             weights=weights, symmetries=symmetries, behaviour_policy=mix,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),

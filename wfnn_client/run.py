@@ -70,6 +70,9 @@ class ClientConfig:
     """Override the learner's thinks per action (local thinking and the announced config)."""
     advantage_k: float | None = None
     """Override the advantage-learning constant (1: plain Q-learning); None: the sim's default."""
+    bc_weight: float | None = None
+    """Override the learner's `bc_weight` (the best wire pulled toward the actions taken, for
+    learning from other controllers); None: the thesis' 0."""
     symmetries: bool = False
     """Learn each experience also as its images under the task's declared symmetries (the
     boat's mirror; `wfnn_common.symmetry`); they travel in the learner config to the servers."""
@@ -144,6 +147,8 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
     k = config.advantage_k if config.advantage_k is not None else SIMS[config.sim].advantage_k
     if k is not None:
         extra["advantage_k"] = k
+    if config.bc_weight is not None:
+        extra["bc_weight"] = config.bc_weight
     if config.symmetries:
         declared = tuple(getattr(task, "symmetries", ()))
         if not declared:

@@ -55,6 +55,14 @@ def main(
     ] = None,
     key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
     seed: Annotated[int | None, typer.Option(help="Override the learner's seed.")] = None,
+    bc_weight: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            help="Override the learner's bc_weight: pull the best wire toward the actions "
+            "taken (passive learning from other controllers' logs) [thesis 0].",
+        ),
+    ] = None,
     publish_period: Annotated[float, typer.Option(help="Snapshot period (s).")] = 0.25,
     checkpoint_period: Annotated[float, typer.Option(help="Checkpoint period (s).")] = 30.0,
     think: Annotated[str, typer.Option(help="budget (thinks per action) or continuous.")] = "budget",
@@ -97,7 +105,8 @@ def main(
         )  # fmt: skip
         config = ServerConfig(
             controller=controller, server_id=server_id, net=net, data_dir=data_dir,
-            learner_config=learner_config, key_file=key_file, seed=seed, publish_period_s=publish_period,
+            learner_config=learner_config, key_file=key_file, seed=seed, bc_weight=bc_weight,
+            publish_period_s=publish_period,
             checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
             replay=tuple(replay_only or ()), replay_only=bool(replay_only),
             dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -52,6 +53,9 @@ class ServerConfig:
     """Shared key: frames must carry a valid HMAC-SHA256 tag, and so will ours."""
     seed: int | None = None
     """Overrides the learner config's seed (servers on the same data learn differently)."""
+    bc_weight: float | None = None
+    """Overrides the learner config's `bc_weight` (the best wire pulled toward the actions taken:
+    for passive learning from other controllers' logs, `wfnn-bench passive`)."""
     publish_period_s: float = 0.25
     """Weight snapshot period (also published as soon as the think budget is spent)."""
     status_period_s: float = 0.5
@@ -96,5 +100,7 @@ class ServerConfig:
             raise ValueError(f"fsync must be always, interval or never, got {self.fsync!r}")
         if self.think not in ("budget", "continuous"):
             raise ValueError(f"think must be budget or continuous, got {self.think!r}")
+        if self.bc_weight is not None and not (math.isfinite(self.bc_weight) and self.bc_weight >= 0):
+            raise ValueError(f"bc_weight must be finite and >= 0, got {self.bc_weight}")
         if self.replay_only and self.think != "budget":
             raise ValueError("replay_only learns the stored experiences' think budget: think must be budget")

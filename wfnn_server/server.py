@@ -158,7 +158,8 @@ class ThinkServer:
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
         self.last_status: ServerStatus | None = None
-        cfg = self._initial_config() or replay_config  # or what the logs say they were recorded for
+        # or what the logs say they were recorded for
+        cfg = self._initial_config() or (self._overridden(replay_config) if replay_config else None)
         if cfg is not None:
             self._start_learner(cfg)
 
@@ -176,10 +177,13 @@ class ThinkServer:
             if self.config.learner_config is not None:
                 raise FileNotFoundError(f"learner config {path} does not exist")
             return None
-        cfg = LearnerConfig.from_dict(json.loads(path.read_text()))
-        if self.config.seed is not None:
-            cfg = LearnerConfig.from_dict({**cfg.to_dict(), "seed": self.config.seed})
-        return cfg
+        return self._overridden(LearnerConfig.from_dict(json.loads(path.read_text())))
+
+    def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
+        """`cfg` with this server's overrides (seed, bc_weight) where it sets them."""
+        changes = {"seed": self.config.seed, "bc_weight": self.config.bc_weight}
+        changes = {key: value for key, value in changes.items() if value is not None}
+        return LearnerConfig.from_dict({**cfg.to_dict(), **changes}) if changes else cfg
 
     def _import_logs(self, directories: tuple[Path, ...]) -> tuple[int, LearnerConfig | None]:
         """Store the experiences of logs that the store lacks.
@@ -396,10 +400,8 @@ class ThinkServer:
         if cfg.spec_hash() != status.spec_hash:
             self.rejected["config"] += 1
             return
-        if self.config.seed is not None:
-            cfg = LearnerConfig.from_dict({**cfg.to_dict(), "seed": self.config.seed})
         log.info("adopting the learner config of client %s", status.client)
-        self._pending_config = cfg
+        self._pending_config = self._overridden(cfg)
         self._wake.set()
 
     def _camera_view(self, frame: bytes) -> None:

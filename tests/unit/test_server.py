@@ -146,7 +146,7 @@ def test_keyed_server_rejects_unauthenticated_frames(tmp_path):
 def test_adopts_the_first_clients_config(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=3, seed=5)
     listener = Listener(hub)
-    with make_server(tmp_path, hub, None, seed=11) as server:
+    with make_server(tmp_path, hub, None, seed=11, bc_weight=0.25) as server:
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: server.rejected["no_config"] == 1)
         status = ClientStatus(
@@ -156,10 +156,11 @@ def test_adopts_the_first_clients_config(tmp_path):
         hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
         assert listener.wait(lambda: server.learner is not None)
         assert server.learner_config.seed == 11 and server.learner_config.thinks_per_action == 3
+        assert server.learner_config.bc_weight == 0.25 and cfg.bc_weight == 0.0
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: listener.acked() == 3)
     saved = json.loads((tmp_path / "s1" / "learner_config.json").read_text())
-    assert saved["seed"] == 11
+    assert saved["seed"] == 11 and saved["bc_weight"] == 0.25
 
 
 def test_restart_resumes_checkpoint_and_store(tmp_path):
@@ -216,7 +217,9 @@ def test_divergence_resets_and_flags_snapshots(tmp_path):
         )
 
 
-@pytest.mark.parametrize("bad", [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}])
+@pytest.mark.parametrize(
+    "bad", [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}, {"bc_weight": -0.1}]
+)
 def test_server_config_is_checked(tmp_path, bad):
     with pytest.raises(ValueError):
         ServerConfig(**{"data_dir": tmp_path, **bad})
