@@ -63,6 +63,10 @@ def main(
             "taken (passive learning from other controllers' logs) [thesis 0].",
         ),
     ] = None,
+    alpha: Annotated[
+        float | None,
+        typer.Option(min=1e-9, help="Override the learner's learning rate (passive: 0.05) [thesis 0.25]."),
+    ] = None,
     publish_period: Annotated[float, typer.Option(help="Snapshot period (s).")] = 0.25,
     checkpoint_period: Annotated[float, typer.Option(help="Checkpoint period (s).")] = 30.0,
     think: Annotated[str, typer.Option(help="budget (thinks per action) or continuous.")] = "budget",
@@ -105,7 +109,7 @@ def main(
         )  # fmt: skip
         config = ServerConfig(
             controller=controller, server_id=server_id, net=net, data_dir=data_dir,
-            learner_config=learner_config, key_file=key_file, seed=seed, bc_weight=bc_weight,
+            learner_config=learner_config, key_file=key_file, seed=seed, bc_weight=bc_weight, alpha=alpha,
             publish_period_s=publish_period,
             checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
             replay=tuple(replay_only or ()), replay_only=bool(replay_only),

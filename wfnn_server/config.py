@@ -56,6 +56,9 @@ class ServerConfig:
     bc_weight: float | None = None
     """Overrides the learner config's `bc_weight` (the best wire pulled toward the actions taken:
     for passive learning from other controllers' logs, `wfnn-bench passive`)."""
+    alpha: float | None = None
+    """Overrides the learner config's learning rate (passive learning replays a fixed set
+    millions of times; `wfnn-bench passive` measured 0.05 better than the thesis' 0.25 there)."""
     publish_period_s: float = 0.25
     """Weight snapshot period (also published as soon as the think budget is spent)."""
     status_period_s: float = 0.5
@@ -102,5 +105,7 @@ class ServerConfig:
             raise ValueError(f"think must be budget or continuous, got {self.think!r}")
         if self.bc_weight is not None and not (math.isfinite(self.bc_weight) and self.bc_weight >= 0):
             raise ValueError(f"bc_weight must be finite and >= 0, got {self.bc_weight}")
+        if self.alpha is not None and not (math.isfinite(self.alpha) and self.alpha > 0):
+            raise ValueError(f"alpha must be finite and > 0, got {self.alpha}")
         if self.replay_only and self.think != "budget":
             raise ValueError("replay_only learns the stored experiences' think budget: think must be budget")

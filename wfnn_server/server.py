@@ -180,8 +180,8 @@ class ThinkServer:
         return self._overridden(LearnerConfig.from_dict(json.loads(path.read_text())))
 
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
-        """`cfg` with this server's overrides (seed, bc_weight) where it sets them."""
-        changes = {"seed": self.config.seed, "bc_weight": self.config.bc_weight}
+        """`cfg` with this server's overrides (seed, bc_weight, alpha) where it sets them."""
+        changes = {"seed": self.config.seed, "bc_weight": self.config.bc_weight, "alpha": self.config.alpha}
         changes = {key: value for key, value in changes.items() if value is not None}
         return LearnerConfig.from_dict({**cfg.to_dict(), **changes}) if changes else cfg
 

@@ -53,12 +53,14 @@ def test_replay_only_learns_every_recorded_experience_once_and_refuses_a_foreign
     proc = _replay(tmp_path / "d", tmp_path / "cartpole" / "journal")
     assert proc.returncode == 2 and "spec" in proc.stdout + proc.stderr
     assert logs.summarise(tmp_path / "d" / "store").experiences == 400
-    # Passive learning with the best wire pulled toward the logged actions, and another seed.
-    options = ("--bc-weight", "0.5", "--seed", "7")
+    # Passive learning with the best wire pulled toward the logged actions, a smaller learning
+    # rate and another seed.
+    options = ("--bc-weight", "0.5", "--alpha", "0.05", "--seed", "7")
     proc = _replay(tmp_path / "bc", tmp_path / "rec" / "journal", options=options)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     config, _, _ = load_weights(tmp_path / "bc" / "checkpoint.npz")
-    assert (config.bc_weight, config.seed) == (0.5, 7) and summary.learner_config["bc_weight"] == 0.0
+    assert (config.bc_weight, config.alpha, config.seed) == (0.5, 0.05, 7)
+    assert (summary.learner_config["bc_weight"], summary.learner_config["alpha"]) == (0.0, 0.25)
     proc = _replay(tmp_path / "other", tmp_path / "nowhere")
     assert proc.returncode == 2 and "no experience log" in proc.stdout + proc.stderr
 

@@ -146,7 +146,7 @@ def test_keyed_server_rejects_unauthenticated_frames(tmp_path):
 def test_adopts_the_first_clients_config(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=3, seed=5)
     listener = Listener(hub)
-    with make_server(tmp_path, hub, None, seed=11, bc_weight=0.25) as server:
+    with make_server(tmp_path, hub, None, seed=11, bc_weight=0.25, alpha=0.05) as server:
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: server.rejected["no_config"] == 1)
         status = ClientStatus(
@@ -156,7 +156,8 @@ def test_adopts_the_first_clients_config(tmp_path):
         hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
         assert listener.wait(lambda: server.learner is not None)
         assert server.learner_config.seed == 11 and server.learner_config.thinks_per_action == 3
-        assert server.learner_config.bc_weight == 0.25 and cfg.bc_weight == 0.0
+        assert (server.learner_config.bc_weight, server.learner_config.alpha) == (0.25, 0.05)
+        assert (cfg.bc_weight, cfg.alpha) == (0.0, 0.25)
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: listener.acked() == 3)
     saved = json.loads((tmp_path / "s1" / "learner_config.json").read_text())
@@ -218,7 +219,8 @@ def test_divergence_resets_and_flags_snapshots(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "bad", [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}, {"bc_weight": -0.1}]
+    "bad",
+    [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}, {"bc_weight": -1}, {"alpha": 0}],
 )
 def test_server_config_is_checked(tmp_path, bad):
     with pytest.raises(ValueError):
