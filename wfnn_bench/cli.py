@@ -501,10 +501,14 @@ def relearn(
              f"{c['online_robot_s_to_reach']} / {c['with_store_robot_s_to_reach']}"),
             (f"controller {i}: store alone: thinks to reach / best error px",
              f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
+            (f"controller {i}: store alone, passive learner: thinks / wall s to reach / best error px",
+             f"{c['store_only_passive_thinks_to_reach']} / {c['store_only_passive_wall_s_to_reach']} / "
+             f"{c['store_only_passive_best_error_px']:.1f}"),
         ]  # fmt: skip
-    rows += [("competent controllers / relearned with the store kept / with the store alone",
+    rows += [("competent controllers / relearned with the store kept / with the store alone / "
+              "with the store alone by the passive learner",
               f"{result['competent_controllers']} / {result['relearned_with_store']} / "
-              f"{result['relearned_store_only']}"),
+              f"{result['relearned_store_only']} / {result['relearned_store_only_passive']}"),
              ("online divergence resets", str(result["online_divergence_resets"].tolist())),
              ("stored experiences", str(result["stored_experiences"].tolist())),
              ("online wall_s", result["online_wall_s"])]  # fmt: skip
@@ -520,10 +524,21 @@ def passive(
     controllers: Annotated[int, typer.Option(min=1, help="Learners per condition.")] = 8,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     log_targets: Annotated[int, typer.Option(min=1, help="Targets per logged boat and policy.")] = 10,
-    passive_thinks: Annotated[int, typer.Option(min=1000, help="Replays per passive learner.")] = 400_000,
+    passive_thinks: Annotated[
+        int | None, typer.Option(min=1000, help="Replays per passive learner [thinks per logged experience].")
+    ] = None,
     online_targets: Annotated[int, typer.Option(min=10, help="Targets of the online conditions.")] = 40,
     thinks: Annotated[int, typer.Option(min=0, help="Online replays per action.")] = 200,
     eval_targets: Annotated[int, typer.Option(min=1, help="Targets of each greedy evaluation.")] = 10,
+    bc_weight: Annotated[
+        float, typer.Option(min=0.0, help="Passive learners' pull of the best wire to the logged actions.")
+    ] = 0.5,
+    passive_advantage_k: Annotated[
+        float, typer.Option(min=0.01, max=1.0, help="Passive learners' k (the thesis' learner keeps 0.2).")
+    ] = 1.0,
+    passive_alpha: Annotated[
+        float, typer.Option(min=1e-6, help="Passive learners' learning rate (the thesis' keeps 0.25).")
+    ] = 0.05,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -533,7 +548,8 @@ def passive(
     _logging(verbose)
     cfg = passive_bench.PassiveBenchConfig(
         controllers=controllers, dt=dt, log_targets=log_targets, passive_thinks=passive_thinks,
-        online_targets=online_targets, thinks=thinks, eval_targets=eval_targets, seed=seed,
+        online_targets=online_targets, thinks=thinks, eval_targets=eval_targets, bc_weight=bc_weight,
+        passive_advantage_k=passive_advantage_k, passive_alpha=passive_alpha, seed=seed,
     )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("passive", total=passive_bench.steps(cfg))
@@ -541,22 +557,23 @@ def passive(
     rows: list[tuple[str, Any]] = [
         (f"log policy {k}: score", v) for k, v in result["logs"]["policy_scores"].items()
     ]
-    for key, label in (("passive", "passive"), ("passive_phantom_only", "passive, phantom targets only")):
+    rows.append(("experiences learned from the logs", result["logs"]["learned"]))
+    for name in ("handcoded", "zero_thrust"):
+        rows.append((f"{name}: score / reward per action",
+                     f"{result[f'{name}_score']:.3f} / {result[f'{name}_reward']:.4f}"))  # fmt: skip
+    for key, label in passive_bench.PASSIVE_LABELS.items():
         for c in result[key]["curve"]:
-            rows.append(
-                (
-                    f"{label}: greedy score after {c['thinks']:,} thinks (median)",
-                    float(np.median(c["scores"])),
-                )
-            )
+            rows.append((f"passive, {label}: greedy score / reward after {c['thinks']:,} thinks (median)",
+                         f"{np.median(c['scores']):.3f} / {np.median(c['rewards']):.4f}"))  # fmt: skip
         d = result[key]["diagnosis"]
-        rows.append((f"{label}: value of the greedy / logged action (median over logged states)",
+        rows.append((f"passive, {label}: value of the greedy / logged action (median over logged states)",
                      f"{d['greedy_value']:.3f} / {d['logged_action_value']:.3f}"))  # fmt: skip
     ratio = result["mirror_experience_ratio"]
     rows += [
         ("handcoded_score", result["handcoded_score"]),
         ("passive_score", result["passive_score"]),
         ("passive_phantom_only_score", result["passive_phantom_only_score"]),
+        *((f"criterion {k}", str(v)) for k, v in result["criteria"].items()),
         ("online: last-10 median / greedy",
          f"{result['online']['score_last10']:.3f} / {result['online']['greedy']:.3f}"),
         ("online + mirror: last-10 median / greedy",

@@ -377,11 +377,21 @@ def test_bench_passive_writes_its_figures(tmp_path):
                "--plot", p])  # fmt: skip
     assert "passive_score" in out.stdout
     data = json.loads(j.read_text())
-    for key in ("handcoded_score", "passive_score", "phantom_only_score", "passive_phantom_only_score"):
+    for key in ("handcoded_score", "passive_score", "phantom_only_score", "passive_phantom_only_score",
+                "passive_no_bc_score", "passive_thesis_score"):  # fmt: skip
         assert data[key] > 0
     assert 0.1 < data["handcoded_score"] < 0.5  # the hand-coded controller's Section 4.2 figure
-    # Three behaviour policies, four logged boats each, two targets of 200 actions: all read back.
-    assert sum(data["logs"]["experiences"].values()) == 3 * 4 * 2 * 200
+    assert data["zero_thrust_score"] == 1.0  # a boat that never moves stays one unit from each target
+    # Rewards are squashed (Eq 3.6, gamma 0.8) and never positive.
+    assert -0.2 <= data["handcoded_reward"] < 0 and -0.2 <= data["passive_reward"] < 0
+    assert [data["passive"][k] for k in ("bc_weight", "advantage_k", "alpha")] == [0.5, 1.0, 0.05]
+    assert [data["passive_no_bc"][k] for k in ("bc_weight", "advantage_k", "alpha")] == [0.0, 1.0, 0.05]
+    assert [data["passive_thesis"][k] for k in ("bc_weight", "advantage_k", "alpha")] == [0.0, 0.2, 0.25]
+    criteria = {"passive_score_within_20pct_of_handcoded", "passive_reward_above_handcoded"}
+    assert criteria <= set(data["criteria"])
+    # Three behaviour policies, four logged boats each, two targets of 200 actions: all read back
+    # and all learned (each policy's boats are distinct clients of the merged logs).
+    assert sum(data["logs"]["experiences"].values()) == 3 * 4 * 2 * 200 == data["logs"]["learned"]
     assert [c["thinks"] for c in data["passive"]["curve"]] == [1000, 2000, 3000, 4000]
     assert "mirror_experience_ratio" in data and p.stat().st_size > 10_000
 
@@ -434,9 +444,11 @@ def test_bench_relearn_resets_and_relearns_from_the_store(tmp_path):
     data = json.loads(j.read_text())
     assert all(0 < n <= 2 * 450 for n in data["stored_experiences"])
     assert len(data["online_error_px"]) == len(data["with_store_error_px"]) == 2
-    assert 1 <= len(data["store_only_error_px"]) <= 2
+    assert 1 <= len(data["store_only_error_px"]) <= 2 and 1 <= len(data["store_only_passive_error_px"]) <= 2
     # The store alone thinks in chunks of one evaluation interval's thinks (450 actions x 3).
     assert [row[0] for row in data["store_only_thinks"]][:1] == [1350]
+    assert [row[0] for row in data["store_only_passive_thinks"]][:1] == [1350]
+    assert data["passive_learner"] == {"bc_weight": 0.5, "alpha": 0.05, "advantage_k": 1.0}
     for c in data["controllers"]:
         assert c["pre_divergence_error_px"] > 0 and c["online_robot_s_to_reach"] in (30.0, 60.0, None)
         assert c["with_store_robot_s_to_reach"] in (30.0, 60.0, None)
