@@ -12,7 +12,9 @@ the weights and relearn from the experiences already stored, without the robot. 
    (`trained_then_store_only_error_px`). Then the trained weights are put back and:
 3. Reset every controller's weights (as the divergence monitor does) and think on the stored
    experiences alone (no robot), in chunks of one evaluation interval's thinks, evaluating after
-   each: passive relearning.
+   each: passive relearning. Twice: with the learner that learned online (the thesis' way), and
+   with the passive learner of `wfnn-bench passive` (Q-learning, the best wire pulled toward
+   the stored actions, `LearnerConfig.bc_weight`, and a smaller learning rate).
 4. Reset again and learn online as in 1, the store kept (the robot's new experiences join it):
    what the thesis did after each divergence (Section 7.6.2) and what a think server does.
 5. Per controller: the robot time the learning from scratch needed to first come within
@@ -23,8 +25,9 @@ the weights and relearn from the experiences already stored, without the robot. 
 
 from __future__ import annotations
 
+import copy
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,13 +67,18 @@ class RelearnBenchConfig:
     score to relearn and is left out of `relearn_fraction`."""
     max_relearn_chunks: int | None = None
     """Stop relearning after this many chunks (None: as many as the original learning had)."""
+    passive_bc_weight: float = 0.5
+    passive_alpha: float = 0.05
+    passive_advantage_k: float = 1.0
+    """The passive learner relearning from the store alone (`bc_weight`, `alpha`, `advantage_k`;
+    the passive benchmark's)."""
     seed: int = 0
 
 
 def steps(cfg: RelearnBenchConfig) -> int:
     """Progress units: episodes learned and evaluations."""
     evals = cfg.episodes // cfg.eval_every
-    return 2 * (cfg.episodes + evals) + 2 * evals
+    return 2 * (cfg.episodes + evals) + 3 * evals
 
 
 def greedy_error(learner: WFNN, cfg: RelearnBenchConfig) -> np.ndarray:
@@ -112,6 +120,32 @@ def _learn_online(
     return errors, thinks
 
 
+def _store_only(
+    learner: WFNN, chunks: int, chunk: int, goal: np.ndarray, cfg: RelearnBenchConfig, progress: Progress
+) -> dict[str, Any]:
+    """Reset the weights and think on the stored experiences alone, `chunk` thinks at a time.
+
+    Evaluates after each chunk; stops when every controller has been within its goal once.
+    """
+    learner.reset_weights(np.ones(learner.population, dtype=np.bool_))
+    thinks_at_reset = learner.thinks.copy()
+    untrained = greedy_error(learner, cfg)
+    errors, thinks, wall = [], [], []
+    thinking_s = 0.0
+    for _ in range(chunks):
+        t1 = time.perf_counter()
+        learner.think(chunk)
+        thinking_s += time.perf_counter() - t1  # the evaluations are not part of relearning
+        wall.append(thinking_s)
+        errors.append(greedy_error(learner, cfg))
+        thinks.append(learner.thinks - thinks_at_reset)
+        progress(1)
+        if (np.array(errors) <= goal).any(axis=0).all():
+            break
+    return {"untrained": untrained, "errors": errors, "thinks": thinks, "wall": wall,
+            "hit": _first_reached(np.array(errors), goal)}  # fmt: skip
+
+
 def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
     """Learn, reset, relearn from the store (alone, then while acting again); the figures."""
     p = cfg.controllers
@@ -145,22 +179,16 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
     learner.params.flat[:] = trained
 
     # The divergence reset: new random weights, the stored experiences kept. First the store
-    # alone (no robot), in chunks of one evaluation interval's thinks.
-    learner.reset_weights(np.ones(p, dtype=np.bool_))
-    thinks_at_reset = learner.thinks.copy()
-    untrained = greedy_error(learner, cfg)
-    passive_errors, passive_thinks, passive_wall = [], [], []
-    thinking_s = 0.0
-    for _ in range(cfg.max_relearn_chunks or len(online_errors)):
-        t1 = time.perf_counter()
-        learner.think(chunk)
-        thinking_s += time.perf_counter() - t1  # the evaluations are not part of relearning
-        passive_wall.append(thinking_s)
-        passive_errors.append(greedy_error(learner, cfg))
-        passive_thinks.append(learner.thinks - thinks_at_reset)
-        progress(1)
-        if (np.array(passive_errors) <= goal).any(axis=0).all():
-            break
+    # alone (no robot), in chunks of one evaluation interval's thinks: by the learner itself,
+    # then by the passive learner (the same stored experiences).
+    chunks = cfg.max_relearn_chunks or len(online_errors)
+    store = _store_only(learner, chunks, chunk, goal, cfg, progress)
+    passive_cfg = replace(
+        lcfg, bc_weight=cfg.passive_bc_weight, alpha=cfg.passive_alpha, advantage_k=cfg.passive_advantage_k
+    )
+    passive_learner = WFNN(passive_cfg, population=p)
+    passive_learner.buffer = copy.deepcopy(learner.buffer)
+    pulled = _store_only(passive_learner, chunks, chunk, goal, cfg, progress)
     # Then as the thesis did (Section 7.6.2) and a think server does: reset again and learn
     # actively with the store kept, the robot's new experiences joining it.
     learner.reset_weights(np.ones(p, dtype=np.bool_))
@@ -169,21 +197,24 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
     active_thinks = [t - thinks_at_reset for t in active_thinks]
 
     online_hit = _first_reached(np.array(online_errors), goal)
-    passive_hit = _first_reached(np.array(passive_errors), goal)
+    passive_hit, pulled_hit = store["hit"], pulled["hit"]
     active_hit = _first_reached(np.array(active_errors), goal)
     robot_s = cfg.eval_every * EPISODE / FOUR_DOF.rate_hz  # robot time per evaluation interval
     per: list[dict[str, Any]] = []
     for i in range(p):
-        o, r, a = online_hit[i], passive_hit[i], active_hit[i]
+        o, r, b, a = online_hit[i], passive_hit[i], pulled_hit[i], active_hit[i]
         per.append({
             "competent": bool(competent[i]),
             "pre_divergence_error_px": float(before[i]),
-            "untrained_error_px": float(untrained[i]),
+            "untrained_error_px": float(store["untrained"][i]),
             "online_robot_s_to_reach": o * robot_s if o else None,
             "online_thinks_to_reach": int(online_thinks[o - 1][i]) if o else None,
-            "store_only_thinks_to_reach": int(passive_thinks[r - 1][i]) if r else None,
-            "store_only_wall_s_to_reach": float(passive_wall[r - 1]) if r else None,
-            "store_only_best_error_px": float(np.min(np.array(passive_errors)[:, i])),
+            "store_only_thinks_to_reach": int(store["thinks"][r - 1][i]) if r else None,
+            "store_only_wall_s_to_reach": float(store["wall"][r - 1]) if r else None,
+            "store_only_best_error_px": float(np.min(np.array(store["errors"])[:, i])),
+            "store_only_passive_thinks_to_reach": int(pulled["thinks"][b - 1][i]) if b else None,
+            "store_only_passive_wall_s_to_reach": float(pulled["wall"][b - 1]) if b else None,
+            "store_only_passive_best_error_px": float(np.min(np.array(pulled["errors"])[:, i])),
             "with_store_robot_s_to_reach": a * robot_s if a else None,
             "relearn_fraction": a / o if o and a and competent[i] else None,
         })  # fmt: skip
@@ -200,13 +231,24 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
         "relearned_store_only": sum(
             r is not None and bool(c) for r, c in zip(passive_hit, competent, strict=True)
         ),
+        "relearned_store_only_passive": sum(
+            b is not None and bool(c) for b, c in zip(pulled_hit, competent, strict=True)
+        ),
         "stored_experiences": stored,
         "server_recovery_thinks": np.minimum(cfg.thinks * stored, 2_000_000),
         "online_error_px": np.array(online_errors),
         "online_thinks": np.array(online_thinks),
-        "store_only_error_px": np.array(passive_errors),
-        "store_only_thinks": np.array(passive_thinks),
-        "store_only_wall_s": passive_wall,
+        "store_only_error_px": np.array(store["errors"]),
+        "store_only_thinks": np.array(store["thinks"]),
+        "store_only_wall_s": store["wall"],
+        "passive_learner": {
+            "bc_weight": cfg.passive_bc_weight,
+            "alpha": cfg.passive_alpha,
+            "advantage_k": cfg.passive_advantage_k,
+        },
+        "store_only_passive_error_px": np.array(pulled["errors"]),
+        "store_only_passive_thinks": np.array(pulled["thinks"]),
+        "store_only_passive_wall_s": pulled["wall"],
         "with_store_error_px": np.array(active_errors),
         "trained_then_store_only_error_px": np.array(kept_errors),
         "with_store_thinks": np.array(active_thinks),
@@ -237,6 +279,10 @@ def plot(result: dict[str, Any], path: Path) -> None:
         a.axhline(result["goal_px"][i], color=line.get_color(), lw=0.6, ls=":")
         b.plot(t_store[:, i] / 1e6, store[:, i], marker="s", color=line.get_color(),
                label=f"controller {i}: reset weights")  # fmt: skip
+        pulled = np.asarray(result["store_only_passive_error_px"])
+        t_pulled = np.asarray(result["store_only_passive_thinks"])
+        b.plot(t_pulled[:, i] / 1e6, pulled[:, i], marker="x", ls="-.", color=line.get_color(),
+               label=f"controller {i}: reset weights, passive learner")  # fmt: skip
         kept = np.asarray(result["trained_then_store_only_error_px"])
         b.plot(chunk_m * np.arange(1, kept.shape[0] + 1), kept[:, i], marker="^", ls="--",
                color=line.get_color(), label=f"controller {i}: its trained weights")  # fmt: skip
