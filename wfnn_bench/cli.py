@@ -502,7 +502,8 @@ def relearn(
             (f"controller {i}: store alone: thinks to reach / best error px",
              f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
             (f"controller {i}: store alone, passive learner: thinks / wall s to reach / best error px",
-             f"{c['store_only_passive_thinks_to_reach']} / {c['store_only_passive_wall_s_to_reach']} / "
+             f"{c['store_only_passive_thinks_to_reach']} / "
+             f"{_maybe(c['store_only_passive_wall_s_to_reach'])} / "
              f"{c['store_only_passive_best_error_px']:.1f}"),
         ]  # fmt: skip
     rows += [("competent controllers / relearned with the store kept / with the store alone / "
@@ -588,6 +589,11 @@ def passive(
         write_json(json_path, result)
     if plot_path:
         passive_bench.plot(result, plot_path)
+
+
+def _maybe(value: float | None, digits: int = 1) -> str:
+    """A figure that may be missing (never reached): `-` then."""
+    return "-" if value is None else f"{value:.{digits}f}"
 
 
 def _names(text: str) -> tuple[str, ...]:
