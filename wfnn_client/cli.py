@@ -90,8 +90,8 @@ def main(
         float | None,
         typer.Option(
             min=0.0,
-            help="Pull the best wire toward the actions taken (learning from other "
-            "controllers, e.g. with --behaviour-policy) [thesis 0].",
+            help="Pull the best wire toward each replayed experience's action (for learning from "
+            "logged or other controllers' actions) [thesis 0].",
         ),
     ] = None,
     behaviour_policy: Annotated[
@@ -195,9 +195,8 @@ def main(
         config = ClientConfig(
             sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
             hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
-            boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, bc_weight=bc_weight,
-            learn=learn,
-            weights=weights, symmetries=symmetries, behaviour_policy=mix,
+            boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
+            bc_weight=bc_weight, weights=weights, symmetries=symmetries, behaviour_policy=mix,
             exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
             server=tuple(server) if server else (() if listen else ("local",)),
             controller=controller, client_id=client_id, follow=follow,

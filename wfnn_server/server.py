@@ -14,6 +14,7 @@ owed their thinks again.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 import os
@@ -158,7 +159,7 @@ class ThinkServer:
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
         self.last_status: ServerStatus | None = None
-        # or what the logs say they were recorded for
+        # --learner-config or an earlier run's, else the config the logs say they were recorded for
         cfg = self._initial_config() or (self._overridden(replay_config) if replay_config else None)
         if cfg is not None:
             self._start_learner(cfg)
@@ -181,9 +182,9 @@ class ThinkServer:
 
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
         """`cfg` with this server's overrides (seed, bc_weight, alpha) where it sets them."""
-        changes = {"seed": self.config.seed, "bc_weight": self.config.bc_weight, "alpha": self.config.alpha}
-        changes = {key: value for key, value in changes.items() if value is not None}
-        return LearnerConfig.from_dict({**cfg.to_dict(), **changes}) if changes else cfg
+        changes: dict[str, Any] = {"seed": self.config.seed, "bc_weight": self.config.bc_weight,
+                                   "alpha": self.config.alpha}  # fmt: skip
+        return dataclasses.replace(cfg, **{key: value for key, value in changes.items() if value is not None})
 
     def _import_logs(self, directories: tuple[Path, ...]) -> tuple[int, LearnerConfig | None]:
         """Store the experiences of logs that the store lacks.

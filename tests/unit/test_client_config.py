@@ -44,3 +44,5 @@ def test_the_learner_config_takes_the_sims_default_and_the_clients_override():
     assert learner_config(hydra, ClientConfig(sim="hydra")).advantage_k == 1.0  # measured: see README
     assert learner_config(hydra, ClientConfig(sim="hydra", advantage_k=0.2)).advantage_k == 0.2
     assert learner_config(BoatVec(1), ClientConfig(sim="boat")).advantage_k == 0.2  # the thesis' default
+    assert learner_config(BoatVec(1), ClientConfig(sim="boat")).bc_weight == 0.0  # the thesis' learner
+    assert learner_config(BoatVec(1), ClientConfig(sim="boat", bc_weight=0.5)).bc_weight == 0.5
