@@ -80,7 +80,7 @@ class PassiveBenchConfig:
     """k of the online learners and of the thesis' passive learner (the thesis' 0.2)."""
     passive_advantage_k: float = 1.0
     """k of the passive learners with and without the pull. Q-learning: measured here (8
-    learners, 400,000 thinks, pull 0.5) it scored 0.27 / 0.33 at dt 1 / 0.1 against 0.59 / 0.42
+    learners, 400,000 thinks, pull 0.5, alpha 0.25) it scored 0.27 / 0.33 at dt 1 / 0.1 against 0.59 / 0.42
     with k 0.2; advantage learning widens the action gaps for online exploration, which
     passive learning does not do."""
     passive_alpha: float = 0.05
