@@ -503,7 +503,7 @@ def relearn(
              f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
             (f"controller {i}: store alone, passive learner: thinks / wall s to reach / best error px",
              f"{c['store_only_passive_thinks_to_reach']} / "
-             f"{_maybe(c['store_only_passive_wall_s_to_reach'])} / "
+             f"{_num(c['store_only_passive_wall_s_to_reach'])} / "
              f"{c['store_only_passive_best_error_px']:.1f}"),
         ]  # fmt: skip
     rows += [("competent controllers / relearned with the store kept / with the store alone / "
@@ -562,7 +562,8 @@ def passive(
     for name in ("handcoded", "zero_thrust"):
         rows.append((f"{name}: score / reward per action",
                      f"{result[f'{name}_score']:.3f} / {result[f'{name}_reward']:.4f}"))  # fmt: skip
-    for key, label in passive_bench.PASSIVE_LABELS.items():
+    for key in passive_bench.PASSIVE_LABELS:
+        label = passive_bench.label(result, key)
         for c in result[key]["curve"]:
             rows.append((f"passive, {label}: greedy score / reward after {c['thinks']:,} thinks (median)",
                          f"{np.median(c['scores']):.3f} / {np.median(c['rewards']):.4f}"))  # fmt: skip
@@ -589,11 +590,6 @@ def passive(
         write_json(json_path, result)
     if plot_path:
         passive_bench.plot(result, plot_path)
-
-
-def _maybe(value: float | None, digits: int = 1) -> str:
-    """A figure that may be missing (never reached): `-` then."""
-    return "-" if value is None else f"{value:.{digits}f}"
 
 
 def _names(text: str) -> tuple[str, ...]:

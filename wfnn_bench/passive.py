@@ -351,11 +351,17 @@ def steps(cfg: PassiveBenchConfig) -> int:
 
 
 PASSIVE_LABELS = {
-    "passive": "Q-learning, alpha 0.05, best wire pulled to the logged actions",
-    "passive_no_bc": "Q-learning, alpha 0.05, no pull",
-    "passive_thesis": "the thesis' learner (k 0.2, alpha 0.25, no pull)",
+    "passive": "best wire pulled to the logged actions",
+    "passive_no_bc": "no pull",
+    "passive_thesis": "the thesis' learner",
     "passive_phantom_only": "pulled, from phantom targets only",
 }
+
+
+def label(result: dict[str, Any], key: str) -> str:
+    """A passive condition's name with the learner settings it ran with."""
+    c = result[key]
+    return f"{PASSIVE_LABELS[key]} (k {c['advantage_k']:g}, alpha {c['alpha']:g}, pull {c['bc_weight']:g})"
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
@@ -368,33 +374,33 @@ def plot(result: dict[str, Any], path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(19, 5))
     refs = {"handcoded": ("k", "--", "hand-coded controller"), "zero_thrust": ("grey", ":", "zero thrust")}
     ax = axes[0]
-    for key, label in PASSIVE_LABELS.items():
+    for key in PASSIVE_LABELS:
         curve = result[key]["curve"]
         thinks = [c["thinks"] for c in curve]
         scores = np.array([c["scores"] for c in curve])
-        ax.plot(thinks, np.median(scores, axis=1), marker="o", label=f"{label} (median)")
+        ax.plot(thinks, np.median(scores, axis=1), marker="o", label=f"{label(result, key)} (median)")
         ax.fill_between(thinks, *np.percentile(scores, [25, 75], axis=1), alpha=0.2)
-    for name, (colour, style, label) in refs.items():
-        ax.axhline(result[f"{name}_score"], color=colour, ls=style, label=label)
+    for name, (colour, style, text) in refs.items():
+        ax.axhline(result[f"{name}_score"], color=colour, ls=style, label=text)
     ax.set(xlabel="thinks per learner", ylabel="greedy score (mean distance to target)", yscale="log",
            title="passive learning from the hand-coded controller's logs")  # fmt: skip
     ax.legend(fontsize=7)
     ax = axes[1]
-    for key, label in PASSIVE_LABELS.items():
+    for key in PASSIVE_LABELS:
         last = result[key]["curve"][-1]
-        ax.scatter(last["rewards"], last["scores"], s=18, label=label)
-    for name, (colour, _, label) in refs.items():
+        ax.scatter(last["rewards"], last["scores"], s=18, label=label(result, key))
+    for name, (colour, _, text) in refs.items():
         ax.scatter([result[f"{name}_reward"]], [result[f"{name}_score"]], color=colour, marker="*", s=160,
-                   label=label)  # fmt: skip
+                   label=text)  # fmt: skip
     ax.set(xlabel="mean squashed reward per action (what the learners maximise)", yscale="log",
            ylabel="score (mean distance to target)",
            title="each controller: score against reward")  # fmt: skip
     ax.legend(fontsize=7)
     ax = axes[2]
-    for key, label in (("online", "online"), ("online_mirror", "online + mirror images"),
+    for key, text in (("online", "online"), ("online_mirror", "online + mirror images"),
                        ("online_phantom_only", "online, phantom targets only")):  # fmt: skip
         m = np.asarray(result[key]["median_per_target"])
-        ax.plot(np.arange(1, len(m) + 1) * 200, m, label=label)
+        ax.plot(np.arange(1, len(m) + 1) * 200, m, label=text)
     ax.axhline(result["handcoded_score"], color="k", ls="--", label="hand-coded controller")
     ax.set(xlabel="real experiences", ylabel="median score per target", yscale="log",
            title="learning while acting (Section 4.2 protocol)")  # fmt: skip

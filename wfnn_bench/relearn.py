@@ -36,6 +36,7 @@ import numpy as np
 from sims.hydra import HydraConfig, HydraVec
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_bench.hydra import EPISODE, learn_episode
+from wfnn_bench.passive import PassiveBenchConfig
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
 
@@ -67,9 +68,9 @@ class RelearnBenchConfig:
     score to relearn and is left out of `relearn_fraction`."""
     max_relearn_chunks: int | None = None
     """Stop relearning after this many chunks (None: as many as the original learning had)."""
-    passive_bc_weight: float = 0.5
-    passive_alpha: float = 0.05
-    passive_advantage_k: float = 1.0
+    passive_bc_weight: float = PassiveBenchConfig.bc_weight
+    passive_alpha: float = PassiveBenchConfig.passive_alpha
+    passive_advantage_k: float = PassiveBenchConfig.passive_advantage_k
     """The passive learner relearning from the store alone (`bc_weight`, `alpha`, `advantage_k`;
     the passive benchmark's)."""
     seed: int = 0
@@ -271,6 +272,9 @@ def plot(result: dict[str, Any], path: Path) -> None:
     online, active = np.asarray(result["online_error_px"]), np.asarray(result["with_store_error_px"])
     store, t_store = np.asarray(result["store_only_error_px"]), np.asarray(result["store_only_thinks"])
     chunk_m = float(t_store[0, 0]) / 1e6  # thinks per evaluation interval, millions
+    pulled = np.asarray(result["store_only_passive_error_px"])
+    t_pulled = np.asarray(result["store_only_passive_thinks"])
+    kept = np.asarray(result["trained_then_store_only_error_px"])
     for i in range(online.shape[1]):
         minutes = robot_min * np.arange(1, online.shape[0] + 1)
         line = a.plot(minutes, online[:, i], marker="o", label=f"controller {i}: from scratch")[0]
@@ -279,11 +283,8 @@ def plot(result: dict[str, Any], path: Path) -> None:
         a.axhline(result["goal_px"][i], color=line.get_color(), lw=0.6, ls=":")
         b.plot(t_store[:, i] / 1e6, store[:, i], marker="s", color=line.get_color(),
                label=f"controller {i}: reset weights")  # fmt: skip
-        pulled = np.asarray(result["store_only_passive_error_px"])
-        t_pulled = np.asarray(result["store_only_passive_thinks"])
         b.plot(t_pulled[:, i] / 1e6, pulled[:, i], marker="x", ls="-.", color=line.get_color(),
                label=f"controller {i}: reset weights, passive learner")  # fmt: skip
-        kept = np.asarray(result["trained_then_store_only_error_px"])
         b.plot(chunk_m * np.arange(1, kept.shape[0] + 1), kept[:, i], marker="^", ls="--",
                color=line.get_color(), label=f"controller {i}: its trained weights")  # fmt: skip
         b.axhline(result["goal_px"][i], color=line.get_color(), lw=0.6, ls=":")
