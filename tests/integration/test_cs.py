@@ -231,14 +231,16 @@ def test_a_foraging_nomad_learns_both_behaviours_on_their_own_servers(tmp_path):
         for name, port in ports.items()
     }
     out = tmp_path / "client"
+    # Two minutes of wandering: in one, a robot learning from nothing found a single ball with some
+    # seeds (1 of 10 locally; one CI machine), and the second target, the one pursued, never came.
     with servers["servo"], servers["wander"]:
-        finish(client("--sim", "nomad", "--behaviour", "forage", "--every-second-target", "--episodes", "1",
+        finish(client("--sim", "nomad", "--behaviour", "forage", "--every-second-target", "--episodes", "2",
                       "--balls", "24", "--rate-hz", "0", "--lockstep", "--thinks", "5", "--out", str(out),
                       *[a for port in ports.values() for a in ("--server", endpoint(port))]))  # fmt: skip
     m = metrics(out / "metrics.json")
     assert m["following"] == "servo:ss wander:sw" and m["lockstep_timeouts"] == 0
     driving = {name: b["ticks_driving"] for name, b in m["behaviours"].items()}
-    assert sum(driving.values()) == m["ticks"] == 600 and driving["wander"] > 0
+    assert sum(driving.values()) == m["ticks"] == 1200 and driving["wander"] > 0
     assert m["targets_found"] >= 2 and driving["servo"] > 0  # the second target was pursued
     for name in ("servo", "wander"):
         assert (out / f"weights_{name}.npz").exists()
@@ -246,4 +248,4 @@ def test_a_foraging_nomad_learns_both_behaviours_on_their_own_servers(tmp_path):
         client_id = json.loads((out / f"journal_{name}" / "client.json").read_text())["client"]
         # Every executed action reaches the wanderer; the servoing learns where a target was tracked.
         assert store.stored_through[client_id] == m[f"{name}/uplink/produced_through"] > 0
-    assert m["wander/uplink/produced_through"] >= 600 - 1
+    assert m["wander/uplink/produced_through"] >= 1200 - 1
