@@ -279,6 +279,17 @@ def nomad(
     ] = 5,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
     advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 0.2,
+    watch_phantoms: Annotated[
+        int, typer.Option(min=0, help="Passive watching: phantom-goal copies per watched experience.")
+    ] = 4,
+    watch_mirror: Annotated[
+        bool, typer.Option(help="Passive watching: also learn each experience mirrored.")
+    ] = True,
+    watch_bc_weight: Annotated[
+        float,
+        typer.Option(min=0.0, help="Passive watching: pull of the best wire toward the watched action."),
+    ] = 0.2,
+    watch_alpha: Annotated[float, typer.Option(min=1e-6, help="Passive watching: learning rate.")] = 0.05,
     render: Annotated[bool, typer.Option(help="Also check vision from rendered images (needs GL).")] = True,
     render_ticks: Annotated[
         int, typer.Option(min=1, help="Rendered-vision check: ticks of hand-coded wandering (2 robots).")
@@ -294,7 +305,9 @@ def nomad(
         controllers=controllers, servo_episodes=episodes, eval_every=eval_every, thinks=thinks,
         wander_episodes=wander_episodes, forage_minutes=forage_minutes, forage_balls=forage_balls,
         forage_eval_minutes=min(forage_eval_minutes, forage_minutes),
-        advantage_k=advantage_k, render=render, render_wander_ticks=render_ticks, seed=seed,
+        advantage_k=advantage_k, watch_phantoms=watch_phantoms, watch_mirror=watch_mirror,
+        watch_bc_weight=watch_bc_weight, watch_alpha=watch_alpha,
+        render=render, render_wander_ticks=render_ticks, seed=seed,
     )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("nomad episodes", total=nomad_bench.steps(cfg))
@@ -317,6 +330,7 @@ def nomad(
     ]  # fmt: skip
     scratch = result["servo_from_scratch_same_experiences"]
     for key, label in (("servo_from_wander", "learned watching the wandering only"),
+                       ("servo_from_wander_passive", "the same, passive learner"),
                        ("servo_every_second_target", "every second target pursued")):  # fmt: skip
         f = result[key]
         for e in f["evaluations"]:
@@ -330,6 +344,7 @@ def nomad(
                      f"{found:.1f} / {reached:.2f}"))  # fmt: skip
     rows += [
         ("servo_from_wander_score (final error px, median)", result["servo_from_wander_score"]),
+        ("servo_from_wander_passive_score (px, median)", result["servo_from_wander_passive_score"]),
         ("  from scratch with about as many experiences: final error px",
          f"{scratch['final_error_px']:.1f} ({scratch['experiences']:.0f} experiences)"),
     ]  # fmt: skip

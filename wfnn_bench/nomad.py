@@ -38,6 +38,7 @@ from sims.base import Ranges
 from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcoded_wander
 from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
+from sims.nomad.transforms import phantom_goals, servo_mirror
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -78,6 +79,17 @@ class NomadBenchConfig:
     """The wandering while foraging: learning as it goes (as in the thesis), or hand-coded."""
     forage_wander_noise: float = 0.0
     """Hand-coded wandering: Gaussian noise on its commands, in units of each command's limit."""
+    watch_phantoms: int = 4
+    """Passive watching: phantom-goal copies learned of each watched experience (Section 6.6)."""
+    watch_phantom_px: tuple[float, float, float, float] = (-100.0, 100.0, -40.0, 60.0)
+    """...their goals' offsets from the real goal: uniform in x (low, high), y (low, high) pixels
+    (y down: positive offsets put the goal lower in the image, so targets far ahead are met)."""
+    watch_mirror: bool = True
+    """...each experience also learned left-right mirrored (`sims.nomad.transforms`)."""
+    watch_bc_weight: float = 0.2
+    """...the best wire pulled toward the watched action by this fraction (`LearnerConfig.bc_weight`)."""
+    watch_alpha: float = 0.05
+    """...the passive learner's learning rate (as the boat's passive learner)."""
     task: NomadConfig = field(default_factory=NomadConfig)
     tick_samples: int = 1000
     render: bool = True
@@ -90,11 +102,12 @@ class NomadBenchConfig:
 def steps(cfg: NomadBenchConfig) -> int:
     """Progress units: episodes, foraging minutes and the rendered-vision check.
 
-    Servo episodes, wandering episodes (with and without the veto), minutes of foraging (twice).
+    Servo episodes, wandering episodes (with and without the veto), minutes of foraging (watched
+    by the thesis' learner and by the passive one, every second target pursued).
     """
     return (
         cfg.servo_episodes + 2 * (cfg.wander_episodes + max(cfg.wander_episodes // 3, 1))
-        + 2 * cfg.forage_minutes + (2 if cfg.render else 0)
+        + 3 * cfg.forage_minutes + (2 if cfg.render else 0)
     )  # fmt: skip
 
 
@@ -139,11 +152,18 @@ def proportional(x: FloatArray, cfg: NomadConfig) -> FloatArray:
     )  # fmt: skip
 
 
-def _learner(ranges: NomadVec | Ranges, cfg: NomadBenchConfig, population: int | None = None) -> WFNN:
+def _learner(
+    ranges: NomadVec | Ranges, cfg: NomadBenchConfig, population: int | None = None, **overrides: Any
+) -> WFNN:
     """The benchmark's learners over declared ranges (one per robot of a task unless told)."""
+    settings: dict[str, Any] = {
+        "thinks_per_action": cfg.thinks,
+        "advantage_k": cfg.advantage_k,
+        "seed": cfg.seed,
+    }
     lcfg = LearnerConfig.for_task(
         ranges, exploration=ExplorationConfig(kind=cfg.exploration, sigma=cfg.sigma),  # type: ignore[arg-type]
-        thinks_per_action=cfg.thinks, advantage_k=cfg.advantage_k, seed=cfg.seed,
+        **{**settings, **overrides},
     )  # fmt: skip
     return WFNN(lcfg, population=population or (ranges.n if isinstance(ranges, NomadVec) else 1))
 
@@ -270,7 +290,9 @@ def wander(
     }
 
 
-def forage_servo(cfg: NomadBenchConfig, pursue: Pursue, progress: Progress) -> dict[str, Any]:
+def forage_servo(
+    cfg: NomadBenchConfig, pursue: Pursue, progress: Progress, passive: bool = False
+) -> dict[str, Any]:
     """A servo learner on foraging robots (Section 6.6).
 
     The wandering (learning, or hand-coded: `cfg.forage_wander`) drives until the interest
@@ -280,11 +302,21 @@ def forage_servo(cfg: NomadBenchConfig, pursue: Pursue, progress: Progress) -> d
     from every action, the servo learner's included. The room holds `forage_balls` balls,
     scattered again every minute. Greedy step responses (as for the controllers learned from
     scratch) every `forage_eval_minutes`.
+
+    `passive`: the servo learner is the passive one (`watch_*`): the best wire pulled toward the
+    actions it learns from, a lower learning rate, and each experience also learned mirrored and
+    as `watch_phantoms` copies with phantom goals. Its replays per action stay `thinks`.
     """
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="wander", balls=cfg.forage_balls), seed=cfg.seed + 1)
     forage = NomadForage(task, ForageConfig(pursue=pursue))
-    learner = _learner(forage.ranges("servo"), cfg, p)
+    settings: dict[str, Any] = {}
+    if passive:
+        settings = {"bc_weight": cfg.watch_bc_weight, "alpha": cfg.watch_alpha,
+                    "symmetries": (servo_mirror(cfg.task),) if cfg.watch_mirror else ()}  # fmt: skip
+    learner = _learner(forage.ranges("servo"), cfg, p, **settings)
+    phantom_rng = np.random.default_rng(cfg.seed + 2)
+    x_lo, x_hi, y_lo, y_hi = cfg.watch_phantom_px
     wanderer = _learner(task, cfg) if cfg.forage_wander == "learned" else None
     vetoes = [task.veto(i) for i in range(p)]
     rng = np.random.default_rng(cfg.seed + 1)
@@ -313,6 +345,15 @@ def forage_servo(cfg: NomadBenchConfig, pursue: Pursue, progress: Progress) -> d
             if who is None or not tr.learnable.any():
                 continue
             who.learn(state, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
+            for _ in range(cfg.watch_phantoms if passive and name == "servo" else 0):
+                offset = np.stack(
+                    [phantom_rng.uniform(x_lo, x_hi, p), phantom_rng.uniform(y_lo, y_hi, p)], axis=1
+                )
+                # Untracked rows (NaN) are not learnable; zeros keep the arithmetic quiet.
+                block = phantom_goals(
+                    np.nan_to_num(s), executed, np.nan_to_num(tr.state), tr.reward, offset, task.config
+                )
+                who.learn(*block, tr.terminal, tr.learnable)
             # A vetoed proposal is learned too (Eq 5.4) by the behaviour that proposed it.
             twice = vetoed & tr.learnable & (pursuing if name == "servo" else ~pursuing)
             if twice.any():
@@ -335,12 +376,17 @@ def forage_servo(cfg: NomadBenchConfig, pursue: Pursue, progress: Progress) -> d
     last = evaluations[-1]
     return {
         "pursue": pursue,
+        "passive": passive,
+        "learner": learner.config.to_dict(),
         "wander": cfg.forage_wander,
         "balls": cfg.forage_balls,
         "distance_m": task.distance,
         "collisions": task.collisions,
         "experiences_watched": watched,
         "experiences_own": own,
+        # What the servo learner stored: mirrored and phantom-goal copies included (those whose
+        # phantom errors fall outside the state's declared ranges are refused).
+        "experiences_stored": learner.buffer.count.copy(),
         "targets_found_per_min": forage.forage.found / cfg.forage_minutes,
         "targets_reached_per_min": forage.forage.reached / cfg.forage_minutes,
         "evaluations": evaluations,
@@ -452,6 +498,7 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
     learned_bare = wander(cfg, True, cfg.wander_episodes, progress, veto=False)
     handcoded_bare = wander(cfg, False, max(cfg.wander_episodes // 3, 1), progress, veto=False)
     from_wander = forage_servo(cfg, "never", progress)
+    from_wander_passive = forage_servo(cfg, "never", progress, passive=True)
     every_second = forage_servo(cfg, "every_second", progress)
     fresh = untrained(cfg)
     tick = tick_cost(cfg)
@@ -489,6 +536,8 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
         "servo_from_scratch_same_experiences": _scratch_at(
             servo, float(np.median(from_wander["experiences_watched"]))
         ),
+        "servo_from_wander_passive": from_wander_passive,
+        "servo_from_wander_passive_score": float(np.median(from_wander_passive["final_error_px"])),
         "servo_every_second_target": every_second,
         "servo_every_second_target_score": float(np.median(every_second["final_error_px"])),
         **tick,
@@ -514,6 +563,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     ax.axhline(float(np.median(result["proportional"]["final_error_px"])), color="k", ls="--",
                label="proportional controller")  # fmt: skip
     forages = (("servo_from_wander", "x", ":", "learned watching the wandering only"),
+               ("servo_from_wander_passive", "d", "--", "the same, passive learner (pull, phantom goals)"),
                ("servo_every_second_target", "+", "-.", "every second target pursued"))  # fmt: skip
     for key, marker, ls, label in forages:
         fe = result[key]["evaluations"]

@@ -204,6 +204,15 @@ def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     bare = data["wander_no_veto"]  # without the veto every minute is counted, vetoes are none
     assert sum(map(sum, bare["vetoes"])) == 0 and len(bare["collisions"][0]) == 3
     assert [e["minutes"] for e in data["servo_every_second_target"]["evaluations"]] == [1]
+    watched, passive = data["servo_from_wander"], data["servo_from_wander_passive"]
+    assert passive["learner"]["bc_weight"] == 0.2 and passive["learner"]["symmetries"][0]["name"] == "mirror"
+    # Each watched experience is also learned mirrored, and both as 4 phantom-goal copies (less
+    # copies outside the declared state ranges, and wild encoder readings).
+    for seen, stored in zip(passive["experiences_watched"], passive["experiences_stored"], strict=True):
+        assert 0 < 2 * seen < stored <= 10 * seen
+    for seen, stored in zip(watched["experiences_watched"], watched["experiences_stored"], strict=True):
+        assert 0 < stored <= seen
+    assert data["servo_from_wander_passive_score"] >= 0
     rendering = data["render"]
     if rendering["available"]:  # the proportional servo works on rendered images too
         assert rendering["servo_final_error_px"] < 15 and 0.5 < rendering["carpet_agreement"] <= 1
