@@ -345,15 +345,15 @@ def forage_servo(
             if who is None or not tr.learnable.any():
                 continue
             who.learn(state, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
-            for _ in range(cfg.watch_phantoms if passive and name == "servo" else 0):
-                offset = np.stack(
-                    [phantom_rng.uniform(x_lo, x_hi, p), phantom_rng.uniform(y_lo, y_hi, p)], axis=1
-                )
+            if passive and name == "servo":
                 # Untracked rows (NaN) are not learnable; zeros keep the arithmetic quiet.
-                block = phantom_goals(
-                    np.nan_to_num(s), executed, np.nan_to_num(tr.state), tr.reward, offset, task.config
-                )
-                who.learn(*block, tr.terminal, tr.learnable)
+                tracked, tracked_next = np.nan_to_num(state), np.nan_to_num(tr.state)
+                for _ in range(cfg.watch_phantoms):
+                    offset = np.stack(
+                        [phantom_rng.uniform(x_lo, x_hi, p), phantom_rng.uniform(y_lo, y_hi, p)], axis=1
+                    )
+                    block = phantom_goals(tracked, executed, tracked_next, tr.reward, offset, task.config)
+                    who.learn(*block, tr.terminal, tr.learnable)
             # A vetoed proposal is learned too (Eq 5.4) by the behaviour that proposed it.
             twice = vetoed & tr.learnable & (pursuing if name == "servo" else ~pursuing)
             if twice.any():

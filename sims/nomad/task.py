@@ -721,8 +721,7 @@ class NomadVec:
         measured = np.clip(state[:, -2:], -limits, limits) / limits
         rough = -cfg.smoothness_weight * ((u - measured) ** 2).sum(axis=1)
         if (behaviour or cfg.behaviour) == "servo":
-            v = cfg.vision
-            half_diagonal = np.hypot(v.width, v.height) / 2
+            half_diagonal = cfg.vision.half_diagonal
             error = np.hypot(*np.nan_to_num(next_state[:, :2].T, nan=half_diagonal))
             return np.stack([-cfg.position_weight * error / half_diagonal,
                              -cfg.energy_weight * (u**2).sum(axis=1), rough], axis=1)  # fmt: skip
@@ -750,8 +749,7 @@ class NomadVec:
 
     def pixel_error(self) -> FloatArray:
         """servo: |pixel error to the goal| [n], half the image diagonal where no target is tracked."""
-        v = self.config.vision
-        half_diagonal = np.hypot(v.width, v.height) / 2
+        half_diagonal = self.config.vision.half_diagonal
         return np.where(np.isnan(self.pixels[:, 0]), half_diagonal, np.hypot(*np.nan_to_num(self.pixels).T))
 
 

@@ -61,8 +61,7 @@ def phantom_goals(
     tracked target in both states (as every learnable servo experience has).
     """
     cfg = config or NomadConfig()
-    v = cfg.vision
-    half_diagonal = np.hypot(v.width, v.height) / 2
+    half_diagonal = cfg.vision.half_diagonal
     offset = np.asarray(offset, dtype=np.float64)
     state, next_state = np.array(state, dtype=np.float64), np.array(next_state, dtype=np.float64)
     before = np.hypot(next_state[:, 0], next_state[:, 1])

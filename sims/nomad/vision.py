@@ -91,6 +91,11 @@ class NomadVisionConfig:
         ):
             raise ValueError("render: the rendered image is too small for the 5 x 7 carpet grid")
 
+    @property
+    def half_diagonal(self) -> float:
+        """Half the image diagonal (px): the servo reward's unit of pixel error, and a lost target's error."""
+        return float(np.hypot(self.width, self.height) / 2)
+
 
 def cell_pixels(cfg: NomadVisionConfig) -> FloatArray:
     """Sample points of each grid cell [ROWS, COLS, samples^2, 2] (x right, y down, from the centre)."""
