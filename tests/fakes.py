@@ -75,6 +75,7 @@ class Hub:
         self.watchers: list[tuple[LoopbackBus, str, object]] = []
         self.tap = None  # tap(key, payload) -> payload or None (dropped)
         self.puts: list[tuple[str, int]] = []
+        self.queries: list[str] = []
 
     def bus(self) -> LoopbackBus:
         return LoopbackBus(self)
@@ -84,8 +85,11 @@ class LoopbackBus:
     """The `Bus` interface over a `Hub`: delivery is synchronous, in the publisher's thread."""
 
     def __init__(self, hub: Hub) -> None:
+        import collections
+
         self.hub = hub
         self.closed = False
+        self.oversized = collections.Counter()
 
     def put(self, key, payload, channel) -> None:
         if self.closed:
@@ -99,18 +103,39 @@ class LoopbackBus:
             if data is not None:
                 callback(key, bytes(data))
 
-    def subscribe(self, key, callback) -> None:
+    def _checked(self, callback, max_bytes):
+        def deliver(key, payload):
+            if max_bytes is not None and len(payload) > max_bytes:
+                self.oversized[key.rsplit("/", 1)[0]] += 1
+                return
+            callback(key, payload)
+
+        return deliver
+
+    def subscribe(self, key, callback, max_bytes=None) -> None:
         with self.hub.lock:
-            self.hub.subscribers.append((self, key, callback))
+            self.hub.subscribers.append((self, key, self._checked(callback, max_bytes)))
 
     def queryable(self, key, answer) -> None:
         with self.hub.lock:
             self.hub.queryables.append((self, key, answer))
 
-    def get(self, key, timeout_s):
+    def query(self, key, timeout_s, callback, max_bytes=None):
+        """Answered in a thread of its own, as a real bus would (a queryable may never answer)."""
+        import threading
+
         with self.hub.lock:
-            answers = [a for b, pat, a in self.hub.queryables if not b.closed and key_matches(key, pat)]
-        return [r for r in (a() for a in answers) if r is not None]
+            self.hub.queries.append(key)
+            answers = [(pat, a) for b, pat, a in self.hub.queryables if not b.closed and key_matches(key, pat)]
+        deliver = self._checked(callback, max_bytes)
+
+        def ask():
+            for pat, answer in answers:
+                reply = answer()
+                if reply is not None:
+                    deliver(key, bytes(reply))
+
+        threading.Thread(target=ask, daemon=True).start()
 
     def declare_token(self, key) -> None:
         with self.hub.lock:

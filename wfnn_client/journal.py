@@ -17,11 +17,14 @@ import secrets
 from pathlib import Path
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.logs import log_config, write_log_json
-from wfnn_common.protocol import ExperienceBatch, ProtocolError, check_id, decode
-from wfnn_common.segments import FsyncPolicy, Position, SegmentLog
+from wfnn_common.logs import ExperienceLog, set_aside
+from wfnn_common.persist import atomic_write_text
+from wfnn_common.protocol import check_id
+from wfnn_common.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
+
+CLIENT_JSON = "client.json"
 
 
 class Journal:
@@ -38,52 +41,49 @@ class Journal:
         learner_config: LearnerConfig | None = None,
     ) -> None:
         directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        recorded = log_config(directory)
-        if (
-            learner_config is not None
-            and recorded is not None
-            and recorded.spec_hash() != learner_config.spec_hash()
-        ):
-            raise ValueError(
-                f"{directory} records experiences of learner spec {recorded.spec_hash()}, not "
-                f"{learner_config.spec_hash()} (another task or ranges): use another run directory"
-            )
-        write_log_json(directory, learner_config or recorded)
-        meta = directory / "client.json"
-        if meta.exists():
-            stored = json.loads(meta.read_text())["client"]
-            if client_id is not None and client_id != stored:
-                raise ValueError(
-                    f"journal {directory} belongs to client {stored!r}, not {client_id!r}; "
-                    "use another record directory or the same client id"
-                )
-            client_id = stored
-        else:
-            client_id = check_id(client_id or f"c{secrets.token_hex(4)}", "client id")
-            meta.write_text(json.dumps({"client": client_id}))
-        self.client_id: str = client_id
-        self.log = SegmentLog(
-            directory, fsync=fsync, fsync_interval_s=fsync_interval_s, segment_bytes=segment_bytes
-        )
+        self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
+                                 segment_bytes=segment_bytes)  # fmt: skip
         self._last: list[int] = []
         """Last sequence number of each journaled batch, ascending."""
         self._where: list[Position] = []
         self.next_seq = 0
-        for pos, frame in self.log.read():
-            try:
-                _, _, batch = decode(frame, expect=ExperienceBatch)
-            except ProtocolError as exc:
-                log.error("journal record at %s unreadable (%s); skipped", pos, exc)
-                continue
-            assert isinstance(batch, ExperienceBatch)
-            if batch.first_seq != self.next_seq:
-                log.error(
-                    "journal batch at %s starts at %d, expected %d", pos, batch.first_seq, self.next_seq
-                )
-            self._index(batch.last_seq, pos)
+        owner = ""
+        try:
+            for pos, _, batch in self.log.entries():
+                owner = owner or batch.client
+                if batch.first_seq != self.next_seq:
+                    log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d are missing)",
+                              pos, batch.first_seq, self.next_seq, self.next_seq, batch.first_seq - 1)  # fmt: skip
+                if batch.last_seq >= self.next_seq:
+                    self._index(batch.last_seq, pos)
+            self.client_id: str = self._client_id(directory, client_id, owner)
+        except BaseException:
+            self.log.close()
+            raise
         if self.next_seq:
-            log.info("journal %s: client %s continues at experience %d", directory, client_id, self.next_seq)
+            log.info("journal %s: client %s continues at experience %d", directory, self.client_id,
+                     self.next_seq)  # fmt: skip
+
+    @staticmethod
+    def _client_id(directory: Path, asked: str | None, owner: str) -> str:
+        """The journal's client id: client.json's (or, where that is unreadable, its batches')."""
+        meta = directory / CLIENT_JSON
+        stored = ""
+        if meta.exists():
+            try:
+                stored = check_id(json.loads(meta.read_text())["client"], "client id")
+            except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+                set_aside(meta, f"unreadable ({exc})")
+        stored = stored or owner
+        if stored and asked is not None and asked != stored:
+            raise ValueError(
+                f"journal {directory} belongs to client {stored!r}, not {asked!r}; "
+                "use another record directory or the same client id"
+            )
+        client_id = stored or check_id(asked or f"c{secrets.token_hex(4)}", "client id")
+        if not meta.exists():
+            atomic_write_text(meta, json.dumps({"client": client_id}))
+        return client_id
 
     def _index(self, last_seq: int, pos: Position) -> None:
         self._last.append(last_seq)
@@ -101,19 +101,23 @@ class Journal:
         """
         i = bisect.bisect_left(self._last, seq)
         out: list[bytes] = []
-        if i >= len(self._last):
-            return out, -1
-        for pos, frame in self.log.read(self._where[i]):
-            if pos != self._where[i + len(out)]:
-                continue  # a record that was unreadable when the journal was opened
+        last = -1
+        for j in range(i, min(i + max_frames, len(self._where))):
+            frame = self.log.frame_at(self._where[j])
+            if frame is None:  # damaged since it was indexed: counted by the reader, skipped
+                log.error("journal record at %s is no longer readable", self._where[j])
+                continue
             out.append(frame)
-            if len(out) >= max_frames or i + len(out) >= len(self._where):
-                break
-        return out, self._last[i + len(out) - 1]
+            last = self._last[j]
+        return out, last
 
     def sync(self) -> None:
         """Make the journal durable (per its fsync policy)."""
         self.log.sync()
+
+    def due(self) -> bool:
+        """Whether journaled frames wait for `sync`."""
+        return self.log.due()
 
     def close(self) -> None:
         """Sync and close."""

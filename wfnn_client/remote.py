@@ -4,11 +4,18 @@
     uplink thread:  deque -> batches (sequence numbers, weights version) -> journal -> publish;
                     acks per server; re-send from the journal what a server has not
                     acknowledged in time (lost frames, a restarted or late-joining server)
-    downlink thread: snapshots (CRC/MAC, spec, shape, finite, monotonic version) per server;
+    downlink thread: statuses (CRC/MAC) say which servers are alive and which store and
+                    incarnation each one is; snapshots (CRC/MAC, spec, shape, finite, of the
+                    announced store and incarnation, version newer than the last) per server;
                     follow one server and fail over when it is gone, silent or diverged;
                     swap the weights `act` uses in one reference assignment
 
-Bus callbacks only put bytes on queues. Nothing here can block the tick.
+Bus callbacks only put bytes on queues, and no payload larger than expected is copied. Nothing
+here can block the tick, and nothing received can end a thread: every message is handled
+inside a guard that counts what fails. Liveliness tokens and queries are not authenticated, so
+neither decides anything alone: a server is alive while its MAC-checked status arrives (a
+token that disappears marks it gone until its next status), and the query for a server's
+newest weights never waits.
 """
 
 from __future__ import annotations
@@ -30,17 +37,20 @@ from wfnn_client.journal import Journal
 from wfnn_common.learner import WFNN
 from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params, Shapes
+from wfnn_common.config import check_fields
 from wfnn_common.protocol import (
     Ack,
     CameraView,
     ClientStatus,
     Codec,
     Keys,
+    MsgType,
     ProtocolError,
     ServerStatus,
     WeightSnapshot,
     check_id,
     load_key,
+    max_frame,
 )
 from wfnn_common.segments import FsyncPolicy
 
@@ -68,7 +78,10 @@ class RemoteConfig:
     resend_window: int = 64
     """Frames per re-send round (the next round starts when they are acknowledged)."""
     snapshot_timeout_s: float = 1.5
-    """A followed server with no valid snapshot for this long is unhealthy (a silent peer)."""
+    """A followed server with no valid snapshot for this long is unhealthy (a silent peer); no
+    new weights applied for this long is logged and counted as a stretch without weights."""
+    status_timeout_s: float = 2.0
+    """A server whose status has not arrived for this long is no longer alive."""
     diverged_hold_s: float = 10.0
     """How long a server whose weights diverged here is passed over."""
     status_period_s: float = 0.5
@@ -78,7 +91,14 @@ class RemoteConfig:
     lockstep: bool = False
 
     def __post_init__(self) -> None:
+        check_fields(self)
         check_id(self.controller, "controller name")
+        for name in ("batch_period_s", "resend_after_s", "snapshot_timeout_s", "status_timeout_s",
+                     "diverged_hold_s", "status_period_s", "query_timeout_s"):  # fmt: skip
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.batch_max < 1 or self.resend_window < 1:
+            raise ValueError("batch_max and resend_window must be >= 1")
         if self.client_id is not None:
             check_id(self.client_id, "client id")
         if self.follow is not None:
@@ -111,11 +131,20 @@ class ServerView:
 
     server: str
     alive: bool = False
+    """Its MAC-checked status arrived within status_timeout_s, and no token vanished since."""
+    heard: float = 0.0
+    """time.monotonic() of its latest valid status (0: never)."""
+    gone: bool = False
+    """Its liveliness token disappeared after its latest status."""
     started_ns: int = 0
     spec_hash: str = ""
+    store: str = ""
+    """Its store's identity, as announced (status and acks)."""
     incarnation: int = 0
+    asked: bool = False
+    """The query for its newest weights was sent (once per announced store and incarnation)."""
     acked: int = -1
-    """Every experience numbered <= this is stored there."""
+    """Every experience numbered <= this is stored in its store."""
     latest: Weights | None = None
     suspect_until: float = 0.0
     metrics: dict[str, float] = field(default_factory=dict)
@@ -148,6 +177,8 @@ class RemoteBrain:
         self.spec_hash = learner.config.spec_hash()
         self._config_json = learner.config.to_json()
         self._shapes = Shapes.of(learner.config)
+        self.max_snapshot_bytes = max_frame(MsgType.WEIGHTS, 8 * self._shapes.n_params + (64 << 10))
+        """No larger weights frame is copied: the exact parameters, and room for the rest."""
         self._pending: collections.deque[_Pending] = collections.deque()
         self._wake_up = threading.Event()
         self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
@@ -174,6 +205,12 @@ class RemoteBrain:
         self.staleness_s: list[float] = []
         self.failovers: list[dict[str, Any]] = []
         self._lost_at: float | None = None
+        self._applied_at: float | None = None
+        """time.monotonic() when weights were last applied (None before the first)."""
+        self._weightless_since: float | None = None
+        self.longest_without_weights_s = 0.0
+        """The longest stretch without newly applied weights after the first (a stretch still
+        open counted as far as it has gone)."""
         self._loop_metrics: dict[str, float] = {}
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -193,9 +230,9 @@ class RemoteBrain:
     def start(self) -> None:
         """Subscribe, announce this client, and start the uplink and downlink threads."""
         bus, keys = self.bus, self.keys
-        bus.subscribe(keys.ack(self.id), self._on_ack)
-        bus.subscribe(keys.server_status(), self._on_status)
-        bus.subscribe(keys.weights(), self._on_snapshot)
+        bus.subscribe(keys.ack(self.id), self._on_ack, max_frame(MsgType.ACK))
+        bus.subscribe(keys.server_status(), self._on_status, max_frame(MsgType.SERVER_STATUS))
+        bus.subscribe(keys.weights(), self._on_snapshot, self.max_snapshot_bytes)
         bus.watch_presence(keys.server_alive(), self._on_presence)
         bus.declare_token(keys.client_alive(self.id))
         for name, target in (("uplink", self._uplink_loop), ("downlink", self._downlink_loop)):
@@ -221,6 +258,13 @@ class RemoteBrain:
     def _on_snapshot(self, key: str, data: bytes) -> None:
         self._snapshots[Keys.last(key)] = data
         self._wake_down.set()
+
+    def _count_error(self, what: str, exc: Exception) -> None:
+        """A message that provoked an unforeseen error: counted and logged, the thread goes on."""
+        self.rejected["error"] += 1
+        if self.rejected["error"] <= 10:
+            log.error("a %s could not be handled (%s: %s); counted as rejected 'error'", what,
+                      type(exc).__name__, exc, exc_info=exc)  # fmt: skip
 
     def _guard(self, target: Any) -> Any:
         def run() -> None:
@@ -319,6 +363,9 @@ class RemoteBrain:
             "uplink/produced_through": float(self.produced_through),
             "weights/version": float(self.current.version if self.current else 0),
             "downlink/failovers": float(len(self.failovers)),
+            "downlink/longest_without_weights_s": self.longest_without_weights_s,
+            **{f"downlink/oversized_{k.rsplit('/', 1)[-1]}": float(v)
+               for k, v in dict(getattr(self.bus, "oversized", {})).items()},
             **{f"downlink/rejected_{k}": float(v) for k, v in self.rejected.items()},
             **{k: float(v) for k, v in self.counters.items()},
         }
@@ -352,7 +399,7 @@ class RemoteBrain:
                 self._send_batch()
             self._take_acks()
             self._resend()
-            if self.journal.log.due():
+            if self.journal.due():
                 self.journal.sync()
             now = time.monotonic()
             if now >= next_status:
@@ -385,21 +432,36 @@ class RemoteBrain:
                 return
             try:
                 sender, ack = self.codec.decode(data, Ack)
+                if ack.client != self.id or sender != ack.server:
+                    self.rejected["ack_misrouted"] += 1
+                    continue
+                with self._lock:
+                    view = self.servers.setdefault(ack.server, ServerView(ack.server))
+                    self._announced(view, ack.store, ack.incarnation)
+                    view.acked = max(view.acked, ack.stored_through)
             except ProtocolError as exc:
                 self.rejected[f"ack_{exc.reason}"] += 1
-                continue
-            if ack.client != self.id or sender != ack.server:
-                self.rejected["ack_misrouted"] += 1
-                continue
-            self._acked(ack.server, ack.incarnation, ack.stored_through)
+            except Exception as exc:
+                self._count_error("ack", exc)
 
-    def _acked(self, server: str, incarnation: int, through: int) -> None:
-        with self._lock:
-            view = self.servers.setdefault(server, ServerView(server))
-            if incarnation != view.incarnation:  # a restarted server may have lost data: believe it
-                view.incarnation, view.acked = incarnation, through
-            else:
-                view.acked = max(view.acked, through)
+    def _announced(self, view: ServerView, store: str, incarnation: int) -> None:
+        """A server says which store and incarnation it is (caller holds the lock).
+
+        Another store than before (a server restarted with a new data directory, or the first
+        word from it) holds what it says it holds, whatever was acknowledged before: the
+        acknowledged point restarts, so the journal re-sends it everything it lacks. Another
+        store or incarnation also restarts the order of its snapshots: weights of one that is
+        no longer announced are not followed.
+        """
+        if (store, incarnation) == (view.store, view.incarnation):
+            return
+        if store != view.store:
+            if view.store:
+                log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,
+                            store, view.store)  # fmt: skip
+            view.acked, view.window_end, view.last_resend = -1, -1, 0.0
+        view.store, view.incarnation = store, incarnation
+        view.latest, view.asked = None, False
 
     def _resend(self) -> None:
         """Re-send from the journal to live servers missing experiences sent long enough ago."""
@@ -407,8 +469,8 @@ class RemoteBrain:
         now = time.monotonic()
         while self._sent and now - self._sent[0][0] >= cfg.resend_after_s:
             self._overdue = self._sent.popleft()[1]
-        with self._lock:
-            views = [v for v in self.servers.values() if v.alive and v.spec_hash in ("", self.spec_hash)]
+        with self._lock:  # only servers whose MAC-checked status says they are alive and of this spec
+            views = [v for v in self.servers.values() if v.alive and v.spec_hash == self.spec_hash]
         for view in views:
             if view.acked >= self._overdue:
                 continue
@@ -445,26 +507,29 @@ class RemoteBrain:
             self._wake_down.clear()
             self._take_presence()
             self._take_statuses()
+            self._refresh()
             for server in list(self._snapshots):
                 data = self._snapshots.pop(server, None)
                 if data is not None:
-                    self._take_snapshot(data)
+                    try:
+                        self._take_snapshot(data)
+                    except Exception as exc:
+                        self._count_error("snapshot", exc)
             self._choose()
+            self._watch_weights()
 
     def _take_presence(self) -> None:
+        """Tokens are hints: one that disappears marks its server gone until its next status."""
         while True:
             try:
                 server, alive = self._presence.get_nowait()
             except queue.Empty:
                 return
             with self._lock:
-                view = self.servers.setdefault(server, ServerView(server))
-                view.alive = alive
-                ask = alive and view.latest is None
-            log.info("server %s %s", server, "is alive" if alive else "is gone")
-            if ask:  # its newest weights now, rather than at its next publication
-                for frame in self.bus.get(self.keys.weights(server), self.config.query_timeout_s):
-                    self._snapshots.setdefault(server, frame)
+                view = self.servers.get(server)
+                if view is not None and not alive and view.heard > 0 and not view.gone:
+                    view.gone = True
+                    log.info("server %s: its liveliness token is gone", server)
 
     def _take_statuses(self) -> None:
         while True:
@@ -473,19 +538,44 @@ class RemoteBrain:
             except queue.Empty:
                 return
             try:
-                sender, status = self.codec.decode(data, ServerStatus)
+                self._take_status(data)
             except ProtocolError as exc:
                 self.rejected[f"status_{exc.reason}"] += 1
-                continue
-            if sender != status.server:
-                self.rejected["status_misrouted"] += 1
-                continue
-            with self._lock:
-                view = self.servers.setdefault(status.server, ServerView(status.server))
-                view.started_ns, view.spec_hash = status.started_ns, status.spec_hash
-                view.metrics = status.metrics
+            except Exception as exc:
+                self._count_error("server status", exc)
+
+    def _take_status(self, data: bytes) -> None:
+        sender, status = self.codec.decode(data, ServerStatus)
+        if sender != status.server:
+            self.rejected["status_misrouted"] += 1
+            return
+        with self._lock:
+            view = self.servers.get(status.server)
+            if view is None:
+                view = self.servers[status.server] = ServerView(status.server)
+                log.info("server %s is alive (store %s, incarnation %d)", status.server, status.store,
+                         status.incarnation)  # fmt: skip
+            self._announced(view, status.store, status.incarnation)
+            view.heard, view.gone = time.monotonic(), False
+            view.started_ns, view.spec_hash = status.started_ns, status.spec_hash
+            view.metrics = status.metrics
             if self.id in status.stored_through:
-                self._acked(status.server, status.incarnation, status.stored_through[self.id])
+                view.acked = max(view.acked, status.stored_through[self.id])
+            ask = not view.asked and view.latest is None and status.spec_hash == self.spec_hash
+            view.asked = view.asked or ask
+        if ask:  # its newest weights now rather than at its next publication; replies come later
+            self.bus.query(self.keys.weights(status.server), self.config.query_timeout_s, self._on_snapshot,
+                           self.max_snapshot_bytes)  # fmt: skip
+
+    def _refresh(self) -> None:
+        """Which servers are alive now (a recent status, no token gone since)."""
+        now = time.monotonic()
+        with self._lock:
+            for view in self.servers.values():
+                alive = view.heard > 0 and now - view.heard <= self.config.status_timeout_s and not view.gone
+                if view.alive and not alive:
+                    log.info("server %s is gone", view.server)
+                view.alive = alive
 
     def _take_snapshot(self, data: bytes) -> None:
         try:
@@ -527,13 +617,15 @@ class RemoteBrain:
             return "non_finite"
         with self._lock:
             view = self.servers.get(snap.server)
-            latest = view.latest if view else None
-        if latest is not None and (snap.incarnation, snap.version) <= (latest.incarnation, latest.version):
+            if view is None or (snap.store, snap.incarnation) != (view.store, view.incarnation):
+                return "unannounced"  # not what that server's own status says it is
+            latest = view.latest
+        if latest is not None and snap.version <= latest.version:
             return "stale"
         return ""
 
     def _fresh_weights(self, view: ServerView, now: float) -> Weights | None:
-        """Its newest weights if it is alive (token and heartbeat seen) and they are fresh."""
+        """Its newest weights if it is alive (its status heard lately) and they are fresh."""
         w = view.latest
         if w is None or not view.alive or view.started_ns <= 0:
             return None
@@ -587,9 +679,26 @@ class RemoteBrain:
         assert chosen.latest is not None
         self._apply(chosen.latest)
 
+    def _watch_weights(self) -> None:
+        """Log and count a stretch without newly applied weights (after the first weights)."""
+        if self._applied_at is None:
+            return
+        gap = time.monotonic() - self._applied_at
+        self.longest_without_weights_s = max(self.longest_without_weights_s, gap)
+        if gap > self.config.snapshot_timeout_s and self._weightless_since is None:
+            self._weightless_since = self._applied_at
+            self.counters["downlink/weightless_stretches"] += 1
+            log.warning("no new weights applied for %.1f s (acting on version %d from %s)", gap,
+                        self.current.version if self.current else 0, self._following or "-")  # fmt: skip
+
     def _apply(self, w: Weights) -> None:
         """Make `w` the weights `act` uses (one reference swap)."""
         if w is not self.current:
+            now = time.monotonic()
+            if self._weightless_since is not None:
+                log.warning("new weights applied after %.1f s without", now - self._weightless_since)
+                self._weightless_since = None
+            self._applied_at = now
             self.current = w
             self.apply_latency_ms.append((time.time_ns() - w.published_ns) / 1e6)
             if len(self.apply_latency_ms) > 100_000:

@@ -9,6 +9,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import numpy as np
+
 from wfnn_common.symmetry import Symmetry
 
 ExplorationKind = Literal["none", "uniform", "gaussian", "smooth"]
@@ -16,6 +18,55 @@ ExplorationKind = Literal["none", "uniform", "gaussian", "smooth"]
 
 class ConfigError(ValueError):
     """A configuration value is out of its allowed range or inconsistent."""
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool | np.bool_)
+
+
+def _is_number(v: Any) -> bool:
+    return (_is_int(v) or isinstance(v, float | np.floating)) and math.isfinite(float(v))
+
+
+_CHECKS: dict[str, Any] = {
+    "int": _is_int,
+    "float": _is_number,
+    "bool": lambda v: isinstance(v, bool | np.bool_),
+    "str": lambda v: isinstance(v, str),
+    "tuple[float, ...]": lambda v: isinstance(v, tuple) and all(_is_number(x) for x in v),
+    "tuple[int, ...]": lambda v: isinstance(v, tuple) and all(_is_int(x) for x in v),
+    "tuple[str, ...]": lambda v: isinstance(v, tuple) and all(isinstance(x, str) for x in v),
+}
+_WHAT = {"int": "an integer", "float": "a finite number", "bool": "true or false", "str": "a string",
+         "tuple[float, ...]": "finite numbers", "tuple[int, ...]": "integers",
+         "tuple[str, ...]": "strings"}  # fmt: skip
+
+
+def check_fields(config: Any) -> None:
+    """Every int, float, bool, str (or tuple of them) field of a config dataclass holds that type,
+    floats finite (NaN and infinity refused); `X | None` fields may also be None.
+
+    Called first in each config's `__post_init__`, so a config made from a file, a command line
+    or the network is checked the same way; each config then checks its own ranges.
+    """
+    for f in dataclasses.fields(config):
+        kind = str(f.type).replace(" | None", "")
+        check = _CHECKS.get(kind)
+        value = getattr(config, f.name)
+        if check is None or (value is None and str(f.type).endswith("| None")):
+            continue
+        if not check(value):
+            raise ConfigError(f"{type(config).__name__}.{f.name} must be {_WHAT[kind]}, got {value!r}")
+
+
+def parse_json(text: str | bytes, what: str, max_bytes: int = 1 << 20) -> Any:
+    """JSON text -> value; anything wrong (too long, not JSON, nested too deep) is a ConfigError."""
+    if len(text) > max_bytes:
+        raise ConfigError(f"{what}: {len(text)} bytes is more than {max_bytes}")
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError, TypeError) as exc:
+        raise ConfigError(f"{what}: not JSON ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -34,12 +85,26 @@ class ExplorationConfig:
     """Correlation time of the smooth noise, in actions."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
+        if self.kind not in ("none", "uniform", "gaussian", "smooth"):
+            raise ConfigError(f"exploration.kind must be none, uniform, gaussian or smooth, got {self.kind!r}")
         if not 0.0 <= self.p <= 1.0:
             raise ConfigError(f"exploration.p must be in [0, 1], got {self.p}")
-        if self.sigma < 0.0:
-            raise ConfigError(f"exploration.sigma must be >= 0, got {self.sigma}")
-        if self.tau_steps < 1.0:
-            raise ConfigError(f"exploration.tau_steps must be >= 1, got {self.tau_steps}")
+        if not 0.0 <= self.sigma <= 100.0:
+            raise ConfigError(f"exploration.sigma must be in [0, 100], got {self.sigma}")
+        if not 1.0 <= self.tau_steps <= 1e6:
+            raise ConfigError(f"exploration.tau_steps must be in [1, 1e6], got {self.tau_steps}")
+
+
+MAX_STATE_DIM = 1024
+MAX_ACTION_DIM = 64
+MAX_HIDDEN = 4096
+MAX_WIRES = 1024
+MAX_THINKS = 1_000_000
+MAX_BATCH = 1 << 20
+MAX_REPLAY_BYTES = 8 << 30
+"""Upper limits of a learner config: a config also arrives from the network, and one that asks
+for more memory or work than any robot here needs is refused rather than attempted."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -111,6 +176,11 @@ class LearnerConfig:
     experiences; the thinks owed per action are unchanged."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
+        if not isinstance(self.exploration, ExplorationConfig):
+            raise ConfigError(f"exploration must be an ExplorationConfig, got {self.exploration!r}")
+        if not isinstance(self.symmetries, tuple) or not all(isinstance(s, Symmetry) for s in self.symmetries):
+            raise ConfigError(f"symmetries must be a tuple of Symmetry, got {self.symmetries!r}")
         s_lo, s_hi, a_lo, a_hi = self.state_low, self.state_high, self.action_low, self.action_high
         if len(s_lo) == 0 or len(s_lo) != len(s_hi):
             raise ConfigError(f"state_low/high must be non-empty and equal length, got {s_lo}, {s_hi}")
@@ -120,21 +190,27 @@ class LearnerConfig:
             for i, (a, b) in enumerate(zip(lo, hi, strict=True)):
                 if not (math.isfinite(a) and math.isfinite(b) and b > a):
                     raise ConfigError(f"{name} range {i} must be finite with high > low, got [{a}, {b}]")
+        if len(s_lo) > MAX_STATE_DIM or len(a_lo) > MAX_ACTION_DIM:
+            raise ConfigError(f"at most {MAX_STATE_DIM} state and {MAX_ACTION_DIM} action variables, "
+                              f"got {len(s_lo)} and {len(a_lo)}")  # fmt: skip
+        row_bytes = 8 * (2 * len(s_lo) + len(a_lo) + 2)
         checks: list[tuple[bool, str]] = [
-            (self.n_hidden >= 1, "n_hidden must be >= 1"),
-            (self.n_wires >= 1, "n_wires must be >= 1"),
+            (1 <= self.n_hidden <= MAX_HIDDEN, f"n_hidden must be in [1, {MAX_HIDDEN}]"),
+            (1 <= self.n_wires <= MAX_WIRES, f"n_wires must be in [1, {MAX_WIRES}]"),
             (0.0 <= self.gamma < 1.0, "gamma must be in [0, 1)"),
             (0.0 < self.advantage_k <= 1.0, "advantage_k must be in (0, 1]"),
-            (self.alpha > 0.0, "alpha must be > 0"),
-            (self.smoothing_c >= 0.0, "smoothing_c must be >= 0"),
-            (self.eps > 0.0, "eps must be > 0"),
-            (math.isfinite(self.bc_weight) and self.bc_weight >= 0.0, "bc_weight must be finite and >= 0"),
-            (self.thinks_per_action >= 0, "thinks_per_action must be >= 0"),
-            (self.batch_size >= 1, "batch_size must be >= 1"),
+            (0.0 < self.alpha <= 10.0, "alpha must be in (0, 10]"),
+            (0.0 <= self.smoothing_c <= 1e3, "smoothing_c must be in [0, 1000]"),
+            (0.0 < self.eps <= 1.0, "eps must be in (0, 1]"),
+            (0.0 <= self.bc_weight <= 1.0, "bc_weight must be in [0, 1] (a fraction of the difference)"),
+            (0 <= self.thinks_per_action <= MAX_THINKS, f"thinks_per_action must be in [0, {MAX_THINKS}]"),
+            (1 <= self.batch_size <= MAX_BATCH, f"batch_size must be in [1, {MAX_BATCH}]"),
             (self.replay_capacity >= 1, "replay_capacity must be >= 1"),
+            (self.replay_capacity * row_bytes <= MAX_REPLAY_BYTES,
+             f"replay_capacity x experience size must be <= {MAX_REPLAY_BYTES >> 30} GiB"),
             (self.valid_margin >= 0.0, "valid_margin must be >= 0"),
             (self.divergence_patience >= 0, "divergence_patience must be >= 0"),
-            (self.init_scale > 0.0, "init_scale must be > 0"),
+            (0.0 < self.init_scale <= 100.0, "init_scale must be in (0, 100]"),
             (self.derivatives in ("approx", "exact"), "derivatives must be 'approx' or 'exact'"),
             (self.update in ("incremental", "minibatch"), "update must be 'incremental' or 'minibatch'"),
             (self.minibatch_dtype in ("float32", "float64"), "minibatch_dtype must be float32 or float64"),
@@ -182,26 +258,44 @@ class LearnerConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LearnerConfig:
-        """Inverse of `to_dict`; unknown keys are an error."""
+        """Inverse of `to_dict`; anything that does not make a valid config is a ConfigError."""
+        if not isinstance(data, dict):
+            raise ConfigError(f"a learner config is a JSON object, got {type(data).__name__}")
         data = dict(data)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - known
         if unknown:
-            raise ConfigError(f"unknown LearnerConfig fields: {sorted(unknown)}")
-        exploration = data.pop("exploration", None)
-        for key in ("state_low", "state_high", "action_low", "action_high"):
-            if key in data:
-                data[key] = tuple(float(v) for v in data[key])
-        if isinstance(exploration, dict):
-            data["exploration"] = ExplorationConfig(**exploration)
-        if "symmetries" in data:
-            try:
+            raise ConfigError(f"unknown LearnerConfig fields: {sorted(map(str, unknown))[:10]}")
+        try:
+            exploration = data.pop("exploration", None)
+            for key in ("state_low", "state_high", "action_low", "action_high"):
+                if key in data:
+                    if not isinstance(data[key], list | tuple):
+                        raise ConfigError(f"{key} must be a list of numbers")
+                    data[key] = tuple(data[key])
+            if isinstance(exploration, dict):
+                unknown = set(exploration) - {f.name for f in dataclasses.fields(ExplorationConfig)}
+                if unknown:
+                    raise ConfigError(f"unknown ExplorationConfig fields: {sorted(map(str, unknown))[:10]}")
+                data["exploration"] = ExplorationConfig(**exploration)
+            elif exploration is not None:
+                data["exploration"] = exploration
+            if "symmetries" in data:
+                if not isinstance(data["symmetries"], list | tuple):
+                    raise ConfigError("symmetries must be a list")
                 data["symmetries"] = tuple(
                     s if isinstance(s, Symmetry) else Symmetry.from_dict(s) for s in data["symmetries"]
                 )
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from exc
-        return cls(**data)
+            return cls(**data)
+        except ConfigError:
+            raise
+        except (ValueError, TypeError, RecursionError) as exc:
+            raise ConfigError(f"not a learner config: {type(exc).__name__}: {str(exc)[:200]}") from None
+
+    @classmethod
+    def from_json(cls, text: str | bytes, what: str = "learner config") -> LearnerConfig:
+        """A config from JSON text (a file, a client's status); any fault is a ConfigError."""
+        return cls.from_dict(parse_json(text, what))
 
     def to_json(self) -> str:
         """Canonical JSON (sorted keys), used for hashing and saving."""

@@ -1,8 +1,8 @@
 """Experience logs: the one on-disk format of a client's record and of a server's store.
 
 A log is a directory of segment files (`00000000.seg`, ...; `wfnn_common.segments`: CRC-framed
-records, torn tails cut on open). Every record is one protocol frame (`wfnn_common.protocol`,
-itself CRC-checked, HMAC-tagged where a key is configured) holding an `ExperienceBatch`:
+records). Every record is one protocol frame (`wfnn_common.protocol`, itself CRC-checked)
+holding an `ExperienceBatch`:
 
 - experiences numbered 0, 1, 2, ... per client (`client`, `first_seq`), in physical units:
   `state` [N, S], `action` [N, A] (as executed), `next_state` [N, S], `reward` [N] (raw),
@@ -11,21 +11,33 @@ itself CRC-checked, HMAC-tagged where a key is configured) holding an `Experienc
   `id:incarnation`, `local`, or a controller such as `handcoded`) and `weights_version` [N] the
   snapshot of it (0: none); `flags` [N] the `EXP_*` bits: exploration changed the action, the
   safe action ran, a veto replaced the proposal (and the proposal's own learn-twice record),
-  the action filter changed it;
+  the action filter changed it, a value was not finite (stored, never learned);
 - `spec_hash`: the learner spec (state and action ranges) the experiences are for.
 
-Beside the segments, `log.json` says what the log is: `{"format": "wfnn-log", "version": 1,
-"learner_config": {...} | null}`. A client's journal (`--record DIR`: `DIR/journal/`) writes
-it; a server's store (`DATA_DIR/store/`) has its learner config in `DATA_DIR/learner_config.json`
-instead, which `log_config` also finds.
+A client's journal keeps its frames as sent (HMAC-tagged where it has a key); a server stores
+the batches it verified at ingest, untagged: the tag protects the network, not the disk.
+Reading a log therefore needs no key; given one, a tagged frame that does not verify is
+refused (counted `auth`), which tells a wrong key.
 
-This module reads, writes, summarises, merges, splits and exports logs (`wfnn-logs`).
+Beside the segments, `log.json` says what the log is: `{"format": "wfnn-log", "version": 1,
+"id": "<16 hex>", "learner_config": {...} | null}`. `id` is the log's identity, made when it
+was created (a server announces its store's in acks and status: a server restarted with a new,
+empty store is another store). A client's journal (`--record DIR`: `DIR/journal/`) records
+its learner config there; a server's store (`DATA_DIR/store/`) has it in
+`DATA_DIR/learner_config.json` instead, which `log_config` also finds.
+
+`ExperienceLog` is the one writer (the owner: journal and store), `read_entries` the one
+reader: read-only, never changing a file, skipping damaged records (reported, with where they
+are). This module also summarises, merges, splits and exports logs (`wfnn-logs`).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+import secrets
+import time
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -35,19 +47,21 @@ from typing import Any
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.persist import atomic_savez
+from wfnn_common.persist import atomic_savez, atomic_write_text
 from wfnn_common.protocol import (
     EXP_EXPLORED,
     EXP_FILTERED,
+    EXP_NON_FINITE,
     EXP_SAFE_ACTION,
     EXP_VETO_ACTUAL,
     EXP_VETO_PROPOSED,
+    MAGIC,
     Codec,
     ExperienceBatch,
     ProtocolError,
     decode,
 )
-from wfnn_common.segments import SegmentLog
+from wfnn_common.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, read_records
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +71,7 @@ LOG_VERSION = 1
 EXPORT_FORMAT = "wfnn-log-export"
 FLAG_NAMES = {
     EXP_EXPLORED: "explored", EXP_SAFE_ACTION: "safe_action", EXP_VETO_ACTUAL: "vetoed",
-    EXP_VETO_PROPOSED: "veto_proposal", EXP_FILTERED: "filtered",
+    EXP_VETO_PROPOSED: "veto_proposal", EXP_FILTERED: "filtered", EXP_NON_FINITE: "non_finite",
 }  # fmt: skip
 
 
@@ -70,15 +84,35 @@ def is_log(directory: Path) -> bool:
     return Path(directory).is_dir() and any(Path(directory).glob("*.seg"))
 
 
-def write_log_json(directory: Path, config: LearnerConfig | None) -> None:
-    """Say what the log in `directory` is (its learner config, when known)."""
+def new_log_id() -> str:
+    """A fresh log identity (16 hex digits)."""
+    return secrets.token_hex(8)
+
+
+def read_log_json(directory: Path) -> dict[str, Any] | None:
+    """A log's `log.json` (None when there is none); LogFormatError when it cannot be read."""
+    info = Path(directory) / LOG_JSON
+    if not info.exists():
+        return None
+    try:
+        data = json.loads(info.read_text())
+    except (OSError, ValueError, RecursionError) as exc:
+        raise LogFormatError(f"{info}: unreadable ({exc})") from exc
+    if (
+        not isinstance(data, dict) or data.get("format") != LOG_FORMAT
+        or not isinstance(data.get("version"), int) or not 1 <= data["version"] <= LOG_VERSION
+    ):  # fmt: skip
+        raise LogFormatError(f"{info}: not a {LOG_FORMAT} version <= {LOG_VERSION} description")
+    return data
+
+
+def write_log_json(directory: Path, config: LearnerConfig | None, log_id: str | None = None) -> None:
+    """Say what the log in `directory` is (its identity, and its learner config when known)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    info = {"format": LOG_FORMAT, "version": LOG_VERSION,
+    info = {"format": LOG_FORMAT, "version": LOG_VERSION, "id": log_id,
             "learner_config": config.to_dict() if config is not None else None}  # fmt: skip
-    tmp = directory / (LOG_JSON + ".tmp")
-    tmp.write_text(json.dumps(info, indent=1))
-    tmp.replace(directory / LOG_JSON)
+    atomic_write_text(directory / LOG_JSON, json.dumps(info, indent=1))
 
 
 def log_config(directory: Path) -> LearnerConfig | None:
@@ -87,49 +121,148 @@ def log_config(directory: Path) -> LearnerConfig | None:
     From the log's `log.json`, or a server's `learner_config.json` beside its store.
     """
     directory = Path(directory)
-    info = directory / LOG_JSON
-    if info.exists():
-        data = json.loads(info.read_text())
-        if data.get("format") != LOG_FORMAT or not 1 <= int(data.get("version", 0)) <= LOG_VERSION:
-            raise LogFormatError(f"{info}: not a {LOG_FORMAT} version <= {LOG_VERSION} description")
-        if data.get("learner_config") is not None:
+    data = read_log_json(directory)
+    try:
+        if data is not None and data.get("learner_config") is not None:
             return LearnerConfig.from_dict(data["learner_config"])
-    server = directory.parent / "learner_config.json"
-    if server.exists():
-        return LearnerConfig.from_dict(json.loads(server.read_text()))
+        server = directory.parent / "learner_config.json"
+        if server.exists():
+            return LearnerConfig.from_dict(json.loads(server.read_text()))
+    except (OSError, ValueError, TypeError, RecursionError) as exc:
+        raise LogFormatError(f"{directory}: its learner config cannot be read ({exc})") from exc
     return None
+
+
+def set_aside(path: Path, why: str) -> Path:
+    """Rename an unreadable file beside itself (`NAME.unreadable-<unix time>`): kept, never deleted."""
+    kept = path.with_name(f"{path.name}.unreadable-{time.time_ns()}")
+    os.replace(path, kept)
+    log.error("%s: %s; kept as %s", path, why, kept.name)
+    return kept
 
 
 @dataclass
 class ReadCounts:
     """What reading a log met besides batches."""
 
-    unreadable: int = 0
-    """Records intact on disk (segment CRC) whose frame is not a valid experience batch."""
+    report: ReadReport = field(default_factory=ReadReport)
+    """Records read and damaged spans skipped (segment, offset, length)."""
+    refused: Counter[str] = field(default_factory=Counter)
+    """Intact records (segment CRC) whose frame was refused, by reason (`auth`, `malformed`, ...)."""
+
+    @property
+    def unreadable(self) -> int:
+        """Intact records whose frame is not a valid experience batch."""
+        return sum(self.refused.values())
+
+    @property
+    def damage(self) -> list[Damage]:
+        """Damaged spans skipped."""
+        return self.report.damage
+
+
+def read_entries(
+    directory: Path, key: bytes | None = None, counts: ReadCounts | None = None, start: Position | None = None
+) -> Iterator[tuple[Position, bytes, ExperienceBatch]]:
+    """Every experience batch in a log from `start`, oldest first: (where, frame, batch).
+
+    Read-only. Damaged records are skipped (resynchronising on the next frame), frames that
+    are not valid batches are refused; both are counted in `counts`.
+    """
+    counts = counts if counts is not None else ReadCounts()
+    for position, frame in read_records(directory, start, counts.report, marker=MAGIC):
+        try:
+            _, _, batch = decode(frame, key, expect=ExperienceBatch, mac="if_present")
+        except ProtocolError as exc:
+            counts.refused[exc.reason] += 1
+            log.error("%s: record at %s is not an experience batch (%s); skipped", directory, position, exc)
+            continue
+        assert isinstance(batch, ExperienceBatch)
+        yield position, frame, batch
 
 
 def read_batches(
     directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
 ) -> Iterator[ExperienceBatch]:
-    """Every experience batch in a log, oldest first; unreadable records are counted and skipped."""
+    """Every experience batch in a log, oldest first (see `read_entries`); read-only."""
     if not is_log(directory):
         raise LogFormatError(f"{directory}: no experience log here (no .seg files)")
-    segments = SegmentLog(directory, fsync="never")
-    try:
-        for position, frame in segments.read():
+    for _, _, batch in read_entries(directory, key, counts):
+        yield batch
+
+
+class ExperienceLog:
+    """The owner's handle on an experience log (a client's journal, a server's store).
+
+    Opening it repairs a torn tail (moved to quarantine, see `wfnn_common.segments`) and gives
+    the log an identity if it has none; `entries` reads it back with the one reader.
+    """
+
+    def __init__(
+        self,
+        directory: Path,
+        config: LearnerConfig | None = None,
+        *,
+        fsync: FsyncPolicy = "interval",
+        fsync_interval_s: float = 0.02,
+        segment_bytes: int = 64 << 20,
+    ) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        try:
+            info = read_log_json(self.directory)
+        except LogFormatError as exc:
+            set_aside(self.directory / LOG_JSON, str(exc))
+            info = None
+        recorded = None
+        if info is not None and info.get("learner_config") is not None:
             try:
-                _, _, batch = decode(frame, key, expect=ExperienceBatch)
-            except ProtocolError as exc:
-                if counts is not None:
-                    counts.unreadable += 1
-                log.error(
-                    "%s: record at %s is not an experience batch (%s); skipped", directory, position, exc
-                )
-                continue
-            assert isinstance(batch, ExperienceBatch)
-            yield batch
-    finally:
-        segments.close()
+                recorded = LearnerConfig.from_dict(info["learner_config"])
+            except (ValueError, TypeError) as exc:
+                log.error("%s: the learner config it records is not usable (%s)", self.directory, exc)
+        if config is not None and recorded is not None and recorded.spec_hash() != config.spec_hash():
+            raise LogFormatError(
+                f"{self.directory} records experiences of learner spec {recorded.spec_hash()}, not "
+                f"{config.spec_hash()} (another task or ranges): use another run directory"
+            )
+        self.config = config or recorded
+        identity = info.get("id") if info is not None else None
+        self.id: str = identity if isinstance(identity, str) and identity else new_log_id()
+        """The log's identity, made when it was created."""
+        if info is None or identity != self.id or (config is not None and recorded is None):
+            write_log_json(self.directory, self.config, self.id)
+        self.segments = SegmentLog(
+            self.directory, fsync=fsync, fsync_interval_s=fsync_interval_s, segment_bytes=segment_bytes,
+            marker=MAGIC,
+        )  # fmt: skip
+        self.counts = ReadCounts()
+        """What the last full read met (damage skipped, frames refused)."""
+
+    def entries(self) -> Iterator[tuple[Position, bytes, ExperienceBatch]]:
+        """Every batch stored so far: (where, frame, batch); what it skips is counted in `counts`."""
+        self.counts = ReadCounts()
+        self.segments.flush()
+        return read_entries(self.directory, counts=self.counts)
+
+    def append(self, frame: bytes) -> Position:
+        """Store one encoded batch; where it starts."""
+        return self.segments.append(frame)
+
+    def frame_at(self, position: Position) -> bytes | None:
+        """The frame stored at `position`, or None if that record is not valid."""
+        return self.segments.read_at(position)
+
+    def due(self) -> bool:
+        """Whether appended frames wait for `sync` (per the fsync policy)."""
+        return self.segments.due()
+
+    def sync(self) -> None:
+        """Make appended frames durable."""
+        self.segments.sync()
+
+    def close(self) -> None:
+        """Sync and close."""
+        self.segments.close()
 
 
 @dataclass
@@ -159,8 +292,18 @@ class Summary:
     """Experiences per EXP_* flag name."""
     terminal: int = 0
     reward_mean: float = float("nan")
-    unreadable: int = 0
+    refused: Counter[str] = field(default_factory=Counter)
+    """Intact records whose frame was refused, by reason."""
+    damage: list[Damage] = field(default_factory=list)
+    """Damaged spans skipped (segment, offset, length, kind)."""
     learner_config: dict[str, Any] | None = None
+    description_error: str = ""
+    """Why `log.json` (or the store's learner config) could not be read, if it could not."""
+
+    @property
+    def unreadable(self) -> int:
+        """Intact records whose frame is not a valid experience batch."""
+        return sum(self.refused.values())
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready."""
@@ -170,7 +313,9 @@ class Summary:
             "spec_hashes": dict(self.spec_hashes), "behaviour": dict(self.behaviour),
             "flags": dict(self.flags),
             "terminal": self.terminal, "reward_mean": self.reward_mean, "unreadable": self.unreadable,
-            "learner_config": self.learner_config,
+            "refused": dict(self.refused), "damage": [vars(d) for d in self.damage],
+            "skipped_bytes": sum(d.length for d in self.damage),
+            "learner_config": self.learner_config, "description_error": self.description_error,
         }  # fmt: skip
 
 
@@ -197,9 +342,13 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
             out.flags[name] += int(np.count_nonzero(batch.flags & bit))
         out.terminal += int(np.count_nonzero(batch.terminal))
         reward_sum += float(batch.reward.sum())
-    out.unreadable = counts.unreadable
+    out.refused, out.damage = counts.refused, counts.damage
     out.reward_mean = reward_sum / out.experiences if out.experiences else float("nan")
-    config = log_config(directory)
+    try:
+        config = log_config(directory)
+    except LogFormatError as exc:  # the experiences are still there: say so, read on
+        out.description_error = str(exc)
+        config = None
     out.learner_config = config.to_dict() if config is not None else None
     return out
 
@@ -215,16 +364,14 @@ def write_log(
     if is_log(directory):
         raise LogFormatError(f"{directory} already holds a log; write to a new directory")
     codec = Codec(sender)
-    segments = SegmentLog(directory, fsync="never")
+    out = ExperienceLog(directory, config, fsync="never")
     written = 0
     try:
         for batch in batches:
-            segments.append(codec.encode(batch))
+            out.append(codec.encode(batch))
             written += len(batch)
-        segments.sync()
     finally:
-        segments.close()
-    write_log_json(directory, config)
+        out.close()
     return written
 
 
@@ -244,17 +391,17 @@ def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
 
 
 def merged(
-    directories: Iterable[Path], key: bytes | None = None, spec: str = ""
+    directories: Iterable[Path], key: bytes | None = None, spec: str = "", counts: ReadCounts | None = None
 ) -> Iterator[ExperienceBatch]:
     """The batches of several logs, each client's experiences once (the first copy of each number).
 
     Logs of the same client (its journal and a server's store, say) overlap: what one has already
     given is trimmed from the others. Batches of a learner spec other than `spec` (without one:
-    the first batch's) are refused.
+    the first batch's) are refused. What reading skips is counted in `counts`.
     """
     through: dict[str, set[int]] = {}
     for directory in directories:
-        for batch in read_batches(directory, key):
+        for batch in read_batches(directory, key, counts):
             spec = spec or batch.spec_hash
             if batch.spec_hash != spec:
                 raise LogFormatError(

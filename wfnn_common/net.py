@@ -10,17 +10,32 @@ Publication channels are chosen per kind of traffic:
 - `CONTROL` (acks): reliable, BLOCK, express (sent at once, not batched), high priority;
 - `LATEST` (weights, status): reliable, DROP, express, highest priority: under congestion the
   newest snapshot matters, not an old one.
+
+Size limits are enforced before anything is copied: Zenoh drops a message larger than
+`NetConfig.max_message_bytes` while reassembling it, and a subscription given `max_bytes` hands
+on no payload longer than that (counted in `ZenohBus.oversized`). A query never blocks: its
+replies arrive on a callback.
+
+Exposure: a session listens on loopback unless told otherwise, and `check_exposure` refuses
+a non-loopback endpoint without a key unless the user says `insecure` (as Redis' protected mode
+does): without a key anyone who reaches the port can drive the robot or feed the learner.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
+import re
 import threading
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Literal, Protocol
+
+from wfnn_common.config import check_fields
+from wfnn_common.protocol import MAX_FRAME
 
 log = logging.getLogger(__name__)
 
@@ -45,16 +60,18 @@ class Bus(Protocol):
         """Publish `payload` on `key`."""
         ...
 
-    def subscribe(self, key: str, callback: Callback) -> None:
-        """Call `callback(key, payload)` for every publication matching `key`."""
+    def subscribe(self, key: str, callback: Callback, max_bytes: int | None = None) -> None:
+        """Call `callback(key, payload)` for every publication matching `key` (payloads longer
+        than `max_bytes` are dropped, uncopied, and counted)."""
         ...
 
     def queryable(self, key: str, answer: Callable[[], bytes | None]) -> None:
         """Answer queries on `key` with `answer()` (no reply when it returns None)."""
         ...
 
-    def get(self, key: str, timeout_s: float) -> list[bytes]:
-        """Query `key`; the replies that arrive within `timeout_s`."""
+    def query(self, key: str, timeout_s: float, callback: Callback, max_bytes: int | None = None) -> None:
+        """Query `key` without waiting: each reply that arrives within `timeout_s` goes to
+        `callback(key, payload)` (on the bus's thread)."""
         ...
 
     def declare_token(self, key: str) -> None:
@@ -90,22 +107,104 @@ class NetConfig:
     False forces TCP, as between hosts."""
     zenoh_config: str | None = None
     """A Zenoh JSON5 config file applied first (TLS, user/password, ...); the fields above override."""
+    max_message_bytes: int = MAX_FRAME + 1024
+    """Zenoh drops any message larger than this as it reassembles it (before the process copies
+    it): the largest frame the protocol allows by default; a client lowers it to what it expects."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.mode not in ("peer", "client", "router"):
             raise ValueError(f"mode must be peer, client or router, got {self.mode!r}")
         if self.lease_ms < 100 or self.retry_ms < 10:
             raise ValueError("lease_ms must be >= 100 and retry_ms >= 10")
+        if not 1 << 16 <= self.max_message_bytes <= 1 << 30:
+            raise ValueError(f"max_message_bytes must be in [64 KiB, 1 GiB], got {self.max_message_bytes}")
+        for endpoint in (*self.listen, *self.connect):
+            parse_endpoint(endpoint)
+
+
+class NetError(OSError):
+    """The network cannot be joined as configured (a bad endpoint, a port in use, ...)."""
+
+
+_ENDPOINT = re.compile(r"(?P<proto>[a-z0-9-]+)/(?P<address>[^?#]+)(?P<rest>[?#].*)?")
+_HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:\[\]]+)):(?P<port>\d{1,5})")
+
+
+def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
+    """A Zenoh endpoint -> (protocol, host) (host None for a local socket); ValueError if malformed."""
+    m = _ENDPOINT.fullmatch(endpoint.strip()) if isinstance(endpoint, str) else None
+    if m is None:
+        raise ValueError(f"endpoint {endpoint!r} is not of the form <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    proto, address = m["proto"], m["address"]
+    if proto.startswith("unixsock") or proto == "unixpipe":
+        return proto, None
+    hp = _HOST_PORT.fullmatch(address)
+    if hp is None or not 0 <= int(hp["port"]) <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: the address must be HOST:PORT (port 0-65535), got {address!r}")
+    return proto, hp["v6"] or hp["host"]
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether an endpoint stays on this machine (loopback address, localhost, a local socket)."""
+    _, host = parse_endpoint(endpoint)
+    if host is None or host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve anywhere
+
+
+def endpoints(net: NetConfig) -> tuple[list[str], list[str]]:
+    """The endpoints a session of `net` listens on and connects to (the Zenoh file's included)."""
+    conf = zenoh_config(net)
+
+    def read(path: str) -> list[str]:
+        value = json.loads(conf.get_json(path))
+        if isinstance(value, dict):  # per-mode lists: {"router": [...], "peer": [...]}
+            value = value.get(net.mode, [])
+        return [str(v) for v in value or []]
+
+    return read("listen/endpoints"), read("connect/endpoints")
+
+
+def check_exposure(net: NetConfig, keyed: bool, insecure: bool) -> list[str]:
+    """Refuse non-loopback endpoints without a key unless `insecure`; -> warnings to show.
+
+    Raises ValueError naming the endpoints and the two ways out (a key file, or --insecure).
+    """
+    listen, connect = endpoints(net)
+    exposed = [e for e in (*listen, *connect) if not is_loopback(e)]
+    if not exposed:
+        return []
+    names = ", ".join(exposed)
+    if not keyed and not insecure:
+        raise ValueError(
+            f"{names} reach(es) beyond this machine and no --key-file is given: anyone who can reach "
+            "it could drive the robot or feed the learner. Give a shared key (--key-file), or "
+            "--insecure on a network you trust"
+        )
+    if not keyed:
+        return [f"insecure: {names} without a key; any host that reaches it is trusted"]
+    return [f"{names}: frames are authenticated by the shared key but not encrypted (TLS: deploy/README.md)"]
 
 
 def zenoh_config(net: NetConfig) -> Any:
     """A `zenoh.Config` for `net`."""
     import zenoh
 
-    conf = zenoh.Config.from_file(net.zenoh_config) if net.zenoh_config else zenoh.Config()
+    try:
+        conf = zenoh.Config.from_file(net.zenoh_config) if net.zenoh_config else zenoh.Config()
+    except zenoh.ZError as exc:
+        raise NetError(f"Zenoh config {net.zenoh_config}: {_zenoh_message(exc)}") from None
     conf.insert_json5("mode", json.dumps(net.mode))
     if net.listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(net.listen)))
+    elif not net.zenoh_config and net.mode != "client":
+        # Zenoh's own default is every interface ([::]); a robot listens on loopback unless told.
+        port = 7447 if net.mode == "router" else 0
+        conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     if net.connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(net.connect)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(net.multicast_scouting))
@@ -121,7 +220,15 @@ def zenoh_config(net: NetConfig) -> Any:
     conf.insert_json5("listen/exit_on_failure", "true")
     conf.insert_json5("transport/link/tx/lease", str(net.lease_ms))
     conf.insert_json5("transport/link/tx/keep_alive", "4")
+    conf.insert_json5("transport/link/rx/max_message_size", str(net.max_message_bytes))
     return conf
+
+
+def _zenoh_message(exc: BaseException) -> str:
+    """Zenoh's error text without the source locations it appends."""
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", str(exc))
+    m = re.search(r'msg: "([^"]+)"', text)
+    return (m[1] if m else text).strip().rstrip(".]") or type(exc).__name__
 
 
 class ZenohBus:
@@ -137,6 +244,8 @@ class ZenohBus:
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._closed = False
+        self.oversized: Counter[str] = Counter()
+        """Payloads dropped for their size before being copied, per key prefix."""
 
     def _open(self) -> Any:
         """Open the session.
@@ -147,7 +256,12 @@ class ZenohBus:
         zenoh, net = self._zenoh, self.net
         conf = zenoh_config(net)
         if net.mode != "client":
-            return zenoh.open(conf)
+            try:
+                return zenoh.open(conf)
+            except zenoh.ZError as exc:
+                where = ", ".join(net.listen) or "the configured endpoints"
+                raise NetError(f"cannot join the Zenoh network (listening on {where}): "
+                               f"{_zenoh_message(exc)}") from None
         conf.insert_json5("connect/timeout_ms", "1000")
         conf.insert_json5("connect/exit_on_failure", "true")
         waited = 0
@@ -183,11 +297,23 @@ class ZenohBus:
         if not self._closed:
             self._publisher(key, channel).put(payload)
 
-    def subscribe(self, key: str, callback: Callback) -> None:
-        """Subscribe with a callback (runs on a Zenoh thread)."""
+    def _checked(self, callback: Callback, max_bytes: int | None) -> Callable[[str, Any], None]:
+        """`callback` behind a size check made before the payload is copied out of Zenoh."""
+
+        def deliver(key: str, payload: Any) -> None:
+            if max_bytes is not None and len(payload) > max_bytes:
+                self.oversized[key.rsplit("/", 1)[0]] += 1
+                return
+            callback(key, payload.to_bytes())
+
+        return deliver
+
+    def subscribe(self, key: str, callback: Callback, max_bytes: int | None = None) -> None:
+        """Subscribe with a callback (runs on a Zenoh thread); see `Bus.subscribe`."""
+        deliver = self._checked(callback, max_bytes)
 
         def on_sample(sample: Any) -> None:
-            callback(str(sample.key_expr), sample.payload.to_bytes())
+            deliver(str(sample.key_expr), sample.payload)
 
         self._entities.append(self.session.declare_subscriber(key, on_sample))
 
@@ -201,13 +327,15 @@ class ZenohBus:
 
         self._entities.append(self.session.declare_queryable(key, on_query))
 
-    def get(self, key: str, timeout_s: float) -> list[bytes]:
-        """Query and collect the replies that arrive before the deadline."""
-        out = []
-        for reply in self.session.get(key, timeout=timeout_s):
+    def query(self, key: str, timeout_s: float, callback: Callback, max_bytes: int | None = None) -> None:
+        """Query without waiting; replies go to `callback` (see `Bus.query`)."""
+        deliver = self._checked(callback, max_bytes)
+
+        def on_reply(reply: Any) -> None:
             if reply.ok is not None:
-                out.append(reply.ok.payload.to_bytes())
-        return out
+                deliver(str(reply.ok.key_expr), reply.ok.payload)
+
+        self.session.get(key, on_reply, timeout=timeout_s)
 
     def declare_token(self, key: str) -> None:
         """Liveliness token held until close."""

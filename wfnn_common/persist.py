@@ -28,8 +28,12 @@ class PersistError(ValueError):
     """A file is not a wfnn file of the expected kind and version, or does not fit."""
 
 
-def atomic_savez(path: Path, arrays: dict[str, Any]) -> None:
-    """Write an `.npz` so that a crash leaves the old file or the new one, never a torn one."""
+def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None = None) -> None:
+    """Write an `.npz` so that a crash leaves the old file or the new one, never a torn one.
+
+    With `keep_previous`, the file being replaced is moved there first (a crash between the two
+    renames leaves the previous file and no newest one; readers fall back to it).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
@@ -38,18 +42,48 @@ def atomic_savez(path: Path, arrays: dict[str, Any]) -> None:
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
+        if keep_previous is not None and path.exists():
+            os.replace(path, keep_previous)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _sync_dir(path.parent)
+
+
+def _sync_dir(directory: Path) -> None:
+    """Make renames in `directory` durable."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write a text file so that a crash leaves the old file or the new one, never a torn one."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _sync_dir(path.parent)
 
 
 def _open(path: Path, expected_format: str) -> dict[str, Any]:
+    if not Path(path).exists():
+        raise PersistError(f"{path}: no such file")
     try:
         with np.load(Path(path), allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise PersistError(f"{path}: not a readable .npz file ({exc})") from exc
+    except Exception as exc:  # a truncated or damaged archive fails in zipfile, zlib or numpy alike
+        raise PersistError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from exc
     fmt = str(arrays.get("format", ""))
     if fmt != expected_format:
         raise PersistError(f"{path}: expected format {expected_format!r}, found {fmt!r}")
@@ -60,9 +94,13 @@ def _open(path: Path, expected_format: str) -> dict[str, Any]:
 
 
 def save_weights(
-    path: Path, config: LearnerConfig, params: Params, meta: dict[str, Any] | None = None
-) -> None:
-    """Save a population's weights [P, n_params] with the config that defines them."""
+    path: Path, config: LearnerConfig, params: Params, meta: dict[str, Any] | None = None,
+    keep_previous: Path | None = None,
+) -> None:  # fmt: skip
+    """Save a population's weights [P, n_params] with the config that defines them.
+
+    With `keep_previous`, the file replaced is kept there (see `atomic_savez`).
+    """
     atomic_savez(
         path,
         {
@@ -73,22 +111,32 @@ def save_weights(
             "meta": np.str_(json.dumps(meta or {})),
             "params": params.flat,
         },
+        keep_previous,
     )
 
 
 def load_weights(path: Path) -> tuple[LearnerConfig, Params, dict[str, Any]]:
     """Inverse of `save_weights` -> (config, params, meta)."""
     arrays = _open(path, WEIGHTS_FORMAT)
-    config = LearnerConfig.from_dict(json.loads(str(arrays["config"])))
-    if str(arrays["spec_hash"]) != config.spec_hash():
+    try:
+        config = LearnerConfig.from_json(str(arrays["config"]), f"{path}: its config")
+        meta = json.loads(str(arrays["meta"]))
+        if not isinstance(meta, dict):
+            raise PersistError(f"{path}: meta is not a map")
+    except (KeyError, ValueError, RecursionError) as exc:
+        raise PersistError(f"{path}: {exc}") from exc
+    if str(arrays.get("spec_hash", "")) != config.spec_hash():
         raise PersistError(f"{path}: spec hash does not match its config")
-    flat = np.ascontiguousarray(arrays["params"], dtype=np.float64)
+    try:
+        flat = np.ascontiguousarray(arrays["params"], dtype=np.float64)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise PersistError(f"{path}: no usable params ({exc})") from exc
     shapes = Shapes.of(config)
     if flat.ndim != 2 or flat.shape[1] != shapes.n_params:
         raise PersistError(f"{path}: params {flat.shape} do not fit the config ({shapes.n_params} per net)")
     if not np.isfinite(flat).all():
         raise PersistError(f"{path}: params contain non-finite values")
-    return config, Params(flat, shapes), json.loads(str(arrays["meta"]))
+    return config, Params(flat, shapes), meta
 
 
 def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> None:

@@ -6,8 +6,10 @@ Every frame, little-endian:
     body_len u32 | msgpack body | [HMAC-SHA256 tag, 32 bytes, when flags & FLAG_MAC] | CRC-32C u32
 
 The CRC covers everything before it and detects corruption; the optional HMAC (over header and
-body, with a shared key) stops forged frames: a receiver configured with a key rejects frames
-without a valid tag. Arrays travel as raw little-endian bytes with their dtype and shape.
+body, with a shared key) stops forged frames on the network: a receiver configured with a key
+rejects frames without a valid tag. The tag protects transport, not storage: a server stores
+the batches it has verified without one, and readers of logs check tags only where they are
+present (`decode(..., mac="if_present")`), so a wrong key is still detected. Arrays travel as raw little-endian bytes with their dtype and shape.
 Each message type has a body size limit. `decode` raises nothing but `ProtocolError`
 subclasses, whose `reason` names the rejection for counters.
 
@@ -23,7 +25,7 @@ import re
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any, ClassVar, NamedTuple, TypeVar
+from typing import Any, ClassVar, Literal, NamedTuple, TypeVar
 
 import crcmod.predefined
 import msgpack
@@ -31,7 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 MAGIC = b"WFNN"
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+"""Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`."""
 FLAG_MAC = 0x01
 HEADER = struct.Struct("<4sBBBB16sQI")
 """magic, version, type, flags, reserved, sender, seq, body_len."""
@@ -44,9 +47,20 @@ _crc32c = crcmod.predefined.mkPredefinedCrcFun("crc-32c")
 FloatArray = NDArray[np.float64]
 
 
+CRC_CHUNK = 1 << 18
+"""Bytes per call of the CRC routine: it holds the GIL, so a long frame is checked in pieces
+between which the control tick's thread may run."""
+
+
 def crc32c(data: bytes | bytearray | memoryview) -> int:
     """CRC-32C (Castagnoli) of `data`."""
-    return int(_crc32c(data))
+    view = memoryview(data)
+    if len(view) <= CRC_CHUNK:
+        return int(_crc32c(view))
+    crc = _crc32c(view[:CRC_CHUNK])
+    for start in range(CRC_CHUNK, len(view), CRC_CHUNK):
+        crc = _crc32c(view[start : start + CRC_CHUNK], crc)
+    return int(crc)
 
 
 # --------------------------------------------------------------------------- errors
@@ -129,6 +143,13 @@ class MsgType(IntEnum):
     CAMERA_VIEW = 6
 
 
+SINCE: dict[MsgType, int] = {
+    MsgType.EXPERIENCES: 1, MsgType.ACK: 2, MsgType.WEIGHTS: 2, MsgType.SERVER_STATUS: 2,
+    MsgType.CLIENT_STATUS: 1, MsgType.CAMERA_VIEW: 1,
+}  # fmt: skip
+"""The oldest protocol version whose body of each type this build reads (logs written by
+version 1 stay readable: experience batches have not changed)."""
+
 MAX_BODY: dict[MsgType, int] = {
     MsgType.EXPERIENCES: 8 << 20,
     MsgType.ACK: 64 << 10,
@@ -138,6 +159,15 @@ MAX_BODY: dict[MsgType, int] = {
     MsgType.CAMERA_VIEW: 4 << 20,
 }
 """Body size limit per message type (bytes)."""
+
+
+def max_frame(msg_type: MsgType, body: int | None = None) -> int:
+    """The longest frame of a message type (or with a body of at most `body` bytes)."""
+    return HEADER.size + (MAX_BODY[msg_type] if body is None else body) + MAC_SIZE + CRC_SIZE
+
+
+MAX_FRAME = max(max_frame(t) for t in MsgType)
+"""The longest frame of any type."""
 
 _DTYPES = {"<f8", "<f4", "<i8", "<u8", "<i4", "<u4", "|u1", "|b1"}
 
@@ -162,6 +192,9 @@ EXP_VETO_PROPOSED = 0x08
 """The vetoed, never executed proposal learned with the observed outcome (Eq 5.4)."""
 EXP_FILTERED = 0x10
 """The action filter (maximum acceleration) changed the proposed action."""
+EXP_NON_FINITE = 0x20
+"""A value of the experience is NaN or infinite: stored as received (its numbering kept
+whole), never learned. Set by the server at ingest (`mark_non_finite`)."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -208,6 +241,17 @@ class ExperienceBatch:
             if getattr(self, name).shape != shape:
                 raise MalformedBody(f"{name}: expected shape {shape}, found {getattr(self, name).shape}")
 
+    def non_finite(self) -> NDArray[np.bool_]:
+        """Which experiences hold a NaN or infinite state, action, next state or reward [N]."""
+        return ~(
+            np.isfinite(self.state).all(axis=1) & np.isfinite(self.action).all(axis=1)
+            & np.isfinite(self.next_state).all(axis=1) & np.isfinite(self.reward)
+        )  # fmt: skip
+
+    def learnable(self) -> NDArray[np.bool_]:
+        """Which experiences may be learned: not flagged non-finite, and finite [N]."""
+        return ((self.flags & EXP_NON_FINITE) == 0) & ~self.non_finite()
+
     def slice(self, start: int, stop: int | None = None) -> ExperienceBatch:
         """The experiences of indices [start, stop) (to the end without `stop`), renumbered."""
         part = slice(start, stop)
@@ -226,6 +270,9 @@ class Ack:
     client: str
     server: str
     incarnation: int
+    store: str
+    """The identity of the server's store (made when the store was created): a server restarted
+    with a new, empty store is another store, whatever its id and incarnation."""
     stored_through: int
     """-1: nothing stored yet."""
 
@@ -237,7 +284,10 @@ class WeightSnapshot:
     TYPE: ClassVar[MsgType] = MsgType.WEIGHTS
     server: str
     incarnation: int
-    """Increases at every start of the server: (incarnation, version) orders its snapshots."""
+    """Increases at every start of the server; a client takes snapshots only of the store and
+    incarnation the server's status announces, and orders them by version."""
+    store: str
+    """The identity of the server's store (see `Ack.store`)."""
     version: int
     spec_hash: str
     published_ns: int
@@ -257,6 +307,8 @@ class ServerStatus:
     TYPE: ClassVar[MsgType] = MsgType.SERVER_STATUS
     server: str
     incarnation: int
+    store: str
+    """The identity of the server's store (see `Ack.store`)."""
     started_ns: int
     spec_hash: str
     """Empty until the server has a learner config."""
@@ -471,36 +523,47 @@ def peek_type(frame: bytes) -> MsgType | None:
         return None
 
 
+MacPolicy = Literal["required", "if_present"]
+
+
 def decode(
-    frame: bytes | bytearray | memoryview, key: bytes | None = None, expect: type[M] | None = None
+    frame: bytes | bytearray | memoryview,
+    key: bytes | None = None,
+    expect: type[M] | None = None,
+    mac: MacPolicy = "required",
 ) -> Frame:
     """Check and decode one frame; raises only `ProtocolError` subclasses.
 
     Args:
         frame: the bytes received.
-        key: the shared key; when given, a frame without a valid HMAC tag is rejected.
+        key: the shared key; when given, a frame without a valid HMAC tag is rejected, or with
+            `mac="if_present"` (reading logs), only a frame whose tag does not verify.
         expect: the message class this key expression carries; any other type is rejected.
+        mac: `required` on the network; `if_present` for stored frames (see the module docstring).
     """
     try:
-        return _decode(bytes(frame), key, expect)
+        return _decode(bytes(frame), key, expect, mac)
     except ProtocolError:
         raise
     except Exception as exc:  # anything a hostile body provokes becomes a rejection
         raise MalformedBody(f"{type(exc).__name__}: {exc}") from exc
 
 
-def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None) -> Frame:
+def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacPolicy) -> Frame:
     if len(frame) < MIN_FRAME:
         raise Truncated(f"frame of {len(frame)} bytes is shorter than the minimum {MIN_FRAME}")
     magic, version, type_code, flags, _, sender_raw, seq, body_len = HEADER.unpack_from(frame)
     if magic != MAGIC:
         raise BadMagic(f"expected magic {MAGIC!r}, found {magic!r}")
-    if version != PROTOCOL_VERSION:
+    if not 1 <= version <= PROTOCOL_VERSION:
         raise VersionMismatch(f"expected protocol version {PROTOCOL_VERSION}, found {version}")
     try:
         msg_type = MsgType(type_code)
     except ValueError:
         raise UnknownType(f"unknown message type {type_code}") from None
+    if version < SINCE[msg_type]:
+        raise VersionMismatch(f"{msg_type.name} frames of protocol version {version} are not read "
+                              f"(>= {SINCE[msg_type]})")  # fmt: skip
     if body_len > MAX_BODY[msg_type]:
         raise FrameTooLarge(f"{msg_type.name} body of {body_len} bytes exceeds {MAX_BODY[msg_type]}")
     mac_len = MAC_SIZE if flags & FLAG_MAC else 0
@@ -512,10 +575,10 @@ def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None) -> Frame:
     if crc != crc32c(memoryview(frame)[: expected_len - CRC_SIZE]):
         raise CorruptFrame("CRC-32C mismatch")
     if key:
-        if not mac_len:
+        if not mac_len and mac == "required":
             raise AuthError("a key is configured and the frame carries no HMAC tag")
         end = HEADER.size + body_len
-        if not hmac.compare_digest(frame[end : end + MAC_SIZE], _mac(key, memoryview(frame)[:end])):
+        if mac_len and not hmac.compare_digest(frame[end : end + MAC_SIZE], _mac(key, memoryview(frame)[:end])):
             raise AuthError("HMAC tag does not verify with the configured key")
     if flags & ~FLAG_MAC:
         raise MalformedBody(f"unknown flags {flags:#x}")
@@ -560,7 +623,10 @@ def load_key(path: str | None) -> bytes | None:
         return None
     from pathlib import Path
 
-    key = Path(path).read_bytes().strip()
+    try:
+        key = Path(path).read_bytes().strip()
+    except OSError as exc:
+        raise ValueError(f"key file {path} cannot be read: {exc.strerror or exc}") from exc
     if len(key) < 16:
         raise ValueError(
             f"key file {path} holds {len(key)} bytes; use at least 16 (e.g. 32 random hex chars)"

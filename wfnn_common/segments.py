@@ -5,16 +5,22 @@ A directory holds `00000000.seg`, `00000001.seg`, ... Each record is
     length u32 | CRC-32C of the payload u32 | payload
 
 little-endian, length >= 1 (so a zero-filled tail left by a power cut is not read as records).
-A process that dies mid-append leaves a torn record at the end of the last segment; opening the
-log detects it (short or failing its CRC), cuts it off and counts the bytes. A bad record
-inside an older segment is corruption, not a torn write: it is logged, counted, and reading
-that segment stops there. When an append is durable is set by the fsync policy: `always` (fsync
-before `append` returns), `interval` (the owner calls `sync` at most every `fsync_interval_s`,
-e.g. before acknowledging) or `never` (the OS decides; survives a process crash, not a power
-cut).
 
-Both wfnn logs store protocol frames (`ExperienceBatch`), so a client journal and a server
-store are the same format.
+Reading never changes a file: `read_records` opens segments read-only (it works on a read-only
+file system and beside a live writer). A damaged record is skipped by resynchronising on the
+next valid record (whose payload starts with `marker`, where the records' payloads share a
+known prefix such as the protocol's magic, else at any byte), and every damaged span is
+reported (`ReadReport`): in the middle of a segment it is `corrupt`; at the end of the last
+segment it is a `tail` (a torn write, or a record being written right now).
+
+Only the owner of a log, opening it to append (`SegmentLog`), repairs it: a torn tail of the
+last segment is moved into `quarantine/` beside the segments (a file named after the segment
+and the offset it was cut at) before the segment is truncated to its last valid record, so no
+byte is ever deleted. Damage in the middle is left where it is for readers to skip.
+
+When an append is durable is set by the fsync policy: `always` (fsync before `append` returns),
+`interval` (the owner calls `sync` at most every `fsync_interval_s`, e.g. before acknowledging)
+or `never` (the OS decides; survives a process crash, not a power cut).
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import os
 import struct
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -34,6 +40,7 @@ log = logging.getLogger(__name__)
 
 RECORD = struct.Struct("<II")
 SUFFIX = ".seg"
+QUARANTINE = "quarantine"
 MAX_RECORD = 64 << 20
 FsyncPolicy = Literal["always", "interval", "never"]
 
@@ -42,7 +49,7 @@ class LogError(OSError):
     """The log directory cannot be used (e.g. a record larger than the limit)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, order=True)
 class Position:
     """Where a record starts: segment number and byte offset."""
 
@@ -50,41 +57,130 @@ class Position:
     offset: int
 
 
+@dataclass(frozen=True)
+class Damage:
+    """A span of a segment that holds no valid record."""
+
+    segment: int
+    offset: int
+    length: int
+    kind: Literal["corrupt", "tail"]
+    """`corrupt`: valid records follow it in the segment; `tail`: it runs to the end of the segment."""
+
+
+@dataclass
+class ReadReport:
+    """What a read met besides valid records."""
+
+    records: int = 0
+    damage: list[Damage] = field(default_factory=list)
+
+    @property
+    def skipped_bytes(self) -> int:
+        """Bytes in damaged spans."""
+        return sum(d.length for d in self.damage)
+
+
 @dataclass
 class Recovery:
-    """What opening the log found."""
+    """What opening the log (as its owner) found and did."""
 
     segments: int = 0
     torn_bytes_cut: int = 0
-    corrupt_segments: int = 0
+    """Bytes of a torn tail moved to quarantine and cut from the last segment."""
+    quarantined: list[Path] = field(default_factory=list)
+    corrupt_spans: int = 0
+    """Damaged spans in the middle of segments (left in place; readers skip them)."""
 
 
-def _segment_name(n: int) -> str:
+def segment_name(n: int) -> str:
+    """File name of segment `n`."""
     return f"{n:08d}{SUFFIX}"
 
 
-def _scan(path: Path) -> tuple[list[tuple[int, bytes]], int, bool]:
-    """Valid records of one segment file -> ([(offset, payload)], end of the valid part, clean)."""
-    data = path.read_bytes()
-    out: list[tuple[int, bytes]] = []
+def segment_numbers(directory: Path) -> list[int]:
+    """Segment numbers present in `directory`, in order (none if it does not exist)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted(int(p.stem) for p in directory.glob(f"*{SUFFIX}") if p.stem.isdigit())
+
+
+def _record_at(data: bytes | memoryview, pos: int) -> int:
+    """End of the valid record starting at `pos`, or -1 when none starts there."""
+    if pos + RECORD.size > len(data):
+        return -1
+    length, crc = RECORD.unpack_from(data, pos)
+    end = pos + RECORD.size + length
+    if not 0 < length <= MAX_RECORD or end > len(data):  # a zero-filled tail is not records
+        return -1
+    return end if crc32c(memoryview(data)[pos + RECORD.size : end]) == crc else -1
+
+
+def _resync(data: bytes, pos: int, marker: bytes) -> int:
+    """Start of the next valid record after a damaged one at `pos`, or len(data) when none."""
+    q = pos + 1
+    while q + RECORD.size < len(data):
+        if marker:
+            found = data.find(marker, q + RECORD.size)
+            if found < 0:
+                break
+            q = found - RECORD.size
+        if _record_at(data, q) > 0:
+            return q
+        q += 1
+    return len(data)
+
+
+def scan(data: bytes, marker: bytes = b"") -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """One segment's bytes -> ([(offset, end)] of valid records, [(offset, length)] of damaged spans)."""
+    records: list[tuple[int, int]] = []
+    damage: list[tuple[int, int]] = []
     pos = 0
     while pos < len(data):
-        if pos + RECORD.size > len(data):
-            return out, pos, False
-        length, crc = RECORD.unpack_from(data, pos)
-        end = pos + RECORD.size + length
-        if not 0 < length <= MAX_RECORD or end > len(data):  # a zero-filled tail is not records
-            return out, pos, False
-        payload = data[pos + RECORD.size : end]
-        if crc32c(payload) != crc:
-            return out, pos, False
-        out.append((pos, payload))
-        pos = end
-    return out, pos, True
+        end = _record_at(data, pos)
+        if end > 0:
+            records.append((pos, end))
+            pos = end
+            continue
+        nxt = _resync(data, pos, marker)
+        damage.append((pos, nxt - pos))
+        pos = nxt
+    return records, damage
+
+
+def read_records(
+    directory: Path, start: Position | None = None, report: ReadReport | None = None, marker: bytes = b""
+) -> Iterator[tuple[Position, bytes]]:
+    """Every valid record of a log from `start` (default: the beginning), oldest first.
+
+    Read-only: files are opened for reading and nothing is written, renamed or truncated.
+    Damaged spans are skipped and added to `report` (with where they are and how long).
+    """
+    directory = Path(directory)
+    numbers = segment_numbers(directory)
+    for n in numbers:
+        if start is not None and n < start.segment:
+            continue
+        with open(directory / segment_name(n), "rb") as f:
+            data = f.read()
+        records, damage = scan(data, marker)
+        if report is not None:
+            for offset, length in damage:
+                kind: Literal["corrupt", "tail"] = "tail" if offset + length == len(data) else "corrupt"
+                report.damage.append(Damage(n, offset, length, kind))
+                log.warning("%s: %d damaged bytes at offset %d (%s) skipped",
+                            directory / segment_name(n), length, offset, kind)  # fmt: skip
+        for offset, end in records:
+            if start is not None and n == start.segment and offset < start.offset:
+                continue
+            if report is not None:
+                report.records += 1
+            yield Position(n, offset), data[offset + RECORD.size : end]
 
 
 class SegmentLog:
-    """Append records to, and read them back from, a directory of segment files."""
+    """Append records to a directory of segment files: the log's owner (one process at a time)."""
 
     def __init__(
         self,
@@ -93,6 +189,7 @@ class SegmentLog:
         segment_bytes: int = 64 << 20,
         fsync: FsyncPolicy = "interval",
         fsync_interval_s: float = 0.02,
+        marker: bytes = b"",
     ) -> None:
         if fsync not in ("always", "interval", "never"):
             raise ValueError(f"fsync must be always, interval or never, got {fsync!r}")
@@ -101,35 +198,57 @@ class SegmentLog:
         self.segment_bytes = segment_bytes
         self.fsync = fsync
         self.fsync_interval_s = fsync_interval_s
+        self.marker = marker
         self.recovery = Recovery()
         self._last_sync = time.monotonic()
         self._dirty = False
-        self._corrupt: set[int] = set()
-        numbers = self.segment_numbers()
+        numbers = segment_numbers(self.directory)
         self.recovery.segments = len(numbers)
         current = numbers[-1] if numbers else 0
         if numbers:
-            self._cut_torn_tail(self.directory / _segment_name(current))
+            self._repair(current)
         self._segment = current
-        self._file = open(self.directory / _segment_name(current), "ab")
+        self._file = open(self.directory / segment_name(current), "ab")
         self._size = self._file.tell()
 
     # ------------------------------------------------------------------ opening
     def segment_numbers(self) -> list[int]:
         """Segment numbers present, in order."""
-        return sorted(int(p.stem) for p in self.directory.glob(f"*{SUFFIX}") if p.stem.isdigit())
+        return segment_numbers(self.directory)
 
-    def _cut_torn_tail(self, path: Path) -> None:
-        _, valid_end, clean = _scan(path)
-        if clean:
+    def _repair(self, n: int) -> None:
+        """Move a torn tail of the last segment to quarantine and cut it off; count inner damage."""
+        path = self.directory / segment_name(n)
+        data = path.read_bytes()
+        records, damage = scan(data, self.marker)
+        valid_end = records[-1][1] if records else 0
+        self.recovery.corrupt_spans += sum(1 for offset, _ in damage if offset < valid_end)
+        if valid_end == len(data):
             return
-        cut = path.stat().st_size - valid_end
-        log.warning("%s: cutting a torn or corrupt tail of %d bytes at offset %d", path, cut, valid_end)
+        cut = len(data) - valid_end
+        quarantine = self.directory / QUARANTINE
+        quarantine.mkdir(exist_ok=True)
+        kept = quarantine / f"{n:08d}-{valid_end:010d}.torn"
+        with open(kept, "wb") as f:
+            f.write(data[valid_end:])
+            f.flush()
+            os.fsync(f.fileno())
+        self._sync_dir(quarantine)
+        log.warning("%s: a torn tail of %d bytes at offset %d moved to %s", path, cut, valid_end, kept)
         with open(path, "r+b") as f:
             f.truncate(valid_end)
             f.flush()
             os.fsync(f.fileno())
         self.recovery.torn_bytes_cut += cut
+        self.recovery.quarantined.append(kept)
+
+    @staticmethod
+    def _sync_dir(directory: Path) -> None:
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
     # ------------------------------------------------------------------ writing
     @property
@@ -153,6 +272,10 @@ class SegmentLog:
             self._file.flush()  # in the OS: survives a crash of this process
         return pos
 
+    def flush(self) -> None:
+        """Hand appended records to the OS (readers in this process see them)."""
+        self._file.flush()
+
     def due(self) -> bool:
         """Whether unsynced records wait and the interval policy says to sync now."""
         return self._dirty and (
@@ -173,14 +296,10 @@ class SegmentLog:
         self.sync()
         self._file.close()
         self._segment += 1
-        self._file = open(self.directory / _segment_name(self._segment), "ab")
+        self._file = open(self.directory / segment_name(self._segment), "ab")
         self._size = 0
         if self.fsync != "never":  # the new file's directory entry must survive too
-            fd = os.open(self.directory, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            self._sync_dir(self.directory)
 
     def close(self) -> None:
         """Sync and close."""
@@ -195,24 +314,30 @@ class SegmentLog:
         self.close()
 
     # ------------------------------------------------------------------ reading
-    def read(self, start: Position | None = None) -> Iterator[tuple[Position, bytes]]:
-        """Every valid record from `start` (default: the beginning), oldest first.
+    def read(self, start: Position | None = None, report: ReadReport | None = None) -> Iterator[
+        tuple[Position, bytes]
+    ]:  # fmt: skip
+        """Every valid record from `start` (default: the beginning), oldest first (`read_records`).
 
-        Reads what has been appended so far (flushed to the OS); safe beside a writer in the
-        same process as long as the caller holds the writer's lock.
+        Reads what has been appended so far; safe beside the writer in the same process as long
+        as the caller holds the writer's lock.
         """
-        self._file.flush()
-        first = start.segment if start else None
-        for n in self.segment_numbers():
-            if first is not None and n < first:
-                continue
-            path = self.directory / _segment_name(n)
-            records, _, clean = _scan(path)
-            for offset, payload in records:
-                if start is not None and n == start.segment and offset < start.offset:
-                    continue
-                yield Position(n, offset), payload
-            if not clean and n != self._segment and n not in self._corrupt:
-                self._corrupt.add(n)
-                self.recovery.corrupt_segments += 1
-                log.error("%s: corrupt record; the rest of this segment is unreadable", path)
+        self.flush()
+        return read_records(self.directory, start, report, self.marker)
+
+    def read_at(self, position: Position) -> bytes | None:
+        """The record starting at `position` (from `append` or `read`), or None if it is not valid."""
+        self.flush()
+        try:
+            with open(self.directory / segment_name(position.segment), "rb") as f:
+                f.seek(position.offset)
+                head = f.read(RECORD.size)
+                if len(head) < RECORD.size:
+                    return None
+                length, crc = RECORD.unpack(head)
+                if not 0 < length <= MAX_RECORD:
+                    return None
+                payload = f.read(length)
+        except FileNotFoundError:
+            return None
+        return payload if len(payload) == length and crc32c(payload) == crc else None

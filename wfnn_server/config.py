@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from wfnn_common.config import check_fields
 from wfnn_common.net import NetConfig
 from wfnn_common.protocol import check_id
 from wfnn_common.segments import FsyncPolicy
@@ -28,6 +29,7 @@ class DashboardConfig:
     """Grid points per action variable of the action-value surface."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if not 0 <= self.port <= 65535:
             raise ValueError(f"dashboard port must be in 0..65535, got {self.port}")
         if not 0.1 <= self.update_hz <= 30.0:
@@ -51,6 +53,11 @@ class ServerConfig:
     """A LearnerConfig JSON file; without one the server adopts the first client's config."""
     key_file: Path | None = None
     """Shared key: frames must carry a valid HMAC-SHA256 tag, and so will ours."""
+    insecure: bool = False
+    """Allow listening on or connecting to a non-loopback address without a key (anyone who
+    reaches it can then feed this server experiences and configs)."""
+    allow_clients: tuple[str, ...] = ()
+    """Client ids whose experiences, status and pictures are taken; empty: any client."""
     seed: int | None = None
     """Overrides the learner config's seed (servers on the same data learn differently)."""
     bc_weight: float | None = None
@@ -92,8 +99,11 @@ class ServerConfig:
     thinks_per_action per stored experience, at most this many thinks."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         check_id(self.controller, "controller name")
         check_id(self.server_id, "server id")
+        for client in self.allow_clients:
+            check_id(client, "allowed client id")
         for name in ("publish_period_s", "status_period_s", "checkpoint_period_s", "fsync_interval_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

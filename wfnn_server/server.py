@@ -6,9 +6,11 @@
                     snapshot every publish_period_s and as soon as the think budget is spent
                     -> status heartbeat -> checkpoint
 
-Bus callbacks only put frames on a queue. Restart resumes from the checkpoint (weights,
-counters, config) and the stored experiences; experiences stored after the checkpoint are
-owed their thinks again.
+Bus callbacks only put frames on a queue, and nothing a frame holds can end a thread: every
+message is handled inside a guard that counts what fails by reason. Restart resumes from the
+newest readable checkpoint (weights, counters, config; the previous one is kept beside it) and
+the stored experiences; experiences stored after that checkpoint are owed their thinks again.
+Nothing in the data directory is deleted: a file that cannot be read is set aside, renamed.
 """
 
 from __future__ import annotations
@@ -30,19 +32,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learner import WFNN
-from wfnn_common.logs import LogFormatError, common_config, merged
+from wfnn_common.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params
-from wfnn_common.persist import PersistError, load_weights, save_weights
+from wfnn_common.persist import PersistError, atomic_write_text, load_weights, save_weights
 from wfnn_common.protocol import (
+    EXP_NON_FINITE,
+    MAX_BODY,
     Ack,
     CameraView,
     ClientStatus,
     Codec,
     ExperienceBatch,
     Keys,
+    MsgType,
     ProtocolError,
     ServerStatus,
     SpecMismatch,
@@ -60,6 +65,8 @@ FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.npz"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
+"""The checkpoint before the newest: a server that cannot read the newest falls back to it."""
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 LEARNER_JSON = "learner_config.json"
@@ -85,13 +92,24 @@ def lower_priority(nice: int) -> None:
         log.warning("could not lower the think thread's priority: %s", exc)
 
 
-def _write_atomic(path: os.PathLike[str], text: str) -> None:
-    tmp = f"{os.fspath(path)}.tmp"
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
+    """`batch` with EXP_NON_FINITE set on experiences holding NaN or infinity; -> (batch, how many).
+
+    They are stored as received, so each client's numbering stays whole, and never learned.
+    """
+    bad = batch.non_finite() & ((batch.flags & EXP_NON_FINITE) == 0)
+    n = int(np.count_nonzero(bad))
+    if not n:
+        return batch, 0
+    return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
+
+
+class _Refused(ProtocolError):
+    """A well-formed message this server does not take (the reason names why)."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason  # type: ignore[misc]  # per instance, not per class
 
 
 class ThinkServer:
@@ -166,19 +184,54 @@ class ThinkServer:
 
     # ------------------------------------------------------------------ start-up
     def _next_incarnation(self) -> int:
+        """One more than the last start's (from `incarnation`, or where that is unreadable the
+        checkpoints' record of it)."""
         path = self.data_dir / "incarnation"
-        previous = int(path.read_text()) if path.exists() else 0
-        _write_atomic(path, str(previous + 1))
+        previous = 0
+        if path.exists():
+            try:
+                previous = int(path.read_text().strip())
+                if previous < 0:
+                    raise ValueError(f"negative: {previous}")
+            except (OSError, ValueError) as exc:
+                set_aside(path, f"unreadable ({exc})")
+                previous = 0
+                for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
+                    try:
+                        previous = max(previous, int(load_weights(self.data_dir / name)[2].get("incarnation", 0)))
+                    except (PersistError, OSError, ValueError, TypeError):
+                        continue
+        atomic_write_text(path, str(previous + 1))
         return previous + 1
 
     def _initial_config(self) -> LearnerConfig | None:
-        """The learner config from --learner-config, or adopted by an earlier run, or None."""
-        path = self.config.learner_config or (self.data_dir / LEARNER_JSON)
-        if not path.exists():
-            if self.config.learner_config is not None:
-                raise FileNotFoundError(f"learner config {path} does not exist")
-            return None
-        return self._overridden(LearnerConfig.from_dict(json.loads(path.read_text())))
+        """The learner config from --learner-config, or adopted by an earlier run, or None.
+
+        A --learner-config that cannot be used is an error (ConfigError). The data directory's
+        own copy that cannot be read is set aside, and the newest readable checkpoint's config
+        is used instead (else none: the server adopts a client's again).
+        """
+        if self.config.learner_config is not None:
+            path = self.config.learner_config
+            try:
+                text = path.read_text()
+            except OSError as exc:
+                raise ConfigError(f"learner config {path}: {exc.strerror or exc}") from exc
+            return self._overridden(LearnerConfig.from_json(text, f"learner config {path}"))
+        path = self.data_dir / LEARNER_JSON
+        if path.exists():
+            try:
+                return self._overridden(LearnerConfig.from_json(path.read_text(), str(path)))
+            except (OSError, ConfigError) as exc:
+                set_aside(path, f"unreadable ({exc})")
+        for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
+            try:
+                cfg = load_weights(self.data_dir / name)[0]
+            except (PersistError, OSError):
+                continue
+            log.warning("learner config taken from %s", name)
+            return self._overridden(cfg)
+        return None
 
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
         """`cfg` with this server's overrides (seed, bc_weight, alpha) where it sets them."""
@@ -190,8 +243,10 @@ class ThinkServer:
         """Store the experiences of logs that the store lacks.
 
         Every log is read through first (readable, one learner spec, the server's own spec where
-        it has one), so a log that does not fit leaves the store untouched. Returns how many
-        experiences were imported and the learner config the logs were recorded for (if said).
+        it has one), so a log that does not fit leaves the store untouched. Logs are read, never
+        changed: damaged records are skipped and reported. Returns how many experiences were
+        imported and the learner config the logs were recorded for (if said). Logs in which every
+        record was refused (a wrong key, say) are an error that names the reasons.
         """
         known, described = self._initial_config(), common_config(directories)
         spec = known.spec_hash() if known is not None else ""
@@ -200,11 +255,20 @@ class ThinkServer:
                 f"the logs were recorded for learner spec {described.spec_hash()}, this server's is {spec}"
             )
         spec = spec or (described.spec_hash() if described is not None else "")
-        for _ in merged(directories, self.codec.key, spec):
-            pass
+        counts = ReadCounts()
+        offered = sum(len(b) for b in merged(directories, self.codec.key, spec, counts))
+        if counts.damage:
+            log.warning("the logs hold %d damaged spans (%d bytes), skipped", len(counts.damage),
+                        sum(d.length for d in counts.damage))  # fmt: skip
+        if counts.refused:
+            reasons = ", ".join(f"{n} {why}" for why, n in counts.refused.most_common())
+            if offered == 0:
+                hint = " (a wrong --key-file?)" if "auth" in counts.refused else ""
+                raise LogFormatError(f"every record of the logs was refused: {reasons}{hint}; nothing imported")
+            log.warning("records refused while reading the logs: %s", reasons)
         imported = 0
         for batch in merged(directories, self.codec.key, spec):
-            admitted = self.store.admit(batch)
+            admitted = self.store.admit(mark_non_finite(batch)[0])
             if admitted.gap:
                 through = self.store.stored_through[batch.client]
                 log.warning("client %s experiences from %d leave a gap after %d; not imported",
@@ -213,7 +277,7 @@ class ThinkServer:
                 self.store.append(admitted.new)
                 imported += len(admitted.new)
         self.store.sync()
-        log.info("imported %d experiences from %d logs", imported, len(directories))
+        log.info("imported %d of %d experiences from %d logs", imported, offered, len(directories))
         return imported, described
 
     def replayed(self) -> bool:
@@ -225,30 +289,15 @@ class ThinkServer:
 
     def _start_learner(self, cfg: LearnerConfig) -> None:
         """Build the learner, resume the checkpoint if it fits, and load the stored experiences."""
-        _write_atomic(self.data_dir / LEARNER_JSON, cfg.to_json())
-        meta: dict[str, Any] = {}
-        learner = WFNN(cfg)
-        checkpoint = self.data_dir / CHECKPOINT
-        if checkpoint.exists():
-            try:
-                ck_cfg, params, meta = load_weights(checkpoint)
-                if ck_cfg.spec_hash() != cfg.spec_hash():
-                    raise PersistError(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
-                learner = WFNN(cfg, params=params)
-                learner.thinks[:] = int(meta.get("thinks", 0))
-                learner.resets[:] = int(meta.get("resets", 0))
-                self.version = int(meta.get("version", 0))
-                log.info("resumed checkpoint: version %d, %d thinks", self.version, int(learner.thinks[0]))
-            except (PersistError, KeyError, ValueError) as exc:
-                log.error("checkpoint %s not used (%s); starting from fresh weights", checkpoint, exc)
-                meta = {}
+        atomic_write_text(self.data_dir / LEARNER_JSON, cfg.to_json())
+        learner, meta = self._resume(cfg)
         checkpointed: dict[str, int] = meta.get("stored_through", {})
         self.budget = int(meta.get("budget", 0))
         self.learned_through = dict(meta.get("learned_through", {}))
         tpa = cfg.thinks_per_action
         loaded = 0
         for batch in self.store.batches():
-            ok = learner.learn_many(batch.state, batch.action, batch.next_state, batch.reward, batch.terminal)
+            ok = self._learn_batch(learner, batch)
             loaded += len(batch)
             # Experiences stored after the checkpoint have not had their thinks yet.
             after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
@@ -261,6 +310,57 @@ class ThinkServer:
             "learner %s (spec %s, seed %d); %d stored experiences loaded, %d thinks owed",
             cfg.short_repr(), self.spec_hash, cfg.seed, loaded, self.budget,
         )  # fmt: skip
+
+    def _resume(self, cfg: LearnerConfig) -> tuple[WFNN, dict[str, Any]]:
+        """The learner of the newest readable checkpoint that fits `cfg` (or fresh) and its meta.
+
+        A newest checkpoint that cannot be read is set aside (renamed, so that the next
+        checkpoint does not rotate it over the previous one) and the previous one is tried.
+        """
+        for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
+            path = self.data_dir / name
+            if not path.exists():
+                continue
+            try:
+                ck_cfg, params, meta = load_weights(path)
+                if ck_cfg.spec_hash() != cfg.spec_hash():
+                    raise PersistError(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
+                learner = WFNN(cfg, params=params)
+                learner.thinks[:] = int(meta.get("thinks", 0))
+                learner.resets[:] = int(meta.get("resets", 0))
+                self.version = int(meta.get("version", 0))
+                for key in ("stored_through", "learned_through"):
+                    if not isinstance(meta.get(key, {}), dict):
+                        raise PersistError(f"checkpoint meta {key} is not a map")
+                int(meta.get("budget", 0))
+            except (PersistError, OSError, KeyError, ValueError, TypeError) as exc:
+                log.error("checkpoint %s cannot be used (%s)", path, exc)
+                if name == CHECKPOINT and self._readable_previous():
+                    set_aside(path, "unreadable; falling back to the previous checkpoint")
+                self.version = 0
+                continue
+            log.info("resumed %s: version %d, %d thinks", name, self.version, int(learner.thinks[0]))
+            return learner, meta
+        if any((self.data_dir / name).exists() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
+            log.error("no usable checkpoint: fresh weights; every stored experience is owed its thinks again")
+        return WFNN(cfg), {}
+
+    def _readable_previous(self) -> bool:
+        try:
+            load_weights(self.data_dir / PREVIOUS_CHECKPOINT)
+        except (PersistError, OSError):
+            return False
+        return True
+
+    @staticmethod
+    def _learn_batch(learner: WFNN, batch: ExperienceBatch) -> NDArray[np.bool_]:
+        """Store a batch's learnable experiences in the learner; -> which were stored [N]."""
+        ok = np.zeros(len(batch), dtype=np.bool_)
+        keep = batch.learnable()
+        if keep.any():
+            ok[keep] = learner.learn_many(batch.state[keep], batch.action[keep], batch.next_state[keep],
+                                          batch.reward[keep], batch.terminal[keep])  # fmt: skip
+        return ok
 
     # ------------------------------------------------------------------ running
     def start(self) -> ThinkServer:
@@ -329,28 +429,45 @@ class ThinkServer:
                 kind, data = self._inbox.get(timeout=0.01)
             except queue.Empty:
                 kind = ""
-            if kind == "exp":
-                self._ingest(data)
-            elif kind == "status":
-                self._client_status(data)
-            elif kind == "camera":
-                self._camera_view(data)
+            if kind:
+                self._handle(kind, data)
             if self.store.due():
                 for client, through in self.store.sync().items():
                     self._ack(client, through)
         for client, through in self.store.sync().items():
             self._ack(client, through)
 
-    def _ingest(self, frame: bytes) -> None:
+    def _handle(self, kind: str, data: bytes) -> None:
+        """One received message; whatever it provokes is counted, never raised."""
         try:
-            sender, batch = self.codec.decode(frame, ExperienceBatch)
-            if sender != batch.client:
-                raise SpecMismatch(f"frame from {sender} carries experiences of {batch.client}")
-            self._check_spec(batch)
+            if kind == "exp":
+                self._ingest(data)
+            elif kind == "status":
+                self._client_status(data)
+            elif kind == "camera":
+                self._camera_view(data)
         except ProtocolError as exc:
             self.rejected[exc.reason] += 1
-            log.debug("rejected experience frame: %s", exc)
-            return
+            log.debug("rejected %s frame: %s", kind, exc)
+        except OSError:
+            raise  # the store cannot be written: that is this server's fault, not the sender's
+        except Exception as exc:  # a case no check foresaw: counted and logged, the thread goes on
+            self.rejected["error"] += 1
+            if self.rejected["error"] <= 10:
+                log.exception("a %s frame could not be handled (%s); counted as rejected 'error'", kind, exc)
+
+    def _allowed(self, client: str) -> None:
+        allowed = self.config.allow_clients
+        if allowed and client not in allowed:
+            raise _Refused("client_not_allowed", f"client {client} is not among --allow-client")
+
+    def _ingest(self, frame: bytes) -> None:
+        sender, batch = self.codec.decode(frame, ExperienceBatch)
+        if sender != batch.client:
+            raise SpecMismatch(f"frame from {sender} carries experiences of {batch.client}")
+        self._allowed(batch.client)
+        self._check_spec(batch)
+        batch, non_finite = mark_non_finite(batch)
         admitted = self.store.admit(batch)
         self.counters["ingest/batches"] += 1
         if admitted.new is None:
@@ -358,6 +475,8 @@ class ThinkServer:
             # The client is re-sending or skipped ahead: tell it where our run of its data ends.
             self._ack(batch.client, self.store.durable_through.get(batch.client, -1))
             return
+        if non_finite:
+            self.counters["ingest/non_finite"] += int(np.count_nonzero(admitted.new.flags & EXP_NON_FINITE))
         self.store.append(admitted.new)
         self._to_learn.append(admitted.new)
         self._wake.set()
@@ -382,43 +501,38 @@ class ThinkServer:
             raise SpecMismatch(f"spec {batch.spec_hash} is not {cfg.spec_hash()}")
 
     def _client_status(self, frame: bytes) -> None:
-        try:
-            _, status = self.codec.decode(frame, ClientStatus)
-        except ProtocolError as exc:
-            self.rejected[exc.reason] += 1
-            return
+        sender, status = self.codec.decode(frame, ClientStatus)
+        if sender != status.client:
+            raise _Refused("sender", f"status from {sender} names client {status.client}")
+        self._allowed(status.client)
         self.counters["ingest/client_status"] += 1
         self._heard[status.client] = time.monotonic()
         self.clients = {**self.clients, status.client: status}
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:
-            cfg = LearnerConfig.from_dict(json.loads(status.learner_config))
-        except (ValueError, TypeError) as exc:
+            cfg = self._overridden(LearnerConfig.from_json(status.learner_config))
+            if cfg.spec_hash() != status.spec_hash:
+                raise ConfigError(f"its spec is {cfg.spec_hash()}, the status says {status.spec_hash}")
+        except ConfigError as exc:
             self.rejected["config"] += 1
-            log.error("client %s announced an unusable learner config: %s", status.client, exc)
-            return
-        if cfg.spec_hash() != status.spec_hash:
-            self.rejected["config"] += 1
+            log.error("client %s announced a learner config that is refused: %s", status.client, exc)
             return
         log.info("adopting the learner config of client %s", status.client)
-        self._pending_config = self._overridden(cfg)
+        self._pending_config = cfg
         self._wake.set()
 
     def _camera_view(self, frame: bytes) -> None:
-        try:
-            sender, view = self.codec.decode(frame, CameraView)
-        except ProtocolError as exc:
-            self.rejected[exc.reason] += 1
-            return
+        sender, view = self.codec.decode(frame, CameraView)
         if sender != view.client:
-            self.rejected["sender"] += 1
-            return
+            raise _Refused("sender", f"camera view from {sender} names client {view.client}")
+        self._allowed(view.client)
         self.counters["ingest/camera_views"] += 1
         self.camera_views = {**self.camera_views, view.client: view}
 
     def _ack(self, client: str, through: int) -> None:
-        ack = Ack(client=client, server=self.id, incarnation=self.incarnation, stored_through=through)
+        ack = Ack(client=client, server=self.id, incarnation=self.incarnation, store=self.store.id,
+                  stored_through=through)  # fmt: skip
         self.bus.put(self.keys.ack(client, self.id), self.codec.encode(ack), Channel.CONTROL)
 
     # ------------------------------------------------------------------ learner thread
@@ -461,7 +575,7 @@ class ThinkServer:
         tpa = learner.config.thinks_per_action
         while self._to_learn:
             batch = self._to_learn.popleft()
-            ok = learner.learn_many(batch.state, batch.action, batch.next_state, batch.reward, batch.terminal)
+            ok = self._learn_batch(learner, batch)
             owed = tpa * int(np.count_nonzero(ok))
             self.budget += owed
             self._thinks_owed_total += owed
@@ -524,7 +638,8 @@ class ThinkServer:
             return
         self.version += 1
         snapshot = WeightSnapshot(
-            server=self.id, incarnation=self.incarnation, version=self.version, spec_hash=self.spec_hash,
+            server=self.id, incarnation=self.incarnation, store=self.store.id, version=self.version,
+            spec_hash=self.spec_hash,
             published_ns=time.time_ns(), thinks=int(learner.thinks[0]),
             diverged=bool(learner.thinks[0] < self._recover_until),
             learned_through=dict(self.learned_through), params=learner.params.flat[:1],
@@ -556,8 +671,9 @@ class ThinkServer:
             "think/thinks": float(learner.thinks[0]) if learner else 0.0,
             "think/budget": float(self.budget),
             "store/experiences": float(self.store.count),
-            "store/torn_bytes_cut": float(self.store.log.recovery.torn_bytes_cut),
-            "store/corrupt_segments": float(self.store.log.recovery.corrupt_segments),
+            "store/torn_bytes_cut": float(self.store.log.segments.recovery.torn_bytes_cut),
+            "store/damaged_spans": float(len(self.store.log.counts.damage)),
+            "store/unreadable_records": float(self.store.unreadable),
             "learn/divergence_resets": float(learner.resets[0]) if learner else 0.0,
             "learn/diverged": float(bool(learner is not None and learner.thinks[0] < self._recover_until)),
             "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,
@@ -578,7 +694,7 @@ class ThinkServer:
                 metrics[f"learn/staleness_versions_p{p}"] = float(np.percentile(lag, p))
             self._staleness.clear()
         status = ServerStatus(
-            server=self.id, incarnation=self.incarnation, started_ns=self.started_ns,
+            server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
             spec_hash=self.spec_hash, weights_version=self.version,
             stored_through=dict(self.store.durable_through), rejected=dict(self.rejected), metrics=metrics,
         )  # fmt: skip
@@ -598,7 +714,8 @@ class ThinkServer:
             "stored_through": dict(self._queued_through), "learned_through": dict(self.learned_through),
             "server": self.id,
         }  # fmt: skip
-        save_weights(self.data_dir / CHECKPOINT, cfg, learner.params, meta)
+        newest, previous = self.data_dir / CHECKPOINT, self.data_dir / PREVIOUS_CHECKPOINT
+        save_weights(newest, cfg, learner.params, meta, keep_previous=previous)
         log.info(
             "checkpoint: version %d, %d thinks, %d experiences",
             self.version,

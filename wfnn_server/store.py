@@ -4,7 +4,10 @@ Experiences of each client are stored once and in order of their sequence number
 stored from a client is always the run 0..stored_through[client]: a duplicate (a re-sent
 batch) is dropped, an overlap is trimmed, and a batch that leaves a gap is refused (the client
 re-sends from the acknowledged point). Records are `ExperienceBatch` frames, the format of the
-client journal.
+client journal (`wfnn_common.logs.ExperienceLog`), stored as verified at ingest (untagged).
+The store has its own identity (`id`, made when it is created), which the server announces: a
+server restarted under the same id with a new, empty store is known to its clients as another
+store, and they re-send it everything.
 """
 
 from __future__ import annotations
@@ -14,8 +17,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from wfnn_common.protocol import Codec, ExperienceBatch, ProtocolError
-from wfnn_common.segments import FsyncPolicy, SegmentLog
+from wfnn_common.logs import ExperienceLog
+from wfnn_common.protocol import Codec, ExperienceBatch
+from wfnn_common.segments import FsyncPolicy
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +45,10 @@ class ExperienceStore:
         fsync_interval_s: float = 0.02,
         segment_bytes: int = 64 << 20,
     ) -> None:
-        self.log = SegmentLog(
-            directory, segment_bytes=segment_bytes, fsync=fsync, fsync_interval_s=fsync_interval_s
-        )
+        self.log = ExperienceLog(directory, segment_bytes=segment_bytes, fsync=fsync,
+                                 fsync_interval_s=fsync_interval_s)  # fmt: skip
+        self.id = self.log.id
+        """The store's identity (announced in acks and status)."""
         self._codec = Codec(server_id)
         self.stored_through: dict[str, int] = {}
         """Per client: every experience numbered <= this is stored (written; durable after `sync`)."""
@@ -51,8 +56,6 @@ class ExperienceStore:
         """Per client: what `sync` has made durable (what may be acknowledged)."""
         self.count = 0
         """Experiences stored."""
-        self.unreadable = 0
-        """Records that were intact on disk but are not experience batches (counted, skipped)."""
         self._rebuild()
 
     def _rebuild(self) -> None:
@@ -63,15 +66,14 @@ class ExperienceStore:
                 self._count(admitted.new)
         self.durable_through = dict(self.stored_through)
 
+    @property
+    def unreadable(self) -> int:
+        """Records of the last read that were intact on disk but are not experience batches."""
+        return self.log.counts.unreadable
+
     def batches(self) -> Iterator[ExperienceBatch]:
-        """Every stored batch, oldest first (records that are not batches are counted and skipped)."""
-        for _, payload in self.log.read():
-            try:
-                _, batch = self._codec.decode(payload, ExperienceBatch)
-            except ProtocolError as exc:
-                self.unreadable += 1
-                log.error("store record not readable as an experience batch: %s", exc)
-                continue
+        """Every stored batch, oldest first (damaged records and other frames counted and skipped)."""
+        for _, _, batch in self.log.entries():
             yield batch
 
     def admit(self, batch: ExperienceBatch) -> Admission:
@@ -98,7 +100,7 @@ class ExperienceStore:
         """Whether stored experiences wait to be made durable and acknowledged, per the fsync policy."""
         if self.stored_through == self.durable_through:
             return False
-        return self.log.fsync != "interval" or self.log.due()
+        return self.log.segments.fsync != "interval" or self.log.due()
 
     def sync(self) -> dict[str, int]:
         """Make everything appended durable; -> the clients whose durable point moved, and to where."""

@@ -66,13 +66,14 @@ def make_batch(n=5, s=3, a=2, first_seq=0, client="robot1", seed=0):
 
 
 def make_ack(stored_through=41):
-    return Ack(client="robot1", server="srv1", incarnation=3, stored_through=stored_through)
+    return Ack(client="robot1", server="srv1", incarnation=3, store="9f2c4e", stored_through=stored_through)
 
 
 def make_weights():
     return WeightSnapshot(
         server="srv1",
         incarnation=2,
+        store="9f2c4e",
         version=17,
         spec_hash="abc123",
         published_ns=1_700_000_000_123_456_789,
@@ -87,6 +88,7 @@ def make_server_status():
     return ServerStatus(
         server="srv1",
         incarnation=5,
+        store="9f2c4e",
         started_ns=123,
         spec_hash="",
         weights_version=0,
@@ -363,11 +365,19 @@ def test_wrong_magic_is_bad_magic():
 
 def test_wrong_version_is_version_mismatch():
     body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
-    for version in (0, PROTOCOL_VERSION + 1, 255):
+    for version in (0, 1, PROTOCOL_VERSION + 1, 255):  # version 1 acks had no store
         with pytest.raises(VersionMismatch) as info:
             decode(raw_frame(body, MsgType.ACK, version=version))
         assert info.value.reason == "version"
     assert isinstance(decode(raw_frame(body, MsgType.ACK)).message, Ack)
+
+
+def test_experience_batches_of_protocol_version_1_stay_readable():
+    """Logs written before version 2 hold version 1 batches, whose body has not changed."""
+    batch = make_batch()
+    body = msgpack.packb(to_body(batch), use_bin_type=True)
+    got = decode(raw_frame(body, MsgType.EXPERIENCES, version=1)).message
+    np.testing.assert_array_equal(got.state, batch.state)
 
 
 def test_unknown_flags_are_rejected():

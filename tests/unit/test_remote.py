@@ -111,10 +111,11 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
         brain.stop()
 
 
-def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False):
+def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
+          store="store1"):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1]
     snap = WeightSnapshot(
-        server=server, incarnation=incarnation, version=version, spec_hash=spec or cfg.spec_hash(),
+        server=server, incarnation=incarnation, store=store, version=version, spec_hash=spec or cfg.spec_hash(),
         published_ns=time.time_ns(), thinks=0, diverged=diverged, learned_through={},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
@@ -129,12 +130,7 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     brain = remote(tmp_path, hub, cfg, key_file=key_file)
     brain.start()
     bus = hub.bus()
-    bus.declare_token(KEYS.server_alive("s1"))
-    status = ServerStatus(
-        server="s1", incarnation=1, started_ns=1, spec_hash=cfg.spec_hash(), weights_version=0,
-        stored_through={}, rejected={}, metrics={},
-    )  # fmt: skip
-    bus.put(KEYS.server_status("s1"), Codec("s1", key).encode(status), None)  # its heartbeat
+    announce(bus, "s1", cfg, started_ns=1, key=key)  # its heartbeat
     n = WFNN(cfg).params.flat.shape[1]
     bad = {
         "auth": forge(cfg),  # no key
@@ -142,6 +138,7 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
         "shape": forge(cfg, params=np.zeros((1, n + 1)), key=key),
         "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=key),
         "misrouted": Codec("s2", key).encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
+        "unannounced": forge(cfg, incarnation=7, key=key),  # not what s1's status says it is
     }
     for reason, frame in bad.items():  # one at a time: the downlink keeps only the newest per server
         bus.put(KEYS.weights("s1"), frame, None)
@@ -152,20 +149,23 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     bus.put(KEYS.weights("s1"), forge(cfg, version=4, params=np.zeros((1, n)), key=key), None)
     assert wait(lambda: brain.rejected["stale"] == 1)
     assert brain.current.version == 5
-    # A restarted server (next incarnation) starts its versions again.
+    # A restarted server (next incarnation, as its status says) starts its versions again.
+    announce(bus, "s1", cfg, started_ns=2, key=key, incarnation=2, token=False)
     bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=key), None)
     assert wait(lambda: brain.current.incarnation == 2)
     brain.stop()
 
 
-def announce(bus, server, cfg, started_ns):
+def announce(bus, server, cfg, started_ns, key=None, incarnation=1, store="store1", token=True,
+             stored_through=None):  # fmt: skip
     """A server's liveliness token and heartbeat, as a real one publishes them."""
-    bus.declare_token(KEYS.server_alive(server))
+    if token:
+        bus.declare_token(KEYS.server_alive(server))
     status = ServerStatus(
-        server=server, incarnation=1, started_ns=started_ns, spec_hash=cfg.spec_hash(), weights_version=0,
-        stored_through={}, rejected={}, metrics={},
+        server=server, incarnation=incarnation, store=store, started_ns=started_ns, spec_hash=cfg.spec_hash(),
+        weights_version=0, stored_through=stored_through or {}, rejected={}, metrics={},
     )  # fmt: skip
-    bus.put(KEYS.server_status(server), Codec(server).encode(status), None)
+    bus.put(KEYS.server_status(server), Codec(server, key).encode(status), None)
 
 
 def test_with_no_healthy_server_the_weights_relearned_after_a_reset_drive_the_robot(tmp_path):

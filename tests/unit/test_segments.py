@@ -120,20 +120,28 @@ def test_oversized_record_is_refused(tmp_path, monkeypatch):
         assert [p for _, p in log.read()] == [b"x" * 64]
 
 
-# --------------------------------------------------------------------------- torn tails
+# --------------------------------------------------------------------------- torn tails (the owner)
+def quarantined(directory):
+    return sorted((directory / segments.QUARANTINE).glob("*.torn"))
+
+
 @pytest.mark.parametrize("torn", [1, 3, RECORD.size - 1, RECORD.size, RECORD.size + 5])
-def test_torn_partial_record_appended_is_cut_at_reopen(tmp_path, torn):
+def test_torn_partial_record_is_moved_to_quarantine_at_reopen(tmp_path, torn):
     records = payloads(5)
     with SegmentLog(tmp_path, fsync="always") as log:
         for p in records:
             log.append(p)
         intact_size = log.position.offset
-    partial = RECORD.pack(30, crc32c(b"z" * 30)) + b"z" * 30
+    partial = (RECORD.pack(30, crc32c(b"z" * 30)) + b"z" * 30)[:torn]
     with open(seg_path(tmp_path, 0), "ab") as f:
-        f.write(partial[:torn])
+        f.write(partial)
     with SegmentLog(tmp_path, fsync="always") as log:
         assert log.recovery.torn_bytes_cut == torn
         assert seg_path(tmp_path, 0).stat().st_size == intact_size
+        # The cut bytes are kept beside the log, named after the segment and the offset.
+        [kept] = quarantined(tmp_path)
+        assert kept.name == f"00000000-{intact_size:010d}.torn" and kept.read_bytes() == partial
+        assert log.recovery.quarantined == [kept]
         assert log.position == Position(0, intact_size)
         assert [p for _, p in log.read()] == records
         assert log.append(b"after") == Position(0, intact_size)
@@ -141,6 +149,7 @@ def test_torn_partial_record_appended_is_cut_at_reopen(tmp_path, torn):
     with SegmentLog(tmp_path) as log:
         assert log.recovery.torn_bytes_cut == 0
         assert [p for _, p in log.read()] == [*records, b"after"]
+    assert len(quarantined(tmp_path)) == 1
 
 
 def test_file_truncated_mid_record_is_cut_at_reopen(tmp_path):
@@ -172,6 +181,7 @@ def test_torn_record_with_bad_crc_is_cut(tmp_path):
         assert log.recovery.torn_bytes_cut == RECORD.size + len(b"second")
         assert [p for _, p in log.read()] == [b"first"]
         assert log.position.offset == size - RECORD.size - len(b"second")
+    assert quarantined(tmp_path)[0].read_bytes() == bytes(data[size - RECORD.size - len(b"second") :])
 
 
 def test_absurd_length_in_tail_is_cut(tmp_path):
@@ -189,12 +199,20 @@ def test_zero_filled_tail_is_not_read_as_records(tmp_path):
         log.append(b"ok")
     with open(seg_path(tmp_path, 0), "ab") as f:
         f.write(b"\0" * 4096)
+    assert [p for _, p in segments.read_records(tmp_path)] == [b"ok"]
     with SegmentLog(tmp_path) as log:
         assert [p for _, p in log.read()] == [b"ok"]
 
 
-# --------------------------------------------------------------------------- corruption in older segments
-def test_corruption_in_an_older_segment_skips_the_rest_of_it(tmp_path):
+# --------------------------------------------------------------------------- damage in the middle
+def damage(path, offset, xor=0x01):
+    data = bytearray(path.read_bytes())
+    data[offset] ^= xor
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("marker", [b"", b"r"])
+def test_a_damaged_record_in_the_middle_is_skipped_and_the_next_ones_read(tmp_path, marker):
     records = payloads(9, size=40)
     with SegmentLog(tmp_path, segment_bytes=160, fsync="always") as log:
         positions = [log.append(p) for p in records]
@@ -203,38 +221,93 @@ def test_corruption_in_an_older_segment_skips_the_rest_of_it(tmp_path):
         by_segment.setdefault(pos.segment, []).append((pos, p))
     assert len(by_segment) >= 3 and len(by_segment[1]) == 3
     victim = by_segment[1][1][0]  # the middle record of segment 1
-    path = seg_path(tmp_path, 1)
-    data = bytearray(path.read_bytes())
-    data[victim.offset + RECORD.size + 3] ^= 0x01
-    path.write_bytes(bytes(data))
+    damage(seg_path(tmp_path, 1), victim.offset + RECORD.size + 3)
+    expected = [p for pos, p in zip(positions, records, strict=True) if pos != victim]
 
-    with SegmentLog(tmp_path, segment_bytes=160) as log:
-        assert log.recovery.torn_bytes_cut == 0  # only the last segment is checked for a torn tail
-        expected = [p for pos, p in zip(positions, records, strict=True) if pos.segment != 1]
-        expected.insert(len(by_segment[0]), by_segment[1][0][1])
+    report = segments.ReadReport()
+    assert [p for _, p in segments.read_records(tmp_path, report=report, marker=marker)] == expected
+    length = RECORD.size + len(by_segment[1][1][1])
+    assert report.damage == [segments.Damage(1, victim.offset, length, "corrupt")]
+    assert report.records == len(expected) and report.skipped_bytes == length
+
+    with SegmentLog(tmp_path, segment_bytes=160, marker=marker) as log:
+        assert log.recovery.torn_bytes_cut == 0 and log.recovery.corrupt_spans == 0  # not its last segment
         assert [p for _, p in log.read()] == expected
-        assert log.recovery.corrupt_segments == 1
-        assert [p for _, p in log.read()] == expected
-        assert log.recovery.corrupt_segments == 1  # counted once, however often it is read
-        assert [p for _, p in log.read(victim)] == [p for pos, p in zip(positions, records, strict=True)
-                                                     if pos.segment > 1]  # fmt: skip
-        assert log.recovery.corrupt_segments == 1
+        after = [p for pos, p in zip(positions, records, strict=True) if pos > victim]
+        assert [p for _, p in log.read(victim)] == after
         log.append(b"more")
         assert [p for _, p in log.read()] == [*expected, b"more"]
 
 
-def test_two_corrupt_segments_are_counted_separately(tmp_path):
+def test_damage_in_the_middle_of_the_last_segment_is_left_for_readers(tmp_path):
+    records = payloads(5)
+    with SegmentLog(tmp_path) as log:
+        positions = [log.append(p) for p in records]
+    size = seg_path(tmp_path, 0).stat().st_size
+    damage(seg_path(tmp_path, 0), positions[1].offset + 1)  # the length field of record 1
+    with SegmentLog(tmp_path) as log:
+        assert log.recovery.torn_bytes_cut == 0 and log.recovery.corrupt_spans == 1
+        assert seg_path(tmp_path, 0).stat().st_size == size and not quarantined(tmp_path)
+        assert [p for _, p in log.read()] == [records[0], *records[2:]]
+        assert log.append(b"next") == Position(0, size)
+
+
+def test_two_damaged_records_are_reported_separately(tmp_path):
     with SegmentLog(tmp_path, segment_bytes=40) as log:
         positions = [log.append(bytes([i]) * 20) for i in range(4)]
     assert [p.segment for p in positions] == [0, 1, 2, 3]
     for n in (0, 2):
-        path = seg_path(tmp_path, n)
-        data = bytearray(path.read_bytes())
-        data[-1] ^= 0x80
-        path.write_bytes(bytes(data))
-    with SegmentLog(tmp_path, segment_bytes=40) as log:
-        assert [p for _, p in log.read()] == [bytes([1]) * 20, bytes([3]) * 20]
-        assert log.recovery.corrupt_segments == 2
+        damage(seg_path(tmp_path, n), 27, 0x80)
+    report = segments.ReadReport()
+    assert [p for _, p in segments.read_records(tmp_path, report=report)] == [bytes([1]) * 20, bytes([3]) * 20]
+    assert [(d.segment, d.offset, d.length) for d in report.damage] == [(0, 0, 28), (2, 0, 28)]
+
+
+def test_read_at_returns_a_record_or_none(tmp_path):
+    with SegmentLog(tmp_path) as log:
+        first = log.append(b"one")
+        second = log.append(b"two")
+        assert log.read_at(first) == b"one" and log.read_at(second) == b"two"
+        assert log.read_at(Position(0, 1)) is None and log.read_at(Position(7, 0)) is None
+        damage(seg_path(tmp_path, 0), second.offset + RECORD.size)
+        assert log.read_at(second) is None
+
+
+# --------------------------------------------------------------------------- reading never writes
+def snapshot(directory):
+    return {p.relative_to(directory): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(directory.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+def test_reading_changes_no_file_whatever_the_damage(tmp_path):
+    with SegmentLog(tmp_path, segment_bytes=100) as log:
+        positions = [log.append(p) for p in payloads(8, size=30)]
+    damage(seg_path(tmp_path, 1), 10)
+    with open(seg_path(tmp_path, positions[-1].segment), "ab") as f:
+        f.write(b"torn tail")
+    before = snapshot(tmp_path)
+    report = segments.ReadReport()
+    assert len(list(segments.read_records(tmp_path, report=report))) == 7
+    assert [d.kind for d in report.damage] == ["corrupt", "tail"]
+    assert snapshot(tmp_path) == before
+
+
+def test_reading_works_without_write_permission(tmp_path):
+    import os
+    import stat
+
+    with SegmentLog(tmp_path / "log") as log:
+        log.append(b"a")
+        log.append(b"b")
+    for path in [tmp_path / "log", *(tmp_path / "log").iterdir()]:
+        path.chmod(stat.S_IRUSR | stat.S_IXUSR if path.is_dir() else stat.S_IRUSR)
+    try:
+        if os.access(seg_path(tmp_path / "log", 0), os.W_OK):
+            pytest.skip("running as root: permissions do not stop writes here")
+        assert [p for _, p in segments.read_records(tmp_path / "log")] == [b"a", b"b"]
+    finally:
+        for path in [tmp_path / "log", *(tmp_path / "log").iterdir()]:
+            path.chmod(stat.S_IRWXU)
 
 
 # --------------------------------------------------------------------------- fsync policies

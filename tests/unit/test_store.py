@@ -113,11 +113,11 @@ def test_append_stores_overlap_remainder_and_advances(tmp_path):
 def test_append_refuses_a_batch_that_does_not_continue_the_run(tmp_path, first_seq):
     store = ExperienceStore(tmp_path, "srv1")
     store_all(store, batch(0, 10))
-    size = store.log.position
+    size = store.log.segments.position
     with pytest.raises(ValueError, match="robot1"):
         store.append(batch(first_seq, 3))
     assert store.stored_through == {"robot1": 9} and store.count == 10
-    assert store.log.position == size  # nothing written
+    assert store.log.segments.position == size  # nothing written
     store.append(batch(10, 1))
     assert store.stored_through == {"robot1": 10}
     store.close()
@@ -235,7 +235,7 @@ def test_torn_tail_is_cut_on_reopen_without_losing_earlier_batches(tmp_path):
         f.write(torn_record[: len(torn_record) // 2])
 
     again = ExperienceStore(tmp_path, "srv1")
-    assert again.log.recovery.torn_bytes_cut == len(torn_record) // 2
+    assert again.log.segments.recovery.torn_bytes_cut == len(torn_record) // 2
     assert path.stat().st_size == intact
     assert again.stored_through == {"robot1": 11} and again.count == 12 and again.unreadable == 0
     for got, want in zip(again.batches(), written, strict=True):
@@ -244,14 +244,14 @@ def test_torn_tail_is_cut_on_reopen_without_losing_earlier_batches(tmp_path):
     store_all(again, batch(12, 4))
     again.close()
     third = ExperienceStore(tmp_path, "srv1")
-    assert third.stored_through == {"robot1": 15} and third.log.recovery.torn_bytes_cut == 0
+    assert third.stored_through == {"robot1": 15} and third.log.segments.recovery.torn_bytes_cut == 0
     third.close()
 
 
 def test_last_batch_cut_mid_record_is_forgotten_and_can_be_resent(tmp_path):
     store = ExperienceStore(tmp_path, "srv1", fsync="always")
     store_all(store, batch(0, 4))
-    last_at = store.log.position.offset
+    last_at = store.log.segments.position.offset
     store_all(store, batch(4, 4))
     store.close()
     (path,) = seg_files(tmp_path)
@@ -259,7 +259,7 @@ def test_last_batch_cut_mid_record_is_forgotten_and_can_be_resent(tmp_path):
     with open(path, "r+b") as f:
         f.truncate(size - 10)
     again = ExperienceStore(tmp_path, "srv1")
-    assert again.log.recovery.torn_bytes_cut == size - 10 - last_at
+    assert again.log.segments.recovery.torn_bytes_cut == size - 10 - last_at
     assert again.stored_through == {"robot1": 3} and again.count == 4
     assert again.admit(batch(0, 8)).new.first_seq == 4  # the client re-sends from its ack
     again.close()
@@ -268,9 +268,9 @@ def test_last_batch_cut_mid_record_is_forgotten_and_can_be_resent(tmp_path):
 def test_records_that_are_not_batches_are_counted_and_skipped(tmp_path):
     store = ExperienceStore(tmp_path, "srv1")
     store_all(store, batch(0, 2))
-    store.log.append(b"not a frame")
+    store.log.segments.append(b"not a frame")
     frame = Codec("x").encode(dataclasses.replace(batch(0, 1), client="other"))
-    store.log.append(b"XXXX" + frame[4:])  # intact record, but not a wfnn frame
+    store.log.segments.append(b"XXXX" + frame[4:])  # intact record, but not a wfnn frame
     store_all(store, batch(2, 2))
     store.close()
     again = ExperienceStore(tmp_path, "srv1")
