@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
+from wfnn_common.config import check_fields
 from wfnn_common.symmetry import Symmetry
 
 FloatArray = NDArray[np.float64]
@@ -42,6 +43,9 @@ class BoatConfig:
     energy_weight: float = 0.5
     coarseness_weight: float = 2.0
     """Reward Eq 3.8: -w_d |target| - w_e (A^2 + B^2) - w_c ((A - a)^2 + (B - b)^2)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 MIRROR = Symmetry(

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
+from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
 
@@ -34,6 +35,9 @@ class CartPoleConfig:
     max_force: float = 10.0
     reset_noise: float = 0.0
     """Uniform noise on every state variable at reset (0: start upright at rest in the centre)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 class CartPoleVec:

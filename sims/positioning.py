@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import TaskEnv, Transition
+from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
 
@@ -32,6 +33,9 @@ class PositioningConfig:
     """Probability per step that the target jumps (mean 50 steps between jumps)."""
     velocity_weight: float = 0.5
     """Reward: -(|error| + velocity_weight * |velocity|)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 class PositioningVec:

@@ -126,11 +126,11 @@ class LoopbackBus:
 
         with self.hub.lock:
             self.hub.queries.append(key)
-            answers = [(pat, a) for b, pat, a in self.hub.queryables if not b.closed and key_matches(key, pat)]
+            answers = [a for b, pat, a in self.hub.queryables if not b.closed and key_matches(key, pat)]
         deliver = self._checked(callback, max_bytes)
 
         def ask():
-            for pat, answer in answers:
+            for answer in answers:
                 reply = answer()
                 if reply is not None:
                     deliver(key, bytes(reply))

@@ -21,7 +21,7 @@ from scipy import stats
 from sims.base import Transition
 from sims.boat import BoatConfig, BoatVec, handcoded_boat
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,9 @@ class BoatBenchConfig:
     acceptable: float = 0.5
     """A controller is acceptable when its median over the last 10 targets is below this."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> LearnerConfig:

@@ -18,7 +18,7 @@ import numpy as np
 
 from sims.cartpole import CartPoleVec
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,9 @@ class CartPoleBenchConfig:
     gamma: float = 0.8
     advantage_k: float = 0.2
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def run(bench: CartPoleBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:

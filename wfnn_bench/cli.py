@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -27,10 +28,12 @@ from wfnn_bench import hydra as hydra_bench
 from wfnn_bench import nomad as nomad_bench
 from wfnn_bench import passive as passive_bench
 from wfnn_bench import relearn as relearn_bench
+from wfnn_bench import safety as safety_bench
 from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
+from wfnn_common.cli_errors import guarded
 
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
@@ -41,12 +44,25 @@ JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the full res
 PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write the figure as PNG here.")]
 
 
-def _logging(verbose: bool) -> None:
+def _logging(verbose: bool, *outputs: Path | None) -> None:
+    """Set up logging, and check before any work that each output file can be written."""
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )
+    for path in outputs:
+        if path is not None:
+            writable(path)
+
+
+def writable(path: Path) -> None:
+    """Raise OSError now if `path` cannot be written (its folder is made if missing)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise IsADirectoryError(21, "is a directory, not a file", str(path))
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+        pass
 
 
 def _progress() -> Progress:
@@ -78,7 +94,7 @@ def boat(
     verbose: bool = False,
 ) -> None:
     """Section 4.2 protocol, Q-learning vs advantage learning (Fig 4.2)."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     if mode not in ("advantage", "q", "both"):
         raise typer.BadParameter(f"mode must be advantage, q or both, got {mode!r}", param_hint="--mode")
     cfg = boat_bench.BoatBenchConfig(
@@ -132,7 +148,7 @@ def cartpole(
     verbose: bool = False,
 ) -> None:
     """Cart-pole, pure-delayed reward: steps balanced per attempt (Fig 4.12)."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     cfg = cartpole_bench.CartPoleBenchConfig(
         runs=runs, steps=steps, thinks=thinks, max_attempt_steps=max_attempt_steps,
         gamma=gamma, advantage_k=advantage_k, seed=seed,
@@ -165,7 +181,7 @@ def speed(
     verbose: bool = False,
 ) -> None:
     """Act latency, incremental / minibatch / population think rates (16-32-45 network)."""
-    _logging(verbose)
+    _logging(verbose, json_path)
     cfg = speed_bench.SpeedBenchConfig(act_calls=act_calls, thinks=thinks, population=population)
     with _progress() as bar:
         task = bar.add_task("speed", total=speed_bench.steps(cfg))
@@ -210,7 +226,7 @@ def hydra(
     verbose: bool = False,
 ) -> None:
     """HyDrA (Chapter 7): Table 7.1, controller analysis, 4-DOF, tick cost."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     cfg = hydra_bench.HydraBenchConfig(
         controllers=controllers, train_episodes=episodes, eval_episodes=eval_episodes, thinks=thinks,
         four_dof_controllers=four_dof_controllers, four_dof_episodes=four_dof_episodes, seed=seed,
@@ -300,7 +316,7 @@ def nomad(
     verbose: bool = False,
 ) -> None:
     """Nomad 200 (Chapter 6): servoing and wandering learned, servoing from the wandering, tick cost."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     cfg = nomad_bench.NomadBenchConfig(
         controllers=controllers, servo_episodes=episodes, eval_every=eval_every, thinks=thinks,
         wander_episodes=wander_episodes, forage_minutes=forage_minutes, forage_balls=forage_balls,
@@ -390,6 +406,56 @@ def nomad(
 
 
 @app.command()
+def safety(
+    episodes: Annotated[int, typer.Option(min=1, help="Boat episodes recorded for the damaged logs.")] = 4,
+    seconds: Annotated[
+        float, typer.Option(min=6.0, help="Length of each real-time phase (restart, storm, frames).")
+    ] = 10.0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """What survives damaged logs, a server restarted empty, a token storm and huge frames."""
+    _logging(verbose, json_path, plot_path)
+    cfg = safety_bench.SafetyBenchConfig(
+        episodes=episodes, restart_seconds=max(seconds, 9.0), storm_seconds=seconds, frames_seconds=seconds
+    )
+    with _progress() as bar:
+        task = bar.add_task("safety", total=safety_bench.steps(cfg))
+        result = safety_bench.run(cfg, lambda k: bar.advance(task, k))
+    d = result["damaged_logs"]
+    rows: list[tuple[str, Any]] = [("experiences in the recorded log", d["experiences"])]
+    for case in ("torn_tail", "middle"):
+        c = d[case]
+        rows += [
+            (f"{case}: read by inspect / imported by replay-only",
+             f"{c['inspect_experiences']} / {c['replay_experiences']}"),
+            (f"{case}: bytes changed by inspect / replay-only",
+             f"{c['inspect_bytes_changed']} / {c['replay_bytes_changed']}"),
+        ]  # fmt: skip
+    r, s = result["restart_empty"], result["token_storm"]
+    rows += [
+        (
+            "restart empty: produced / stored by the new server",
+            f"{r['produced']} / {r['stored_by_new_server']}",
+        ),
+        ("token storm: longest without new weights (s)", s["longest_without_weights_s"]),
+        ("token storm: unsigned statuses refused", s["rejected_status_auth"]),
+    ]
+    for f in result["huge_frames"]:
+        rows.append((f"{f['megabytes']} MB frames x{f['frames']} at 50 Hz: overruns, jitter p99 / max (ms)",
+                     f"{f['overruns']:.0f}, {f['tick_jitter_p99_ms']:.2f} / "
+                     f"{f['tick_jitter_max_ms']:.2f}"))  # fmt: skip
+    rows += [(f"goal {k} {g['goal']}", "met" if g["met"] else "NOT met") for k, g in result["goals"].items()]
+    rows.append(("wall_s", result["wall_s"]))
+    _table("safety (real processes, loopback)", rows)
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        safety_bench.plot(result, plot_path)
+
+
+@app.command()
 def transport(
     experiences: Annotated[
         int, typer.Option(min=1000, help="Experiences in the throughput phase.")
@@ -405,7 +471,7 @@ def transport(
     verbose: bool = False,
 ) -> None:
     """C/S over Zenoh across processes: experiences/s, loss, snapshot latency, tick jitter."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     cfg = transport_bench.TransportBenchConfig(
         experiences=experiences, tick_seconds=seconds, rate_hz=rate_hz, busy_server=busy,
         outage_seconds=outage_seconds,
@@ -457,7 +523,7 @@ def dashboard(
     verbose: bool = False,
 ) -> None:
     """What the dashboard costs a think server serving the HyDrA robot (CPU, off vs on)."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     if think not in ("budget", "continuous"):
         raise typer.BadParameter("budget or continuous", param_hint="--think")
     cfg = dashboard_bench.DashboardBenchConfig(seconds=seconds, warmup_s=warmup, repeats=repeats,
@@ -496,7 +562,7 @@ def relearn(
     verbose: bool = False,
 ) -> None:
     """HyDrA 4-DOF: relearning from the stored experiences after a divergence reset vs learning online."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     if episodes < eval_every:
         raise typer.BadParameter(
             "needs at least one evaluation: episodes >= eval-every", param_hint="--episodes"
@@ -561,7 +627,7 @@ def passive(
     verbose: bool = False,
 ) -> None:
     """Boat: passive learning from logs, phantom targets, mirror images (learning from data)."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     cfg = passive_bench.PassiveBenchConfig(
         controllers=controllers, dt=dt, log_targets=log_targets, passive_thinks=passive_thinks,
         online_targets=online_targets, thinks=thinks, eval_targets=eval_targets, bc_weight=bc_weight,
@@ -628,7 +694,7 @@ def vs_sb3(
     verbose: bool = False,
 ) -> None:
     """WFNN beside Stable-Baselines3 SAC and TD3: return vs steps, seconds per step, act latency."""
-    _logging(verbose)
+    _logging(verbose, json_path, plot_path)
     try:
         cfg = vs_sb3_bench.VsSb3Config(
             tasks=_names(tasks), steps=tuple(int(v) for v in _names(steps)), algorithms=_names(algorithms),
@@ -663,5 +729,8 @@ def vs_sb3(
         vs_sb3_bench.plot(result, plot_path)
 
 
+main = guarded(app)
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+
 if __name__ == "__main__":
-    app()
+    main()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import platform
@@ -12,6 +11,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from wfnn_common import persist
 
 log = logging.getLogger(__name__)
 
@@ -34,25 +35,7 @@ def machine_info() -> dict[str, Any]:
     }
 
 
-def to_jsonable(obj: Any) -> Any:
-    """Numpy scalars/arrays -> plain JSON values (NaN -> null)."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return to_jsonable(obj.item())
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
-
-
 def write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write `data` as JSON atomically (a crash never leaves half a file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(to_jsonable(data), indent=1))
-    os.replace(tmp, path)
+    """Write `data` as JSON atomically (`wfnn_common.persist.write_json`), and say so."""
+    persist.write_json(path, data)
     log.info("wrote %s", path)

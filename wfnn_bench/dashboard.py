@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_common.config import check_fields
 from wfnn_server.spawn import BIN, ServerProcess, free_port, wait_listening
 
 
@@ -51,6 +52,9 @@ class DashboardBenchConfig:
     think: str = "budget"
     """The server's thinking (`wfnn-server --think`): `budget` (the main job's: thinks_per_action
     per experience, then idle: a light server) or `continuous` (replaying whenever idle: a busy one)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def steps(cfg: DashboardBenchConfig) -> int:

@@ -31,7 +31,7 @@ import numpy as np
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
 FloatArray = np.ndarray
@@ -67,6 +67,9 @@ class HydraBenchConfig:
     render_ticks: int = 450
     """Ticks per regime of the rendered-vision check."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def steps(cfg: HydraBenchConfig) -> int:

@@ -40,7 +40,7 @@ from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
 FloatArray = NDArray[np.float64]
@@ -97,6 +97,9 @@ class NomadBenchConfig:
     render_wander_ticks: int = 1200
     """Ticks of hand-coded wandering per robot in the rendered-vision check (2 robots)."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def steps(cfg: NomadBenchConfig) -> int:

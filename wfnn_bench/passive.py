@@ -41,7 +41,7 @@ from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.brain import Experience, Recorder
 from wfnn_common import logs
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.protocol import EXP_EXPLORED
 from wfnn_common.update import squash_reward
@@ -94,6 +94,9 @@ class PassiveBenchConfig:
     passive learners (0.2, 0.5 and 1.0 scored alike here: 0.28-0.31 at dt 0.1, 0.07-0.08 at
     dt 1, 8 learners, 4.8 million thinks)."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 PASSIVE_LEARNERS = ("passive", "passive_no_bc", "passive_thesis")

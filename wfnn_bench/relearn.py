@@ -37,7 +37,7 @@ from sims.hydra import HydraConfig, HydraVec
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_bench.hydra import EPISODE, learn_episode
 from wfnn_bench.passive import PassiveBenchConfig
-from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
 FOUR_DOF = HydraConfig(
@@ -74,6 +74,9 @@ class RelearnBenchConfig:
     """The passive learner relearning from the store alone (`bc_weight`, `alpha`, `advantage_k`;
     the passive benchmark's)."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def steps(cfg: RelearnBenchConfig) -> int:

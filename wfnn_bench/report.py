@@ -27,6 +27,9 @@ import jinja2
 import numpy as np
 import typer
 
+from wfnn_common.cli_errors import guarded
+from wfnn_common.config import check_fields
+
 log = logging.getLogger(__name__)
 
 
@@ -38,6 +41,9 @@ class ReportConfig:
     """A client run directory, a benchmark JSON, or a directory of benchmark JSONs."""
     out: Path | None = None
     """The HTML file (default: `report.html` in the run directory or beside the JSON)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 class ReportError(ValueError):
@@ -261,3 +267,7 @@ def report(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     typer.echo(f"wrote {written}")
+
+
+main = guarded(app)
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.replay import Experiences
 
@@ -37,6 +37,9 @@ class SpeedBenchConfig:
     population_thinks: int = 2_000
     buffer: int = 20_000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def _config(bench: SpeedBenchConfig, **kw: Any) -> LearnerConfig:

@@ -32,7 +32,7 @@ from wfnn_client.brain import Experience
 from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_client.run import ClientConfig
 from wfnn_client.run import run as run_client
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.net import NetConfig, ZenohBus
 from wfnn_server.spawn import ServerProcess, free_port
@@ -65,6 +65,9 @@ class TransportBenchConfig:
     outage_down_s: float = 3.0
     """How long the server stays dead."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def steps(cfg: TransportBenchConfig) -> int:

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from sims.gym import GymVec
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
 FloatArray = NDArray[np.float64]
@@ -54,6 +54,7 @@ class VsSb3Config:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if len(self.tasks) != len(self.steps):
             raise ValueError("give one step budget per task")
         unknown = set(self.algorithms) - set(ALGORITHMS)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Annotated, Any
@@ -9,6 +10,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sims.gym import make_env
@@ -17,14 +19,16 @@ from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.vision import NomadVisionConfig
 from wfnn_client.controllers import LEARNER, parse_mix
-from wfnn_client.run import ClientConfig, SetupError, run
+from wfnn_client.run import ClientConfig, SetupError, jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
+from wfnn_common.cli_errors import guarded
 from wfnn_common.config import ExplorationConfig
 from wfnn_common.net import NetConfig
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
+errors = Console(stderr=True)
 
 
 def _floats(text: str | None, what: str) -> tuple[float, ...] | None:
@@ -52,7 +56,7 @@ def status_line(f: dict[str, Any]) -> str:
 
 
 @app.command()
-def main(
+def client(
     sim: Annotated[str, typer.Option(help=f"Simulated task: {', '.join(SIMS)}.")] = "boat",
     episodes: Annotated[int, typer.Option(min=1, help="Episodes (boat: targets).")] = 40,
     duration: Annotated[float | None, typer.Option(min=0.0, help="Stop after this many seconds.")] = None,
@@ -80,6 +84,12 @@ def main(
     client_id: Annotated[str | None, typer.Option(help="Client id (default: from the journal).")] = None,
     follow: Annotated[str | None, typer.Option(help="Follow only this server id.")] = None,
     key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
+    insecure: Annotated[
+        bool,
+        typer.Option(
+            help="Allow a non-loopback endpoint without --key-file (anyone reaching it can drive the robot)."
+        ),
+    ] = False,
     learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
     weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
@@ -202,23 +212,33 @@ def main(
             controller=controller, client_id=client_id, follow=follow,
             net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
                           zenoh_config=str(zenoh_config) if zenoh_config else None),
-            key_file=key_file, out=out, json_stats=json_stats, seed=seed, camera_every=camera_every,
+            key_file=key_file, insecure=insecure, out=out, json_stats=json_stats, seed=seed,
+            camera_every=camera_every,
             safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                                 max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
         )  # fmt: skip
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    console.print(f"[bold]wfnn-client[/] {config}")
+    except ValueError as exc:  # one line, as every other refusal (the message names the option)
+        errors.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        raise typer.Exit(2) from exc
+    console.print(f"[bold]wfnn-client[/] {escape(config.summary())}")
+    if verbose:  # the whole config (also in the run directory's config.json)
+        console.print_json(json.dumps(jsonable_config(config)))
+    try:
+        prepare(config)
+    except SetupError as exc:
+        errors.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        raise typer.Exit(2) from exc
     with Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
         TextColumn("{task.fields[line]}"), console=console,
     ) as bar:  # fmt: skip
         task = bar.add_task(f"{sim} episodes", total=episodes, line="")
         try:
-            metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)))
+            metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
+                          prepared=True)  # fmt: skip
         except SetupError as exc:
             bar.stop()
-            console.print(f"[red]error:[/] {exc}")
+            errors.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
             raise typer.Exit(2) from exc
     scores = metrics["scores"]
     trend = (
@@ -237,5 +257,8 @@ def main(
     console.print(f"saved {saved} in {out}/")
 
 
+main = guarded(app)
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+
 if __name__ == "__main__":
-    app()
+    main()

@@ -43,6 +43,8 @@ class Journal:
         directory = Path(directory)
         self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
                                  segment_bytes=segment_bytes)  # fmt: skip
+        self._first: list[int] = []
+        """First sequence number of each journaled batch, ascending."""
         self._last: list[int] = []
         """Last sequence number of each journaled batch, ascending."""
         self._where: list[Position] = []
@@ -52,10 +54,11 @@ class Journal:
             for pos, _, batch in self.log.entries():
                 owner = owner or batch.client
                 if batch.first_seq != self.next_seq:
-                    log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d are missing)",
-                              pos, batch.first_seq, self.next_seq, self.next_seq, batch.first_seq - 1)  # fmt: skip
+                    missing = (self.next_seq, batch.first_seq - 1)
+                    log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d missing)",
+                              pos, batch.first_seq, self.next_seq, *missing)  # fmt: skip
                 if batch.last_seq >= self.next_seq:
-                    self._index(batch.last_seq, pos)
+                    self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
         except BaseException:
             self.log.close()
@@ -85,14 +88,20 @@ class Journal:
             atomic_write_text(meta, json.dumps({"client": client_id}))
         return client_id
 
-    def _index(self, last_seq: int, pos: Position) -> None:
+    def _index(self, first_seq: int, last_seq: int, pos: Position) -> None:
+        self._first.append(first_seq)
         self._last.append(last_seq)
         self._where.append(pos)
         self.next_seq = last_seq + 1
 
     def append(self, frame: bytes, last_seq: int) -> None:
-        """Journal one encoded batch whose last experience is `last_seq`."""
-        self._index(last_seq, self.log.append(frame))
+        """Journal one encoded batch whose last experience is `last_seq` (it continues the journal)."""
+        self._index(self.next_seq, last_seq, self.log.append(frame))
+
+    def holds(self, seq: int) -> bool:
+        """Whether experience `seq` is in the journal (False in a gap that damage left)."""
+        i = bisect.bisect_left(self._last, seq)
+        return i < len(self._last) and self._first[i] <= seq
 
     def frames_from(self, seq: int, max_frames: int) -> tuple[list[bytes], int]:
         """Up to `max_frames` journaled frames, from the one holding experience `seq`.

@@ -21,6 +21,7 @@ newest weights never waits.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import queue
 import threading
@@ -34,15 +35,17 @@ import numpy as np
 
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
+from wfnn_common.config import check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params, Shapes
-from wfnn_common.config import check_fields
 from wfnn_common.protocol import (
+    EXP_AFTER_LOSS,
     Ack,
     CameraView,
     ClientStatus,
     Codec,
+    ExperienceBatch,
     Keys,
     MsgType,
     ProtocolError,
@@ -112,6 +115,7 @@ class Weights:
     params: Params
     server: str
     incarnation: int
+    store: str
     version: int
     published_ns: int
     diverged: bool
@@ -192,7 +196,7 @@ class RemoteBrain:
         self.current: Weights | None = None
         """The weights `act` uses; replaced by one reference assignment."""
         if initial is not None:  # saved weights drive the robot until a server's snapshot arrives
-            self.current = Weights(initial, "file", 0, 0, time.time_ns(), False, {}, time.monotonic())
+            self.current = Weights(initial, "file", 0, "", 0, time.time_ns(), False, {}, time.monotonic())
         self._following = ""
         self._connected = False
         self._learned = threading.Condition()
@@ -364,8 +368,10 @@ class RemoteBrain:
             "weights/version": float(self.current.version if self.current else 0),
             "downlink/failovers": float(len(self.failovers)),
             "downlink/longest_without_weights_s": self.longest_without_weights_s,
-            **{f"downlink/oversized_{k.rsplit('/', 1)[-1]}": float(v)
-               for k, v in dict(getattr(self.bus, "oversized", {})).items()},
+            **{
+                f"downlink/oversized_{k.rsplit('/', 1)[-1]}": float(v)
+                for k, v in dict(getattr(self.bus, "oversized", {})).items()
+            },
             **{f"downlink/rejected_{k}": float(v) for k, v in self.rejected.items()},
             **{k: float(v) for k, v in self.counters.items()},
         }
@@ -480,6 +486,8 @@ class RemoteBrain:
             frames, last = self.journal.frames_from(view.acked + 1, cfg.resend_window)
             if not frames:
                 continue
+            if not self.journal.holds(view.acked + 1):  # damage took them: say so, or it waits forever
+                frames[0] = self._declare_loss(frames[0], view)
             for frame in frames:
                 self.bus.put(self.keys.resend(view.server, self.id), frame, Channel.DATA)
             view.last_resend = now
@@ -487,6 +495,16 @@ class RemoteBrain:
             self.counters["uplink/resent_frames"] += len(frames)
             log.info("re-sent %d batches from experience %d to server %s", len(frames), view.acked + 1,
                      view.server)  # fmt: skip
+
+    def _declare_loss(self, frame: bytes, view: ServerView) -> bytes:
+        """The journaled batch `frame`, re-encoded to declare the experiences before it lost."""
+        _, batch = self.codec.decode(frame, ExperienceBatch)
+        flags = batch.flags.copy()
+        flags[0] |= EXP_AFTER_LOSS
+        log.error("experiences %d-%d are lost from the journal (damaged); server %s is told so",
+                  view.acked + 1, batch.first_seq - 1, view.server)  # fmt: skip
+        self.counters["uplink/declared_lost"] += batch.first_seq - view.acked - 1
+        return self.codec.encode(dataclasses.replace(batch, flags=flags))
 
     def _publish_status(self) -> None:
         with self._lock:
@@ -590,7 +608,8 @@ class RemoteBrain:
             return
         weights = Weights(
             Params(np.ascontiguousarray(snap.params, dtype=np.float64), self._shapes), snap.server,
-            snap.incarnation, snap.version, snap.published_ns, snap.diverged, snap.learned_through,
+            snap.incarnation, snap.store, snap.version, snap.published_ns, snap.diverged,
+            snap.learned_through,
             time.monotonic(),
         )  # fmt: skip
         with self._lock:

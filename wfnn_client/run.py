@@ -30,11 +30,11 @@ from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.tick import Ticker, TickStats
-from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
-from wfnn_common.net import NetConfig
-from wfnn_common.persist import load_weights, save_experiences, save_weights
-from wfnn_common.protocol import EXP_VETO_PROPOSED
+from wfnn_common.net import NetConfig, check_exposure
+from wfnn_common.persist import load_weights, save_experiences, save_weights, to_jsonable, write_json
+from wfnn_common.protocol import EXP_VETO_PROPOSED, load_key
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,8 @@ class ClientConfig:
     net: NetConfig = field(default_factory=NetConfig)
     """Zenoh settings (C/S); `connect` is filled from `server`."""
     key_file: Path | None = None
+    insecure: bool = False
+    """Allow a non-loopback endpoint without a key (anyone reaching it could drive the robot)."""
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     out: Path = Path("runs/latest")
     json_stats: Path | None = None
@@ -108,6 +110,7 @@ class ClientConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.sim not in SIMS:
             raise ValueError(f"unknown sim {self.sim!r}; choose from {', '.join(SIMS)}")
         if (self.sim == "gym") != (self.env is not None):
@@ -133,6 +136,26 @@ class ClientConfig:
     def local(self) -> bool:
         """Whether thinking happens in this process."""
         return self.server == ("local",)
+
+    def summary(self) -> str:
+        """One line: the task, where it thinks, the learner's overrides and the run directory."""
+        task = {
+            "hydra": f"hydra ({','.join(self.hydra.joints)}; {','.join(self.hydra.axes)}; "
+                     f"{self.hydra.regime})",
+            "nomad": f"nomad ({'forage' if self.forage else self.nomad.behaviour})",
+            "gym": f"gym {self.env}", "boat": f"boat (dt {self.boat_dt:g})",
+        }.get(self.sim, self.sim)  # fmt: skip
+        where = "thinking locally" if self.local else f"servers {', '.join(self.server) or '(they connect)'}"
+        rate = (
+            "lock-step"
+            if self.lockstep
+            else (f"{self.rate_hz:g} Hz" if self.rate_hz else "as fast as possible")
+        )
+        learner = ", ".join(f"{name} {value}" for name, value in (
+            ("k", self.advantage_k), ("thinks", self.thinks_per_action), ("bc_weight", self.bc_weight),
+        ) if value is not None) or "defaults"  # fmt: skip
+        keyed = ", key" if self.key_file else ""
+        return f"{task}, {rate}, {where}{keyed}; learner {learner}; run directory {self.out}"
 
 
 class SetupError(ValueError):
@@ -166,8 +189,15 @@ def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brai
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)
     from wfnn_client.remote import RemoteBrain, RemoteConfig
     from wfnn_common.net import ZenohBus
+    from wfnn_common.network import Shapes
+    from wfnn_common.protocol import MsgType, max_frame
 
-    net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server))
+    # Nothing larger than a snapshot of this learner (or a status) is reassembled by Zenoh here.
+    largest = max(max_frame(MsgType.WEIGHTS, 8 * Shapes.of(learner.config).n_params + (64 << 10)),
+                  max_frame(MsgType.SERVER_STATUS))  # fmt: skip
+    net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server),
+                              max_message_bytes=min(config.net.max_message_bytes,
+                                                    largest + 1024))  # fmt: skip
     remote = RemoteConfig(
         controller=_named(config.controller, behaviour, "-"), client_id=config.client_id,
         journal_dir=config.out / _named("journal", behaviour),
@@ -184,11 +214,38 @@ def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brai
 StatusCallback = Callable[[dict[str, Any]], None]
 
 
-def run(config: ClientConfig, on_status: StatusCallback | None = None) -> dict[str, Any]:
+def prepare(config: ClientConfig) -> list[str]:
+    """Check what a run needs before it starts; -> warnings to show.
+
+    Makes the run directory and writes the whole config there (`config.json`), reads the key
+    file, and refuses a non-loopback endpoint without a key unless `insecure`.
+    """
+    out = Path(config.out)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(20, "exists and is not a directory (--out names a run directory)", str(out))
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "config.json", {"client": jsonable_config(config)})
+    keyed = load_key(str(config.key_file) if config.key_file else None) is not None
+    warnings: list[str] = []
+    if not config.local:
+        net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server))
+        warnings = check_exposure(net, keyed, config.insecure)
+        for warning in warnings:
+            log.warning("%s", warning)
+    return warnings
+
+
+def run(
+    config: ClientConfig, on_status: StatusCallback | None = None, prepared: bool = False
+) -> dict[str, Any]:
     """Run the simulated robot; returns the metrics also written to `out/metrics.json`.
 
-    `on_status(fields)` is called about twice a second and after every episode.
+    `on_status(fields)` is called about twice a second and after every episode. The run
+    directory is made first, with the whole config in `config.json`, so that an unusable one
+    stops the run before anything starts (`prepare`; `prepared`: the caller has done it).
     """
+    if not prepared:
+        prepare(config)
     spec = SIMS[config.sim]
     task = spec.make(config)
     try:
@@ -406,7 +463,7 @@ def _run(
         ),
         "client/outage_ticks": len(outage_late),
         "client/startup_ticks": startup_ticks,
-        "config": {"client": _jsonable_config(config), "learner": skills[0].lcfg.to_dict()},
+        "config": {"client": jsonable_config(config), "learner": skills[0].lcfg.to_dict()},
         "camera_frames": camera_frames,
         **final,
     }
@@ -427,8 +484,6 @@ def _run(
             "act_latency_ms": [v * 1e3 for v in ticks.latency_s],
             "snapshot_latency_ms": [v for sk in skills for v in getattr(sk.brain, "apply_latency_ms", [])],
         }
-    from wfnn_bench.common import write_json  # JSON helper shared with the benchmarks
-
     write_json(out / "metrics.json", metrics)
     if config.json_stats is not None:
         write_json(config.json_stats, metrics)
@@ -516,8 +571,9 @@ def _status(
     }
 
 
-def _jsonable_config(config: ClientConfig) -> dict[str, Any]:
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()}
+def jsonable_config(config: ClientConfig) -> dict[str, Any]:
+    """The whole client config as plain JSON values."""
+    return dict(to_jsonable(dataclasses.asdict(config)))
 
 
 def plot(metrics: dict[str, Any], path: Path) -> None:

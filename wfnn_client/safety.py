@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from wfnn_common.config import check_fields
 from wfnn_common.protocol import EXP_FILTERED, EXP_SAFE_ACTION, EXP_VETO_ACTUAL
 
 log = logging.getLogger(__name__)
@@ -47,6 +48,7 @@ class SafetyConfig:
     """Learn a vetoed proposal as well as the executed action (Eq 5.1 and 5.4)."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if not 0.0 < self.act_deadline_fraction <= 1.0:
             raise ValueError(f"act_deadline_fraction must be in (0, 1], got {self.act_deadline_fraction}")
         if self.max_action_rate is not None and any(r <= 0 for r in self.max_action_rate):

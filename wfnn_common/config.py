@@ -43,8 +43,9 @@ _WHAT = {"int": "an integer", "float": "a finite number", "bool": "true or false
 
 
 def check_fields(config: Any) -> None:
-    """Every int, float, bool, str (or tuple of them) field of a config dataclass holds that type,
-    floats finite (NaN and infinity refused); `X | None` fields may also be None.
+    """Check that each int, float, bool or str field (or tuple of them) of a config holds that type.
+
+    Floats must be finite (NaN and infinity are refused); `X | None` fields may also be None.
 
     Called first in each config's `__post_init__`, so a config made from a file, a command line
     or the network is checked the same way; each config then checks its own ranges.
@@ -87,7 +88,7 @@ class ExplorationConfig:
     def __post_init__(self) -> None:
         check_fields(self)
         if self.kind not in ("none", "uniform", "gaussian", "smooth"):
-            raise ConfigError(f"exploration.kind must be none, uniform, gaussian or smooth, got {self.kind!r}")
+            raise ConfigError(f"exploration.kind must be none, uniform, gaussian or smooth: {self.kind!r}")
         if not 0.0 <= self.p <= 1.0:
             raise ConfigError(f"exploration.p must be in [0, 1], got {self.p}")
         if not 0.0 <= self.sigma <= 100.0:
@@ -179,7 +180,7 @@ class LearnerConfig:
         check_fields(self)
         if not isinstance(self.exploration, ExplorationConfig):
             raise ConfigError(f"exploration must be an ExplorationConfig, got {self.exploration!r}")
-        if not isinstance(self.symmetries, tuple) or not all(isinstance(s, Symmetry) for s in self.symmetries):
+        if not (isinstance(self.symmetries, tuple) and all(isinstance(s, Symmetry) for s in self.symmetries)):
             raise ConfigError(f"symmetries must be a tuple of Symmetry, got {self.symmetries!r}")
         s_lo, s_hi, a_lo, a_hi = self.state_low, self.state_high, self.action_low, self.action_high
         if len(s_lo) == 0 or len(s_lo) != len(s_hi):
@@ -206,8 +207,10 @@ class LearnerConfig:
             (0 <= self.thinks_per_action <= MAX_THINKS, f"thinks_per_action must be in [0, {MAX_THINKS}]"),
             (1 <= self.batch_size <= MAX_BATCH, f"batch_size must be in [1, {MAX_BATCH}]"),
             (self.replay_capacity >= 1, "replay_capacity must be >= 1"),
-            (self.replay_capacity * row_bytes <= MAX_REPLAY_BYTES,
-             f"replay_capacity x experience size must be <= {MAX_REPLAY_BYTES >> 30} GiB"),
+            (
+                self.replay_capacity * row_bytes <= MAX_REPLAY_BYTES,
+                f"replay_capacity x experience size must be <= {MAX_REPLAY_BYTES >> 30} GiB",
+            ),
             (self.valid_margin >= 0.0, "valid_margin must be >= 0"),
             (self.divergence_patience >= 0, "divergence_patience must be >= 0"),
             (0.0 < self.init_scale <= 100.0, "init_scale must be in (0, 100]"),

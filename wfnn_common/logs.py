@@ -49,6 +49,7 @@ import numpy as np
 from wfnn_common.config import LearnerConfig
 from wfnn_common.persist import atomic_savez, atomic_write_text
 from wfnn_common.protocol import (
+    EXP_AFTER_LOSS,
     EXP_EXPLORED,
     EXP_FILTERED,
     EXP_NON_FINITE,
@@ -72,6 +73,7 @@ EXPORT_FORMAT = "wfnn-log-export"
 FLAG_NAMES = {
     EXP_EXPLORED: "explored", EXP_SAFE_ACTION: "safe_action", EXP_VETO_ACTUAL: "vetoed",
     EXP_VETO_PROPOSED: "veto_proposal", EXP_FILTERED: "filtered", EXP_NON_FINITE: "non_finite",
+    EXP_AFTER_LOSS: "after_loss",
 }  # fmt: skip
 
 

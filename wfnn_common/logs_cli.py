@@ -10,9 +10,11 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.table import Table
 
 from wfnn_common import logs
+from wfnn_common.cli_errors import guarded
 from wfnn_common.protocol import load_key
 
 app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.")
@@ -25,7 +27,7 @@ def _key(path: Path | None) -> bytes | None:
 
 
 def _fail(exc: Exception) -> typer.Exit:
-    console.print(f"[red]error:[/] {exc}")
+    console.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
     return typer.Exit(1)
 
 
@@ -65,8 +67,13 @@ def inspect(
     table.add_row("mean reward", f"{summary.reward_mean:.4f}")
     table.add_row("learner spec", ", ".join(summary.spec_hashes) or "-")
     table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
-    if summary.unreadable:
-        table.add_row("[red]unreadable records[/]", str(summary.unreadable))
+    if summary.description_error:
+        table.add_row("[red]description[/]", escape(summary.description_error))
+    for why, n in summary.refused.most_common():
+        table.add_row(f"[red]records refused ({why})[/]", f"{n:,}")
+    for d in summary.damage:
+        table.add_row(f"[red]damaged, skipped ({d.kind})[/]",
+                      f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
     console.print(table)
 
 
@@ -117,5 +124,8 @@ def export(
     console.print(f"{n:,} experiences exported to {out}")
 
 
+main = guarded(app)
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+
 if __name__ == "__main__":
-    app()
+    main()

@@ -61,8 +61,10 @@ class Bus(Protocol):
         ...
 
     def subscribe(self, key: str, callback: Callback, max_bytes: int | None = None) -> None:
-        """Call `callback(key, payload)` for every publication matching `key` (payloads longer
-        than `max_bytes` are dropped, uncopied, and counted)."""
+        """Call `callback(key, payload)` for every publication matching `key`.
+
+        Payloads longer than `max_bytes` are dropped, uncopied, and counted.
+        """
         ...
 
     def queryable(self, key: str, answer: Callable[[], bytes | None]) -> None:
@@ -70,8 +72,11 @@ class Bus(Protocol):
         ...
 
     def query(self, key: str, timeout_s: float, callback: Callback, max_bytes: int | None = None) -> None:
-        """Query `key` without waiting: each reply that arrives within `timeout_s` goes to
-        `callback(key, payload)` (on the bus's thread)."""
+        """Query `key` without waiting.
+
+        Each reply that arrives within `timeout_s` goes to `callback(key, payload)` (on the bus's
+        thread); payloads longer than `max_bytes` are dropped, uncopied, and counted.
+        """
         ...
 
     def declare_token(self, key: str) -> None:
@@ -135,13 +140,17 @@ def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
     """A Zenoh endpoint -> (protocol, host) (host None for a local socket); ValueError if malformed."""
     m = _ENDPOINT.fullmatch(endpoint.strip()) if isinstance(endpoint, str) else None
     if m is None:
-        raise ValueError(f"endpoint {endpoint!r} is not of the form <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+        raise ValueError(
+            f"endpoint {endpoint!r} is not of the form <protocol>/<address>, e.g. tcp/127.0.0.1:7447"
+        )
     proto, address = m["proto"], m["address"]
     if proto.startswith("unixsock") or proto == "unixpipe":
         return proto, None
     hp = _HOST_PORT.fullmatch(address)
     if hp is None or not 0 <= int(hp["port"]) <= 65535:
-        raise ValueError(f"endpoint {endpoint!r}: the address must be HOST:PORT (port 0-65535), got {address!r}")
+        raise ValueError(
+            f"endpoint {endpoint!r}: the address must be HOST:PORT (port 0-65535), got {address!r}"
+        )
     return proto, hp["v6"] or hp["host"]
 
 
@@ -260,8 +269,9 @@ class ZenohBus:
                 return zenoh.open(conf)
             except zenoh.ZError as exc:
                 where = ", ".join(net.listen) or "the configured endpoints"
-                raise NetError(f"cannot join the Zenoh network (listening on {where}): "
-                               f"{_zenoh_message(exc)}") from None
+                raise NetError(
+                    f"cannot join the Zenoh network (listening on {where}): {_zenoh_message(exc)}"
+                ) from None
         conf.insert_json5("connect/timeout_ms", "1000")
         conf.insert_json5("connect/exit_on_failure", "true")
         waited = 0
@@ -335,7 +345,8 @@ class ZenohBus:
             if reply.ok is not None:
                 deliver(str(reply.ok.key_expr), reply.ok.payload)
 
-        self.session.get(key, on_reply, timeout=timeout_s)
+        # No consolidation: each reply is handed on as it comes, not held for the slowest one.
+        self.session.get(key, on_reply, timeout=timeout_s, consolidation=self._zenoh.ConsolidationMode.NONE)
 
     def declare_token(self, key: str) -> None:
         """Liveliness token held until close."""

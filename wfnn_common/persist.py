@@ -76,6 +76,30 @@ def atomic_write_text(path: Path, text: str) -> None:
     _sync_dir(path.parent)
 
 
+def to_jsonable(obj: Any) -> Any:
+    """Numpy scalars/arrays, paths -> plain JSON values (NaN and infinity -> null)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write `data` as JSON atomically (a crash never leaves half a file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(to_jsonable(data), indent=1))
+
+
 def _open(path: Path, expected_format: str) -> dict[str, Any]:
     if not Path(path).exists():
         raise PersistError(f"{path}: no such file")
@@ -83,7 +107,8 @@ def _open(path: Path, expected_format: str) -> dict[str, Any]:
         with np.load(Path(path), allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except Exception as exc:  # a truncated or damaged archive fails in zipfile, zlib or numpy alike
-        raise PersistError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+        detail = str(exc).split(". ")[0][:120]
+        raise PersistError(f"{path}: not a readable .npz file ({type(exc).__name__}: {detail})") from None
     fmt = str(arrays.get("format", ""))
     if fmt != expected_format:
         raise PersistError(f"{path}: expected format {expected_format!r}, found {fmt!r}")

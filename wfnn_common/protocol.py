@@ -9,9 +9,10 @@ The CRC covers everything before it and detects corruption; the optional HMAC (o
 body, with a shared key) stops forged frames on the network: a receiver configured with a key
 rejects frames without a valid tag. The tag protects transport, not storage: a server stores
 the batches it has verified without one, and readers of logs check tags only where they are
-present (`decode(..., mac="if_present")`), so a wrong key is still detected. Arrays travel as raw little-endian bytes with their dtype and shape.
-Each message type has a body size limit. `decode` raises nothing but `ProtocolError`
-subclasses, whose `reason` names the rejection for counters.
+present (`decode(..., mac="if_present")`), so a wrong key is still detected. Arrays travel
+as raw little-endian bytes with their dtype and shape. Each message type has a body size limit.
+`decode` raises nothing but `ProtocolError` subclasses, whose `reason` names the rejection for
+counters.
 
 Key expressions of a controller live in `Keys`.
 """
@@ -195,6 +196,10 @@ EXP_FILTERED = 0x10
 EXP_NON_FINITE = 0x20
 """A value of the experience is NaN or infinite: stored as received (its numbering kept
 whole), never learned. Set by the server at ingest (`mark_non_finite`)."""
+EXP_AFTER_LOSS = 0x40
+"""On a batch's first experience: the experiences numbered between what its receiver holds and
+this one are lost (the sender's journal lost them to damage); the receiver's run goes on after
+the gap instead of waiting for them."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -578,7 +583,9 @@ def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacP
         if not mac_len and mac == "required":
             raise AuthError("a key is configured and the frame carries no HMAC tag")
         end = HEADER.size + body_len
-        if mac_len and not hmac.compare_digest(frame[end : end + MAC_SIZE], _mac(key, memoryview(frame)[:end])):
+        if mac_len and not hmac.compare_digest(
+            frame[end : end + MAC_SIZE], _mac(key, memoryview(frame)[:end])
+        ):
             raise AuthError("HMAC tag does not verify with the configured key")
     if flags & ~FLAG_MAC:
         raise MalformedBody(f"unknown flags {flags:#x}")
@@ -626,7 +633,7 @@ def load_key(path: str | None) -> bytes | None:
     try:
         key = Path(path).read_bytes().strip()
     except OSError as exc:
-        raise ValueError(f"key file {path} cannot be read: {exc.strerror or exc}") from exc
+        raise ValueError(f"key file {path} cannot be read: {exc.strerror or exc}") from None
     if len(key) < 16:
         raise ValueError(
             f"key file {path} holds {len(key)} bytes; use at least 16 (e.g. 32 random hex chars)"

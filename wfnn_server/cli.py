@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 from pathlib import Path
 from typing import Annotated
@@ -9,10 +11,13 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.status import Status
 
+from wfnn_common.cli_errors import guarded
 from wfnn_common.logs import LogFormatError
 from wfnn_common.net import NetConfig
+from wfnn_common.persist import to_jsonable
 from wfnn_common.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
 from wfnn_server.server import run
@@ -37,7 +42,7 @@ def status_line(status: ServerStatus) -> str:
 
 
 @app.command()
-def main(
+def serve(
     controller: Annotated[
         str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
     ] = "default",
@@ -54,6 +59,16 @@ def main(
         Path | None, typer.Option(help="LearnerConfig JSON (default: adopt the first client's).")
     ] = None,
     key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
+    insecure: Annotated[
+        bool,
+        typer.Option(
+            help="Allow a non-loopback endpoint without --key-file (anyone reaching it can feed this server)."
+        ),
+    ] = False,
+    allow_client: Annotated[
+        list[str] | None,
+        typer.Option(help="Take experiences, status and pictures only from this client id (repeatable)."),
+    ] = None,
     seed: Annotated[int | None, typer.Option(help="Override the learner's seed.")] = None,
     bc_weight: Annotated[
         float | None,
@@ -109,16 +124,20 @@ def main(
         )  # fmt: skip
         config = ServerConfig(
             controller=controller, server_id=server_id, net=net, data_dir=data_dir,
-            learner_config=learner_config, key_file=key_file, seed=seed, bc_weight=bc_weight, alpha=alpha,
+            learner_config=learner_config, key_file=key_file, insecure=insecure,
+            allow_clients=tuple(allow_client or ()), seed=seed, bc_weight=bc_weight, alpha=alpha,
             publish_period_s=publish_period,
             checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
             replay=tuple(replay_only or ()), replay_only=bool(replay_only),
             dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
                        if dashboard is not None else None),
         )  # fmt: skip
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    console.print(f"[bold]wfnn-server[/] {config}")
+    except ValueError as exc:  # one line, as every other refusal (the message names the option)
+        console.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
+        raise typer.Exit(2) from exc
+    console.print(f"[bold]wfnn-server[/] {escape(config.summary())}")
+    if verbose:  # the whole config (also in the data directory's server_config.json)
+        console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
     if dashboard:  # port 0: the address is logged (--verbose) once bound
         console.print(f"live dashboard (read-only): http://{dashboard_host}:{dashboard}/")
     try:
@@ -128,9 +147,12 @@ def main(
         with Status("starting", console=console) as line:
             run(config, lambda status: line.update(status_line(status)))
     except LogFormatError as exc:  # logs that cannot be replayed: nothing was imported
-        console.print(f"[red]error:[/] {exc}")
+        console.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(2) from exc
 
 
+main = guarded(app)
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+
 if __name__ == "__main__":
-    app()
+    main()

@@ -98,6 +98,18 @@ class ServerConfig:
     """After a divergence reset, snapshots are flagged diverged until the learner has replayed
     thinks_per_action per stored experience, at most this many thinks."""
 
+    def summary(self) -> str:
+        """One line: who, where it listens or connects, its data and where its learner comes from."""
+        net = ", ".join(
+            (*(f"listen {e}" for e in self.net.listen), *(f"connect {e}" for e in self.net.connect))
+        )
+        learner = (f"learner config {self.learner_config}" if self.learner_config
+                   else "learner config from the data directory or the first client")  # fmt: skip
+        replay = f"; replay-only {len(self.replay)} logs" if self.replay_only else ""
+        keyed = ", key" if self.key_file else ""
+        return (f"{self.server_id} (controller {self.controller}, {self.net.mode}{keyed}) "
+                f"{net or 'no endpoints'}; data directory {self.data_dir}; {learner}{replay}")  # fmt: skip
+
     def __post_init__(self) -> None:
         check_fields(self)
         check_id(self.controller, "controller name")

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import json
 import logging
 import os
 import queue
@@ -37,17 +36,15 @@ from wfnn_common.learner import WFNN
 from wfnn_common.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params
-from wfnn_common.persist import PersistError, atomic_write_text, load_weights, save_weights
+from wfnn_common.persist import PersistError, atomic_write_text, load_weights, save_weights, write_json
 from wfnn_common.protocol import (
     EXP_NON_FINITE,
-    MAX_BODY,
     Ack,
     CameraView,
     ClientStatus,
     Codec,
     ExperienceBatch,
     Keys,
-    MsgType,
     ProtocolError,
     ServerStatus,
     SpecMismatch,
@@ -184,8 +181,10 @@ class ThinkServer:
 
     # ------------------------------------------------------------------ start-up
     def _next_incarnation(self) -> int:
-        """One more than the last start's (from `incarnation`, or where that is unreadable the
-        checkpoints' record of it)."""
+        """One more than the last start's incarnation.
+
+        From the file `incarnation`, or where that is unreadable, from the checkpoints' record of it.
+        """
         path = self.data_dir / "incarnation"
         previous = 0
         if path.exists():
@@ -198,7 +197,9 @@ class ThinkServer:
                 previous = 0
                 for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
                     try:
-                        previous = max(previous, int(load_weights(self.data_dir / name)[2].get("incarnation", 0)))
+                        previous = max(
+                            previous, int(load_weights(self.data_dir / name)[2].get("incarnation", 0))
+                        )
                     except (PersistError, OSError, ValueError, TypeError):
                         continue
         atomic_write_text(path, str(previous + 1))
@@ -264,17 +265,18 @@ class ThinkServer:
             reasons = ", ".join(f"{n} {why}" for why, n in counts.refused.most_common())
             if offered == 0:
                 hint = " (a wrong --key-file?)" if "auth" in counts.refused else ""
-                raise LogFormatError(f"every record of the logs was refused: {reasons}{hint}; nothing imported")
+                raise LogFormatError(
+                    f"every record of the logs was refused: {reasons}{hint}; nothing imported"
+                )
             log.warning("records refused while reading the logs: %s", reasons)
         imported = 0
         for batch in merged(directories, self.codec.key, spec):
-            admitted = self.store.admit(mark_non_finite(batch)[0])
-            if admitted.gap:
-                through = self.store.stored_through[batch.client]
-                log.warning("client %s experiences from %d leave a gap after %d; not imported",
-                            batch.client, batch.first_seq, through)  # fmt: skip
+            admitted = self.store.admit(mark_non_finite(batch)[0], allow_gap=True)
+            if admitted.lost:  # in none of the logs (damaged, or never there): the rest is imported
+                log.warning("client %s: experiences %d-%d are in none of the logs; imported what follows",
+                            batch.client, batch.first_seq - admitted.lost, batch.first_seq - 1)  # fmt: skip
             if admitted.new is not None:
-                self.store.append(admitted.new)
+                self.store.append(admitted.new, admitted.lost)
                 imported += len(admitted.new)
         self.store.sync()
         log.info("imported %d of %d experiences from %d logs", imported, offered, len(directories))
@@ -335,8 +337,8 @@ class ThinkServer:
                 int(meta.get("budget", 0))
             except (PersistError, OSError, KeyError, ValueError, TypeError) as exc:
                 log.error("checkpoint %s cannot be used (%s)", path, exc)
-                if name == CHECKPOINT and self._readable_previous():
-                    set_aside(path, "unreadable; falling back to the previous checkpoint")
+                # Renamed, so that the next checkpoint's rotation never writes over it.
+                set_aside(path, "unreadable; the previous checkpoint, else fresh weights, are used")
                 self.version = 0
                 continue
             log.info("resumed %s: version %d, %d thinks", name, self.version, int(learner.thinks[0]))
@@ -344,13 +346,6 @@ class ThinkServer:
         if any((self.data_dir / name).exists() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
             log.error("no usable checkpoint: fresh weights; every stored experience is owed its thinks again")
         return WFNN(cfg), {}
-
-    def _readable_previous(self) -> bool:
-        try:
-            load_weights(self.data_dir / PREVIOUS_CHECKPOINT)
-        except (PersistError, OSError):
-            return False
-        return True
 
     @staticmethod
     def _learn_batch(learner: WFNN, batch: ExperienceBatch) -> NDArray[np.bool_]:
@@ -477,7 +472,11 @@ class ThinkServer:
             return
         if non_finite:
             self.counters["ingest/non_finite"] += int(np.count_nonzero(admitted.new.flags & EXP_NON_FINITE))
-        self.store.append(admitted.new)
+        if admitted.lost:
+            self.counters["ingest/declared_lost"] += admitted.lost
+            log.warning("client %s declares experiences %d-%d lost (its journal was damaged)", batch.client,
+                        admitted.new.first_seq - admitted.lost, admitted.new.first_seq - 1)  # fmt: skip
+        self.store.append(admitted.new, admitted.lost)
         self._to_learn.append(admitted.new)
         self._wake.set()
 
@@ -730,21 +729,39 @@ class _NoConfig(ProtocolError):
     reason = "no_config"
 
 
+SERVER_JSON = "server_config.json"
+
+
+def prepare(config: ServerConfig) -> list[str]:
+    """Check what serving needs before the network is joined; -> warnings to show.
+
+    Makes the data directory and writes the whole server config there (`server_config.json`),
+    reads the key file, and refuses a non-loopback endpoint without a key unless `insecure`.
+    """
+    from wfnn_common.net import check_exposure
+
+    if config.data_dir.exists() and not config.data_dir.is_dir():
+        raise NotADirectoryError(20, "exists and is not a directory (--data-dir)", str(config.data_dir))
+    config.data_dir.mkdir(parents=True, exist_ok=True)
+    write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
+    keyed = load_key(str(config.key_file) if config.key_file else None) is not None
+    warnings = check_exposure(config.net, keyed, config.insecure)
+    for warning in warnings:
+        log.warning("%s", warning)
+    return warnings
+
+
 def run(config: ServerConfig, on_status: Any = None) -> None:
     """Serve until SIGTERM/SIGINT (checkpointing on the way out).
 
-    `on_status(status)` is called with each `ServerStatus` published (for a status line).
+    `on_status(status)` is called with each `ServerStatus` published (for a status line). The
+    signals are caught from the start: one that arrives while the server is still starting
+    stops it cleanly as soon as it has started.
     """
     import signal
 
     from wfnn_common.net import ZenohBus
 
-    bus = ZenohBus(config.net)
-    try:
-        server = ThinkServer(config, bus)
-    except BaseException:
-        bus.close()  # an open session would hold the process at exit
-        raise
     stop = threading.Event()
 
     def on_signal(signum: int, _: Any) -> None:
@@ -753,19 +770,31 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
-        if config.replay_only and server.learner is None:
-            raise LogFormatError(
-                "replay-only: no learner config (give --learner-config, or logs whose log.json records one)"
-            )
-        server.start()
-        shown = None
-        while not stop.wait(0.2) and not server.wait(0) and not (config.replay_only and server.replayed()):
-            if on_status is not None and server.last_status is not shown:
-                shown = server.last_status
-                on_status(shown)
+        prepare(config)
+        bus = ZenohBus(config.net)
+        try:
+            server = ThinkServer(config, bus)
+        except BaseException:
+            bus.close()  # an open session would hold the process at exit
+            raise
+        try:
+            if config.replay_only and server.learner is None:
+                raise LogFormatError(
+                    "replay-only: no learner config "
+                    "(give --learner-config, or logs whose log.json records one)"
+                )
+            server.start()
+            shown = None
+            while (
+                not stop.wait(0.2) and not server.wait(0) and not (config.replay_only and server.replayed())
+            ):
+                if on_status is not None and server.last_status is not shown:
+                    shown = server.last_status
+                    on_status(shown)
+        finally:
+            server.stop()  # a second signal meanwhile must not cut the final checkpoint short
+            bus.close()
     finally:
-        server.stop()  # a second signal meanwhile must not cut the final checkpoint short
-        bus.close()
         for s, handler in previous.items():
             signal.signal(s, handler)
     if server.error is not None:

@@ -3,7 +3,10 @@
 Experiences of each client are stored once and in order of their sequence numbers, so what is
 stored from a client is always the run 0..stored_through[client]: a duplicate (a re-sent
 batch) is dropped, an overlap is trimmed, and a batch that leaves a gap is refused (the client
-re-sends from the acknowledged point). Records are `ExperienceBatch` frames, the format of the
+re-sends from the acknowledged point). The one exception is a gap the sender declares lost
+(EXP_AFTER_LOSS: its journal lost those experiences to damage), or one met importing logs that
+none of them fills: the run goes on after it, and the gap is counted and logged, so that one
+damaged record never stalls a client's stream. Records are `ExperienceBatch` frames, the format of the
 client journal (`wfnn_common.logs.ExperienceLog`), stored as verified at ingest (untagged).
 The store has its own identity (`id`, made when it is created), which the server announces: a
 server restarted under the same id with a new, empty store is known to its clients as another
@@ -18,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from wfnn_common.logs import ExperienceLog
-from wfnn_common.protocol import Codec, ExperienceBatch
+from wfnn_common.protocol import EXP_AFTER_LOSS, Codec, ExperienceBatch
 from wfnn_common.segments import FsyncPolicy
 
 log = logging.getLogger(__name__)
@@ -31,6 +34,8 @@ class Admission:
     new: ExperienceBatch | None
     duplicate: bool = False
     gap: bool = False
+    lost: int = 0
+    """Experiences before `new` that are lost (a declared or accepted gap)."""
 
 
 class ExperienceStore:
@@ -56,14 +61,18 @@ class ExperienceStore:
         """Per client: what `sync` has made durable (what may be acknowledged)."""
         self.count = 0
         """Experiences stored."""
+        self.lost: dict[str, int] = {}
+        """Per client: experiences of accepted gaps (lost before reaching this store)."""
         self._rebuild()
 
     def _rebuild(self) -> None:
         """Recount what is stored per client from the log (at start)."""
         for batch in self.batches():
-            admitted = self.admit(batch)
+            admitted = self.admit(batch, allow_gap=True)  # what is stored is stored
             if admitted.new is not None:
                 self._count(admitted.new)
+                if admitted.lost:
+                    self.lost[batch.client] = self.lost.get(batch.client, 0) + admitted.lost
         self.durable_through = dict(self.stored_through)
 
     @property
@@ -76,19 +85,26 @@ class ExperienceStore:
         for _, _, batch in self.log.entries():
             yield batch
 
-    def admit(self, batch: ExperienceBatch) -> Admission:
-        """The part of `batch` that continues its client's stored run (nothing is written)."""
+    def admit(self, batch: ExperienceBatch, allow_gap: bool = False) -> Admission:
+        """The part of `batch` that continues its client's stored run (nothing is written).
+
+        A gap before it is accepted (as lost) with `allow_gap` or when the batch declares it.
+        """
         through = self.stored_through.get(batch.client, -1)
         if batch.last_seq <= through:
             return Admission(None, duplicate=True)
         if batch.first_seq > through + 1:
-            return Admission(None, gap=True)
+            if not (allow_gap or batch.flags[0] & EXP_AFTER_LOSS):
+                return Admission(None, gap=True)
+            return Admission(batch, lost=batch.first_seq - through - 1)
         return Admission(batch.slice(through + 1 - batch.first_seq) if batch.first_seq <= through else batch)
 
-    def append(self, batch: ExperienceBatch) -> None:
-        """Store an admitted batch (from `admit`)."""
-        if batch.first_seq != self.stored_through.get(batch.client, -1) + 1:
+    def append(self, batch: ExperienceBatch, lost: int = 0) -> None:
+        """Store an admitted batch (from `admit`, with the gap it accepted before it)."""
+        if batch.first_seq != self.stored_through.get(batch.client, -1) + 1 + lost:
             raise ValueError(f"batch from {batch.client} starts at {batch.first_seq}, not where its run ends")
+        if lost:
+            self.lost[batch.client] = self.lost.get(batch.client, 0) + lost
         self.log.append(self._codec.encode(batch))
         self._count(batch)
 

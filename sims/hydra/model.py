@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from wfnn_common.config import check_fields
+
 JOINTS = ("pan", "tilt", "left", "right")
 """Joint names in model order."""
 CAMERAS = ("left", "right")
@@ -60,6 +62,9 @@ class HydraModelConfig:
     """Largest camera image rendered (width, height)."""
     timestep: float = 1.0 / (15 * 33)
     """Physics step (s): 33 steps per 15 Hz control tick."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def _joint(name: str, axis: str, limit_deg: float, armature: float) -> str:

@@ -43,6 +43,7 @@ from sims.hydra.model import (
     hydra_mjcf,
 )
 from sims.hydra.vision import Camera, Measurement, VisionConfig
+from wfnn_common.config import check_fields
 
 if TYPE_CHECKING:  # cv2 and the GL context load only when something is rendered
     from sims.hydra.render import ImageTracker
@@ -95,6 +96,7 @@ class HydraConfig:
     vision: VisionConfig = field(default_factory=VisionConfig)
 
     def __post_init__(self) -> None:
+        check_fields(self)
         for name, chosen, allowed in (("joints", self.joints, JOINTS), ("axes", self.axes, AXES)):
             unknown = set(chosen) - set(allowed)
             if unknown or len(set(chosen)) != len(chosen):

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.pinhole import focal_px, project
+from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
 
@@ -68,6 +69,7 @@ class VisionConfig:
     """render: a match needs at least this normalised correlation with the template."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         check_camera(self)
 
 

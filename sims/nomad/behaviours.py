@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.nomad.vision import COLS, ROWS
+from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
 
@@ -29,6 +30,9 @@ class WanderConfig:
     """Forward speed when the whole strip is carpet (m/s); less for shorter strips."""
     turn: float = 0.6
     """Rotational velocity toward the outermost column, and when turning on the spot (rad/s)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def strip_lengths(carpet: FloatArray, carpet_below: float) -> NDArray[np.int64]:

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import Ranges, Transition
+from wfnn_common.config import check_fields
 
 if TYPE_CHECKING:
     from sims.nomad.task import Behaviour, NomadVec
@@ -43,6 +44,7 @@ class ForageConfig:
     """After a target is reached, no new one is looked for this long (the robot turns away)."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.pursue not in PURSUE:
             raise ValueError(f"pursue must be one of {PURSUE}, got {self.pursue!r}")
         if self.collect_px <= 0 or self.collect_s <= 0 or self.quiet_s < 0:

@@ -18,6 +18,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from wfnn_common.config import check_fields
+
 # Geom groups: what the infrared rays and the camera's rays may hit.
 GROUP_ROBOT, GROUP_FLOOR, GROUP_STATIC, GROUP_OBJECTS = 0, 1, 2, 3
 BALL_COLOURS = (
@@ -60,6 +62,9 @@ class NomadModelConfig:
     timestep: float = 0.002
     """Physics step (s): 50 steps per 10 Hz action."""
     image_size: tuple[int, int] = (320, 240)
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def nomad_mjcf(cfg: NomadModelConfig) -> str:

@@ -42,6 +42,7 @@ from sims.nomad.vision import (
     interesting_cells,
     smooth_carpet,
 )
+from wfnn_common.config import check_fields
 
 if TYPE_CHECKING:  # cv2 and the GL context load only when something is rendered
     from sims.hydra.render import ImageTracker
@@ -115,6 +116,7 @@ class NomadConfig:
     vision: NomadVisionConfig = field(default_factory=NomadVisionConfig)
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.behaviour not in BEHAVIOURS:
             raise ValueError(f"behaviour must be one of {BEHAVIOURS}, got {self.behaviour!r}")
         if self.rate_hz <= 0 or self.substeps < 3:

@@ -30,6 +30,7 @@ from scipy import ndimage
 from sims.hydra.vision import VisionSource, check_camera
 from sims.nomad.model import CARPET
 from sims.pinhole import focal_px, project
+from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -84,6 +85,7 @@ class NomadVisionConfig:
     """render: a match needs at least this normalised correlation with the target's template."""
 
     def __post_init__(self) -> None:
+        check_fields(self)
         check_camera(self)
         if (
             round(self.width * self.render_scale) < 2 * COLS

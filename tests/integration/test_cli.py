@@ -327,7 +327,7 @@ def test_client_refuses_bad_options(tmp_path):
         [BIN / "wfnn-client", "--sim", "cartpole", "--symmetries", "--rate-hz", "0", "--out", tmp_path],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
-    assert proc.returncode == 2 and "declares no symmetries" in proc.stdout
+    assert proc.returncode == 2 and "declares no symmetries" in proc.stdout + proc.stderr
     proc = subprocess.run(
         [BIN / "wfnn-client", "--sim", "boat", "--behaviour-policy", "wfnn=1,pid=1", "--out", tmp_path],
         capture_output=True, text=True, timeout=60,

@@ -115,7 +115,8 @@ def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1
           store="store1"):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1]
     snap = WeightSnapshot(
-        server=server, incarnation=incarnation, store=store, version=version, spec_hash=spec or cfg.spec_hash(),
+        server=server, incarnation=incarnation, store=store, version=version,
+        spec_hash=spec or cfg.spec_hash(),
         published_ns=time.time_ns(), thinks=0, diverged=diverged, learned_through={},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip

@@ -259,7 +259,8 @@ def test_two_damaged_records_are_reported_separately(tmp_path):
     for n in (0, 2):
         damage(seg_path(tmp_path, n), 27, 0x80)
     report = segments.ReadReport()
-    assert [p for _, p in segments.read_records(tmp_path, report=report)] == [bytes([1]) * 20, bytes([3]) * 20]
+    read = [p for _, p in segments.read_records(tmp_path, report=report)]
+    assert read == [bytes([1]) * 20, bytes([3]) * 20]
     assert [(d.segment, d.offset, d.length) for d in report.damage] == [(0, 0, 28), (2, 0, 28)]
 
 

@@ -1,0 +1,318 @@
+"""Nothing forged drives the robot and nothing received stops a thread (in-process bus).
+
+Each test plays an attacker on the controller's keys, or a server restarted the wrong way, and
+checks what the robot side and the think server make of it.
+"""
+
+import json
+import logging
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from tests.fakes import Hub, small_config
+from tests.fakes import wait_for as wait
+from tests.unit.test_remote import announce, forge, remote
+from tests.unit.test_server import KEYS, Listener, batch, make_server, send
+from wfnn_client.brain import Experience
+from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
+from wfnn_common.net import NetConfig, check_exposure, endpoints
+from wfnn_common.protocol import EXP_NON_FINITE, ClientStatus, Codec
+
+
+def feed(brain, n, seed=0):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        x = rng.uniform(-1, 1, 3)
+        brain.learn(Experience(x, rng.uniform(-1, 1, 2), x, -0.1), None)
+
+
+def status_of(client, cfg_json, spec):
+    return ClientStatus(client=client, spec_hash=spec, learner_config=cfg_json, following="",
+                        weights_version=0, produced_through=-1, acked={}, metrics={})  # fmt: skip
+
+
+# --------------------------------------------------------------------------- a server restarted empty
+def test_a_server_restarted_empty_under_the_same_id_is_sent_everything_and_followed(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first = make_server(tmp_path / "a", hub, cfg).start()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    try:
+        feed(brain, 100)
+        assert wait(lambda: first.store.stored_through.get(brain.id) == 99 and brain.all_acked())
+        assert wait(lambda: brain.current is not None and brain.current.store == first.store.id)
+        first.stop()
+        first.bus.close()
+        # The same id with an empty data directory: the same incarnation number, another store.
+        second = make_server(tmp_path / "b", hub, cfg).start()
+        assert second.incarnation == first.incarnation and second.store.id != first.store.id
+        feed(brain, 20, seed=1)
+        assert wait(lambda: second.store.stored_through.get(brain.id) == 119, timeout=10)
+        assert second.store.count == 120
+        # Its snapshots are not "stale" against the old store's versions: the robot follows them.
+        assert wait(lambda: brain.current.store == second.store.id, timeout=5)
+        second.stop()
+    finally:
+        brain.stop()
+
+
+# --------------------------------------------------------------------------- hostile configs
+HOSTILE_CONFIGS = [
+    "[" * 20_000 + "]" * 20_000,  # nested past the parser's recursion limit (within the string limit)
+    '{"a":' * 5_000 + "1" + "}" * 5_000,
+    "[]", '"x"', "null", "{", '{"state_low": 5}', '{"exploration": [1]}', '{"symmetries": {"a": 1}}',
+]  # fmt: skip
+
+
+def ranges(**kw):
+    return {"state_low": [-1, -1, -1], "state_high": [1, 1, 1], "action_low": [-1, -1], "action_high": [1, 1],
+            "n_hidden": 6, "n_wires": 4, **kw}  # fmt: skip
+
+
+BAD_VALUES = [
+    {"alpha": math.inf}, {"alpha": math.nan}, {"gamma": math.nan}, {"divergence_threshold": math.inf},
+    {"n_hidden": 10.5}, {"n_hidden": "10"}, {"n_hidden": True}, {"n_hidden": 10**9},
+    {"replay_capacity": 10**12}, {"state_low": [-1, math.nan, -1]}, {"exploration": {"sigma": math.nan}},
+    {"exploration": {"tau_steps": math.inf}}, {"thinks_per_action": -1}, {"bc_weight": 1e300},
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("text", HOSTILE_CONFIGS + [json.dumps(ranges(**bad)) for bad in BAD_VALUES])
+def test_a_learner_config_that_is_not_valid_is_a_config_error(text):
+    with pytest.raises(ConfigError):
+        LearnerConfig.from_json(text)
+
+
+def test_hostile_configs_in_client_statuses_are_counted_and_the_server_goes_on(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    bus = hub.bus()
+    texts = HOSTILE_CONFIGS + [json.dumps(ranges(**bad)) for bad in BAD_VALUES]
+    with make_server(tmp_path, hub, None) as server:  # no learner config yet: it adopts a client's
+        for text in texts:
+            bus.put(
+                KEYS.client_status("c1"), Codec("c1").encode(status_of("c1", text, cfg.spec_hash())), None
+            )
+        assert listener.wait(lambda: server.rejected["config"] == len(texts), timeout=20), dict(
+            server.rejected
+        )
+        assert all(t.is_alive() for t in server._threads) and server.error is None
+        assert server.learner is None and not (tmp_path / "s1" / "learner_config.json").exists()
+        # Nothing was adopted or persisted; a valid config is adopted as before.
+        bus.put(KEYS.client_status("c1"), Codec("c1").encode(status_of("c1", cfg.to_json(), cfg.spec_hash())),
+                None)  # fmt: skip
+        assert listener.wait(lambda: server.learner is not None)
+        assert server.rejected["config"] == len(texts)
+
+
+def test_a_config_with_infinite_alpha_never_reaches_the_weights(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=2)
+    listener = Listener(hub)
+    poisoned = json.dumps({**json.loads(cfg.to_json()), "alpha": math.inf})
+    with make_server(tmp_path, hub, None) as server:
+        poison = Codec("c1").encode(status_of("c1", poisoned, cfg.spec_hash()))
+        hub.bus().put(KEYS.client_status("c1"), poison,
+                      None)  # fmt: skip
+        send(hub, batch(cfg, 0, 10))
+        assert listener.wait(lambda: server.rejected["config"] == 1 and server.rejected["no_config"] >= 1)
+        assert server.learner is None
+    assert not (tmp_path / "s1" / "checkpoint.npz").exists()
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: ExplorationConfig(sigma=math.nan),
+        lambda: small_config(alpha=math.inf),
+        lambda: small_config(smoothing_c=math.nan),
+        lambda: NetConfig(lease_ms=math.nan),  # type: ignore[arg-type]
+    ],
+)
+def test_every_config_refuses_values_that_are_not_finite(make):
+    with pytest.raises(ValueError):
+        make()
+
+
+def test_every_config_class_checks_its_fields():
+    """Each config dataclass calls `check_fields` first, so NaN and wrong types are refused everywhere."""
+    import dataclasses
+    import importlib
+    import pkgutil
+
+    import sims
+    import wfnn_bench
+    import wfnn_client
+    import wfnn_common
+    import wfnn_server
+
+    unchecked = []
+    for package in (wfnn_common, wfnn_client, wfnn_server, sims, wfnn_bench):
+        for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+            module = importlib.import_module(info.name)
+            for name, obj in vars(module).items():
+                if (dataclasses.is_dataclass(obj) and isinstance(obj, type) and name.endswith("Config")
+                        and obj.__module__ == module.__name__):  # fmt: skip
+                    import inspect
+
+                    post = getattr(obj, "__post_init__", None)
+                    if post is None or "check_fields(self)" not in inspect.getsource(post):
+                        unchecked.append(f"{module.__name__}.{name}")
+    assert unchecked == []
+
+
+# --------------------------------------------------------------------------- forged weights, no key
+def test_forged_snapshots_of_a_huge_incarnation_do_not_capture_the_robot(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            assert wait(lambda: brain.following == "s1")
+            rogue = hub.bus()
+            stop = threading.Event()
+
+            def attack():
+                version = 10**9
+                while not stop.is_set():
+                    version += 1
+                    # The genuine server's name, an incarnation it never had, its status forged too.
+                    announce(rogue, "s1", cfg, started_ns=1, incarnation=10**6, store="fake", token=False)
+                    rogue.put(
+                        KEYS.weights("s1"), forge(cfg, version=version, incarnation=10**6, store="fake"), None
+                    )
+                    time.sleep(0.01)
+
+            thread = threading.Thread(target=attack)
+            thread.start()
+            time.sleep(1.0)
+            stop.set()
+            thread.join()
+            # Within a second or so of the attacker stopping, the robot acts on genuine weights again.
+            assert wait(lambda: brain.current.store == server.store.id, timeout=3.0)
+            time.sleep(0.5)
+            acted = brain.act(np.zeros(3))
+            assert acted.source == f"s1:{server.incarnation}" and brain.current.store == server.store.id
+            assert not np.allclose(brain.current.params.flat, 0.5)
+        finally:
+            brain.stop()
+
+
+def test_a_session_listens_on_loopback_unless_told_otherwise():
+    assert endpoints(NetConfig(mode="peer"))[0] == ["tcp/127.0.0.1:0"]
+    assert endpoints(NetConfig(mode="router"))[0] == ["tcp/127.0.0.1:7447"]
+    assert check_exposure(NetConfig(mode="peer", connect=("tcp/127.0.0.1:7447",)), False, False) == []
+
+
+@pytest.mark.parametrize("where", ["listen", "connect"])
+@pytest.mark.parametrize("endpoint", ["tcp/0.0.0.0:7447", "tcp/10.1.2.3:7447", "tls/robot.lab:7447",
+                                      "tcp/[::]:7447"])  # fmt: skip
+def test_a_non_loopback_endpoint_needs_a_key_or_insecure(where, endpoint):
+    net = NetConfig(mode="peer", **{where: (endpoint,)})
+    with pytest.raises(ValueError, match=r"--key-file.*--insecure"):
+        check_exposure(net, keyed=False, insecure=False)
+    assert "insecure" in check_exposure(net, keyed=False, insecure=True)[0]
+    assert "not encrypted" in check_exposure(net, keyed=True, insecure=False)[0]
+
+
+def test_a_client_refuses_to_reach_beyond_loopback_without_a_key(tmp_path):
+    from wfnn_client.run import ClientConfig, prepare
+
+    config = ClientConfig(sim="boat", server=("tcp/192.168.1.20:7447",), out=tmp_path / "run")
+    with pytest.raises(ValueError, match="no --key-file"):
+        prepare(config)
+    (tmp_path / "key").write_text("k" * 32)
+    keyed = ClientConfig(sim="boat", server=("tcp/192.168.1.20:7447",), out=tmp_path / "run",
+                         key_file=tmp_path / "key")  # fmt: skip
+    assert prepare(keyed)
+
+
+# --------------------------------------------------------------------------- tokens and queries, key on
+def test_fake_tokens_and_a_silent_queryable_do_not_freeze_the_weights(tmp_path, caplog):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    (tmp_path / "key").write_bytes(b"k" * 32)
+    with make_server(tmp_path, hub, cfg, key_file=tmp_path / "key") as server:
+        brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
+        brain.start()
+        try:
+            assert wait(lambda: brain.following == "s1")
+            rogue = hub.bus()
+            release = threading.Event()
+            rogue.queryable(KEYS.weights("**"), lambda: release.wait(30) and None)  # never answers in time
+            for i in range(30):
+                rogue.declare_token(KEYS.server_alive(f"fake{i:02d}"))
+            announce(rogue, "fake00", cfg, started_ns=1, token=False)  # no tag: not believed
+            feed(brain, 50)
+            start = brain.current.version
+            time.sleep(3.0)
+            assert brain.current.version > start + 5  # new weights kept coming
+            assert brain.longest_without_weights_s <= 1.0
+            assert brain.rejected["status_auth"] >= 1 and "fake00" not in [
+                v.server for v in brain.servers.values() if v.alive
+            ]
+            assert not [k for k, _ in hub.puts if "/exp/to/fake" in k]  # nothing re-sent to fakes
+            assert brain.following == "s1"
+            # A stretch without new weights is logged and counted.
+            with caplog.at_level(logging.WARNING):
+                server.stop()
+                server.bus.close()
+                assert wait(lambda: brain.counters["downlink/weightless_stretches"] == 1, timeout=5)
+            assert "no new weights applied" in caplog.text
+            release.set()
+        finally:
+            brain.stop()
+
+
+# --------------------------------------------------------------------------- large frames
+def test_frames_larger_than_a_snapshot_are_dropped_uncopied(tmp_path):
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    try:
+        big = b"WFNN" + bytes(40 << 20)
+        for _ in range(3):
+            hub.bus().put(KEYS.weights("s1"), big, None)
+        assert brain.bus.oversized[KEYS.weights("s1").rsplit("/", 1)[0]] == 3
+        assert brain.metrics()["downlink/oversized_weights"] == 3
+        assert sum(brain.rejected.values()) == 0  # never reached decoding
+    finally:
+        brain.stop()
+
+
+# --------------------------------------------------------------------------- non-finite experiences
+def test_non_finite_experiences_are_stored_flagged_and_never_learned(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    b = batch(cfg, 0, 10, client="made-up")
+    b.state[2, 0] = np.nan
+    b.reward[5] = np.inf
+    b.next_state[7, 1] = -np.inf
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, b, client="made-up")
+        assert listener.wait(lambda: listener.acked("made-up") == 9)
+        assert server.counters["ingest/non_finite"] == 3
+        assert listener.wait(lambda: server.learner.buffer.count[0] == 7)
+        [stored] = list(server.store.batches())
+        assert (np.flatnonzero(stored.flags & EXP_NON_FINITE) == [2, 5, 7]).all()
+        assert server.budget + int(server.learner.thinks[0]) <= 7  # thinks owed only for the learnable
+
+
+def test_allow_client_takes_only_the_named_clients(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, allow_clients=("robot1",)) as server:
+        send(hub, batch(cfg, 0, 5, client="intruder"), client="intruder")
+        hub.bus().put(
+            KEYS.client_status("intruder"),
+            Codec("intruder").encode(status_of("intruder", cfg.to_json(), cfg.spec_hash())),
+            None,
+        )
+        send(hub, batch(cfg, 0, 5, client="robot1"), client="robot1")
+        assert listener.wait(lambda: listener.acked("robot1") == 4)
+        assert server.rejected["client_not_allowed"] == 2
+        assert server.store.stored_through == {"robot1": 4} and "intruder" not in server.clients

@@ -1,0 +1,271 @@
+"""Nothing acknowledged is lost and reading never destroys: logs, stores and a server's data directory."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from tests.fakes import Hub, small_config
+from tests.mounts import files, read_only, tmpfs
+from tests.unit.test_server import Listener, batch, make_server, send
+from wfnn_client.journal import Journal
+from wfnn_common import logs, segments
+from wfnn_common.logs import LogFormatError
+from wfnn_common.protocol import Codec
+from wfnn_server.server import CHECKPOINT, PREVIOUS_CHECKPOINT
+
+BATCHES, PER_BATCH = 20, 10
+
+
+def journal(directory, cfg, key=None, client="c1"):
+    """A client's journal of BATCHES batches; -> where each batch's record starts."""
+    j = Journal(directory, client, fsync="never", learner_config=cfg)
+    codec = Codec(client, key)
+    for i in range(BATCHES):
+        b = batch(cfg, i * PER_BATCH, PER_BATCH, client=client)
+        j.append(codec.encode(b), b.last_seq)
+    where = list(j._where)
+    j.close()
+    return where
+
+
+def seg(directory, n=0):
+    return directory / segments.segment_name(n)
+
+
+def overwrite(path, offset, data):
+    raw = bytearray(path.read_bytes())
+    raw[offset : offset + len(data)] = data
+    path.write_bytes(bytes(raw))
+
+
+def hit(where, size, start, length):
+    """How many records (starting at `where`, the last ending at `size`) a span touches."""
+    ends = [p.offset for p in where[1:]] + [size]
+    return sum(1 for p, end in zip(where, ends, strict=True) if p.offset < start + length and start < end)
+
+
+# --------------------------------------------------------------------------- reading never writes
+def test_inspecting_a_journal_with_a_torn_tail_changes_no_byte_and_reads_every_whole_batch(tmp_path):
+    cfg = small_config()
+    journal(tmp_path / "j", cfg)
+    frame = Codec("c1").encode(batch(cfg, BATCHES * PER_BATCH, PER_BATCH))
+    torn = segments.RECORD.pack(len(frame), segments.crc32c(frame)) + frame
+    with open(seg(tmp_path / "j"), "ab") as f:
+        f.write(torn[: len(torn) // 2])  # the client died mid-append
+    before = files(tmp_path / "j")
+    summary = logs.summarise(tmp_path / "j")
+    assert files(tmp_path / "j") == before
+    assert summary.experiences == BATCHES * PER_BATCH and summary.clients["c1"].gaps == 0
+    [damage] = summary.damage
+    assert damage.kind == "tail" and damage.length == len(torn) // 2
+
+
+def test_damage_in_the_middle_is_skipped_reported_and_every_other_batch_recovered(tmp_path):
+    cfg = small_config()
+    where = journal(tmp_path / "j", cfg)
+    size = seg(tmp_path / "j").stat().st_size
+    overwrite(seg(tmp_path / "j"), 2000, b"\xa5" * 8)  # 8 bytes overwritten 2,000 bytes in
+    lost = hit(where, size, 2000, 8)
+    assert lost >= 1
+    before = files(tmp_path / "j")
+    summary = logs.summarise(tmp_path / "j")
+    assert files(tmp_path / "j") == before
+    assert summary.experiences == (BATCHES - lost) * PER_BATCH
+    assert summary.clients["c1"].gaps == 1
+    assert [d.kind for d in summary.damage] == ["corrupt"]
+    assert summary.damage[0].offset <= 2000 < summary.damage[0].offset + summary.damage[0].length
+
+
+def test_a_log_on_a_read_only_file_system_can_be_inspected(tmp_path):
+    cfg = small_config()
+    with tmpfs(tmp_path / "ro", "2m") as root:
+        journal(root / "j", cfg)
+        read_only(root)
+        summary = logs.summarise(root / "j")
+        assert summary.experiences == BATCHES * PER_BATCH
+
+
+def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_experience(tmp_path):
+    cfg = small_config(thinks_per_action=1)
+    where = journal(tmp_path / "j", cfg)
+    size = seg(tmp_path / "j").stat().st_size
+    overwrite(seg(tmp_path / "j"), 2000, b"\x00" * 8)
+    lost = hit(where, size, 2000, 8)
+    before = files(tmp_path / "j")
+    server = make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j",), replay_only=True)
+    try:
+        assert files(tmp_path / "j") == before
+        # The damaged batch is in no log: c1's run goes on after it (counted as lost).
+        assert server.imported == server.store.count == (BATCHES - lost) * PER_BATCH
+        assert server.store.lost == {"c1": lost * PER_BATCH}
+        assert server.store.stored_through == {"c1": BATCHES * PER_BATCH - 1}
+    finally:
+        server.store.close()
+
+
+# --------------------------------------------------------------------------- only the owner repairs
+def test_reopening_a_journal_moves_its_torn_tail_to_quarantine_and_keeps_every_byte(tmp_path):
+    cfg = small_config()
+    journal(tmp_path / "j", cfg)
+    original = seg(tmp_path / "j").read_bytes()
+    with open(seg(tmp_path / "j"), "ab") as f:
+        f.write(b"WFNN half a record")
+    again = Journal(tmp_path / "j", fsync="never")
+    assert again.next_seq == BATCHES * PER_BATCH and again.client_id == "c1"
+    [kept] = (tmp_path / "j" / segments.QUARANTINE).glob("*.torn")
+    assert kept.read_bytes() == b"WFNN half a record"
+    assert seg(tmp_path / "j").read_bytes() == original
+    again.close()
+
+
+def test_a_journal_with_a_damaged_middle_record_continues_after_its_last_batch(tmp_path):
+    cfg = small_config()
+    where = journal(tmp_path / "j", cfg)
+    overwrite(seg(tmp_path / "j"), where[5].offset + 40, b"\xff\xff")
+    again = Journal(tmp_path / "j", fsync="never")
+    assert again.next_seq == BATCHES * PER_BATCH  # numbering goes on; nothing is cut
+    frames, last = again.frames_from(0, 100)
+    assert len(frames) == BATCHES - 1 and last == BATCHES * PER_BATCH - 1
+    again.close()
+
+
+def test_a_corrupt_client_json_is_set_aside_and_the_id_recovered_from_the_batches(tmp_path):
+    cfg = small_config()
+    journal(tmp_path / "j", cfg, client="robot7")
+    (tmp_path / "j" / "client.json").write_text("{not json")
+    again = Journal(tmp_path / "j", fsync="never")
+    assert again.client_id == "robot7"
+    assert list((tmp_path / "j").glob("client.json.unreadable-*"))
+    again.close()
+
+
+# --------------------------------------------------------------------------- a server's data directory
+def stored_and_checkpointed(tmp_path, hub, cfg, n_first=20, n_second=10):
+    """A server that checkpointed twice (the second after more experiences), then stopped."""
+    listener = Listener(hub)
+    server = make_server(tmp_path, hub, cfg).start()
+    send(hub, batch(cfg, 0, n_first))
+    assert listener.wait(lambda: any(s.learned_through.get("c1") == n_first - 1 for s in listener.snapshots))
+    server.checkpoint()
+    first_thinks = int(server.learner.thinks[0])
+    send(hub, batch(cfg, n_first, n_second))
+    last = n_first + n_second - 1
+    assert listener.wait(lambda: any(s.learned_through.get("c1") == last for s in listener.snapshots))
+    server.stop()  # the final checkpoint: the previous one is kept beside it
+    return server, first_thinks
+
+
+def test_a_truncated_checkpoint_falls_back_to_the_previous_one_and_re_earns_the_thinks(tmp_path, caplog):
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    first, first_thinks = stored_and_checkpointed(tmp_path, hub, cfg)
+    data = tmp_path / "s1"
+    assert (data / PREVIOUS_CHECKPOINT).exists()
+    newest = (data / CHECKPOINT).read_bytes()
+    (data / CHECKPOINT).write_bytes(newest[: len(newest) // 2])
+    with caplog.at_level(logging.ERROR):
+        again = make_server(tmp_path, hub, cfg)
+    assert "cannot be used" in caplog.text
+    assert int(again.learner.thinks[0]) == first_thinks
+    assert again.budget == 10 * 3  # the 10 experiences stored after the previous checkpoint
+    assert again.incarnation == first.incarnation + 1
+    [kept] = data.glob(f"{CHECKPOINT}.unreadable-*")
+    assert kept.read_bytes() == newest[: len(newest) // 2]
+    again.store.close()
+
+
+def test_with_no_readable_checkpoint_fresh_weights_re_earn_every_experiences_thinks(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    stored_and_checkpointed(tmp_path, hub, cfg)
+    data = tmp_path / "s1"
+    for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
+        (data / name).write_bytes(b"PK\x03\x04 not a zip any more")
+    before = files(data)
+    again = make_server(tmp_path, hub, cfg)
+    assert int(again.learner.thinks[0]) == 0 and again.budget == 30 * 3
+    again.start()
+    again.stop()  # its checkpoints rotate: the unreadable ones were set aside, not rotated over
+    after = files(data)
+    kept = {content for content, _ in after.values()}
+    missing = [name for name, (content, _) in before.items() if content not in kept and name != "incarnation"]
+    assert missing == []  # nothing deleted: the unreadable checkpoints too are kept, set aside
+
+
+@pytest.mark.parametrize("garbage", [b"", b"seven", b"-3", b"\xff\xfe"])
+def test_a_corrupt_incarnation_file_is_set_aside_and_the_count_goes_on(tmp_path, garbage):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    first, _ = stored_and_checkpointed(tmp_path, hub, cfg, 5, 5)
+    (tmp_path / "s1" / "incarnation").write_bytes(garbage)
+    again = make_server(tmp_path, hub, cfg)
+    assert again.incarnation == first.incarnation + 1  # from the checkpoint's record of it
+    [kept] = (tmp_path / "s1").glob("incarnation.unreadable-*")
+    assert kept.read_bytes() == garbage
+    again.store.close()
+
+
+def test_a_corrupt_learner_config_json_falls_back_to_the_checkpoints_config(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=2, seed=4)
+    stored_and_checkpointed(tmp_path, hub, cfg, 5, 5)
+    data = tmp_path / "s1"
+    (data / "learner_config.json").write_text('{"state_low": [')
+    again = make_server(tmp_path, hub, None)  # no --learner-config: the data directory's own
+    assert again.learner is not None and again.learner_config.spec_hash() == cfg.spec_hash()
+    assert again.learner_config.seed == 4 and again.store.count == 10
+    assert list(data.glob("learner_config.json.unreadable-*"))
+    again.store.close()
+
+
+def test_a_store_damaged_in_the_middle_loads_every_readable_batch(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg):
+        for i in range(5):
+            send(hub, batch(cfg, 10 * i, 10))
+            assert listener.wait(lambda i=i: listener.acked() == 10 * i + 9)
+    store = tmp_path / "s1" / "store"
+    overwrite(seg(store), seg(store).stat().st_size // 2, b"\x00\x00\x00")
+    again = make_server(tmp_path, hub, cfg)
+    assert again.store.count == 40 and len(again.store.log.counts.damage) == 1
+    assert again.learner.buffer.count[0] == 40
+    again.store.close()
+
+
+# --------------------------------------------------------------------------- what the key protects
+def test_a_keyed_server_replays_its_own_store_and_a_keyed_clients_journal(tmp_path):
+    cfg = small_config(thinks_per_action=1)
+    key = b"k" * 32
+    (tmp_path / "key").write_bytes(key)
+    journal(tmp_path / "j", cfg, key=key, client="robot1")
+    hub = Hub()
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, server_id="s0", key_file=tmp_path / "key"):
+        send(hub, batch(cfg, 0, 30, client="robot2"), client="robot2", key=key)
+        assert listener.wait(lambda: listener.acked("robot2", "s0") == 29)
+    server = make_server(tmp_path, hub, cfg, key_file=tmp_path / "key", replay_only=True,
+                         replay=(tmp_path / "j", tmp_path / "s0" / "store"))  # fmt: skip
+    assert server.imported == BATCHES * PER_BATCH + 30
+    server.store.close()
+    # Read without a key, the same logs import alike (a log's records are not transport).
+    plain = make_server(tmp_path, hub, cfg, server_id="s2", replay_only=True,
+                        replay=(tmp_path / "j", tmp_path / "s0" / "store"))  # fmt: skip
+    assert plain.imported == BATCHES * PER_BATCH + 30
+    plain.store.close()
+
+
+def test_replay_with_a_wrong_key_imports_nothing_and_says_why(tmp_path):
+    cfg = small_config(thinks_per_action=1)
+    journal(tmp_path / "j", cfg, key=b"k" * 32)
+    (tmp_path / "wrong").write_bytes(b"w" * 32)
+    with pytest.raises(LogFormatError, match=r"every record .* refused: 20 auth .*wrong --key-file"):
+        make_server(tmp_path, Hub(), cfg, key_file=tmp_path / "wrong", replay=(tmp_path / "j",),
+                    replay_only=True)  # fmt: skip
+    assert logs.summarise(tmp_path / "j", b"w" * 32).refused == {"auth": BATCHES}
+
+
+def test_a_journal_reads_alike_with_and_without_its_key(tmp_path):
+    cfg = small_config()
+    journal(tmp_path / "j", cfg, key=b"k" * 32)
+    with_key = logs.summarise(tmp_path / "j", b"k" * 32)
+    without = logs.summarise(tmp_path / "j")
+    assert with_key.experiences == without.experiences == BATCHES * PER_BATCH
+    assert np.isclose(with_key.reward_mean, without.reward_mean)

@@ -1,0 +1,62 @@
+"""How the command-line tools end on bad input: one clear line, a nonzero exit, no traceback.
+
+Each tool's entry point is `guarded(app)`: a file that cannot be read or written, a port in
+use, a malformed endpoint or config (OSError, ValueError and their kinds) ends the run with
+`error: <what>` and exit code 2; anything else with exit code 1 and the same one line.
+`--verbose` adds the traceback for whoever debugs it.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+
+def describe(exc: BaseException) -> str:
+    """One line: the error and the errors that caused it (`a: b: c`)."""
+    parts: list[str] = []
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        parts.append(_one(current))
+        current = current.__cause__ or (None if current.__suppress_context__ else current.__context__)
+    text = ": ".join(p for i, p in enumerate(parts) if p and p not in parts[:i])
+    return " ".join(text.split())
+
+
+def _one(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f"{exc.filename}: " if exc.filename is not None else ""
+        return f"{where}{exc.strerror}"
+    text = str(exc)
+    if isinstance(exc, KeyError | RecursionError | MemoryError) or not text:
+        return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return text
+
+
+def guarded(app: Callable[[], Any]) -> Callable[[], None]:
+    """An entry point that runs `app` and turns an escaping exception into one line on stderr."""
+
+    def main() -> None:
+        try:
+            app()
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            sys.exit(130)
+        except (OSError, ValueError) as exc:
+            _report(exc, 2)
+        except Exception as exc:
+            _report(exc, 1)
+
+    return main
+
+
+def _report(exc: BaseException, code: int) -> None:
+    if "--verbose" in sys.argv:
+        traceback.print_exception(exc)
+    hint = "" if "--verbose" in sys.argv or code == 2 else " (--verbose shows where)"
+    print(f"error: {describe(exc)}{hint}", file=sys.stderr)
+    sys.exit(code)
