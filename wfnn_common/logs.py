@@ -378,10 +378,18 @@ def write_log(
 
 
 def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
-    """The learner config of logs that must agree on their spec (None if none says)."""
+    """The learner config of logs that must agree on their spec (None if none says).
+
+    A log whose description cannot be read says nothing (a warning): its batches still carry
+    their spec hash, which readers check.
+    """
     found: LearnerConfig | None = None
     for directory in directories:
-        config = log_config(directory)
+        try:
+            config = log_config(directory)
+        except LogFormatError as exc:
+            log.warning("%s", exc)
+            continue
         if config is None:
             continue
         if found is not None and config.spec_hash() != found.spec_hash():

@@ -72,7 +72,9 @@ def test_huge_frames_on_the_weights_key_never_delay_the_tick(tmp_path, megabytes
     result = json.loads(stats.read_text())
     assert result["client/overruns"] == 0
     assert result["following"] == "srv" and result["downlink/longest_without_weights_s"] < 1.0
-    assert sum(v for k, v in result.items() if k.startswith("downlink/rejected_")) == 0  # none decoded
+    # None was decoded (a snapshot that beat its server's first status may be "unannounced").
+    rejected = {k for k, v in result.items() if k.startswith("downlink/rejected_") and v}
+    assert rejected <= {"downlink/rejected_unannounced", "downlink/rejected_stale"}, rejected
 
 
 def _run(*args, timeout=180):

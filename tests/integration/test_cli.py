@@ -475,3 +475,18 @@ def test_bench_dashboard_measures_what_the_dashboard_costs(tmp_path):
     assert off["dashboard_cpu_s"] == 0 and on["dashboard_cpu_s"] > 0 and on["server_cpu_s"] > 0
     assert off["experiences_stored"] > 0 and on["experiences_stored"] > 0
     assert data["added_fraction_attributed"] > 0 and p.stat().st_size > 10_000
+
+
+def test_bench_safety_measures_what_survives(tmp_path):
+    j, p = tmp_path / "safety.json", tmp_path / "safety.png"
+    out = run([BIN / "wfnn-bench", "safety", "--episodes", "2", "--seconds", "6", "--json", j, "--plot", p])
+    assert "restart empty" in out.stdout
+    data = json.loads(j.read_text())
+    logs = data["damaged_logs"]
+    assert logs["experiences"] == 400 and data["logs_bytes_changed"] == 0
+    assert 0 < logs["middle"]["replay_experiences"] < 400 and logs["torn_tail"]["inspect_experiences"] < 400
+    assert data["restart_empty"]["produced"] > 50 and data["restart_experiences_missing"] == 0
+    assert [f["megabytes"] for f in data["huge_frames"]] == [40, 30]
+    assert set(data["goals"]) == {"logs_bytes_changed", "restart_experiences_missing",
+                                  "storm_longest_without_weights_s", "huge_frames_overruns"}  # fmt: skip
+    assert p.stat().st_size > 10_000
