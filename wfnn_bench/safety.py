@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -25,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -86,6 +88,23 @@ def _finish(proc: subprocess.Popen[str], timeout: float = 120) -> None:
     out, _ = proc.communicate(timeout=timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"wfnn-client failed: {out[-2000:]}")
+
+
+@contextlib.contextmanager
+def _attacked(port: int, *client_args: Any) -> Iterator[ZenohBus]:
+    """A robot (`wfnn-client` with `client_args`) following the server on `port`, and an attacker.
+
+    The attacker's session connects to the same router; on leaving, the robot's run is waited for.
+    """
+    proc = _client(*client_args, "--server", f"tcp/127.0.0.1:{port}")
+    rogue = ZenohBus(NetConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+    try:
+        yield rogue
+        _finish(proc)
+    finally:
+        rogue.close()
+        if proc.poll() is None:
+            proc.kill()
 
 
 def _bytes_changed(before: dict[str, bytes], directory: Path) -> int:
@@ -176,11 +195,9 @@ def token_storm(cfg: SafetyBenchConfig, work: Path) -> dict[str, Any]:
     stats = work / "storm.json"
     keys = Keys(CONTROLLER)
     with ServerProcess(work / "storm-srv", port, "--key-file", str(key), controller=CONTROLLER):
-        proc = _client("--sim", "positioning", "--episodes", 100_000, "--duration", cfg.storm_seconds,
-                       "--rate-hz", 30, "--server", f"tcp/127.0.0.1:{port}", "--key-file", key,
-                       "--out", work / "storm-client", "--json-stats", stats)  # fmt: skip
-        rogue = ZenohBus(NetConfig(connect=(f"tcp/127.0.0.1:{port}",)))
-        try:
+        with _attacked(port, "--sim", "positioning", "--episodes", 100_000, "--duration", cfg.storm_seconds,
+                       "--rate-hz", 30, "--key-file", key, "--out", work / "storm-client",
+                       "--json-stats", stats) as rogue:  # fmt: skip
             time.sleep(3.0)
             rogue.queryable(keys.weights("**"), lambda: None)  # never replies: each query waits it out
             for i in range(30):
@@ -191,11 +208,6 @@ def token_storm(cfg: SafetyBenchConfig, work: Path) -> dict[str, Any]:
             while time.monotonic() < deadline:  # unsigned statuses of a fake server, twice a second
                 rogue.put(keys.server_status("fake00"), Codec("fake00").encode(forged), Channel.LATEST)
                 time.sleep(0.5)
-            _finish(proc)
-        finally:
-            rogue.close()
-            if proc.poll() is None:
-                proc.kill()
     result = json.loads(stats.read_text())
     return {
         "longest_without_weights_s": result["downlink/longest_without_weights_s"],
@@ -212,23 +224,15 @@ def huge_frames(cfg: SafetyBenchConfig, work: Path, megabytes: int) -> dict[str,
     stats = work / f"frames{megabytes}.json"
     keys = Keys(CONTROLLER)
     with ServerProcess(work / f"frames{megabytes}-srv", port, controller=CONTROLLER):
-        proc = _client("--sim", "boat", "--episodes", 100_000, "--duration", cfg.frames_seconds,
-                       "--rate-hz", 50,
-                       "--server", f"tcp/127.0.0.1:{port}", "--out", work / f"frames{megabytes}-client",
-                       "--json-stats", stats)  # fmt: skip
-        rogue = ZenohBus(NetConfig(connect=(f"tcp/127.0.0.1:{port}",)))
-        try:
+        with _attacked(port, "--sim", "boat", "--episodes", 100_000, "--duration", cfg.frames_seconds,
+                       "--rate-hz", 50, "--out", work / f"frames{megabytes}-client",
+                       "--json-stats", stats) as rogue:  # fmt: skip
             time.sleep(3.0)
             frame = b"WFNN" + bytes((megabytes << 20) - 4)
             t0 = time.monotonic()
             for _ in range(8):
                 rogue.put(keys.weights("srv"), frame, Channel.DATA)
             sent_s = time.monotonic() - t0
-            _finish(proc)
-        finally:
-            rogue.close()
-            if proc.poll() is None:
-                proc.kill()
     result = json.loads(stats.read_text())
     return {
         "megabytes": megabytes, "frames": 8, "send_s": sent_s,

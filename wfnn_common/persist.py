@@ -10,8 +10,9 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -28,10 +29,11 @@ class PersistError(ValueError):
     """A file is not a wfnn file of the expected kind and version, or does not fit."""
 
 
-def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None = None) -> None:
-    """Write an `.npz` so that a crash leaves the old file or the new one, never a torn one.
+def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous: Path | None = None) -> None:
+    """Write a file so that a crash leaves the old file or the new one, never a torn one.
 
-    With `keep_previous`, the file being replaced is moved there first (a crash between the two
+    `write(f)` fills a temporary file beside `path`, which is fsynced and renamed over it. With
+    `keep_previous`, the file being replaced is moved there first (a crash between the two
     renames leaves the previous file and no newest one; readers fall back to it).
     """
     path = Path(path)
@@ -39,7 +41,7 @@ def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None 
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         if keep_previous is not None and path.exists():
@@ -48,11 +50,11 @@ def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None 
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    _sync_dir(path.parent)
+    sync_dir(path.parent)
 
 
-def _sync_dir(directory: Path) -> None:
-    """Make renames in `directory` durable."""
+def sync_dir(directory: Path) -> None:
+    """Make the creations and renames in `directory` durable."""
     fd = os.open(directory, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -60,20 +62,14 @@ def _sync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None = None) -> None:
+    """Write an `.npz` atomically (see `_atomic_write`)."""
+    _atomic_write(path, lambda f: np.savez(f, **arrays), keep_previous)
+
+
 def atomic_write_text(path: Path, text: str) -> None:
-    """Write a text file so that a crash leaves the old file or the new one, never a torn one."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _sync_dir(path.parent)
+    """Write a text file atomically (see `_atomic_write`)."""
+    _atomic_write(path, lambda f: f.write(text.encode()))
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from wfnn_common.persist import sync_dir
 from wfnn_common.protocol import crc32c
 
 log = logging.getLogger(__name__)
@@ -233,7 +234,7 @@ class SegmentLog:
             f.write(data[valid_end:])
             f.flush()
             os.fsync(f.fileno())
-        self._sync_dir(quarantine)
+        sync_dir(quarantine)
         log.warning("%s: a torn tail of %d bytes at offset %d moved to %s", path, cut, valid_end, kept)
         with open(path, "r+b") as f:
             f.truncate(valid_end)
@@ -241,14 +242,6 @@ class SegmentLog:
             os.fsync(f.fileno())
         self.recovery.torn_bytes_cut += cut
         self.recovery.quarantined.append(kept)
-
-    @staticmethod
-    def _sync_dir(directory: Path) -> None:
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
 
     # ------------------------------------------------------------------ writing
     @property
@@ -299,7 +292,7 @@ class SegmentLog:
         self._file = open(self.directory / segment_name(self._segment), "ab")
         self._size = 0
         if self.fsync != "never":  # the new file's directory entry must survive too
-            self._sync_dir(self.directory)
+            sync_dir(self.directory)
 
     def close(self) -> None:
         """Sync and close."""
