@@ -70,7 +70,9 @@ def test_huge_frames_on_the_weights_key_never_delay_the_tick(tmp_path, megabytes
             rogue.close()
         finish(proc, timeout=60)
     result = json.loads(stats.read_text())
-    assert result["client/overruns"] == 0
+    # 0 in every run here (and `wfnn-bench safety`); one late tick is allowed for a busy CI machine,
+    # where 748d969 had six.
+    assert result["client/overruns"] <= 1
     assert result["following"] == "srv" and result["downlink/longest_without_weights_s"] < 1.0
     # None was decoded (a snapshot that beat its server's first status may be "unannounced").
     rejected = {k for k, v in result.items() if k.startswith("downlink/rejected_") and v}
