@@ -182,6 +182,9 @@ _F8_1, _F8_2 = _array("<f8", 1), _array("<f8", 2)
 _B1_1, _U8_1, _U1_1 = _array("|b1", 1), _array("<u8", 1), _array("|u1", 1)
 
 
+MAX_SEQ = (1 << 62) - 1
+"""The largest experience number (every count and acknowledgement of it fits an int64)."""
+
 # Experience flags (ExperienceBatch.flags).
 EXP_EXPLORED = 0x01
 """Exploration changed the learner's action."""
@@ -236,10 +239,9 @@ class ExperienceBatch:
         """Shapes agree with each other."""
         n = len(self)
         s, a = self.state.shape[1], self.action.shape[1]
-        if n < 1 or self.first_seq < 0:
-            raise MalformedBody(
-                f"experience batch needs N >= 1 and first_seq >= 0, got {n}, {self.first_seq}"
-            )
+        if n < 1 or not 0 <= self.first_seq <= MAX_SEQ - n + 1:
+            raise MalformedBody(f"experience batch needs N >= 1 and 0 <= first_seq, last_seq <= MAX_SEQ, "
+                                f"got {n}, {self.first_seq}")  # fmt: skip
         expected = {"state": (n, s), "action": (n, a), "next_state": (n, s), "terminal": (n,),
                     "weights_version": (n,), "flags": (n,)}  # fmt: skip
         for name, shape in expected.items():

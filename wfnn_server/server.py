@@ -101,6 +101,11 @@ def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
     return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
 
 
+def _is_count(value: Any) -> bool:
+    """A non-negative integer that fits an int64 (a count or experience number in a checkpoint)."""
+    return type(value) is int and 0 <= value < 1 << 62
+
+
 class _Refused(ProtocolError):
     """A well-formed message this server does not take (the reason names why)."""
 
@@ -328,13 +333,17 @@ class ThinkServer:
                 if ck_cfg.spec_hash() != cfg.spec_hash():
                     raise PersistError(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
                 learner = WFNN(cfg, params=params)
+                for key in ("thinks", "resets", "version", "budget"):
+                    if not _is_count(meta.get(key, 0)):
+                        raise PersistError(f"checkpoint meta {key} is not a count: {meta.get(key)!r}")
+                for key in ("stored_through", "learned_through"):
+                    through = meta.get(key, {})
+                    numbers = through.values() if isinstance(through, dict) else [None]
+                    if not all(v == -1 or _is_count(v) for v in numbers):
+                        raise PersistError(f"checkpoint meta {key} is not a map of experience numbers")
                 learner.thinks[:] = int(meta.get("thinks", 0))
                 learner.resets[:] = int(meta.get("resets", 0))
                 self.version = int(meta.get("version", 0))
-                for key in ("stored_through", "learned_through"):
-                    if not isinstance(meta.get(key, {}), dict):
-                        raise PersistError(f"checkpoint meta {key} is not a map")
-                int(meta.get("budget", 0))
             except (PersistError, OSError, KeyError, ValueError, TypeError) as exc:
                 log.error("checkpoint %s cannot be used (%s)", path, exc)
                 # Renamed, so that the next checkpoint's rotation never writes over it.

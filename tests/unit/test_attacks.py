@@ -316,3 +316,13 @@ def test_allow_client_takes_only_the_named_clients(tmp_path):
         assert listener.wait(lambda: listener.acked("robot1") == 4)
         assert server.rejected["client_not_allowed"] == 2
         assert server.store.stored_through == {"robot1": 4} and "intruder" not in server.clients
+
+
+def test_experience_numbers_past_an_int64_are_refused():
+    from tests.unit.test_protocol import make_batch
+    from wfnn_common.protocol import MAX_SEQ, MalformedBody, decode
+
+    with pytest.raises(MalformedBody):
+        make_batch(n=5, first_seq=MAX_SEQ - 3).validate()
+    frame = Codec("robot1").encode(make_batch(n=5, first_seq=MAX_SEQ - 4))
+    assert decode(frame).message.last_seq == MAX_SEQ

@@ -269,3 +269,17 @@ def test_a_journal_reads_alike_with_and_without_its_key(tmp_path):
     without = logs.summarise(tmp_path / "j")
     assert with_key.experiences == without.experiences == BATCHES * PER_BATCH
     assert np.isclose(with_key.reward_mean, without.reward_mean)
+
+
+def test_a_checkpoint_whose_counters_are_not_numbers_is_not_used(tmp_path):
+    from wfnn_common.learner import WFNN
+    from wfnn_common.persist import save_weights
+
+    hub, cfg = Hub(), small_config(thinks_per_action=2)
+    stored_and_checkpointed(tmp_path, hub, cfg, 5, 5)
+    data = tmp_path / "s1"
+    bad = {"thinks": 10, "learned_through": {"c1": "all"}, "stored_through": {"c1": 9}}
+    save_weights(data / CHECKPOINT, cfg, WFNN(cfg).params, bad)
+    again = make_server(tmp_path, hub, cfg)  # falls back to the previous one, whose meta is sound
+    assert int(again.learner.thinks[0]) > 0 and all(type(v) is int for v in again.learned_through.values())
+    again.store.close()
