@@ -19,7 +19,7 @@ from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.vision import NomadVisionConfig
 from wfnn_client.controllers import LEARNER, parse_mix
-from wfnn_client.run import ClientConfig, SetupError, jsonable_config, prepare, run
+from wfnn_client.run import ClientConfig, jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.cli_errors import guarded
@@ -28,7 +28,6 @@ from wfnn_common.net import NetConfig
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
-errors = Console(stderr=True)
 
 
 def _floats(text: str | None, what: str) -> tuple[float, ...] | None:
@@ -190,56 +189,45 @@ def client(
         raise typer.BadParameter(str(exc), param_hint="--behaviour-policy") from exc
     if [m.name for m in mix] == [LEARNER]:
         mix = ()  # the learner alone: the usual run
-    try:
-        hydra = HydraConfig(
-            joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
-            vision=VisionConfig(source=vision),  # type: ignore[arg-type]
-        )  # fmt: skip
-        foraging = behaviour == "forage"
-        nomad = NomadConfig(
-            behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
-            camera_yaw_deg=camera_yaw, balls=balls,
-            vision=NomadVisionConfig(source=vision),  # type: ignore[arg-type]
-        )  # fmt: skip
-        forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
-        config = ClientConfig(
-            sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
-            hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
-            boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
-            bc_weight=bc_weight, weights=weights, symmetries=symmetries, behaviour_policy=mix,
-            exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
-            server=tuple(server) if server else (() if listen else ("local",)),
-            controller=controller, client_id=client_id, follow=follow,
-            net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
-                          zenoh_config=str(zenoh_config) if zenoh_config else None),
-            key_file=key_file, insecure=insecure, out=out, json_stats=json_stats, seed=seed,
-            camera_every=camera_every,
-            safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
-                                max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
-        )  # fmt: skip
-    except ValueError as exc:  # one line, as every other refusal (the message names the option)
-        errors.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(2) from exc
+    # A config that does not hold (a ValueError), or a run directory, key or endpoint that cannot be
+    # used ends in one `error:` line and exit 2 (`main`, `wfnn_common.cli_errors`).
+    hydra = HydraConfig(
+        joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
+        vision=VisionConfig(source=vision),  # type: ignore[arg-type]
+    )  # fmt: skip
+    foraging = behaviour == "forage"
+    nomad = NomadConfig(
+        behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
+        camera_yaw_deg=camera_yaw, balls=balls,
+        vision=NomadVisionConfig(source=vision),  # type: ignore[arg-type]
+    )  # fmt: skip
+    forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
+    config = ClientConfig(
+        sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
+        hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
+        boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
+        bc_weight=bc_weight, weights=weights, symmetries=symmetries, behaviour_policy=mix,
+        exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
+        server=tuple(server) if server else (() if listen else ("local",)),
+        controller=controller, client_id=client_id, follow=follow,
+        net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
+                      zenoh_config=str(zenoh_config) if zenoh_config else None),
+        key_file=key_file, insecure=insecure, out=out, json_stats=json_stats, seed=seed,
+        camera_every=camera_every,
+        safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
+                            max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
+    )  # fmt: skip
     console.print(f"[bold]wfnn-client[/] {escape(config.summary())}")
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))
-    try:
-        prepare(config)
-    except SetupError as exc:
-        errors.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(2) from exc
+    prepare(config)
     with Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
         TextColumn("{task.fields[line]}"), console=console,
     ) as bar:  # fmt: skip
         task = bar.add_task(f"{sim} episodes", total=episodes, line="")
-        try:
-            metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
-                          prepared=True)  # fmt: skip
-        except SetupError as exc:
-            bar.stop()
-            errors.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
-            raise typer.Exit(2) from exc
+        metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
+                      prepared=True)  # fmt: skip
     scores = metrics["scores"]
     trend = (
         f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f}"

@@ -60,6 +60,16 @@ from wfnn_common.segments import FsyncPolicy
 log = logging.getLogger(__name__)
 
 
+def max_snapshot_bytes(shapes: Shapes) -> int:
+    """The largest weights frame of a learner of these shapes: its parameters, and room for the rest."""
+    return max_frame(MsgType.WEIGHTS, 8 * shapes.n_params + (64 << 10))
+
+
+def largest_message(shapes: Shapes) -> int:
+    """The largest message a client of a learner of these shapes receives (a snapshot, or a status)."""
+    return max(max_snapshot_bytes(shapes), max_frame(MsgType.SERVER_STATUS))
+
+
 @dataclass(frozen=True, kw_only=True)
 class RemoteConfig:
     """How the client reaches its think servers."""
@@ -181,8 +191,8 @@ class RemoteBrain:
         self.spec_hash = learner.config.spec_hash()
         self._config_json = learner.config.to_json()
         self._shapes = Shapes.of(learner.config)
-        self.max_snapshot_bytes = max_frame(MsgType.WEIGHTS, 8 * self._shapes.n_params + (64 << 10))
-        """No larger weights frame is copied: the exact parameters, and room for the rest."""
+        self.max_snapshot_bytes = max_snapshot_bytes(self._shapes)
+        """No larger weights frame is copied."""
         self._pending: collections.deque[_Pending] = collections.deque()
         self._wake_up = threading.Event()
         self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()

@@ -33,7 +33,14 @@ from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.net import NetConfig, check_exposure
-from wfnn_common.persist import load_weights, save_experiences, save_weights, to_jsonable, write_json
+from wfnn_common.persist import (
+    load_weights,
+    make_directory,
+    save_experiences,
+    save_weights,
+    to_jsonable,
+    write_json,
+)
 from wfnn_common.protocol import EXP_VETO_PROPOSED, load_key
 
 log = logging.getLogger(__name__)
@@ -137,6 +144,11 @@ class ClientConfig:
         """Whether thinking happens in this process."""
         return self.server == ("local",)
 
+    @property
+    def remote_net(self) -> NetConfig:
+        """The Zenoh settings of a C/S run: `net`, connecting also to the `server` endpoints."""
+        return dataclasses.replace(self.net, connect=tuple(self.net.connect) + tuple(self.server))
+
     def summary(self) -> str:
         """One line: the task, where it thinks, the learner's overrides and the run directory."""
         task = {
@@ -187,17 +199,13 @@ def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brai
 
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id)
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)
-    from wfnn_client.remote import RemoteBrain, RemoteConfig
+    from wfnn_client.remote import RemoteBrain, RemoteConfig, largest_message
     from wfnn_common.net import ZenohBus
     from wfnn_common.network import Shapes
-    from wfnn_common.protocol import MsgType, max_frame
 
     # Nothing larger than a snapshot of this learner (or a status) is reassembled by Zenoh here.
-    largest = max(max_frame(MsgType.WEIGHTS, 8 * Shapes.of(learner.config).n_params + (64 << 10)),
-                  max_frame(MsgType.SERVER_STATUS))  # fmt: skip
-    net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server),
-                              max_message_bytes=min(config.net.max_message_bytes,
-                                                    largest + 1024))  # fmt: skip
+    largest = largest_message(Shapes.of(learner.config)) + 1024
+    net = dataclasses.replace(config.remote_net, max_message_bytes=min(config.net.max_message_bytes, largest))
     remote = RemoteConfig(
         controller=_named(config.controller, behaviour, "-"), client_id=config.client_id,
         journal_dir=config.out / _named("journal", behaviour),
@@ -220,19 +228,10 @@ def prepare(config: ClientConfig) -> list[str]:
     Makes the run directory and writes the whole config there (`config.json`), reads the key
     file, and refuses a non-loopback endpoint without a key unless `insecure`.
     """
-    out = Path(config.out)
-    if out.exists() and not out.is_dir():
-        raise NotADirectoryError(20, "exists and is not a directory (--out names a run directory)", str(out))
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "config.json", {"client": jsonable_config(config)})
+    make_directory(config.out, "--out names a run directory")
+    write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
-    warnings: list[str] = []
-    if not config.local:
-        net = dataclasses.replace(config.net, connect=tuple(config.net.connect) + tuple(config.server))
-        warnings = check_exposure(net, keyed, config.insecure)
-        for warning in warnings:
-            log.warning("%s", warning)
-    return warnings
+    return [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
 
 
 def run(

@@ -164,15 +164,15 @@ class ReadCounts:
 
 
 def read_entries(
-    directory: Path, key: bytes | None = None, counts: ReadCounts | None = None, start: Position | None = None
+    directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
 ) -> Iterator[tuple[Position, bytes, ExperienceBatch]]:
-    """Every experience batch in a log from `start`, oldest first: (where, frame, batch).
+    """Every experience batch in a log, oldest first: (where, frame, batch).
 
     Read-only. Damaged records are skipped (resynchronising on the next frame), frames that
     are not valid batches are refused; both are counted in `counts`.
     """
     counts = counts if counts is not None else ReadCounts()
-    for position, frame in read_records(directory, start, counts.report, marker=MAGIC):
+    for position, frame in read_records(directory, None, counts.report, marker=MAGIC):
         try:
             _, _, batch = decode(frame, key, expect=ExperienceBatch, mac="if_present")
         except ProtocolError as exc:
@@ -227,12 +227,11 @@ class ExperienceLog:
                 f"{self.directory} records experiences of learner spec {recorded.spec_hash()}, not "
                 f"{config.spec_hash()} (another task or ranges): use another run directory"
             )
-        self.config = config or recorded
         identity = info.get("id") if info is not None else None
         self.id: str = identity if isinstance(identity, str) and identity else new_log_id()
         """The log's identity, made when it was created."""
         if info is None or identity != self.id or (config is not None and recorded is None):
-            write_log_json(self.directory, self.config, self.id)
+            write_log_json(self.directory, config or recorded, self.id)
         self.segments = SegmentLog(
             self.directory, fsync=fsync, fsync_interval_s=fsync_interval_s, segment_bytes=segment_bytes,
             marker=MAGIC,

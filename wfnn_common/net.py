@@ -179,7 +179,7 @@ def endpoints(net: NetConfig) -> tuple[list[str], list[str]]:
 
 
 def check_exposure(net: NetConfig, keyed: bool, insecure: bool) -> list[str]:
-    """Refuse non-loopback endpoints without a key unless `insecure`; -> warnings to show.
+    """Refuse non-loopback endpoints without a key unless `insecure`; -> the warnings, also logged.
 
     Raises ValueError naming the endpoints and the two ways out (a key file, or --insecure).
     """
@@ -195,8 +195,13 @@ def check_exposure(net: NetConfig, keyed: bool, insecure: bool) -> list[str]:
             "--insecure on a network you trust"
         )
     if not keyed:
-        return [f"insecure: {names} without a key; any host that reaches it is trusted"]
-    return [f"{names}: frames are authenticated by the shared key but not encrypted (TLS: deploy/README.md)"]
+        warning = f"insecure: {names} without a key; any host that reaches it is trusted"
+    else:
+        warning = (
+            f"{names}: frames are authenticated by the shared key but not encrypted (TLS: deploy/README.md)"
+        )
+    log.warning("%s", warning)
+    return [warning]
 
 
 def zenoh_config(net: NetConfig) -> Any:

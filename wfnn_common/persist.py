@@ -72,6 +72,14 @@ def atomic_write_text(path: Path, text: str) -> None:
     _atomic_write(path, lambda f: f.write(text.encode()))
 
 
+def make_directory(path: Path, what: str) -> None:
+    """Make directory `path` (and its parents); NotADirectoryError naming `what` if a file is there."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(20, f"exists and is not a directory ({what})", str(path))
+    path.mkdir(parents=True, exist_ok=True)
+
+
 def to_jsonable(obj: Any) -> Any:
     """Numpy scalars/arrays, paths -> plain JSON values (NaN and infinity -> null)."""
     if isinstance(obj, dict):
@@ -91,9 +99,7 @@ def to_jsonable(obj: Any) -> Any:
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write `data` as JSON atomically (a crash never leaves half a file)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(to_jsonable(data), indent=1))
+    atomic_write_text(Path(path), json.dumps(to_jsonable(data), indent=1))
 
 
 def _open(path: Path, expected_format: str) -> dict[str, Any]:

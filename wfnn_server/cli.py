@@ -15,7 +15,6 @@ from rich.markup import escape
 from rich.status import Status
 
 from wfnn_common.cli_errors import guarded
-from wfnn_common.logs import LogFormatError
 from wfnn_common.net import NetConfig
 from wfnn_common.persist import to_jsonable
 from wfnn_common.protocol import ServerStatus
@@ -114,41 +113,35 @@ def serve(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
-    try:
-        default_listen = ("tcp/127.0.0.1:7447",) if mode == "router" else ()
-        net = NetConfig(
-            mode=mode,  # type: ignore[arg-type]  # checked by NetConfig
-            listen=tuple(listen) if listen is not None else default_listen,
-            connect=tuple(connect or ()), zenoh_config=str(zenoh_config) if zenoh_config else None,
-            shared_memory=shared_memory,
-        )  # fmt: skip
-        config = ServerConfig(
-            controller=controller, server_id=server_id, net=net, data_dir=data_dir,
-            learner_config=learner_config, key_file=key_file, insecure=insecure,
-            allow_clients=tuple(allow_client or ()), seed=seed, bc_weight=bc_weight, alpha=alpha,
-            publish_period_s=publish_period,
-            checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
-            replay=tuple(replay_only or ()), replay_only=bool(replay_only),
-            dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
-                       if dashboard is not None else None),
-        )  # fmt: skip
-    except ValueError as exc:  # one line, as every other refusal (the message names the option)
-        console.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(2) from exc
+    # A config that does not hold (a ValueError), a data directory, key or endpoint that cannot be
+    # used, or logs that cannot be replayed end in one `error:` line and exit 2 (`main`).
+    default_listen = ("tcp/127.0.0.1:7447",) if mode == "router" else ()
+    net = NetConfig(
+        mode=mode,  # type: ignore[arg-type]  # checked by NetConfig
+        listen=tuple(listen) if listen is not None else default_listen,
+        connect=tuple(connect or ()), zenoh_config=str(zenoh_config) if zenoh_config else None,
+        shared_memory=shared_memory,
+    )  # fmt: skip
+    config = ServerConfig(
+        controller=controller, server_id=server_id, net=net, data_dir=data_dir,
+        learner_config=learner_config, key_file=key_file, insecure=insecure,
+        allow_clients=tuple(allow_client or ()), seed=seed, bc_weight=bc_weight, alpha=alpha,
+        publish_period_s=publish_period,
+        checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
+        replay=tuple(replay_only or ()), replay_only=bool(replay_only),
+        dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
+                   if dashboard is not None else None),
+    )  # fmt: skip
     console.print(f"[bold]wfnn-server[/] {escape(config.summary())}")
     if verbose:  # the whole config (also in the data directory's server_config.json)
         console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
     if dashboard:  # port 0: the address is logged (--verbose) once bound
         console.print(f"live dashboard (read-only): http://{dashboard_host}:{dashboard}/")
-    try:
-        if quiet:
-            run(config)
-            return
-        with Status("starting", console=console) as line:
-            run(config, lambda status: line.update(status_line(status)))
-    except LogFormatError as exc:  # logs that cannot be replayed: nothing was imported
-        console.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        raise typer.Exit(2) from exc
+    if quiet:
+        run(config)
+        return
+    with Status("starting", console=console) as line:
+        run(config, lambda status: line.update(status_line(status)))
 
 
 main = guarded(app)

@@ -36,9 +36,17 @@ from wfnn_common.learner import WFNN
 from wfnn_common.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_common.net import Bus, Channel
 from wfnn_common.network import Params
-from wfnn_common.persist import PersistError, atomic_write_text, load_weights, save_weights, write_json
+from wfnn_common.persist import (
+    PersistError,
+    atomic_write_text,
+    load_weights,
+    make_directory,
+    save_weights,
+    write_json,
+)
 from wfnn_common.protocol import (
     EXP_NON_FINITE,
+    MAX_SEQ,
     Ack,
     CameraView,
     ClientStatus,
@@ -102,8 +110,8 @@ def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
 
 
 def _is_count(value: Any) -> bool:
-    """A non-negative integer that fits an int64 (a count or experience number in a checkpoint)."""
-    return type(value) is int and 0 <= value < 1 << 62
+    """A count or experience number in a checkpoint: an integer in [0, MAX_SEQ] (fits an int64)."""
+    return type(value) is int and 0 <= value <= MAX_SEQ
 
 
 class _Refused(ProtocolError):
@@ -265,7 +273,7 @@ class ThinkServer:
         offered = sum(len(b) for b in merged(directories, self.codec.key, spec, counts))
         if counts.damage:
             log.warning("the logs hold %d damaged spans (%d bytes), skipped", len(counts.damage),
-                        sum(d.length for d in counts.damage))  # fmt: skip
+                        counts.report.skipped_bytes)  # fmt: skip
         if counts.refused:
             reasons = ", ".join(f"{n} {why}" for why, n in counts.refused.most_common())
             if offered == 0:
@@ -348,7 +356,6 @@ class ThinkServer:
                 log.error("checkpoint %s cannot be used (%s)", path, exc)
                 # Renamed, so that the next checkpoint's rotation never writes over it.
                 set_aside(path, "unreadable; the previous checkpoint, else fresh weights, are used")
-                self.version = 0
                 continue
             log.info("resumed %s: version %d, %d thinks", name, self.version, int(learner.thinks[0]))
             return learner, meta
@@ -749,15 +756,10 @@ def prepare(config: ServerConfig) -> list[str]:
     """
     from wfnn_common.net import check_exposure
 
-    if config.data_dir.exists() and not config.data_dir.is_dir():
-        raise NotADirectoryError(20, "exists and is not a directory (--data-dir)", str(config.data_dir))
-    config.data_dir.mkdir(parents=True, exist_ok=True)
+    make_directory(config.data_dir, "--data-dir")
     write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
-    warnings = check_exposure(config.net, keyed, config.insecure)
-    for warning in warnings:
-        log.warning("%s", warning)
-    return warnings
+    return check_exposure(config.net, keyed, config.insecure)
 
 
 def run(config: ServerConfig, on_status: Any = None) -> None:
