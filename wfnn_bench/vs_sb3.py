@@ -8,8 +8,9 @@ quartiles over seeds at each point, the wall-clock seconds per training step (ac
 and, for WFNN, `thinks_per_action` replays), and the act latency: one observation in, one
 action out (WFNN `act` on numpy, SB3 `predict` on torch), median over many calls.
 
-WFNN runs with the thesis' defaults over the task's declared ranges (`sims.gym.GymVec`), as
-`wfnn-client --env` would. SB3 runs with its defaults for the algorithm (MlpPolicy), as a user
+WFNN runs each learner in `learners` ("thesis": the thesis' learner and defaults; "deep": deep
+wire fitting with its defaults, and `deep_options` over them) over the task's declared ranges
+(`sims.gym.GymVec`), as `wfnn-client --env` would; results are keyed by learner name. SB3 runs with its defaults for the algorithm (MlpPolicy), as a user
 of it would start. Stable-Baselines3 is an optional dependency (`pip install
 stable-baselines3`); without it only WFNN runs and the SB3 rows say why.
 
@@ -30,8 +31,8 @@ from numpy.typing import NDArray
 
 from sims.gym import GymVec
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LearnerConfig, check_fields
-from wfnn_common.learner import WFNN
+from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
+from wfnn_common.learners import make_learner
 
 FloatArray = NDArray[np.float64]
 ALGORITHMS = ("wfnn", "sac", "td3")
@@ -45,11 +46,15 @@ class VsSb3Config:
     steps: tuple[int, ...] = (8000, 15000)
     """Environment steps per task (same order as `tasks`)."""
     algorithms: tuple[str, ...] = ALGORITHMS
+    learners: tuple[str, ...] = ("thesis",)
+    """The WFNN learners run where `algorithms` has wfnn."""
+    deep_options: str = ""
+    """Deep learner config fields over its defaults, a JSON object (as `wfnn-client --learner-options`)."""
     seeds: int = 3
     eval_every: int = 2000
     eval_episodes: int = 3
     thinks: int = 200
-    """WFNN replays per action (the thesis' boat figure)."""
+    """The thesis' learner's replays per action (the thesis' boat figure)."""
     act_calls: int = 2000
     seed: int = 0
 
@@ -60,6 +65,10 @@ class VsSb3Config:
         unknown = set(self.algorithms) - set(ALGORITHMS)
         if unknown:
             raise ValueError(f"unknown algorithms {sorted(unknown)}; choose from {ALGORITHMS}")
+        if not self.learners or set(self.learners) - set(LEARNERS):
+            raise ValueError(f"learners must be some of {LEARNERS}, got {self.learners}")
+        if self.deep_options and not isinstance(parse_json(self.deep_options, "deep options"), dict):
+            raise ValueError("deep options must be a JSON object of learner config fields")
 
 
 def sb3_problem() -> str | None:
@@ -86,8 +95,8 @@ def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> float:
     return total / episodes
 
 
-def _act_us(policy: Any, obs: FloatArray, calls: int) -> float:
-    """Median microseconds of one `policy(obs)` call."""
+def _act_us(policy: Any, obs: FloatArray, calls: int) -> tuple[float, float]:
+    """Microseconds of one `policy(obs)` call: (median, 99th percentile)."""
     for _ in range(50):
         policy(obs)
     times = np.empty(calls)
@@ -95,13 +104,24 @@ def _act_us(policy: Any, obs: FloatArray, calls: int) -> float:
         t0 = time.perf_counter()
         policy(obs)
         times[k] = time.perf_counter() - t0
-    return float(np.median(times) * 1e6)
+    return float(np.median(times) * 1e6), float(np.percentile(times, 99) * 1e6)
 
 
-def run_wfnn(env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, Any]:
+def learner_config(task: GymVec, learner: str, seed: int, cfg: VsSb3Config) -> LearnerConfig:
+    """The config a learner runs with here: its defaults over the task (and the options given)."""
+    if learner == "thesis":
+        return LearnerConfig.for_task(task, thinks_per_action=cfg.thinks, seed=seed)
+    base = LearnerConfig.for_task(task, learner="deep", seed=seed)
+    return with_options(base, parse_json(cfg.deep_options, "deep options")) if cfg.deep_options else base
+
+
+def run_wfnn(env_id: str, steps: int, seed: int, cfg: VsSb3Config, learner_name: str = "thesis") -> dict[str, Any]:
     """One WFNN learner on the task: evaluation returns along the way, seconds per step, act latency."""
+    import torch
+
+    torch.set_num_threads(1)  # per core, as SB3 below
     task = GymVec(env_id, seed=seed)
-    learner = WFNN(LearnerConfig.for_task(task, thinks_per_action=cfg.thinks, seed=seed))
+    learner = make_learner(learner_config(task, learner_name, seed, cfg))
     rng = np.random.default_rng(seed)
     x = task.reset(rng)[0]
 
@@ -122,7 +142,8 @@ def run_wfnn(env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, 
             returns.append(_evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed))
     act = _act_us(greedy, x, cfg.act_calls)
     task.close()
-    return {"steps": points, "returns": returns, "s_per_step": train_s / steps, "act_us": act}
+    return {"steps": points, "returns": returns, "s_per_step": train_s / steps, "act_us": act[0],
+            "act_us_p99": act[1], "config": learner.config.to_dict()}  # fmt: skip
 
 
 def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, Any]:
@@ -146,13 +167,19 @@ def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config
         points.append(done)
         returns.append(_evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed))
     obs, _ = gym.make(env_id).reset(seed=seed)
-    return {"steps": points, "returns": returns, "s_per_step": train_s / steps,
-            "act_us": _act_us(greedy, obs, cfg.act_calls)}  # fmt: skip
+    act = _act_us(greedy, obs, cfg.act_calls)
+    return {"steps": points, "returns": returns, "s_per_step": train_s / steps, "act_us": act[0],
+            "act_us_p99": act[1]}  # fmt: skip
 
 
 def steps_total(cfg: VsSb3Config) -> int:
-    """Progress units: one per (task, algorithm, seed)."""
-    return len(cfg.tasks) * len(cfg.algorithms) * cfg.seeds
+    """Progress units: one per (task, algorithm or learner, seed)."""
+    return len(cfg.tasks) * len(_runs(cfg)) * cfg.seeds
+
+
+def _runs(cfg: VsSb3Config) -> list[str]:
+    """What runs on each task: the learners (for wfnn), then the SB3 algorithms."""
+    return [name for a in cfg.algorithms for name in (cfg.learners if a == "wfnn" else (a,))]
 
 
 def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
@@ -165,15 +192,15 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                            "sb3": problem or "available", "tasks": {}}  # fmt: skip
     for env_id, steps in zip(cfg.tasks, cfg.steps, strict=True):
         out["tasks"][env_id] = {}
-        for algorithm in cfg.algorithms:
-            if algorithm != "wfnn" and problem is not None:
+        for algorithm in _runs(cfg):
+            if algorithm not in LEARNERS and problem is not None:
                 out["tasks"][env_id][algorithm] = {"skipped": problem}
                 progress(cfg.seeds)
                 continue
             runs = []
             for k in range(cfg.seeds):
                 seed = cfg.seed + k
-                runs.append(run_wfnn(env_id, steps, seed, cfg) if algorithm == "wfnn"
+                runs.append(run_wfnn(env_id, steps, seed, cfg, algorithm) if algorithm in LEARNERS
                             else run_sb3(algorithm, env_id, steps, seed, cfg))  # fmt: skip
                 progress(1)
             returns = np.array([r["returns"] for r in runs])  # [seeds, points]
@@ -181,12 +208,18 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
             out["tasks"][env_id][algorithm] = {
                 "steps": runs[0]["steps"], "return_q25": q25, "return_median": q50, "return_q75": q75,
                 "returns": returns, "final_return_median": float(q50[-1]),
+                "final_returns": returns[:, -1],
                 "s_per_step": float(np.median([r["s_per_step"] for r in runs])),
                 "act_us": float(np.median([r["act_us"] for r in runs])),
+                "act_us_p99": float(np.median([r["act_us_p99"] for r in runs])),
+                **({"config": runs[0]["config"]} if "config" in runs[0] else {}),
             }  # fmt: skip
         task = out["tasks"][env_id]
-        if "wfnn" in task and "sac" in task and "act_us" in task["sac"]:
-            task["sac_act_over_wfnn_act"] = task["sac"]["act_us"] / task["wfnn"]["act_us"]
+        sac = task.get("sac", {})
+        for name in cfg.learners:
+            if name in task and "act_us" in sac:
+                task[f"sac_act_over_{name}_act"] = sac["act_us"] / task[name]["act_us"]
+                task[f"{name}_s_per_step_over_sac"] = task[name]["s_per_step"] / sac["s_per_step"]
     out["wall_s"] = time.perf_counter() - t0
     return out
 

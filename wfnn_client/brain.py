@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 from wfnn_client.journal import Journal
 from wfnn_common.architectures import ActLearnThinkMT
 from wfnn_common.config import LearnerConfig
-from wfnn_common.learner import WFNN, ActResult
+from wfnn_common.learner import ActResult
+from wfnn_common.learners import Learner
 from wfnn_common.protocol import EXP_EXPLORED, Codec, ExperienceBatch
 
 FloatArray = NDArray[np.float64]
@@ -181,7 +182,7 @@ class LocalBrain:
     """Thinking in this process: a background think thread, or inline in lock-step mode."""
 
     def __init__(
-        self, learner: WFNN, lockstep: bool = False, think_batch: int = 50, recorder: Recorder | None = None
+        self, learner: Learner, lockstep: bool = False, think_batch: int = 50, recorder: Recorder | None = None
     ) -> None:
         self.learner = learner
         self.lockstep = lockstep
@@ -223,8 +224,9 @@ class LocalBrain:
         if self.recorder is not None:
             self.recorder.add(*as_recorded(e, acted))
         if self.mt is None:
-            self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
-            self.learner.think()
+            # Thinks are owed per stored experience, as in the think thread and on a server.
+            if self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal):
+                self.learner.think()
         else:
             self.mt.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
 

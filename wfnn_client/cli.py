@@ -23,7 +23,7 @@ from wfnn_client.run import ClientConfig, jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.cli_errors import guarded
-from wfnn_common.config import ExplorationConfig
+from wfnn_common.config import LEARNERS, ExplorationConfig
 from wfnn_common.net import NetConfig
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
@@ -91,6 +91,13 @@ def client(
     ] = False,
     learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
     weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
+    learner: Annotated[
+        str, typer.Option(help="thesis (the thesis' WFNN) or deep (deep wire fitting, torch where it thinks).")
+    ] = "thesis",
+    learner_options: Annotated[
+        str,
+        typer.Option(help='Learner config fields over its defaults, JSON: \'{"gamma": 0.95, "deep": {"warmup": 100}}\'.'),
+    ] = "",
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
     advantage_k: Annotated[
         float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
@@ -180,6 +187,10 @@ def client(
     if sim not in SIMS:
         raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
     rate = rate_hz if rate_hz is not None else (0.0 if lockstep else SIMS[sim].rate_hz)
+    if learner not in LEARNERS:
+        raise typer.BadParameter(f"unknown learner {learner!r}; choose from {', '.join(LEARNERS)}",
+                                 param_hint="--learner")  # fmt: skip
+    explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
         raise typer.BadParameter(f"unknown exploration {exploration!r}", param_hint="--exploration")
@@ -207,7 +218,9 @@ def client(
         hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
         boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
         bc_weight=bc_weight, weights=weights, symmetries=symmetries, behaviour_policy=mix,
-        exploration=ExplorationConfig(kind=exploration),  # type: ignore[arg-type]
+        # The deep learner explores its own way unless told (the sims' defaults are the thesis').
+        exploration=ExplorationConfig(kind=exploration) if explicit or learner == "thesis" else None,  # type: ignore[arg-type]
+        learner=learner, learner_options=learner_options,
         server=tuple(server) if server else (() if listen else ("local",)),
         controller=controller, client_id=client_id, follow=follow,
         net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]

@@ -18,7 +18,8 @@ from numpy.typing import NDArray
 
 from wfnn_client.brain import Acted
 from wfnn_client.sims import Policy
-from wfnn_common.learner import WFNN, ActResult
+from wfnn_common.learner import ActResult
+from wfnn_common.learners import make_learner
 from wfnn_common.persist import load_weights
 
 FloatArray = NDArray[np.float64]
@@ -114,5 +115,5 @@ def _saved(path: Path, learner_spec: str) -> Policy:
         raise ValueError(
             f"behaviour policy weights:{path} is for learner spec {cfg.spec_hash()}, not {learner_spec}"
         )
-    saved = WFNN(cfg, params=params)
+    saved = make_learner(cfg, params=params)
     return lambda state: saved.act(state, explore=False).action

@@ -35,10 +35,9 @@ import numpy as np
 
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
-from wfnn_common.config import check_fields
-from wfnn_common.learner import WFNN
+from wfnn_common.config import LearnerConfig, check_fields
+from wfnn_common.learners import Learner, Weights, n_params, weights_from_flat
 from wfnn_common.net import Bus, Channel
-from wfnn_common.network import Params, Shapes
 from wfnn_common.protocol import (
     EXP_AFTER_LOSS,
     Ack,
@@ -60,14 +59,14 @@ from wfnn_common.segments import FsyncPolicy
 log = logging.getLogger(__name__)
 
 
-def max_snapshot_bytes(shapes: Shapes) -> int:
-    """The largest weights frame of a learner of these shapes: its parameters, and room for the rest."""
-    return max_frame(MsgType.WEIGHTS, 8 * shapes.n_params + (64 << 10))
+def max_snapshot_bytes(config: LearnerConfig) -> int:
+    """The largest weights frame of this learner: its parameters, and room for the rest."""
+    return max_frame(MsgType.WEIGHTS, 8 * n_params(config) + (64 << 10))
 
 
-def largest_message(shapes: Shapes) -> int:
-    """The largest message a client of a learner of these shapes receives (a snapshot, or a status)."""
-    return max(max_snapshot_bytes(shapes), max_frame(MsgType.SERVER_STATUS))
+def largest_message(config: LearnerConfig) -> int:
+    """The largest message a client of this learner receives (a snapshot, or a status)."""
+    return max(max_snapshot_bytes(config), max_frame(MsgType.SERVER_STATUS))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -122,7 +121,7 @@ class RemoteConfig:
 class Weights:
     """A validated snapshot ready for `act`."""
 
-    params: Params
+    params: Weights
     server: str
     incarnation: int
     store: str
@@ -179,7 +178,7 @@ class _Pending:
 class RemoteBrain:
     """Robot side of act-learn-think-C/S over a `Bus` (see the module docstring)."""
 
-    def __init__(self, learner: WFNN, config: RemoteConfig, bus: Bus, initial: Params | None = None) -> None:
+    def __init__(self, learner: Learner, config: RemoteConfig, bus: Bus, initial: Weights | None = None) -> None:
         self.learner = learner
         self.config = config
         self.bus = bus
@@ -190,8 +189,8 @@ class RemoteBrain:
         self.codec = Codec(self.id, load_key(str(config.key_file) if config.key_file else None))
         self.spec_hash = learner.config.spec_hash()
         self._config_json = learner.config.to_json()
-        self._shapes = Shapes.of(learner.config)
-        self.max_snapshot_bytes = max_snapshot_bytes(self._shapes)
+        self._n_params = n_params(learner.config)
+        self.max_snapshot_bytes = max_snapshot_bytes(learner.config)
         """No larger weights frame is copied."""
         self._pending: collections.deque[_Pending] = collections.deque()
         self._wake_up = threading.Event()
@@ -617,7 +616,8 @@ class RemoteBrain:
             log.debug("snapshot from %s rejected: %s", sender, reason)
             return
         weights = Weights(
-            Params(np.ascontiguousarray(snap.params, dtype=np.float64), self._shapes), snap.server,
+            weights_from_flat(self.learner.config, np.ascontiguousarray(snap.params, dtype=np.float64)),
+            snap.server,
             snap.incarnation, snap.store, snap.version, snap.published_ns, snap.diverged,
             snap.learned_through,
             time.monotonic(),
@@ -640,7 +640,7 @@ class RemoteBrain:
                 log.error("server %s publishes weights for spec %s; this client is spec %s: ignored",
                           snap.server, snap.spec_hash, self.spec_hash)  # fmt: skip
             return "spec"
-        if snap.params.shape != (1, self._shapes.n_params):
+        if snap.params.shape != (1, self._n_params):
             return "shape"
         if not np.isfinite(snap.params).all():
             return "non_finite"

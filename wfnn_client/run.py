@@ -30,8 +30,8 @@ from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.tick import Ticker, TickStats
-from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
-from wfnn_common.learner import WFNN
+from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields, parse_json, with_options
+from wfnn_common.learners import Learner, make_learner
 from wfnn_common.net import NetConfig, check_exposure
 from wfnn_common.persist import (
     load_weights,
@@ -88,7 +88,13 @@ class ClientConfig:
     learner, the task's hand-coded controller, random actions or a saved WFNN; the learner
     learns off-policy from whatever drove. Empty: the learner always."""
     think_batch: int = 50
-    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    exploration: ExplorationConfig | None = None
+    """How `act` explores; None: the learner's default."""
+    learner: str = "thesis"
+    """Which learner: "thesis" (the thesis' WFNN) or "deep" (deep wire fitting)."""
+    learner_options: str = ""
+    """Learner config fields over the learner's defaults, as a JSON object (the deep learner's
+    own fields under "deep"), e.g. '{"gamma": 0.95, "deep": {"hidden": [64, 64]}}'."""
     learn: bool = True
     """False: act greedily only (no exploration), send and learn nothing."""
     weights: Path | None = None
@@ -138,6 +144,10 @@ class ClientConfig:
             raise ValueError("forage: the nomad sim, configured to wander, only")
         if self.behaviour_policy and self.forage is not None:
             raise ValueError("behaviour_policy: one learned behaviour only (not forage)")
+        if self.learner not in LEARNERS:
+            raise ValueError(f"unknown learner {self.learner!r}; choose from {', '.join(LEARNERS)}")
+        if self.learner_options and not isinstance(parse_json(self.learner_options, "learner options"), dict):
+            raise ValueError("learner options must be a JSON object of learner config fields")
 
     @property
     def local(self) -> bool:
@@ -179,7 +189,10 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
     extra: dict[str, Any] = {}
     if config.thinks_per_action is not None:
         extra["thinks_per_action"] = config.thinks_per_action
-    k = config.advantage_k if config.advantage_k is not None else SIMS[config.sim].advantage_k
+    # A sim's advantage k was chosen for the thesis' learner; the deep one starts from its own.
+    k = config.advantage_k
+    if k is None and config.learner == "thesis":
+        k = SIMS[config.sim].advantage_k
     if k is not None:
         extra["advantage_k"] = k
     if config.bc_weight is not None:
@@ -189,10 +202,15 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
         if not declared:
             raise ValueError(f"{config.env or config.sim} declares no symmetries: drop --symmetries")
         extra["symmetries"] = declared
-    return LearnerConfig.for_task(task, exploration=config.exploration, seed=config.seed, **extra)
+    if config.exploration is not None:
+        extra["exploration"] = config.exploration
+    base = LearnerConfig.for_task(task, learner=config.learner, seed=config.seed, **extra)
+    if not config.learner_options:
+        return base
+    return with_options(base, parse_json(config.learner_options, "learner options"))
 
 
-def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brain:
+def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> Brain:
     """Local thinking, or the C/S client over a Zenoh bus (a behaviour of several: its own controller)."""
     if config.local:
         from wfnn_client.brain import Recorder
@@ -201,10 +219,9 @@ def make_brain(config: ClientConfig, learner: WFNN, behaviour: str = "") -> Brai
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)
     from wfnn_client.remote import RemoteBrain, RemoteConfig, largest_message
     from wfnn_common.net import ZenohBus
-    from wfnn_common.network import Shapes
 
     # Nothing larger than a snapshot of this learner (or a status) is reassembled by Zenoh here.
-    largest = largest_message(Shapes.of(learner.config)) + 1024
+    largest = largest_message(learner.config) + 1024
     net = dataclasses.replace(config.remote_net, max_message_bytes=min(config.net.max_message_bytes, largest))
     remote = RemoteConfig(
         controller=_named(config.controller, behaviour, "-"), client_id=config.client_id,
@@ -262,7 +279,7 @@ class Skill:
     name: str
     """"" for a task's only behaviour."""
     lcfg: LearnerConfig
-    learner: WFNN
+    learner: Learner
     brain: Brain
 
 
@@ -274,14 +291,14 @@ def _named(base: str, behaviour: str, sep: str = "_") -> str:
 def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
     """A behaviour's learner (from saved weights where given) and brain."""
     lcfg = learner_config(ranges, config)
-    learner = WFNN(lcfg)
+    learner = make_learner(lcfg)
     if config.weights is not None:
         path = config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
         saved_cfg, params, _ = load_weights(path)
         if saved_cfg.spec_hash() != lcfg.spec_hash():
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
                              f"this task needs {lcfg.spec_hash()}")  # fmt: skip
-        learner = WFNN(lcfg, params=params)
+        learner = make_learner(lcfg, params=params)
     return Skill(name, lcfg, learner, make_brain(config, learner, name))
 
 

@@ -97,6 +97,90 @@ class ExplorationConfig:
             raise ConfigError(f"exploration.tau_steps must be in [1, 1e6], got {self.tau_steps}")
 
 
+@dataclass(frozen=True, kw_only=True)
+class DeepConfig:
+    """The deep wire-fitting learner's own fields (used where `LearnerConfig.learner` is "deep").
+
+    Each of two critics is a state trunk (an MLP of `hidden` ReLU layers) with two heads: the
+    wire head gives `n_wires` actions (tanh, in the scaled range [-1, 1]); the value head scores
+    each (trunk features, wire action) pair through one ReLU layer of `value_hidden`, so wire
+    values depend on their actions. Q(x, u) is Eq 3.1's wire-fitting interpolation of critic 1's
+    wires, with the smoothing term on the wires' values min-max normalised per state.
+    """
+
+    hidden: tuple[int, ...] = (256, 256)
+    """Widths of the state trunk's ReLU layers."""
+    value_hidden: int = 64
+    """Width of the value head's ReLU layer, which sees trunk features and one wire action."""
+    layer_norm: bool = False
+    """Normalise each trunk layer's pre-activations (LayerNorm without learned scale)."""
+    lr: float = 3e-4
+    """Adam's step size."""
+    grad_clip: float = 10.0
+    """Largest gradient norm of one update (larger gradients are scaled down); 0 disables."""
+    tau: float = 0.005
+    """Polyak averaging rate of the target critics."""
+    target_noise: float = 0.2
+    """Standard deviation of the smoothing noise on the next action, in scaled units."""
+    target_noise_clip: float = 0.5
+    """The smoothing noise is clipped to +-this."""
+    separation: float = 0.1
+    """Weight of the term that keeps a state's wires apart: the mean over wire pairs of
+    1 / (distance + 0.1), in scaled action units."""
+    n_step: int = 1
+    """Returns over this many consecutive experiences (cut at a terminal or where the next
+    experience does not start from the previous one's next state)."""
+    warmup: int = 1000
+    """Actions of a learner that are uniformly random, before its own choices explore."""
+    device: str = "cpu"
+    """Where torch trains: "cpu", "cuda" or "cuda:N" (`act` always runs on numpy)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        checks: list[tuple[bool, str]] = [
+            (1 <= len(self.hidden) <= 8 and all(1 <= h <= MAX_HIDDEN for h in self.hidden),
+             f"deep.hidden must be 1 to 8 widths in [1, {MAX_HIDDEN}]"),
+            (1 <= self.value_hidden <= MAX_HIDDEN, f"deep.value_hidden must be in [1, {MAX_HIDDEN}]"),
+            (0.0 < self.lr <= 1.0, "deep.lr must be in (0, 1]"),
+            (0.0 <= self.grad_clip <= 1e6, "deep.grad_clip must be in [0, 1e6]"),
+            (0.0 < self.tau <= 1.0, "deep.tau must be in (0, 1]"),
+            (0.0 <= self.target_noise <= 10.0, "deep.target_noise must be in [0, 10]"),
+            (0.0 <= self.target_noise_clip <= 10.0, "deep.target_noise_clip must be in [0, 10]"),
+            (0.0 <= self.separation <= 1e3, "deep.separation must be in [0, 1000]"),
+            (1 <= self.n_step <= 100, "deep.n_step must be in [1, 100]"),
+            (0 <= self.warmup <= 10_000_000, "deep.warmup must be in [0, 1e7]"),
+            (self.device == "cpu" or self.device == "cuda" or
+             (self.device.startswith("cuda:") and self.device[5:].isdigit()),
+             "deep.device must be cpu, cuda or cuda:N"),
+        ]  # fmt: skip
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"{message}, got {self}")
+
+    @classmethod
+    def from_dict(cls, data: Any) -> DeepConfig:
+        """A DeepConfig from its JSON form; anything else is a ConfigError."""
+        if not isinstance(data, dict):
+            raise ConfigError(f"deep must be a JSON object, got {type(data).__name__}")
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ConfigError(f"unknown DeepConfig fields: {sorted(map(str, unknown))[:10]}")
+        data = dict(data)
+        if isinstance(data.get("hidden"), list):
+            data["hidden"] = tuple(data["hidden"])
+        return cls(**data)
+
+
+LEARNERS = ("thesis", "deep")
+DEEP_DEFAULTS: dict[str, Any] = {
+    "gamma": 0.99, "advantage_k": 1.0, "thinks_per_action": 1, "batch_size": 256, "n_wires": 8,
+    "smoothing_c": 0.1, "squash_reward": False, "divergence_threshold": 1e4,
+    "exploration": ExplorationConfig(kind="gaussian", sigma=0.1),
+}  # fmt: skip
+"""The shared fields' defaults for the deep learner, where they differ from the thesis' (whose
+gamma 0.8, 200 thinks per action and squashed rewards suit one-experience SGD on a small net)."""
+
+
 MAX_STATE_DIM = 1024
 MAX_ACTION_DIM = 64
 MAX_HIDDEN = 4096
@@ -110,7 +194,12 @@ for more memory or work than any robot here needs is refused rather than attempt
 
 @dataclass(frozen=True, kw_only=True)
 class LearnerConfig:
-    """Everything that defines a WFNN learner. Defaults are the thesis' (Section 4.4)."""
+    """Everything that defines a WFNN learner. Defaults are the thesis' (Section 4.4).
+
+    `learner` names the learner: "thesis" (the thesis' network and its one-experience updates)
+    or "deep" (deep wire fitting, `deep` holds its own fields; `for_task(..., learner="deep")`
+    starts from `DEEP_DEFAULTS`). Fields marked (thesis) are used by the thesis' learner only.
+    """
 
     state_low: tuple[float, ...]
     """Lower end of each state variable's declared range (physical units); mapped to -1."""
@@ -120,8 +209,10 @@ class LearnerConfig:
     """Lower end of each action variable's range; actions are always clipped into it."""
     action_high: tuple[float, ...]
     """Upper end of each action variable's range."""
+    learner: Literal["thesis", "deep"] = "thesis"
+    """Which learner: "thesis" or "deep"."""
     n_hidden: int = 10
-    """Hidden tanh neurons."""
+    """Hidden tanh neurons (thesis)."""
     n_wires: int = 9
     """Wires (action, value pairs) output by the network for each state."""
     gamma: float = 0.8
@@ -129,7 +220,7 @@ class LearnerConfig:
     advantage_k: float = 0.2
     """Advantage learning factor k of Eq 4.1; k = 1 is one-step Q-learning."""
     alpha: float = 0.25
-    """Global learning rate; each layer uses alpha / sqrt(fan-in), bias included."""
+    """(thesis) Global learning rate; each layer uses alpha / sqrt(fan-in), bias included."""
     smoothing_c: float = 0.01
     """Wire fitter smoothing factor c of Eq 3.1."""
     eps: float = 1e-4
@@ -138,7 +229,8 @@ class LearnerConfig:
     """`approx`: Eq 3.4-3.5 as in the thesis (inexact for the top wire); `exact`: the full
     derivative including the top wire's effect on every distance."""
     thinks_per_action: int = 200
-    """Experience replays per action."""
+    """Experience replays per action (for the deep learner: minibatch updates per experience,
+    the replay ratio)."""
     update: Literal["incremental", "minibatch"] = "incremental"
     """`incremental`: one experience per weight update (the thesis' rule); `minibatch`: the
     mean gradient of `batch_size` experiences per update."""
@@ -171,6 +263,8 @@ class LearnerConfig:
     """Exploration strategy used by `act` when exploring."""
     seed: int = 0
     """Seed of the learner's random streams (weights, replay sampling, exploration)."""
+    deep: DeepConfig = field(default_factory=DeepConfig)
+    """The deep learner's own fields (unused by the thesis' learner)."""
     symmetries: tuple[Symmetry, ...] = ()
     """Declared symmetries of the task: each experience learned is also learned transformed
     by each of them (e.g. the boat's mirror image). The store and logs keep only the real
@@ -178,6 +272,10 @@ class LearnerConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.learner not in LEARNERS:
+            raise ConfigError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        if not isinstance(self.deep, DeepConfig):
+            raise ConfigError(f"deep must be a DeepConfig, got {self.deep!r}")
         if not isinstance(self.exploration, ExplorationConfig):
             raise ConfigError(f"exploration must be an ExplorationConfig, got {self.exploration!r}")
         if not (isinstance(self.symmetries, tuple) and all(isinstance(s, Symmetry) for s in self.symmetries)):
@@ -228,14 +326,17 @@ class LearnerConfig:
                 raise ConfigError(str(exc)) from exc
 
     @classmethod
-    def for_task(cls, task: Any, **overrides: Any) -> LearnerConfig:
-        """A config over a task's declared ranges, the thesis' defaults where not overridden.
+    def for_task(cls, task: Any, learner: str = "thesis", **overrides: Any) -> LearnerConfig:
+        """A config over a task's declared ranges, the learner's defaults where not overridden.
 
-        `task` is anything with state_low, state_high, action_low and action_high.
+        `task` is anything with state_low, state_high, action_low and action_high; the deep
+        learner starts from `DEEP_DEFAULTS`, the thesis' learner from the thesis' values.
         """
+        defaults = DEEP_DEFAULTS if learner == "deep" else {}
         return cls(
             state_low=tuple(task.state_low), state_high=tuple(task.state_high),
-            action_low=tuple(task.action_low), action_high=tuple(task.action_high), **overrides,
+            action_low=tuple(task.action_low), action_high=tuple(task.action_high),
+            **{"learner": learner, **defaults, **overrides},
         )  # fmt: skip
 
     # ----------------------------------------------------------------- derived sizes
@@ -271,6 +372,8 @@ class LearnerConfig:
             raise ConfigError(f"unknown LearnerConfig fields: {sorted(map(str, unknown))[:10]}")
         try:
             exploration = data.pop("exploration", None)
+            if "deep" in data and not isinstance(data["deep"], DeepConfig):
+                data["deep"] = DeepConfig.from_dict(data["deep"])
             for key in ("state_low", "state_high", "action_low", "action_high"):
                 if key in data:
                     if not isinstance(data[key], list | tuple):
@@ -317,12 +420,40 @@ class LearnerConfig:
             "n_hidden": self.n_hidden,
             "n_wires": self.n_wires,
         }
+        if self.learner == "deep":  # the thesis' spec keeps its old hash: its files stay valid
+            d = self.deep
+            spec = {**spec, "learner": "deep", "n_hidden": 0, "hidden": d.hidden,
+                    "value_hidden": d.value_hidden, "layer_norm": d.layer_norm}  # fmt: skip
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
 
     def short_repr(self) -> str:
         """One line for logs."""
+        if self.learner == "deep":
+            d = self.deep
+            return (
+                f"deep S={self.state_dim} A={self.action_dim} hidden={d.hidden} value={d.value_hidden} "
+                f"wires={self.n_wires} gamma={self.gamma} k={self.advantage_k} lr={d.lr} "
+                f"c={self.smoothing_c} thinks={self.thinks_per_action} batch={self.batch_size} n_step={d.n_step}"
+            )
         return (
             f"S={self.state_dim} A={self.action_dim} hidden={self.n_hidden} wires={self.n_wires} "
             f"gamma={self.gamma} k={self.advantage_k} alpha={self.alpha} c={self.smoothing_c} "
             f"thinks={self.thinks_per_action} update={self.update}"
         )
+
+
+def with_options(config: LearnerConfig, options: dict[str, Any]) -> LearnerConfig:
+    """`config` with the fields in `options` replaced (`deep`'s and `exploration`'s merged field
+    by field); anything that does not make a valid config is a ConfigError."""
+    if not isinstance(options, dict):
+        raise ConfigError(f"learner options must be a JSON object, got {type(options).__name__}")
+    data = config.to_dict()
+    data.pop("symmetries")  # kept as objects: to_dict's form of them is not what from_dict takes
+    for key, value in options.items():
+        if key in ("deep", "exploration") and isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    if "symmetries" not in options:
+        data["symmetries"] = config.symmetries
+    return LearnerConfig.from_dict(data)

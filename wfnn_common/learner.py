@@ -97,7 +97,15 @@ def greedy_wires(
 
 
 class WFNN:
-    """A population of P independent WFNN learners sharing one config (seeds differ)."""
+    """A population of P independent WFNN learners sharing one config (seeds differ).
+
+    The thesis' learner; `wfnn_common.deep.DeepWFNN` (the deep learner) shares its interface
+    and everything here that does not depend on the network (scaling, sanity limits, acting
+    on estimates, exploration, the divergence monitor, the replay buffer and symmetries).
+    """
+
+    _compiled_act = True
+    """Single-learner `act` runs the compiled kernel of the thesis' network."""
 
     def __init__(self, config: LearnerConfig, population: int = 1, params: Params | None = None):
         if population < 1:
@@ -107,10 +115,6 @@ class WFNN:
         seeds = np.random.SeedSequence(config.seed).spawn(3)
         self._weights_rng = np.random.default_rng(seeds[0])
         self._replay_rng = np.random.default_rng(seeds[1])
-        self.params = params if params is not None else init_params(config, population, self._weights_rng)
-        if self.params.population != population:
-            raise ValueError(f"params hold {self.params.population} networks, expected {population}")
-        self.rates = layer_rates(config)
         self.state_scaler = Scaler(config.state_low, config.state_high)
         self.action_scaler = Scaler(config.action_low, config.action_high)
         self.buffer = ReplayBuffer(population, config.replay_capacity, config.state_dim, config.action_dim)
@@ -127,6 +131,15 @@ class WFNN:
         self.thinks = np.zeros(population, dtype=np.int64)
         """Weight updates performed per learner."""
         self.last_think = UpdateStats(np.zeros(population), np.zeros(population))
+        self._init_network(params)
+
+    def _init_network(self, params: Params | None) -> None:
+        """The thesis' network: given weights or fresh ones, and its compiled `act` loaded."""
+        config, population = self.config, self.population
+        self.params = params if params is not None else init_params(config, population, self._weights_rng)
+        if self.params.population != population:
+            raise ValueError(f"params hold {self.params.population} networks, expected {population}")
+        self.rates = layer_rates(config)
         if population == 1:  # load the compiled act now, not in a robot's first control tick
             W1, b1, W2, b2 = self.params.single
             z = np.zeros(config.state_dim)
@@ -178,7 +191,7 @@ class WFNN:
         cfg = self.config
         s = np.asarray(state, dtype=np.float64)
         single = s.ndim == 1
-        if single and self.population == 1 and s.shape[0] == cfg.state_dim:
+        if single and self._compiled_act and self.population == 1 and s.shape[0] == cfg.state_dim:
             return self._act_one(s, explore, params or self.params)
         if s.shape[-1] != cfg.state_dim or s.size != self.population * cfg.state_dim:
             raise ValueError(
@@ -189,9 +202,9 @@ class WFNN:
         # One comparison covers both limits: NaN compares False, inf exceeds the limit.
         valid: BoolArray = np.asarray((np.abs(x) <= self._limit).all(axis=1))
         x = self._best_estimate(x, valid)
-        greedy, value = greedy_wires(params or self.params, x, cfg.n_wires, cfg.action_dim)
+        greedy, value = self._greedy(params or self.params, x)
         if explore:
-            u = self.explorer(greedy)
+            u = self._explore(greedy)
             explored = (u != greedy).any(axis=1)
         else:
             u, explored = greedy, np.zeros(self.population, dtype=np.bool_)
@@ -202,6 +215,14 @@ class WFNN:
         if single:
             return ActResult(action[0], value[0], valid[0], explored[0], diverged[0])
         return ActResult(action, value, valid, explored, diverged)
+
+    def _greedy(self, params: Any, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Best wire for scaled states x [P, S] -> (action [P, A], value [P])."""
+        return greedy_wires(params, x, self.config.n_wires, self.config.action_dim)
+
+    def _explore(self, greedy: FloatArray) -> FloatArray:
+        """Explored actions [P, A] for greedy ones (scaled units)."""
+        return self.explorer(greedy)
 
     def _act_one(self, s: FloatArray, explore: bool, params: Params) -> ActResult:
         """`act` for a single learner: the robot's hot path, with as few array calls as possible."""
@@ -404,6 +425,15 @@ class WFNN:
         if idx.size:
             reinit(self.params, self.config, self._weights_rng, idx)
             self.resets[idx] += 1
+
+    def training_state(self) -> dict[str, FloatArray]:
+        """What training needs beyond `params` to resume: nothing for the thesis' learner."""
+        return {}
+
+    def load_training_state(self, state: dict[str, Any]) -> None:
+        """Inverse of `training_state` (the thesis' learner has none to load)."""
+        if state:
+            raise ValueError(f"the thesis' learner has no training state, got {sorted(state)[:5]}")
 
     def snapshot(self) -> Params:
         """A copy of the current weights (safe to read while thinking continues)."""

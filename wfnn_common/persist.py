@@ -14,10 +14,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from numpy.typing import NDArray
+
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.network import Params, Shapes
+from wfnn_common.learners import Weights, n_params, weights_from_flat
 from wfnn_common.replay import Experiences
 
 WEIGHTS_FORMAT = "wfnn-weights"
@@ -121,12 +123,14 @@ def _open(path: Path, expected_format: str) -> dict[str, Any]:
 
 
 def save_weights(
-    path: Path, config: LearnerConfig, params: Params, meta: dict[str, Any] | None = None,
-    keep_previous: Path | None = None,
+    path: Path, config: LearnerConfig, params: Weights, meta: dict[str, Any] | None = None,
+    keep_previous: Path | None = None, training: dict[str, NDArray[Any]] | None = None,
 ) -> None:  # fmt: skip
     """Save a population's weights [P, n_params] with the config that defines them.
 
-    With `keep_previous`, the file replaced is kept there (see `atomic_savez`).
+    `training`: the learner's training state beyond the weights (the deep learner's critics,
+    targets and optimiser), kept as `train/<name>` arrays. With `keep_previous`, the file
+    replaced is kept there (see `atomic_savez`).
     """
     atomic_savez(
         path,
@@ -137,13 +141,23 @@ def save_weights(
             "spec_hash": np.str_(config.spec_hash()),
             "meta": np.str_(json.dumps(meta or {})),
             "params": params.flat,
+            **{TRAINING_PREFIX + name: value for name, value in (training or {}).items()},
         },
         keep_previous,
     )
 
 
-def load_weights(path: Path) -> tuple[LearnerConfig, Params, dict[str, Any]]:
+TRAINING_PREFIX = "train/"
+
+
+def load_weights(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any]]:
     """Inverse of `save_weights` -> (config, params, meta)."""
+    config, params, meta, _ = load_checkpoint(path)
+    return config, params, meta
+
+
+def load_checkpoint(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any], dict[str, NDArray[Any]]]:
+    """Inverse of `save_weights` -> (config, params, meta, training state)."""
     arrays = _open(path, WEIGHTS_FORMAT)
     try:
         config = LearnerConfig.from_json(str(arrays["config"]), f"{path}: its config")
@@ -158,12 +172,13 @@ def load_weights(path: Path) -> tuple[LearnerConfig, Params, dict[str, Any]]:
         flat = np.ascontiguousarray(arrays["params"], dtype=np.float64)
     except (KeyError, ValueError, TypeError) as exc:
         raise PersistError(f"{path}: no usable params ({exc})") from exc
-    shapes = Shapes.of(config)
-    if flat.ndim != 2 or flat.shape[1] != shapes.n_params:
-        raise PersistError(f"{path}: params {flat.shape} do not fit the config ({shapes.n_params} per net)")
+    size = n_params(config)
+    if flat.ndim != 2 or flat.shape[1] != size or (config.learner == "deep" and flat.shape[0] != 1):
+        raise PersistError(f"{path}: params {flat.shape} do not fit the config ({size} per net)")
     if not np.isfinite(flat).all():
         raise PersistError(f"{path}: params contain non-finite values")
-    return config, Params(flat, shapes), meta
+    training = {k[len(TRAINING_PREFIX) :]: v for k, v in arrays.items() if k.startswith(TRAINING_PREFIX)}
+    return config, weights_from_flat(config, flat), meta, training
 
 
 def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> None:

@@ -12,6 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
+from wfnn_common import deep_net
+from wfnn_common.deep_net import DeepParams
 from wfnn_common.kernels import surface_q
 from wfnn_common.network import Params, Scaler, split_wires
 
@@ -73,12 +75,14 @@ class SurfaceGrid:
         self._out = np.empty(config.n_outputs)
         self._q = np.empty(self.grid_u.shape[0])
 
-    def __call__(self, params: Params, state: FloatArray) -> Surface:
+    def __call__(self, params: Params | DeepParams, state: FloatArray) -> Surface:
         """The surface of the first network of `params` at `state` [S], physical units.
 
         The state is clipped to the sanity limits, as `act` sees it.
         """
         cfg, st = self.config, self.states
+        if isinstance(params, DeepParams):
+            return self._deep(params, state)
         W1, b1, W2, b2 = params.single
         best = surface_q(W1, b1, W2, b2, np.asarray(state, dtype=np.float64), st.mid, st.half, self.limit,
                          self.grid_u, self.on_axis, cfg.n_wires, cfg.action_dim, cfg.smoothing_c, cfg.eps,
@@ -90,8 +94,21 @@ class SurfaceGrid:
         )
 
 
+    def _deep(self, params: DeepParams, state: FloatArray) -> Surface:
+        """The deep learner's surface: its wires and their interpolation (numpy)."""
+        cfg = self.config
+        x = np.clip(np.nan_to_num(self.states.to_unit(np.asarray(state, dtype=np.float64)[None])),
+                    -self.limit, self.limit)  # fmt: skip
+        wire_u, wire_q = deep_net.wires(params, x)
+        best = int(wire_q[0].argmax())
+        u = np.where(self.on_axis, self.grid_u, wire_u[0, best])
+        q = deep_net.wirefit_normalised(wire_u[0], wire_q[0], u, cfg.smoothing_c, cfg.eps)
+        wires = self.actions.from_unit(wire_u[0])
+        return Surface(self.dims, self.axes, q.reshape(self.shape), wires, wire_q[0].copy(), best)
+
+
 def action_value_surface(
-    config: LearnerConfig, params: Params, state: FloatArray, dims: tuple[int, ...] = (0,), points: int = 41
+    config: LearnerConfig, params: Params | DeepParams, state: FloatArray, dims: tuple[int, ...] = (0,), points: int = 41
 ) -> Surface:
     """Q(state, u) over `points` values of each action variable in `dims` (first network of `params`)."""
     return SurfaceGrid(config, dims, points)(params, state)

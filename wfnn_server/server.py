@@ -32,13 +32,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import ConfigError, LearnerConfig
-from wfnn_common.learner import WFNN
+from wfnn_common.learners import Learner, Weights, make_learner
 from wfnn_common.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_common.net import Bus, Channel
-from wfnn_common.network import Params
 from wfnn_common.persist import (
     PersistError,
     atomic_write_text,
+    load_checkpoint,
     load_weights,
     make_directory,
     save_weights,
@@ -157,7 +157,7 @@ class ThinkServer:
         """Per client: what its cameras saw last, when it sends pictures (ingest thread)."""
         self.latest_state: dict[str, FloatArray] = {}
         """Per client: the newest state it sent, physical units [S] (learner thread)."""
-        self.published: Params | None = None
+        self.published: Weights | None = None
         """A copy of the weights of the newest snapshot (learner thread)."""
         self.status_listeners: list[Callable[[ServerStatus], None]] = []
         """Called with every status published (learner thread): must be quick."""
@@ -169,7 +169,7 @@ class ThinkServer:
             fsync_interval_s=config.fsync_interval_s, segment_bytes=config.segment_bytes,
         )  # fmt: skip
         # Learner state (owned by the learner thread once running).
-        self.learner: WFNN | None = None
+        self.learner: Learner | None = None
         self.learner_config: LearnerConfig | None = None
         self.spec_hash = ""
         self._pending_config: LearnerConfig | None = None
@@ -326,7 +326,7 @@ class ThinkServer:
             cfg.short_repr(), self.spec_hash, cfg.seed, loaded, self.budget,
         )  # fmt: skip
 
-    def _resume(self, cfg: LearnerConfig) -> tuple[WFNN, dict[str, Any]]:
+    def _resume(self, cfg: LearnerConfig) -> tuple[Learner, dict[str, Any]]:
         """The learner of the newest readable checkpoint that fits `cfg` (or fresh) and its meta.
 
         A newest checkpoint that cannot be read is set aside (renamed, so that the next
@@ -337,10 +337,11 @@ class ThinkServer:
             if not path.exists():
                 continue
             try:
-                ck_cfg, params, meta = load_weights(path)
+                ck_cfg, params, meta, training = load_checkpoint(path)
                 if ck_cfg.spec_hash() != cfg.spec_hash():
                     raise PersistError(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
-                learner = WFNN(cfg, params=params)
+                learner = make_learner(cfg, params=params)
+                learner.load_training_state(training)
                 for key in ("thinks", "resets", "version", "budget"):
                     if not _is_count(meta.get(key, 0)):
                         raise PersistError(f"checkpoint meta {key} is not a count: {meta.get(key)!r}")
@@ -361,10 +362,10 @@ class ThinkServer:
             return learner, meta
         if any((self.data_dir / name).exists() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
             log.error("no usable checkpoint: fresh weights; every stored experience is owed its thinks again")
-        return WFNN(cfg), {}
+        return make_learner(cfg), {}
 
     @staticmethod
-    def _learn_batch(learner: WFNN, batch: ExperienceBatch) -> NDArray[np.bool_]:
+    def _learn_batch(learner: Learner, batch: ExperienceBatch) -> NDArray[np.bool_]:
         """Store a batch's learnable experiences in the learner; -> which were stored [N]."""
         ok = np.zeros(len(batch), dtype=np.bool_)
         keep = batch.learnable()
@@ -586,7 +587,7 @@ class ThinkServer:
                 self._wake.wait(timeout=max(0.0, due - time.monotonic()))
                 self._wake.clear()
 
-    def _learn_queued(self, learner: WFNN) -> None:
+    def _learn_queued(self, learner: Learner) -> None:
         tpa = learner.config.thinks_per_action
         while self._to_learn:
             batch = self._to_learn.popleft()
@@ -598,7 +599,7 @@ class ThinkServer:
             self._queued_through[batch.client] = batch.last_seq
             self._observe(learner, batch)
 
-    def _observe(self, learner: WFNN, batch: ExperienceBatch) -> None:
+    def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness."""
         values = learner.greedy_values(batch.next_state)[0]
         self._q_chosen.extend(values.tolist())
@@ -622,7 +623,7 @@ class ThinkServer:
             self.publish()  # followers learn of it at once and may fail over
             break
 
-    def _think(self, learner: WFNN) -> bool:
+    def _think(self, learner: Learner) -> bool:
         recovering = learner.thinks[0] < self._recover_until
         if self.budget > 0:
             n = min(self.config.think_batch, self.budget)
@@ -635,7 +636,7 @@ class ThinkServer:
         learner.think(n)
         return True
 
-    def _advance_learned(self, learner: WFNN) -> bool:
+    def _advance_learned(self, learner: Learner) -> bool:
         """Move learned_through past the experiences whose thinks are done; True if it moved."""
         done = int(learner.thinks[0])
         moved = False
@@ -730,7 +731,7 @@ class ThinkServer:
             "server": self.id,
         }  # fmt: skip
         newest, previous = self.data_dir / CHECKPOINT, self.data_dir / PREVIOUS_CHECKPOINT
-        save_weights(newest, cfg, learner.params, meta, keep_previous=previous)
+        save_weights(newest, cfg, learner.params, meta, keep_previous=previous, training=learner.training_state())
         log.info(
             "checkpoint: version %d, %d thinks, %d experiences",
             self.version,

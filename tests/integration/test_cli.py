@@ -430,18 +430,21 @@ def test_client_drives_a_gymnasium_mujoco_task(tmp_path):
 def test_bench_vs_sb3_reports_curves_step_cost_and_act_latency(tmp_path):
     j, p = tmp_path / "vs.json", tmp_path / "vs.png"
     run([BIN / "wfnn-bench", "vs-sb3", "--tasks", "wfnn/Boat-v0", "--steps", "400", "--seeds", "2",
-         "--eval-every", "200", "--eval-episodes", "1", "--thinks", "2",
+         "--eval-every", "200", "--eval-episodes", "1", "--thinks", "2", "--learners", "thesis,deep",
+         "--deep-options", '{"deep": {"hidden": [16, 16], "warmup": 50}}',
          "--json", j, "--plot", p])  # fmt: skip
     data = json.loads(j.read_text())
     boat = data["tasks"]["wfnn/Boat-v0"]
-    for algorithm in ("wfnn", "sac", "td3"):
+    for algorithm in ("thesis", "deep", "sac", "td3"):
         r = boat[algorithm]
         if "skipped" in r:  # Stable-Baselines3 is an optional dependency
-            assert algorithm != "wfnn" and "stable-baselines3" in r["skipped"]
+            assert algorithm in ("sac", "td3") and "stable-baselines3" in r["skipped"]
             continue
-        assert r["steps"] == [200, 400] and len(r["return_median"]) == 2
+        assert r["steps"] == [200, 400] and len(r["return_median"]) == 2 and len(r["final_returns"]) == 2
         assert r["return_q25"][-1] <= r["return_median"][-1] <= r["return_q75"][-1] < 0
-        assert r["s_per_step"] > 0 and r["act_us"] > 0
+        assert r["s_per_step"] > 0 and 0 < r["act_us"] <= r["act_us_p99"]
+    assert boat["deep"]["config"]["learner"] == "deep" and boat["deep"]["config"]["deep"]["hidden"] == [16, 16]
+    assert boat["thesis"]["config"]["thinks_per_action"] == 2
     assert p.stat().st_size > 10_000
 
 

@@ -249,3 +249,25 @@ def test_a_foraging_nomad_learns_both_behaviours_on_their_own_servers(tmp_path):
         # Every executed action reaches the wanderer; the servoing learns where a target was tracked.
         assert store.stored_through[client_id] == m[f"{name}/uplink/produced_through"] > 0
     assert m["wander/uplink/produced_through"] >= 1200 - 1
+
+
+def test_deep_learner_over_zenoh_matches_the_single_process_learner(tmp_path):
+    """The deep learner through a think server: snapshots, lock-step thinks and checkpoints."""
+    port = free_port()
+    options = '{"deep": {"hidden": [16, 16], "value_hidden": 8, "warmup": 100}, "batch_size": 32}'
+    common = ["--sim", "boat", "--episodes", "3", "--rate-hz", "0", "--lockstep", "--thinks", "2",
+              "--seed", "3", "--learner", "deep", "--learner-options", options]  # fmt: skip
+    with ServerProcess(tmp_path / "srv", port) as server:
+        finish(client(*common, "--server", endpoint(port), "--out", str(tmp_path / "cs")))
+    finish(client(*common, "--server", "local", "--out", str(tmp_path / "local")))
+    cs, local = metrics(tmp_path / "cs" / "metrics.json"), metrics(tmp_path / "local" / "metrics.json")
+    assert cs["following"] == "srv" and cs["lockstep_timeouts"] == 0
+    assert cs["experiences_learned"] == local["experiences_learned"] == 600
+    np.testing.assert_allclose(cs["scores"], local["scores"], rtol=0, atol=1e-6)
+    assert server.alive() is False
+    # The server's checkpoint holds the deep learner's whole training state.
+    ck_cfg, params, meta = load_weights(tmp_path / "srv" / "checkpoint.npz")
+    # Two thinks per stored experience (those beyond the sanity limits are not stored), on both sides.
+    assert ck_cfg.learner == "deep" and meta["thinks"] == local["think/thinks"] > 2 * 300
+    with np.load(tmp_path / "srv" / "checkpoint.npz") as ck:
+        assert float(ck["train/adam_step"]) == meta["thinks"] and ck["train/theta"].shape == (2 * params.flat.shape[1],)

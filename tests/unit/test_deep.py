@@ -1,0 +1,236 @@
+"""The deep wire-fitting learner: its numpy act, torch update, returns, state and interface."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from wfnn_common import deep_net
+from wfnn_common.config import ConfigError, DeepConfig, LearnerConfig, with_options
+from wfnn_common.deep import DeepWFNN
+from wfnn_common.deep_torch import Critics, best_wire, separation, wirefit
+from wfnn_common.learners import make_learner, n_params, weights_from_flat
+from wfnn_common.persist import load_checkpoint, load_weights, save_weights
+from wfnn_common.surface import SurfaceGrid
+from wfnn_common.symmetry import Symmetry
+
+
+class Task:
+    state_low, state_high = (-1.0, -2.0), (1.0, 2.0)
+    action_low, action_high = (-2.0,), (2.0,)
+
+
+def config(**over):
+    deep = over.pop("deep", {})
+    base = {"hidden": (32, 32), "value_hidden": 16, "warmup": 0}
+    return LearnerConfig.for_task(Task(), learner="deep", deep=DeepConfig(**{**base, **deep}), **over)
+
+
+def test_config_defaults_round_trip_and_spec_hash():
+    cfg = LearnerConfig.for_task(Task(), learner="deep")
+    assert cfg.gamma == 0.99 and cfg.thinks_per_action == 1 and not cfg.squash_reward
+    assert cfg.exploration.kind == "gaussian"
+    assert LearnerConfig.from_json(cfg.to_json()) == cfg
+    thesis = LearnerConfig.for_task(Task())
+    # The thesis' spec hash is what it was before the deep learner existed: its files stay valid.
+    spec = LearnerConfig(state_low=(0.0,), state_high=(1.0,), action_low=(0.0,), action_high=(1.0,))
+    assert spec.spec_hash() == "283bc71bbd8b7642"
+    hashes = {thesis.spec_hash(), cfg.spec_hash(), with_options(cfg, {"deep": {"hidden": [64]}}).spec_hash()}
+    assert len(hashes) == 3
+    # Training-only fields do not change what a snapshot means.
+    assert with_options(cfg, {"deep": {"lr": 1e-3}, "gamma": 0.9}).spec_hash() == cfg.spec_hash()
+    with pytest.raises(ConfigError, match="deep.n_step"):
+        with_options(cfg, {"deep": {"n_step": 0}})
+    with pytest.raises(ConfigError, match="unknown DeepConfig"):
+        LearnerConfig.from_dict({**cfg.to_dict(), "deep": {"bogus": 1}})
+    with pytest.raises(ConfigError, match="learner must be"):
+        with_options(cfg, {"learner": "other"})
+
+
+@pytest.mark.parametrize("layer_norm", [False, True])
+def test_numpy_and_torch_critics_agree(layer_norm):
+    cfg = config(deep={"layer_norm": layer_norm})
+    shapes = deep_net.DeepShapes.of(cfg)
+    rng = np.random.default_rng(0)
+    theta = np.concatenate([deep_net.init_critic(shapes, rng) for _ in range(2)])
+    x = rng.uniform(-1, 1, (5, 2))
+    u_t, q_t = Critics(shapes).wires(Critics(shapes).blocks(torch.tensor(theta)), torch.tensor(x))
+    for j in range(2):
+        params = weights_from_flat(cfg, theta[None, j * shapes.n_params : (j + 1) * shapes.n_params].copy())
+        u, q = deep_net.wires(params, x)
+        np.testing.assert_allclose(u, u_t[j].numpy(), atol=1e-10)
+        np.testing.assert_allclose(q, q_t[j].numpy(), atol=1e-10)
+        assert u.shape == (5, cfg.n_wires, 1) and np.abs(u).max() <= 1.0
+    u = rng.uniform(-1, 1, (5, 1))
+    np.testing.assert_allclose(
+        deep_net.wirefit_normalised(u_t[0].numpy(), q_t[0].numpy(), u, 0.1, 1e-4),
+        wirefit(u_t[0], q_t[0], torch.tensor(u), 0.1, 1e-4).numpy(), atol=1e-10,
+    )  # fmt: skip
+
+
+def test_wire_fitting_peaks_at_the_best_wire():
+    rng = np.random.default_rng(1)
+    wire_u, wire_q = rng.uniform(-1, 1, (4, 6, 2)), rng.normal(size=(4, 6))
+    best = best_wire(torch.tensor(wire_u), torch.tensor(wire_q)).numpy()
+    at_best = deep_net.wirefit_normalised(wire_u, wire_q, best, 0.1, 1e-4)
+    np.testing.assert_allclose(at_best, wire_q.max(axis=1), atol=0.02)
+    elsewhere = deep_net.wirefit_normalised(wire_u, wire_q, rng.uniform(-1, 1, (4, 2)), 0.1, 1e-4)
+    assert (elsewhere <= at_best + 1e-9).all()
+
+
+def test_separation_pushes_wires_apart():
+    close = torch.tensor([[[0.0], [0.01], [0.5]]], requires_grad=True)
+    separation(close).backward()
+    assert close.grad is not None and close.grad[0, 0, 0] > 0 > close.grad[0, 1, 0]
+    assert separation(torch.tensor([[[0.0], [1.0]]])) < separation(torch.tensor([[[0.0], [0.1]]]))
+
+
+def test_act_is_the_best_wire_and_needs_no_torch():
+    learner = make_learner(config())
+    x = np.array([0.3, -1.0])
+    act = learner.act(x, explore=False)
+    wire_u, wire_q = deep_net.wires(learner.params, learner.state_scaler.to_unit(x[None]))
+    assert act.value == pytest.approx(wire_q[0].max())
+    assert act.action == pytest.approx(wire_u[0, wire_q[0].argmax()] * 2.0)
+    code = (
+        "import sys, numpy as np\n"
+        "from wfnn_common.config import LearnerConfig\nfrom wfnn_common.learners import make_learner\n"
+        "class T: state_low=(-1.,); state_high=(1.,); action_low=(-1.,); action_high=(1.,)\n"
+        "L = make_learner(LearnerConfig.for_task(T(), learner='deep'))\n"
+        "L.act(np.zeros(1)); L.learn(np.zeros(1), np.zeros(1), np.zeros(1), 0.0)\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_warmup_actions_are_uniform_then_the_learners_own():
+    learner = make_learner(config(deep={"warmup": 200}))
+    x = np.zeros(2)
+    first = np.array([learner.act(x).action[0] for _ in range(200)])
+    greedy = learner.act(x, explore=False).action[0]
+    assert first.min() < -1.5 and first.max() > 1.5  # spread over the whole range [-2, 2]
+    later = np.array([learner.act(x).action[0] for _ in range(50)])
+    assert np.abs(later - greedy).max() < 0.2 * 4  # gaussian sigma 0.1 of the range's half width
+
+
+def test_learns_the_best_action_of_a_contextual_bandit():
+    """One-step episodes, reward -(u - x0)^2: the greedy action must follow the state."""
+    cfg = config(batch_size=64, deep={"lr": 3e-3, "target_noise": 0.0})
+    learner = DeepWFNN(cfg)
+    rng = np.random.default_rng(0)
+    s = rng.uniform(-1, 1, (2000, 2))
+    a = rng.uniform(-2, 2, (2000, 1))
+    r = -((a[:, 0] - s[:, 0]) ** 2)
+    learner.learn_many(s, a, s, r, np.ones(2000, dtype=bool))
+    before = learner.think(1).td_abs[0]
+    for _ in range(12):
+        learner.think(100)
+    assert learner.last_think.td_abs[0] < 0.5 * before
+    tests = np.array([[-0.8, 0.0], [0.0, 1.0], [0.7, -1.0]])
+    greedy = np.array([learner.act(t, explore=False).action[0] for t in tests])
+    np.testing.assert_allclose(greedy, tests[:, 0], atol=0.35)  # of the range [-2, 2]
+    assert int(learner.thinks[0]) == 1201
+
+
+def test_n_step_returns_follow_consecutive_experiences_only():
+    cfg = config(gamma=0.5, deep={"n_step": 3})
+    learner = DeepWFNN(cfg)
+    z = np.zeros(2)
+    chain = [((0.1, 0), (0.2, 0), 1.0, False), ((0.2, 0), (0.3, 0), 2.0, False), ((0.3, 0), (0.4, 0), 4.0, False),
+             ((0.9, 0), (0.5, 0), 8.0, False),  # starts elsewhere: a break
+             ((0.5, 0), (0.6, 0), 16.0, True), ((0.6, 0), (0.7, 0), 32.0, False)]  # fmt: skip
+    for s, sn, r, term in chain:
+        learner.learn(np.array(s), z[:1], np.array(sn), r, term)
+    batch = learner._n_step(np.arange(6))
+    np.testing.assert_allclose(batch["reward"], [1 + 0.5 * 2 + 0.25 * 4, 2 + 0.5 * 4, 4, 8 + 0.5 * 16, 16, 32])
+    np.testing.assert_allclose(batch["discount"], [0.125, 0.25, 0.5, 0.0, 0.0, 0.5])
+    np.testing.assert_allclose(batch["next_state"][:, 0], np.array([0.4, 0.4, 0.4, 0.0, 0.0, 0.7]) / 1.0)
+
+
+def test_training_state_saves_and_resumes_exactly(tmp_path):
+    cfg = config()
+    learner = DeepWFNN(cfg)
+    rng = np.random.default_rng(2)
+    learner.learn_many(rng.uniform(-1, 1, (100, 2)), rng.uniform(-2, 2, (100, 1)),
+                       rng.uniform(-1, 1, (100, 2)), -rng.random(100), np.zeros(100, dtype=bool))  # fmt: skip
+    learner.think(20)
+    state = learner.training_state()
+    assert set(state) == {"theta", "target", "adam_m", "adam_v", "adam_step"} and float(state["adam_step"]) == 20
+    save_weights(tmp_path / "ck.npz", cfg, learner.params, {"thinks": 20}, training=state)
+    ck_cfg, params, meta, training = load_checkpoint(tmp_path / "ck.npz")
+    resumed = make_learner(ck_cfg, params=params)
+    resumed.load_training_state(training)
+    np.testing.assert_array_equal(resumed.params.flat, learner.params.flat)
+    for key in state:
+        np.testing.assert_array_equal(resumed.training_state()[key], state[key])
+    assert load_weights(tmp_path / "ck.npz")[1].flat.shape == (1, n_params(cfg))
+    # The same minibatch from the same state makes the same step.
+    batch = learner._n_step(np.arange(32))
+    learner._trainer.generator.manual_seed(5)
+    resumed._trainer.generator.manual_seed(5)
+    assert learner._trainer.update(batch) == resumed._trainer.update(batch)
+    bad = dict(state, theta=state["theta"][:-1])
+    with pytest.raises(ValueError, match="theta"):
+        resumed.load_training_state(bad)
+    with pytest.raises(ValueError, match="target"):
+        resumed.load_training_state({**state, "target": np.full_like(state["target"], np.nan)})
+
+
+def test_reset_and_divergence_keep_the_experiences():
+    cfg = config(divergence_threshold=-1e9, divergence_patience=3)
+    learner = DeepWFNN(cfg)
+    learner.learn(np.zeros(2), np.zeros(1), np.zeros(2), -1.0)
+    learner.think(2)
+    before = learner.params.flat.copy()
+    results = [learner.act(np.zeros(2), explore=False) for _ in range(3)]
+    assert [bool(r.diverged) for r in results] == [False, False, True]
+    assert int(learner.resets[0]) == 1 and int(learner.buffer.count[0]) == 1
+    assert not np.array_equal(before, learner.params.flat)
+    learner.think(1)  # the trainer took the fresh weights too
+    assert np.isfinite(learner.params.flat).all()
+
+
+def test_bc_weight_pulls_the_best_wire_to_logged_actions():
+    """No reward signal at all: only the pull can decide where the best wire goes."""
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-1, 1, (500, 2))
+    results = {}
+    for bc in (0.0, 1.0):
+        learner = DeepWFNN(config(bc_weight=bc, batch_size=64, deep={"lr": 3e-3}))
+        learner.learn_many(s, np.full((500, 1), 1.4), s, np.zeros(500), np.ones(500, dtype=bool))
+        learner.think(300)
+        results[bc] = np.array([learner.act(x, explore=False).action[0] for x in s[:20]])
+    assert np.abs(results[1.0] - 1.4).max() < 0.15
+    assert np.abs(results[0.0] - 1.4).mean() > np.abs(results[1.0] - 1.4).mean()
+
+
+def test_symmetries_store_the_mirrored_experience():
+    mirror = Symmetry(name="mirror", state_index=(0, 1), state_sign=(1.0, -1.0), action_index=(0,), action_sign=(-1.0,))
+    learner = DeepWFNN(config(symmetries=(mirror,)))
+    learner.learn(np.array([0.2, 0.5]), np.array([1.0]), np.array([0.3, 0.4]), -1.0)
+    assert int(learner.buffer.count[0]) == 2
+    np.testing.assert_allclose(learner.buffer.action[0, 1], [-0.5])
+
+
+def test_surface_shows_the_deep_wires():
+    cfg = config()
+    learner = DeepWFNN(cfg)
+    surface = SurfaceGrid(cfg, (0,), 21)(learner.params, np.array([0.1, 0.2]))
+    assert surface.wire_action.shape == (cfg.n_wires, 1) and surface.q.shape == (21,)
+    assert surface.wire_value[surface.best] == pytest.approx(surface.wire_value.max())
+    x = learner.state_scaler.to_unit(np.array([[0.1, 0.2]]))
+    q = deep_net.wirefit_normalised(*deep_net.wires(learner.params, x), learner.action_scaler.to_unit(
+        surface.axes[0][:, None]), cfg.smoothing_c, cfg.eps)  # fmt: skip
+    np.testing.assert_allclose(surface.q, q[0] if q.ndim > 1 else q)
+
+
+def test_make_learner_refuses_weights_of_the_other_learner():
+    deep, thesis = config(), LearnerConfig.for_task(Task())
+    with pytest.raises(ValueError, match="do not fit"):
+        make_learner(deep, params=make_learner(thesis).params)
+    with pytest.raises(ValueError, match="do not fit"):
+        make_learner(thesis, params=make_learner(deep).params)
+    with pytest.raises(ValueError, match="population 1"):
+        make_learner(deep, population=2)

@@ -1,0 +1,203 @@
+"""The deep wire-fitting learner behind the thesis' learner's act-learn-think interface.
+
+    learner = DeepWFNN(LearnerConfig.for_task(task, learner="deep"))
+    u = learner.act(x).action            # numpy: the best wire of critic 1 (+ exploration)
+    learner.learn(x, u, x_next, r, terminal)
+    learner.think()                      # thinks_per_action minibatch updates (torch)
+
+Acting needs numpy only (`deep_net`): torch is imported the first time the learner thinks, so
+a robot that acts on snapshots from a think server never loads it. The first `deep.warmup`
+explored actions are uniformly random. Updates (`deep_torch`) use n-step returns built at
+sampling time from consecutive stored experiences. One network per learner (population 1).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wfnn_common import deep_net
+from wfnn_common.config import LearnerConfig
+from wfnn_common.deep_net import DeepParams, DeepShapes
+from wfnn_common.learner import WFNN, BoolArray, FloatArray
+from wfnn_common.replay import Experiences
+from wfnn_common.update import UpdateStats, squash_reward
+
+TRAINING_KEYS = ("theta", "target", "adam_m", "adam_v", "adam_step")
+"""Arrays of the training state (`training_state`): weights, targets, Adam's moments and step."""
+
+
+class DeepWFNN(WFNN):
+    """One deep wire-fitting learner (see the module docstring)."""
+
+    _compiled_act = False
+
+    def __init__(self, config: LearnerConfig, population: int = 1, params: DeepParams | None = None) -> None:
+        if config.learner != "deep":
+            raise ValueError(f"DeepWFNN needs a config with learner='deep', got {config.learner!r}")
+        if population != 1:
+            raise ValueError(f"a deep learner is one network (population 1), got {population}")
+        super().__init__(config, population, params)  # type: ignore[arg-type]
+
+    def _init_network(self, params: Any) -> None:
+        """Critic 1 from `params` (both critics start equal to it) or fresh; no torch yet."""
+        self.shapes = DeepShapes.of(self.config)
+        if params is not None and not isinstance(params, DeepParams):
+            raise ValueError("a deep learner's params must be DeepParams")
+        if params is None:
+            theta = self._fresh_theta()
+            params = DeepParams(theta[None, : self.shapes.n_params].copy(), self.shapes)
+        else:
+            theta = np.concatenate([params.flat[0], params.flat[0]])
+        self.params: DeepParams = params  # type: ignore[assignment]
+        self._theta0 = theta
+        self._trainer: Any = None
+        self.acted = 0
+        """Explored actions taken so far (the first deep.warmup are uniformly random)."""
+
+    def _fresh_theta(self) -> FloatArray:
+        return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng) for _ in range(2)])
+
+    def _train(self) -> Any:
+        """The torch trainer, made on first use."""
+        if self._trainer is None:
+            from wfnn_common.deep_torch import Trainer  # torch only where the learner thinks
+
+            seed = int(self._weights_rng.integers(1 << 62))
+            self._trainer = Trainer(self.config, self._theta0, seed)
+        return self._trainer
+
+    def _sync(self) -> None:
+        """Copy critic 1's trained weights into `params` (the weights `act` reads)."""
+        self.params.flat[0] = self._train().critic1()
+
+    # ------------------------------------------------------------------ act
+    def _greedy(self, params: Any, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return deep_net.greedy(params, x)
+
+    def _explore(self, greedy: FloatArray) -> FloatArray:
+        self.acted += 1
+        if self.acted <= self.config.deep.warmup:
+            return self.explorer.rng.uniform(-1.0, 1.0, size=greedy.shape)
+        return self.explorer(greedy)
+
+    # ------------------------------------------------------------------ think
+    def _n_step(self, idx: NDArray[np.int64]) -> dict[str, FloatArray]:
+        """Minibatch arrays at buffer indices idx [B], with n-step returns where the data allow.
+
+        Experience i+k continues experience i+k-1 when it was stored right after it, starts
+        from its next state, and that was not terminal; the return stops at the first break.
+        """
+        cfg, buf = self.config, self.buffer
+        gamma = cfg.gamma
+        state, action = buf.state[0, idx], buf.action[0, idx]
+        reward = self._reward(buf.reward[0, idx])
+        next_state = buf.next_state[0, idx].copy()
+        terminal = buf.terminal[0, idx]
+        discount = np.where(terminal, 0.0, gamma)
+        if cfg.deep.n_step > 1:
+            age = (buf.added[0] - 1 - idx) % buf.capacity  # experiences stored after each one
+            going = ~terminal
+            for k in range(1, cfg.deep.n_step):
+                j = (idx + k) % buf.capacity
+                going = going & (age >= k) & (buf.state[0, j] == next_state).all(axis=1)
+                if not going.any():
+                    break
+                reward = reward + np.where(going, gamma**k * self._reward(buf.reward[0, j]), 0.0)
+                term_j = buf.terminal[0, j]
+                next_state = np.where(going[:, None], buf.next_state[0, j], next_state)
+                discount = np.where(going, np.where(term_j, 0.0, gamma ** (k + 1)), discount)
+                going = going & ~term_j
+        return {"state": state, "action": action, "reward": reward, "next_state": next_state,
+                "discount": discount}  # fmt: skip
+
+    def _reward(self, raw: FloatArray) -> FloatArray:
+        return squash_reward(raw, self.config.gamma) if self.config.squash_reward else raw
+
+    def think(self, n: int | None = None) -> UpdateStats:
+        """n minibatch updates (default thinks_per_action); nothing before the first experience."""
+        cfg = self.config
+        n = cfg.thinks_per_action if n is None else n
+        if n <= 0 or self.buffer.count[0] == 0:
+            return self.last_think
+        trainer = self._train()
+        idx = self.buffer.sample_indices(self._replay_rng, n * cfg.batch_size)[0].reshape(n, cfg.batch_size)
+        q = td = 0.0
+        for rows in idx:
+            q, td = trainer.update(self._n_step(rows))
+        self.thinks += n
+        self._sync()
+        self.last_think = UpdateStats(np.array([q]), np.array([td]))
+        return self.last_think
+
+    def think_on(
+        self, exp: Experiences, active: BoolArray | None = None, params: Any = None
+    ) -> UpdateStats:
+        """One update on given experiences [1, T, ...] (one-step returns)."""
+        if params is not None:
+            raise ValueError("a deep learner thinks on its own weights only")
+        if active is not None and not active[0]:
+            return self.last_think
+        terminal = np.asarray(exp.terminal[0], dtype=np.bool_)
+        batch = {"state": exp.state[0], "action": exp.action[0], "reward": self._reward(exp.reward[0]),
+                 "next_state": exp.next_state[0], "discount": np.where(terminal, 0.0, self.config.gamma)}  # fmt: skip
+        q, td = self._train().update(batch)
+        self.thinks += 1
+        self._sync()
+        self.last_think = UpdateStats(np.array([q]), np.array([td]))
+        return self.last_think
+
+    # ------------------------------------------------------------------ weights
+    def reset_weights(self, which: BoolArray) -> None:
+        """Fresh weights for both critics and their targets, Adam restarted; experiences kept."""
+        if not np.asarray(which).any():
+            return
+        theta = self._fresh_theta()
+        if self._trainer is None:
+            self._theta0 = theta
+            self.params.flat[0] = theta[: self.shapes.n_params]
+        else:
+            self._trainer.reset(theta)
+            self._sync()
+        self.resets += 1
+
+    def training_state(self) -> dict[str, FloatArray]:
+        """Weights of both critics, their targets and Adam's state, to save with a checkpoint."""
+        if self._trainer is None:
+            return {"theta": self._theta0.astype(np.float32), "target": self._theta0.astype(np.float32)}
+        return dict(self._trainer.state())
+
+    def load_training_state(self, state: dict[str, Any]) -> None:
+        """Resume from `training_state`'s arrays; ValueError if they do not fit this config."""
+        n = 2 * self.shapes.n_params
+        for key in ("theta", "target", "adam_m", "adam_v"):
+            if key in state:
+                arr = np.asarray(state[key])
+                if arr.shape != (n,) or not np.isfinite(arr).all():
+                    raise ValueError(f"training state {key}: shape {arr.shape}, expected ({n},) and finite")
+        if "theta" not in state or "target" not in state:
+            raise ValueError("training state lacks theta or target")
+        if ("adam_m" in state) != ("adam_v" in state) or ("adam_m" in state) != ("adam_step" in state):
+            raise ValueError("training state has part of Adam's state")
+        self._theta0 = np.asarray(state["theta"], dtype=np.float64)
+        self._train().load(state)
+        self._sync()
+
+    # ------------------------------------------------------------------ views
+    def greedy_values(self, state: Any) -> FloatArray:
+        """Value of the best wire for states [N, S] -> [1, N]."""
+        x = self.state_scaler.to_unit(np.asarray(state, dtype=np.float64).reshape(-1, self.config.state_dim))
+        x = np.nan_to_num(np.clip(x, -self._limit, self._limit))
+        return deep_net.greedy(self.params, x)[1][None]
+
+    def q_value(self, state: Any, action: Any) -> Any:
+        """Q(x, u) by wire fitting with normalised smoothing ([] for one state and action)."""
+        s, single = self._rows(state, self.config.state_dim)
+        a, _ = self._rows(action, self.config.action_dim)
+        wire_u, wire_q = deep_net.wires(self.params, self.state_scaler.to_unit(s))
+        q = deep_net.wirefit_normalised(
+            wire_u, wire_q, self.action_scaler.to_unit(a), self.config.smoothing_c, self.config.eps
+        )
+        return q[0] if single else q

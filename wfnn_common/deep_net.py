@@ -1,0 +1,156 @@
+"""The deep wire-fitting critic in numpy: its parameter layout, forward pass and greedy wire.
+
+This is what the robot side needs to `act` with the deep learner (no torch): the weights of one
+critic travel in a snapshot as one flat float64 vector, and `DeepShapes.of(config)` lays it out.
+
+One critic over a scaled state x [S]:
+
+    h = trunk(x)                       ReLU layers `hidden` (LayerNorm before each ReLU if set)
+    u_i = tanh(W_w h + b_w)_i          n_wires wire actions [N, A], in [-1, 1]
+    q_i = v . relu(V_h h + V_u u_i + b_v) + b_o     wire values [N], conditioned on the action
+
+The greedy action is the wire with the largest value; Q(x, u) for any u is Eq 3.1's wire-fitting
+interpolation, with the smoothing term on values min-max normalised over the state's wires:
+
+    d_i = |u - u_i|^2 + c (q_max - q_i) / (q_max - q_min + tiny) + eps
+    Q(x, u) = sum_i (q_i / d_i) / sum_i (1 / d_i)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wfnn_common.config import LearnerConfig
+
+FloatArray = NDArray[np.float64]
+LN_EPS = 1e-5
+"""Variance floor of the layer normalisation."""
+SPAN_FLOOR = 1e-6
+"""Smallest value span used to normalise a state's wire values (equal values: no smoothing)."""
+
+
+@dataclass(frozen=True)
+class DeepShapes:
+    """The layout of one critic's parameters in a flat vector (offsets in order)."""
+
+    state_dim: int
+    action_dim: int
+    hidden: tuple[int, ...]
+    value_hidden: int
+    n_wires: int
+    layer_norm: bool
+
+    @classmethod
+    def of(cls, config: LearnerConfig) -> DeepShapes:
+        """The layout a deep learner config implies."""
+        d = config.deep
+        return cls(config.state_dim, config.action_dim, d.hidden, d.value_hidden, config.n_wires, d.layer_norm)
+
+    def blocks(self) -> list[tuple[str, tuple[int, ...]]]:
+        """(name, shape) of each parameter block, in the flat vector's order."""
+        out: list[tuple[str, tuple[int, ...]]] = []
+        fan_in = self.state_dim
+        for k, width in enumerate(self.hidden):
+            out += [(f"W{k}", (width, fan_in)), (f"b{k}", (width,))]
+            fan_in = width
+        na, hv = self.n_wires * self.action_dim, self.value_hidden
+        out += [("Ww", (na, fan_in)), ("bw", (na,))]
+        out += [("Vh", (hv, fan_in)), ("Vu", (hv, self.action_dim)), ("bv", (hv,)), ("vo", (hv,)), ("bo", (1,))]
+        return out
+
+    @property
+    def n_params(self) -> int:
+        """Parameters of one critic."""
+        return sum(int(np.prod(shape)) for _, shape in self.blocks())
+
+    def fan_ins(self) -> dict[str, int]:
+        """Inputs feeding each block (its initial weights are uniform in +-1/sqrt(fan-in))."""
+        fan: dict[str, int] = {}
+        prev = self.state_dim
+        for k, width in enumerate(self.hidden):
+            fan[f"W{k}"] = fan[f"b{k}"] = prev
+            prev = width
+        fan["Ww"] = fan["bw"] = prev
+        for name in ("Vh", "Vu", "bv"):
+            fan[name] = prev + self.action_dim
+        fan["vo"] = fan["bo"] = self.value_hidden
+        return fan
+
+
+def init_critic(shapes: DeepShapes, rng: np.random.Generator) -> FloatArray:
+    """Fresh weights of one critic [n_params]: uniform in +-1/sqrt(fan-in) per block."""
+    fan = shapes.fan_ins()
+    parts = [rng.uniform(-1.0, 1.0, int(np.prod(shape))) / np.sqrt(fan[name]) for name, shape in shapes.blocks()]
+    return np.concatenate(parts)
+
+
+class DeepParams:
+    """Weights of one critic (the part `act` needs) over a flat [1, n_params] float64 array."""
+
+    def __init__(self, flat: FloatArray, shapes: DeepShapes) -> None:
+        if flat.ndim != 2 or flat.shape != (1, shapes.n_params):
+            raise ValueError(f"flat params must be [1, {shapes.n_params}], got {flat.shape}")
+        if flat.dtype != np.float64 or not flat.flags.c_contiguous:
+            raise ValueError("flat params must be C-contiguous float64")
+        self.flat = flat
+        self.shapes = shapes
+        self.blocks: dict[str, FloatArray] = {}
+        a = 0
+        for name, shape in shapes.blocks():
+            n = int(np.prod(shape))
+            self.blocks[name] = flat[0, a : a + n].reshape(shape)
+            a += n
+        self.trunk = [(self.blocks[f"W{k}"], self.blocks[f"b{k}"]) for k in range(len(shapes.hidden))]
+
+    @property
+    def population(self) -> int:
+        """Always 1: a deep learner is one network."""
+        return 1
+
+    def copy(self) -> DeepParams:
+        """Deep copy (a snapshot that `act` reads while thinking goes on)."""
+        return DeepParams(self.flat.copy(), self.shapes)
+
+
+def _layer_norm(h: FloatArray) -> FloatArray:
+    mean = h.mean(axis=-1, keepdims=True)
+    centred = h - mean
+    return centred / np.sqrt((centred * centred).mean(axis=-1, keepdims=True) + LN_EPS)
+
+
+def wires(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Wires of scaled states x [B, S] -> (actions [B, N, A] in [-1, 1], values [B, N])."""
+    b = params.blocks
+    h = x
+    for W, bias in params.trunk:
+        h = h @ W.T + bias
+        if params.shapes.layer_norm:
+            h = _layer_norm(h)
+        h = np.maximum(h, 0.0)
+    n, a = params.shapes.n_wires, params.shapes.action_dim
+    u = np.tanh(h @ b["Ww"].T + b["bw"]).reshape(x.shape[0], n, a)
+    z = (h @ b["Vh"].T + b["bv"])[:, None, :] + u @ b["Vu"].T  # [B, N, Hv]
+    q = np.maximum(z, 0.0) @ b["vo"] + b["bo"][0]
+    return u, q
+
+
+def greedy(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Best wire for scaled states x [B, S] -> (action [B, A], value [B])."""
+    u, q = wires(params, x)
+    best = q.argmax(axis=1)
+    rows = np.arange(x.shape[0])
+    return u[rows, best], q[rows, best]
+
+
+def wirefit_normalised(
+    wire_u: FloatArray, wire_q: FloatArray, u: FloatArray, c: float, eps: float
+) -> FloatArray:
+    """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values."""
+    q_max = wire_q.max(axis=-1, keepdims=True)
+    span = np.maximum(q_max - wire_q.min(axis=-1, keepdims=True), SPAN_FLOOR)
+    d = ((u[..., None, :] - wire_u) ** 2).sum(axis=-1) + c * (q_max - wire_q) / span + eps
+    w = 1.0 / d
+    return np.asarray((w * wire_q).sum(axis=-1) / w.sum(axis=-1))

@@ -1,0 +1,202 @@
+"""The deep wire-fitting learner's update in torch (pure: no I/O, threads or clocks).
+
+Two critics (each the network of `deep_net`: trunk, wire head, action-conditioned value head)
+and their Polyak-averaged targets live in flat float32 vectors, so Adam, gradient clipping and
+target averaging are one operation each. One update on a minibatch of B experiences
+(x, u, R, x', discount), R the n-step return and discount gamma^n (0 after a terminal):
+
+    u' = clip(best wire of target critic 1 at x' + clip(N(0, noise), +-noise_clip), -1, 1)
+    y  = R + discount * min_j Q'_j(x', u')                       (twin critics, Fujimoto 2018)
+    y  = V(x) + (y - V(x)) / k,  V(x) = min_j Q'_j(x, best wire)  (advantage learning, Eq 4.1)
+    L  = sum_j mean (Q_j(x, u) - y)^2 + separation * sum_j mean_{i<l} 1 / (|u_i - u_l| + 0.1)
+         + bc_weight * mean |best wire of critic 1 at x - u|^2
+
+Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires with the smoothing
+term on normalised values (`deep_net.wirefit_normalised`). Shapes: x [B, S], u [B, A].
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from wfnn_common.config import LearnerConfig
+from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes
+
+SEPARATION_EPS = 0.1
+"""Distance added in the separation term, so that coinciding wires give a bounded push."""
+
+
+class Critics:
+    """Functional forward pass of both critics at once over a flat parameter vector [2 n].
+
+    The two critics' blocks sit side by side ([2, n] viewed), so each layer of both is one
+    batched matrix product: the update's cost is dominated by per-operation overhead on a CPU.
+    """
+
+    def __init__(self, shapes: DeepShapes) -> None:
+        self.shapes = shapes
+        self.n = shapes.n_params
+        self.slices: dict[str, tuple[int, int, tuple[int, ...]]] = {}
+        a = 0
+        for name, shape in shapes.blocks():
+            size = int(np.prod(shape))
+            self.slices[name] = (a, a + size, shape)
+            a += size
+
+    def blocks(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Views [2, *shape] of each block of both critics in theta [2 n].
+
+        Views made once stay valid across in-place updates of theta, and gradients through
+        them accumulate in theta's, so the trainer makes them once per vector.
+        """
+        both = theta.view(2, self.n)
+        return {name: both[:, a:b].reshape(2, *shape) for name, (a, b, shape) in self.slices.items()}
+
+    def wires(self, p: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both critics' wires (blocks p) at states x [B, S] -> (actions [2, B, N, A], values [2, B, N])."""
+        shapes = self.shapes
+        batch = x.shape[0]
+        h = x.unsqueeze(0).expand(2, batch, x.shape[1])
+        for k in range(len(shapes.hidden)):
+            h = torch.baddbmm(p[f"b{k}"].unsqueeze(1), h, p[f"W{k}"].transpose(1, 2))
+            if shapes.layer_norm:
+                h = F.layer_norm(h, h.shape[-1:], eps=LN_EPS)
+            h = F.relu(h)
+        u = torch.tanh(torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2)))
+        u = u.view(2, batch, shapes.n_wires, shapes.action_dim)
+        z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
+        zu = torch.bmm(u.reshape(2, batch * shapes.n_wires, shapes.action_dim), p["Vu"].transpose(1, 2))
+        g = F.relu(z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1))
+        q = torch.bmm(g.view(2, batch * shapes.n_wires, -1), p["vo"].unsqueeze(2)).view(2, batch, -1)
+        return u, q + p["bo"].view(2, 1, 1)
+
+
+def wirefit(wire_u: torch.Tensor, wire_q: torch.Tensor, u: torch.Tensor, c: float, eps: float) -> torch.Tensor:
+    """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values."""
+    q_max = wire_q.max(dim=-1, keepdim=True).values
+    span = (q_max - wire_q.min(dim=-1, keepdim=True).values).detach().clamp_min(SPAN_FLOOR)
+    d = ((u.unsqueeze(-2) - wire_u) ** 2).sum(dim=-1) + (q_max - wire_q) * (c / span) + eps
+    w = 1.0 / d
+    return (w * wire_q).sum(dim=-1) / w.sum(dim=-1)
+
+
+def best_wire(wire_u: torch.Tensor, wire_q: torch.Tensor) -> torch.Tensor:
+    """The best wire's action [B, A] of wires ([B, N, A], [B, N])."""
+    best = wire_q.argmax(dim=-1)
+    return torch.gather(wire_u, 1, best.view(-1, 1, 1).expand(-1, 1, wire_u.shape[-1])).squeeze(1)
+
+
+def separation(wire_u: torch.Tensor) -> torch.Tensor:
+    """Mean over states and wire pairs of 1 / (distance + SEPARATION_EPS); wire_u [..., N, A]."""
+    n = wire_u.shape[-2]
+    if n < 2:
+        return wire_u.new_zeros(())
+    dist = torch.cdist(wire_u, wire_u)  # [..., N, N]; the diagonal (0) is left out below
+    inverse = 1.0 / (dist + SEPARATION_EPS)
+    diagonal = n / SEPARATION_EPS
+    return (inverse.sum(dim=(-1, -2)) - diagonal).mean() / (n * (n - 1))
+
+
+class Trainer:
+    """The critics' weights, targets and Adam state, and the minibatch update."""
+
+    def __init__(self, config: LearnerConfig, theta: np.ndarray, seed: int) -> None:
+        d = config.deep
+        self.config = config
+        self.device = torch.device(d.device)
+        if self.device.type == "cpu":
+            # One core: the result then does not depend on how many threads the process (or the
+            # thread thinking in it) gets, so a server and an in-process learner agree exactly.
+            torch.set_num_threads(1)
+        self.critics = Critics(DeepShapes.of(config))
+        self.theta = torch.tensor(theta, dtype=torch.float32, device=self.device).requires_grad_(True)
+        self.target = self.theta.detach().clone()
+        self._blocks = self.critics.blocks(self.theta)
+        self._target_blocks = self.critics.blocks(self.target)
+        self.optimiser = torch.optim.Adam([self.theta], lr=d.lr)
+        self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
+
+    def reset(self, theta: np.ndarray) -> None:
+        """Fresh weights (targets equal), and Adam's moments forgotten."""
+        with torch.no_grad():
+            self.theta.copy_(torch.as_tensor(theta, dtype=torch.float32))
+            self.target.copy_(self.theta)
+        self.optimiser = torch.optim.Adam([self.theta], lr=self.config.deep.lr)
+
+    def critic1(self) -> np.ndarray:
+        """Critic 1's weights as float64 [n_params] (what `act` uses)."""
+        return self.theta.detach()[: self.critics.n].to("cpu", torch.float64).numpy()
+
+    def _tensors(self, batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+        """The minibatch's arrays as float32 tensors on the device, moved in one copy."""
+        names = list(batch)
+        columns = [np.asarray(batch[k], dtype=np.float32).reshape(len(batch["reward"]), -1) for k in names]
+        widths = [c.shape[1] for c in columns]
+        packed = torch.from_numpy(np.concatenate(columns, axis=1)).to(self.device)
+        parts = torch.split(packed, widths, dim=1)
+        return {k: (p if w > 1 or k in ("state", "action", "next_state") else p.squeeze(1))
+                for k, p, w in zip(names, parts, widths, strict=True)}  # fmt: skip
+
+    def update(self, batch: dict[str, np.ndarray]) -> tuple[float, float]:
+        """One Adam step on a minibatch (arrays [B, ...]) -> (mean Q(x, u), mean |y - Q(x, u)|)."""
+        cfg, d, critics = self.config, self.config.deep, self.critics
+        t = self._tensors(batch)
+        x, u = t["state"], t["action"]
+        c, eps = cfg.smoothing_c, cfg.eps
+        with torch.no_grad():
+            tu, tq = critics.wires(self._target_blocks, t["next_state"])
+            next_u = best_wire(tu[0], tq[0])
+            if d.target_noise > 0.0:
+                noise = torch.randn(next_u.shape, generator=self.generator, device=self.device)
+                next_u = next_u + (noise * d.target_noise).clamp(-d.target_noise_clip, d.target_noise_clip)
+                next_u = next_u.clamp(-1.0, 1.0)
+            next_q = wirefit(tu, tq, next_u, c, eps).min(dim=0).values
+            y = t["reward"] + t["discount"] * next_q
+            if cfg.advantage_k < 1.0:
+                nu, nq = critics.wires(self._target_blocks, x)
+                v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps).min(dim=0).values
+                y = v + (y - v) / cfg.advantage_k
+        wu, wq = critics.wires(self._blocks, x)
+        Q = wirefit(wu, wq, u, c, eps)  # [2, B]
+        loss = ((Q - y) ** 2).mean(dim=1).sum()
+        if d.separation > 0.0:
+            loss = loss + 2.0 * d.separation * separation(wu)
+        if cfg.bc_weight > 0.0:
+            loss = loss + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
+        Q1 = Q[0].detach()
+        self.optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        if d.grad_clip > 0.0:
+            torch.nn.utils.clip_grad_norm_([self.theta], d.grad_clip)
+        self.optimiser.step()
+        with torch.no_grad():
+            self.target.lerp_(self.theta.detach(), d.tau)
+        return float(Q1.mean()), float((y - Q1).abs().mean())
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything training needs to resume: weights, targets, Adam's moments and step."""
+        out = {"theta": self.theta.detach().cpu().numpy().copy(), "target": self.target.cpu().numpy().copy()}
+        st: dict[str, Any] = self.optimiser.state.get(self.theta, {})
+        if st:
+            out["adam_m"] = st["exp_avg"].cpu().numpy().copy()
+            out["adam_v"] = st["exp_avg_sq"].cpu().numpy().copy()
+            out["adam_step"] = np.asarray(float(st["step"]), dtype=np.float64)
+        return out
+
+    def load(self, state: dict[str, np.ndarray]) -> None:
+        """Inverse of `state` (arrays checked for shape and finiteness by the caller)."""
+        with torch.no_grad():
+            self.theta.copy_(torch.as_tensor(state["theta"], dtype=torch.float32))
+            self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
+        self.optimiser = torch.optim.Adam([self.theta], lr=self.config.deep.lr)
+        if "adam_m" in state:
+            self.optimiser.state[self.theta] = {
+                "step": torch.tensor(float(state["adam_step"])),
+                "exp_avg": torch.as_tensor(state["adam_m"], dtype=torch.float32, device=self.device).clone(),
+                "exp_avg_sq": torch.as_tensor(state["adam_v"], dtype=torch.float32, device=self.device).clone(),
+            }

@@ -1,0 +1,92 @@
+"""One learner interface over the thesis' learner (`WFNN`) and the deep one (`DeepWFNN`).
+
+The local brain, the think server, persistence, the dashboard and the benchmarks use a learner
+through `Learner` only, and make one from its config with `make_learner`: the config's
+`learner` field names which. A learner's weights for `act` (`Weights`) are one flat float64
+vector per network whatever the learner, so snapshots, checkpoints and the wire protocol carry
+both alike; `weights_from_flat` gives them their layout from the config.
+
+Nothing here imports torch: the robot side makes learners to act with.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wfnn_common.config import LearnerConfig
+from wfnn_common.deep_net import DeepParams, DeepShapes
+from wfnn_common.learner import WFNN, ActResult, DivergenceMonitor
+from wfnn_common.network import Params, Shapes
+from wfnn_common.replay import Experiences, ReplayBuffer
+from wfnn_common.update import UpdateStats
+
+Weights = Params | DeepParams
+"""What `act` needs: the weights of P networks over a flat [P, n_params] float64 array."""
+
+
+class Learner(Protocol):
+    """What the service asks of a learner (both learners are populations of P; deep: P = 1)."""
+
+    config: LearnerConfig
+    population: int
+    params: Any
+    """The current weights (`Weights`) that `act` uses when no snapshot is given."""
+    buffer: ReplayBuffer
+    monitor: DivergenceMonitor
+    thinks: NDArray[np.int64]
+    """Weight updates done per learner."""
+    resets: NDArray[np.int64]
+    """Divergence resets per learner."""
+    rejected: NDArray[np.int64]
+    """Experiences refused by the sanity limits per learner."""
+
+    def act(self, state: ArrayLike, explore: bool = True, params: Any = None) -> ActResult: ...
+
+    def learn(self, state: ArrayLike, action: ArrayLike, next_state: ArrayLike, reward: ArrayLike,
+              terminal: ArrayLike = False, valid: ArrayLike = True) -> Any: ...  # fmt: skip
+
+    def learn_many(self, state: ArrayLike, action: ArrayLike, next_state: ArrayLike, reward: ArrayLike,
+                   terminal: ArrayLike) -> NDArray[np.bool_]: ...  # fmt: skip
+
+    def think(self, n: int | None = None) -> UpdateStats: ...
+
+    def think_on(self, exp: Experiences, active: Any = None, params: Any = None) -> UpdateStats: ...
+
+    def snapshot(self) -> Any: ...
+
+    def reset_weights(self, which: NDArray[np.bool_]) -> None: ...
+
+    def greedy_values(self, state: ArrayLike) -> NDArray[np.float64]: ...
+
+    def q_value(self, state: ArrayLike, action: ArrayLike) -> Any: ...
+
+    def training_state(self) -> dict[str, NDArray[Any]]: ...
+
+    def load_training_state(self, state: dict[str, Any]) -> None: ...
+
+
+def make_learner(config: LearnerConfig, population: int = 1, params: Weights | None = None) -> WFNN:
+    """The learner the config names, with given weights (for `act`) or fresh ones."""
+    kind = DeepParams if config.learner == "deep" else Params
+    if params is not None and not isinstance(params, kind):
+        raise ValueError(f"weights of type {type(params).__name__} do not fit learner {config.learner!r}")
+    if config.learner == "deep":
+        from wfnn_common.deep import DeepWFNN
+
+        return DeepWFNN(config, population, params)  # type: ignore[arg-type]
+    return WFNN(config, population, params)  # type: ignore[arg-type]
+
+
+def n_params(config: LearnerConfig) -> int:
+    """Parameters of one network `act` uses (the length of a snapshot's vector)."""
+    return DeepShapes.of(config).n_params if config.learner == "deep" else Shapes.of(config).n_params
+
+
+def weights_from_flat(config: LearnerConfig, flat: NDArray[np.float64]) -> Weights:
+    """Weights over a flat [P, n_params] float64 array (ValueError where it does not fit)."""
+    if config.learner == "deep":
+        return DeepParams(flat, DeepShapes.of(config))
+    return Params(flat, Shapes.of(config))
