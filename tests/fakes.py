@@ -6,7 +6,7 @@ import functools
 
 import numpy as np
 
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import DeepConfig, LearnerConfig
 from wfnn_common.replay import Experiences
 
 
@@ -20,6 +20,8 @@ def small_config(state_dim: int = 3, action_dim: int = 2, **kw: object) -> Learn
         "n_wires": 4,
         "replay_capacity": 500,
     }
+    if kw.get("learner") == "deep":  # small networks, learning from the first experience
+        base.update({"deep": DeepConfig(hidden=(8, 8), value_hidden=4, warmup=0), "batch_size": 16})
     base.update(kw)
     return LearnerConfig(**base)  # type: ignore[arg-type]
 

@@ -685,7 +685,9 @@ def vs_sb3(
     steps: Annotated[str, typer.Option(help="Environment steps per task, comma-separated.")] = "8000,15000",
     algorithms: Annotated[str, typer.Option(help="Of wfnn, sac, td3.")] = "wfnn,sac,td3",
     learners: Annotated[str, typer.Option(help="WFNN learners run for wfnn: thesis, deep.")] = "thesis",
-    deep_options: Annotated[str, typer.Option(help="Deep learner config fields over its defaults (JSON).")] = "",
+    deep_options: Annotated[
+        str, typer.Option(help="Deep learner config fields over its defaults (JSON).")
+    ] = "",
     seeds: Annotated[int, typer.Option(min=1)] = 3,
     eval_every: Annotated[int, typer.Option(min=1, help="Steps between greedy evaluations.")] = 2000,
     eval_episodes: Annotated[int, typer.Option(min=1)] = 3,
@@ -700,7 +702,8 @@ def vs_sb3(
     try:
         cfg = vs_sb3_bench.VsSb3Config(
             tasks=_names(tasks), steps=tuple(int(v) for v in _names(steps)), algorithms=_names(algorithms),
-            learners=_names(learners), deep_options=deep_options, seeds=seeds, eval_every=eval_every, eval_episodes=eval_episodes, thinks=thinks, seed=seed,
+            learners=_names(learners), deep_options=deep_options, seeds=seeds, eval_every=eval_every,
+            eval_episodes=eval_episodes, thinks=thinks, seed=seed,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
@@ -719,12 +722,17 @@ def vs_sb3(
             rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
             rows.append((f"{env_id} {algorithm}: final return per seed",
                          " / ".join(f"{v:.0f}" for v in r["final_returns"])))  # fmt: skip
-            rows.append((f"{env_id} {algorithm}: s_per_step / act_us p50 / p99",
-                         f"{r['s_per_step'] * 1e3:.2f} ms / {r['act_us']:.1f} / {r['act_us_p99']:.1f} us"))  # fmt: skip
+            rows.append(
+                (
+                    f"{env_id} {algorithm}: s_per_step / act_us p50 / p99",
+                    f"{r['s_per_step'] * 1e3:.2f} ms / {r['act_us']:.1f} / {r['act_us_p99']:.1f} us",
+                )
+            )
         for name in cfg.learners:
             if f"sac_act_over_{name}_act" in algos:
+                latency, cost = algos[f"sac_act_over_{name}_act"], algos[f"{name}_s_per_step_over_sac"]
                 rows.append((f"{env_id}: SAC predict / {name} act latency; {name} / SAC s per step",
-                             f"{algos[f'sac_act_over_{name}_act']:.1f}x; {algos[f'{name}_s_per_step_over_sac']:.2f}"))  # fmt: skip
+                             f"{latency:.1f}x; {cost:.2f}"))  # fmt: skip
     rows.append(("wall_s", result["wall_s"]))
     _table("WFNN vs Stable-Baselines3", rows)
     if json_path:

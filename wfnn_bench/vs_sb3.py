@@ -10,9 +10,10 @@ action out (WFNN `act` on numpy, SB3 `predict` on torch), median over many calls
 
 WFNN runs each learner in `learners` ("thesis": the thesis' learner and defaults; "deep": deep
 wire fitting with its defaults, and `deep_options` over them) over the task's declared ranges
-(`sims.gym.GymVec`), as `wfnn-client --env` would; results are keyed by learner name. SB3 runs with its defaults for the algorithm (MlpPolicy), as a user
-of it would start. Stable-Baselines3 is an optional dependency (`pip install
-stable-baselines3`); without it only WFNN runs and the SB3 rows say why.
+(`sims.gym.GymVec`), as `wfnn-client --env` would; results are keyed by learner name. SB3
+runs with its defaults for the algorithm (MlpPolicy), as a user of it would start.
+Stable-Baselines3 is an optional dependency (`pip install stable-baselines3`); without it only
+WFNN runs and the SB3 rows say why. Everything trains on one core (torch's threads set to 1).
 
 The boat is registered as the Gymnasium task `wfnn/Boat-v0` (`sims.boat.BoatEnv`: one target
 per 200-action episode, the boat starting at rest).
@@ -115,7 +116,9 @@ def learner_config(task: GymVec, learner: str, seed: int, cfg: VsSb3Config) -> L
     return with_options(base, parse_json(cfg.deep_options, "deep options")) if cfg.deep_options else base
 
 
-def run_wfnn(env_id: str, steps: int, seed: int, cfg: VsSb3Config, learner_name: str = "thesis") -> dict[str, Any]:
+def run_wfnn(
+    env_id: str, steps: int, seed: int, cfg: VsSb3Config, learner_name: str = "thesis"
+) -> dict[str, Any]:
     """One WFNN learner on the task: evaluation returns along the way, seconds per step, act latency."""
     import torch
 

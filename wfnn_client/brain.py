@@ -182,7 +182,11 @@ class LocalBrain:
     """Thinking in this process: a background think thread, or inline in lock-step mode."""
 
     def __init__(
-        self, learner: Learner, lockstep: bool = False, think_batch: int = 50, recorder: Recorder | None = None
+        self,
+        learner: Learner,
+        lockstep: bool = False,
+        think_batch: int = 50,
+        recorder: Recorder | None = None,
     ) -> None:
         self.learner = learner
         self.lockstep = lockstep

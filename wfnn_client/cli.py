@@ -92,11 +92,14 @@ def client(
     learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
     weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
     learner: Annotated[
-        str, typer.Option(help="thesis (the thesis' WFNN) or deep (deep wire fitting, torch where it thinks).")
+        str,
+        typer.Option(help="thesis (the thesis' WFNN) or deep (deep wire fitting, torch where it thinks)."),
     ] = "thesis",
     learner_options: Annotated[
         str,
-        typer.Option(help='Learner config fields over its defaults, JSON: \'{"gamma": 0.95, "deep": {"warmup": 100}}\'.'),
+        typer.Option(
+            help='Learner config fields over its defaults (JSON), e.g. \'{"deep": {"warmup": 100}}\'.'
+        ),
     ] = "",
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
     advantage_k: Annotated[

@@ -36,7 +36,8 @@ import numpy as np
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
 from wfnn_common.config import LearnerConfig, check_fields
-from wfnn_common.learners import Learner, Weights, n_params, weights_from_flat
+from wfnn_common.learners import Learner, n_params, weights_from_flat
+from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_common.net import Bus, Channel
 from wfnn_common.protocol import (
     EXP_AFTER_LOSS,
@@ -121,7 +122,7 @@ class RemoteConfig:
 class Weights:
     """A validated snapshot ready for `act`."""
 
-    params: Weights
+    params: NetworkWeights
     server: str
     incarnation: int
     store: str
@@ -178,7 +179,9 @@ class _Pending:
 class RemoteBrain:
     """Robot side of act-learn-think-C/S over a `Bus` (see the module docstring)."""
 
-    def __init__(self, learner: Learner, config: RemoteConfig, bus: Bus, initial: Weights | None = None) -> None:
+    def __init__(
+        self, learner: Learner, config: RemoteConfig, bus: Bus, initial: NetworkWeights | None = None
+    ) -> None:
         self.learner = learner
         self.config = config
         self.bus = bus

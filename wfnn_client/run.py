@@ -30,7 +30,14 @@ from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyConfig, SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.tick import Ticker, TickStats
-from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields, parse_json, with_options
+from wfnn_common.config import (
+    LEARNERS,
+    ExplorationConfig,
+    LearnerConfig,
+    check_fields,
+    parse_json,
+    with_options,
+)
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.net import NetConfig, check_exposure
 from wfnn_common.persist import (

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common.learner import WFNN, ActResult
+from wfnn_common.learners import Learner
 from wfnn_common.network import Params
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ class ActLearnThinkMT:
 
     def __init__(
         self,
-        learner: WFNN,
+        learner: Learner,
         think_batch: int = 50,
         publish_period_s: float = 0.02,
         idle_sleep_s: float = 0.001,

@@ -433,7 +433,8 @@ class LearnerConfig:
             return (
                 f"deep S={self.state_dim} A={self.action_dim} hidden={d.hidden} value={d.value_hidden} "
                 f"wires={self.n_wires} gamma={self.gamma} k={self.advantage_k} lr={d.lr} "
-                f"c={self.smoothing_c} thinks={self.thinks_per_action} batch={self.batch_size} n_step={d.n_step}"
+                f"c={self.smoothing_c} thinks={self.thinks_per_action} batch={self.batch_size} "
+                f"n_step={d.n_step}"
             )
         return (
             f"S={self.state_dim} A={self.action_dim} hidden={self.n_hidden} wires={self.n_wires} "
@@ -443,8 +444,11 @@ class LearnerConfig:
 
 
 def with_options(config: LearnerConfig, options: dict[str, Any]) -> LearnerConfig:
-    """`config` with the fields in `options` replaced (`deep`'s and `exploration`'s merged field
-    by field); anything that does not make a valid config is a ConfigError."""
+    """`config` with the fields in `options` replaced.
+
+    `deep` and `exploration` are merged field by field; anything that does not make a valid
+    config is a ConfigError.
+    """
     if not isinstance(options, dict):
         raise ConfigError(f"learner options must be a JSON object, got {type(options).__name__}")
     data = config.to_dict()

@@ -117,7 +117,7 @@ class DeepWFNN(WFNN):
         return squash_reward(raw, self.config.gamma) if self.config.squash_reward else raw
 
     def think(self, n: int | None = None) -> UpdateStats:
-        """n minibatch updates (default thinks_per_action); nothing before the first experience."""
+        """N minibatch updates (default thinks_per_action); nothing before the first experience."""
         cfg = self.config
         n = cfg.thinks_per_action if n is None else n
         if n <= 0 or self.buffer.count[0] == 0:
@@ -132,17 +132,16 @@ class DeepWFNN(WFNN):
         self.last_think = UpdateStats(np.array([q]), np.array([td]))
         return self.last_think
 
-    def think_on(
-        self, exp: Experiences, active: BoolArray | None = None, params: Any = None
-    ) -> UpdateStats:
+    def think_on(self, exp: Experiences, active: BoolArray | None = None, params: Any = None) -> UpdateStats:
         """One update on given experiences [1, T, ...] (one-step returns)."""
         if params is not None:
             raise ValueError("a deep learner thinks on its own weights only")
         if active is not None and not active[0]:
             return self.last_think
         terminal = np.asarray(exp.terminal[0], dtype=np.bool_)
+        discount = np.where(terminal, 0.0, self.config.gamma)
         batch = {"state": exp.state[0], "action": exp.action[0], "reward": self._reward(exp.reward[0]),
-                 "next_state": exp.next_state[0], "discount": np.where(terminal, 0.0, self.config.gamma)}  # fmt: skip
+                 "next_state": exp.next_state[0], "discount": discount}  # fmt: skip
         q, td = self._train().update(batch)
         self.thinks += 1
         self._sync()

@@ -47,7 +47,9 @@ class DeepShapes:
     def of(cls, config: LearnerConfig) -> DeepShapes:
         """The layout a deep learner config implies."""
         d = config.deep
-        return cls(config.state_dim, config.action_dim, d.hidden, d.value_hidden, config.n_wires, d.layer_norm)
+        return cls(
+            config.state_dim, config.action_dim, d.hidden, d.value_hidden, config.n_wires, d.layer_norm
+        )
 
     def blocks(self) -> list[tuple[str, tuple[int, ...]]]:
         """(name, shape) of each parameter block, in the flat vector's order."""
@@ -58,7 +60,13 @@ class DeepShapes:
             fan_in = width
         na, hv = self.n_wires * self.action_dim, self.value_hidden
         out += [("Ww", (na, fan_in)), ("bw", (na,))]
-        out += [("Vh", (hv, fan_in)), ("Vu", (hv, self.action_dim)), ("bv", (hv,)), ("vo", (hv,)), ("bo", (1,))]
+        out += [
+            ("Vh", (hv, fan_in)),
+            ("Vu", (hv, self.action_dim)),
+            ("bv", (hv,)),
+            ("vo", (hv,)),
+            ("bo", (1,)),
+        ]
         return out
 
     @property
@@ -83,7 +91,9 @@ class DeepShapes:
 def init_critic(shapes: DeepShapes, rng: np.random.Generator) -> FloatArray:
     """Fresh weights of one critic [n_params]: uniform in +-1/sqrt(fan-in) per block."""
     fan = shapes.fan_ins()
-    parts = [rng.uniform(-1.0, 1.0, int(np.prod(shape))) / np.sqrt(fan[name]) for name, shape in shapes.blocks()]
+    parts = [
+        rng.uniform(-1.0, 1.0, int(np.prod(shape))) / np.sqrt(fan[name]) for name, shape in shapes.blocks()
+    ]
     return np.concatenate(parts)
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+import torch.nn.functional as tnf
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes
@@ -64,18 +64,20 @@ class Critics:
         for k in range(len(shapes.hidden)):
             h = torch.baddbmm(p[f"b{k}"].unsqueeze(1), h, p[f"W{k}"].transpose(1, 2))
             if shapes.layer_norm:
-                h = F.layer_norm(h, h.shape[-1:], eps=LN_EPS)
-            h = F.relu(h)
+                h = tnf.layer_norm(h, h.shape[-1:], eps=LN_EPS)
+            h = tnf.relu(h)
         u = torch.tanh(torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2)))
         u = u.view(2, batch, shapes.n_wires, shapes.action_dim)
         z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
         zu = torch.bmm(u.reshape(2, batch * shapes.n_wires, shapes.action_dim), p["Vu"].transpose(1, 2))
-        g = F.relu(z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1))
+        g = tnf.relu(z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1))
         q = torch.bmm(g.view(2, batch * shapes.n_wires, -1), p["vo"].unsqueeze(2)).view(2, batch, -1)
         return u, q + p["bo"].view(2, 1, 1)
 
 
-def wirefit(wire_u: torch.Tensor, wire_q: torch.Tensor, u: torch.Tensor, c: float, eps: float) -> torch.Tensor:
+def wirefit(
+    wire_u: torch.Tensor, wire_q: torch.Tensor, u: torch.Tensor, c: float, eps: float
+) -> torch.Tensor:
     """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values."""
     q_max = wire_q.max(dim=-1, keepdim=True).values
     span = (q_max - wire_q.min(dim=-1, keepdim=True).values).detach().clamp_min(SPAN_FLOOR)
@@ -198,5 +200,7 @@ class Trainer:
             self.optimiser.state[self.theta] = {
                 "step": torch.tensor(float(state["adam_step"])),
                 "exp_avg": torch.as_tensor(state["adam_m"], dtype=torch.float32, device=self.device).clone(),
-                "exp_avg_sq": torch.as_tensor(state["adam_v"], dtype=torch.float32, device=self.device).clone(),
+                "exp_avg_sq": torch.as_tensor(
+                    state["adam_v"], dtype=torch.float32, device=self.device
+                ).clone(),
             }

@@ -43,29 +43,40 @@ class Learner(Protocol):
     rejected: NDArray[np.int64]
     """Experiences refused by the sanity limits per learner."""
 
-    def act(self, state: ArrayLike, explore: bool = True, params: Any = None) -> ActResult: ...
+    def act(self, state: ArrayLike, explore: bool = True, params: Any = None) -> ActResult:
+        """Part 1: the best wire's action (explored if asked), from `params` or the learner's own weights."""
 
     def learn(self, state: ArrayLike, action: ArrayLike, next_state: ArrayLike, reward: ArrayLike,
-              terminal: ArrayLike = False, valid: ArrayLike = True) -> Any: ...  # fmt: skip
+              terminal: ArrayLike = False, valid: ArrayLike = True) -> Any:  # fmt: skip
+        """Part 1i: store an experience (checked by the sanity limits); -> whether it was stored."""
 
     def learn_many(self, state: ArrayLike, action: ArrayLike, next_state: ArrayLike, reward: ArrayLike,
-                   terminal: ArrayLike) -> NDArray[np.bool_]: ...  # fmt: skip
+                   terminal: ArrayLike) -> NDArray[np.bool_]:  # fmt: skip
+        """Store a block of experiences [N, ...]; -> which were stored [N]."""
 
-    def think(self, n: int | None = None) -> UpdateStats: ...
+    def think(self, n: int | None = None) -> UpdateStats:
+        """Parts 2-3: n updates (default thinks_per_action)."""
 
-    def think_on(self, exp: Experiences, active: Any = None, params: Any = None) -> UpdateStats: ...
+    def think_on(self, exp: Experiences, active: Any = None, params: Any = None) -> UpdateStats:
+        """Learn from the given experiences (not from the replay buffer)."""
 
-    def snapshot(self) -> Any: ...
+    def snapshot(self) -> Any:
+        """A copy of the weights `act` uses (`Weights`)."""
 
-    def reset_weights(self, which: NDArray[np.bool_]) -> None: ...
+    def reset_weights(self, which: NDArray[np.bool_]) -> None:
+        """Fresh weights for the learners `which` (after divergence); experiences kept."""
 
-    def greedy_values(self, state: ArrayLike) -> NDArray[np.float64]: ...
+    def greedy_values(self, state: ArrayLike) -> NDArray[np.float64]:
+        """Value of the best wire at states [N, S] -> [P, N]."""
 
-    def q_value(self, state: ArrayLike, action: ArrayLike) -> Any: ...
+    def q_value(self, state: ArrayLike, action: ArrayLike) -> Any:
+        """Q(x, u) by wire fitting."""
 
-    def training_state(self) -> dict[str, NDArray[Any]]: ...
+    def training_state(self) -> dict[str, NDArray[Any]]:
+        """What training needs beyond the weights to resume (saved with checkpoints)."""
 
-    def load_training_state(self, state: dict[str, Any]) -> None: ...
+    def load_training_state(self, state: dict[str, Any]) -> None:
+        """Resume from `training_state`'s arrays (ValueError if they do not fit)."""
 
 
 def make_learner(config: LearnerConfig, population: int = 1, params: Weights | None = None) -> WFNN:

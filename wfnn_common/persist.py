@@ -14,9 +14,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from numpy.typing import NDArray
-
 import numpy as np
+from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learners import Weights, n_params, weights_from_flat

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from wfnn_common.config import LearnerConfig
 from wfnn_common import deep_net
+from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import DeepParams
 from wfnn_common.kernels import surface_q
 from wfnn_common.network import Params, Scaler, split_wires
@@ -93,7 +93,6 @@ class SurfaceGrid:
             self.dims, self.axes, self._q.reshape(self.shape).copy(), wires, wire_q.copy(), int(best)
         )
 
-
     def _deep(self, params: DeepParams, state: FloatArray) -> Surface:
         """The deep learner's surface: its wires and their interpolation (numpy)."""
         cfg = self.config
@@ -108,7 +107,11 @@ class SurfaceGrid:
 
 
 def action_value_surface(
-    config: LearnerConfig, params: Params | DeepParams, state: FloatArray, dims: tuple[int, ...] = (0,), points: int = 41
+    config: LearnerConfig,
+    params: Params | DeepParams,
+    state: FloatArray,
+    dims: tuple[int, ...] = (0,),
+    points: int = 41,
 ) -> Surface:
     """Q(state, u) over `points` values of each action variable in `dims` (first network of `params`)."""
     return SurfaceGrid(config, dims, points)(params, state)

@@ -64,8 +64,9 @@ class ServerConfig:
     """Overrides the learner config's `bc_weight` (the best wire pulled toward the actions taken:
     for passive learning from other controllers' logs, `wfnn-bench passive`)."""
     alpha: float | None = None
-    """Overrides the learner config's learning rate (passive learning replays a fixed set
-    millions of times; `wfnn-bench passive` measured 0.05 better than the thesis' 0.25 there)."""
+    """Overrides the learner config's learning rate: the thesis' learner's `alpha` (passive
+    learning replays a fixed set millions of times; `wfnn-bench passive` measured 0.05 better
+    than the thesis' 0.25 there), or the deep learner's Adam step size `deep.lr`."""
     publish_period_s: float = 0.25
     """Weight snapshot period (also published as soon as the think budget is spent)."""
     status_period_s: float = 0.5

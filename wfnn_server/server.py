@@ -248,9 +248,16 @@ class ThinkServer:
         return None
 
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
-        """`cfg` with this server's overrides (seed, bc_weight, alpha) where it sets them."""
-        changes: dict[str, Any] = {"seed": self.config.seed, "bc_weight": self.config.bc_weight,
-                                   "alpha": self.config.alpha}  # fmt: skip
+        """`cfg` with this server's overrides (seed, bc_weight, learning rate) where it sets them.
+
+        The learning rate is the thesis' learner's `alpha`, or the deep learner's `deep.lr`.
+        """
+        changes: dict[str, Any] = {"seed": self.config.seed, "bc_weight": self.config.bc_weight}
+        if self.config.alpha is not None:
+            if cfg.learner == "deep":
+                changes["deep"] = dataclasses.replace(cfg.deep, lr=self.config.alpha)
+            else:
+                changes["alpha"] = self.config.alpha
         return dataclasses.replace(cfg, **{key: value for key, value in changes.items() if value is not None})
 
     def _import_logs(self, directories: tuple[Path, ...]) -> tuple[int, LearnerConfig | None]:
@@ -731,7 +738,9 @@ class ThinkServer:
             "server": self.id,
         }  # fmt: skip
         newest, previous = self.data_dir / CHECKPOINT, self.data_dir / PREVIOUS_CHECKPOINT
-        save_weights(newest, cfg, learner.params, meta, keep_previous=previous, training=learner.training_state())
+        save_weights(
+            newest, cfg, learner.params, meta, keep_previous=previous, training=learner.training_state()
+        )
         log.info(
             "checkpoint: version %d, %d thinks, %d experiences",
             self.version,

@@ -270,4 +270,6 @@ def test_deep_learner_over_zenoh_matches_the_single_process_learner(tmp_path):
     # Two thinks per stored experience (those beyond the sanity limits are not stored), on both sides.
     assert ck_cfg.learner == "deep" and meta["thinks"] == local["think/thinks"] > 2 * 300
     with np.load(tmp_path / "srv" / "checkpoint.npz") as ck:
-        assert float(ck["train/adam_step"]) == meta["thinks"] and ck["train/theta"].shape == (2 * params.flat.shape[1],)
+        assert float(ck["train/adam_step"]) == meta["thinks"] and ck["train/theta"].shape == (
+            2 * params.flat.shape[1],
+        )

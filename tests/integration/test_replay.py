@@ -78,3 +78,24 @@ def test_wfnn_logs_inspects_merges_and_exports_records(tmp_path):
     assert proc.returncode == 0 and (tmp_path / "all.npz").exists()
     proc = _run(BIN / "wfnn-logs", "inspect", tmp_path / "missing")
     assert proc.returncode == 1 and "no experience log" in proc.stdout
+
+
+def test_replay_only_with_the_deep_learner_and_its_overrides(tmp_path):
+    """Passive learning, deep learner: its config from the log, the pull and rate from the server."""
+    options = '{"deep": {"hidden": [16, 16], "value_hidden": 8, "warmup": 50}, "batch_size": 32}'
+    proc = _run(BIN / "wfnn-client", "--sim", "boat", "--episodes", "2", "--rate-hz", "0", "--lockstep",
+                "--thinks", "3", "--learner", "deep", "--learner-options", options,
+                "--out", tmp_path / "rec")  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    summary = logs.summarise(tmp_path / "rec" / "journal")
+    assert summary.experiences == 400 and summary.learner_config["learner"] == "deep"
+    proc = _replay(
+        tmp_path / "d", tmp_path / "rec" / "journal", options=("--bc-weight", "0.5", "--alpha", "0.001")
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    config, params, meta = load_weights(tmp_path / "d" / "checkpoint.npz")
+    assert config.learner == "deep" and config.bc_weight == 0.5 and config.deep.lr == 0.001
+    assert config.deep.hidden == (16, 16) and params.flat.shape[0] == 1
+    # Three updates per experience stored in the learner (states beyond the sanity limits are not).
+    assert 0 < meta["thinks"] <= 3 * 400 and meta["thinks"] % 3 == 0
+    assert meta["learned_through"] == meta["stored_through"]

@@ -41,7 +41,7 @@ def test_config_defaults_round_trip_and_spec_hash():
     assert len(hashes) == 3
     # Training-only fields do not change what a snapshot means.
     assert with_options(cfg, {"deep": {"lr": 1e-3}, "gamma": 0.9}).spec_hash() == cfg.spec_hash()
-    with pytest.raises(ConfigError, match="deep.n_step"):
+    with pytest.raises(ConfigError, match=r"deep\.n_step"):
         with_options(cfg, {"deep": {"n_step": 0}})
     with pytest.raises(ConfigError, match="unknown DeepConfig"):
         LearnerConfig.from_dict({**cfg.to_dict(), "deep": {"bogus": 1}})
@@ -138,13 +138,16 @@ def test_n_step_returns_follow_consecutive_experiences_only():
     cfg = config(gamma=0.5, deep={"n_step": 3})
     learner = DeepWFNN(cfg)
     z = np.zeros(2)
-    chain = [((0.1, 0), (0.2, 0), 1.0, False), ((0.2, 0), (0.3, 0), 2.0, False), ((0.3, 0), (0.4, 0), 4.0, False),
+    chain = [((0.1, 0), (0.2, 0), 1.0, False), ((0.2, 0), (0.3, 0), 2.0, False),
+             ((0.3, 0), (0.4, 0), 4.0, False),
              ((0.9, 0), (0.5, 0), 8.0, False),  # starts elsewhere: a break
              ((0.5, 0), (0.6, 0), 16.0, True), ((0.6, 0), (0.7, 0), 32.0, False)]  # fmt: skip
     for s, sn, r, term in chain:
         learner.learn(np.array(s), z[:1], np.array(sn), r, term)
     batch = learner._n_step(np.arange(6))
-    np.testing.assert_allclose(batch["reward"], [1 + 0.5 * 2 + 0.25 * 4, 2 + 0.5 * 4, 4, 8 + 0.5 * 16, 16, 32])
+    np.testing.assert_allclose(
+        batch["reward"], [1 + 0.5 * 2 + 0.25 * 4, 2 + 0.5 * 4, 4, 8 + 0.5 * 16, 16, 32]
+    )
     np.testing.assert_allclose(batch["discount"], [0.125, 0.25, 0.5, 0.0, 0.0, 0.5])
     np.testing.assert_allclose(batch["next_state"][:, 0], np.array([0.4, 0.4, 0.4, 0.0, 0.0, 0.7]) / 1.0)
 
@@ -157,9 +160,11 @@ def test_training_state_saves_and_resumes_exactly(tmp_path):
                        rng.uniform(-1, 1, (100, 2)), -rng.random(100), np.zeros(100, dtype=bool))  # fmt: skip
     learner.think(20)
     state = learner.training_state()
-    assert set(state) == {"theta", "target", "adam_m", "adam_v", "adam_step"} and float(state["adam_step"]) == 20
+    assert (
+        set(state) == {"theta", "target", "adam_m", "adam_v", "adam_step"} and float(state["adam_step"]) == 20
+    )
     save_weights(tmp_path / "ck.npz", cfg, learner.params, {"thinks": 20}, training=state)
-    ck_cfg, params, meta, training = load_checkpoint(tmp_path / "ck.npz")
+    ck_cfg, params, _, training = load_checkpoint(tmp_path / "ck.npz")
     resumed = make_learner(ck_cfg, params=params)
     resumed.load_training_state(training)
     np.testing.assert_array_equal(resumed.params.flat, learner.params.flat)
@@ -207,7 +212,9 @@ def test_bc_weight_pulls_the_best_wire_to_logged_actions():
 
 
 def test_symmetries_store_the_mirrored_experience():
-    mirror = Symmetry(name="mirror", state_index=(0, 1), state_sign=(1.0, -1.0), action_index=(0,), action_sign=(-1.0,))
+    mirror = Symmetry(
+        name="mirror", state_index=(0, 1), state_sign=(1.0, -1.0), action_index=(0,), action_sign=(-1.0,)
+    )
     learner = DeepWFNN(config(symmetries=(mirror,)))
     learner.learn(np.array([0.2, 0.5]), np.array([1.0]), np.array([0.3, 0.4]), -1.0)
     assert int(learner.buffer.count[0]) == 2

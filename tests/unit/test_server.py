@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from tests.fakes import Hub, small_config, wait_for
+from wfnn_common.config import LEARNERS
 from wfnn_common.protocol import (
     Ack,
     ClientStatus,
@@ -72,8 +73,9 @@ def send(hub, b, client="c1", key=None):
     hub.bus().put(KEYS.experiences(client), Codec(client, key).encode(b), None)
 
 
-def test_stores_acknowledges_and_learns(tmp_path):
-    hub, cfg = Hub(), small_config(thinks_per_action=7)
+@pytest.mark.parametrize("learner", LEARNERS)
+def test_stores_acknowledges_and_learns(tmp_path, learner):
+    hub, cfg = Hub(), small_config(thinks_per_action=7, learner=learner)
     listener = Listener(hub)
     with make_server(tmp_path, hub, cfg) as server:
         send(hub, batch(cfg, 0, 10))
@@ -164,14 +166,16 @@ def test_adopts_the_first_clients_config(tmp_path):
     assert saved["seed"] == 11 and saved["bc_weight"] == 0.25
 
 
-def test_restart_resumes_checkpoint_and_store(tmp_path):
-    hub, cfg = Hub(), small_config(thinks_per_action=5)
+@pytest.mark.parametrize("learner", LEARNERS)
+def test_restart_resumes_checkpoint_and_store(tmp_path, learner):
+    hub, cfg = Hub(), small_config(thinks_per_action=5, learner=learner)
     listener = Listener(hub)
     with make_server(tmp_path, hub, cfg) as server:
         send(hub, batch(cfg, 0, 20))
         assert listener.wait(lambda: any(s.learned_through.get("c1") == 19 for s in listener.snapshots))
         first_params = None
     first_params = server.learner.params.flat.copy()
+    training = server.learner.training_state()
     version, thinks = server.version, int(server.learner.thinks[0])
     listener.snapshots.clear()
     with make_server(tmp_path, hub, cfg) as again:
@@ -179,6 +183,10 @@ def test_restart_resumes_checkpoint_and_store(tmp_path):
         assert again.store.count == 20 and again.learner.buffer.count[0] == 20
         assert int(again.learner.thinks[0]) == thinks and again.budget == 0
         np.testing.assert_array_equal(again.learner.params.flat, first_params)
+        # The whole training state is resumed (the deep learner's critics, targets and Adam).
+        assert set(again.learner.training_state()) == set(training)
+        for key, value in training.items():
+            np.testing.assert_array_equal(again.learner.training_state()[key], value)
         assert listener.wait(lambda: bool(listener.snapshots))
         assert listener.snapshots[0].version > version
         assert listener.snapshots[0].learned_through["c1"] == 19
@@ -186,8 +194,9 @@ def test_restart_resumes_checkpoint_and_store(tmp_path):
         assert listener.wait(lambda: listener.acked() == 24)
 
 
-def test_experiences_stored_after_the_checkpoint_are_owed_their_thinks(tmp_path):
-    hub, cfg = Hub(), small_config(thinks_per_action=4)
+@pytest.mark.parametrize("learner", LEARNERS)
+def test_experiences_stored_after_the_checkpoint_are_owed_their_thinks(tmp_path, learner):
+    hub, cfg = Hub(), small_config(thinks_per_action=4, learner=learner)
     listener = Listener(hub)
     server = make_server(tmp_path, hub, cfg).start()
     send(hub, batch(cfg, 0, 10))
@@ -205,9 +214,10 @@ def test_experiences_stored_after_the_checkpoint_are_owed_their_thinks(tmp_path)
     assert int(again.learner.thinks[0]) == thinks and again.budget == 6 * 4
 
 
-def test_divergence_resets_and_flags_snapshots(tmp_path):
+@pytest.mark.parametrize("learner", LEARNERS)
+def test_divergence_resets_and_flags_snapshots(tmp_path, learner):
     hub = Hub()
-    cfg = small_config(thinks_per_action=1, divergence_threshold=-2.0, divergence_patience=3)
+    cfg = small_config(thinks_per_action=1, divergence_threshold=-2.0, divergence_patience=3, learner=learner)
     listener = Listener(hub)
     with make_server(tmp_path, hub, cfg) as server:
         send(hub, batch(cfg, 0, 10))
