@@ -21,8 +21,8 @@ from scipy import stats
 from sims.base import Transition
 from sims.boat import BoatConfig, BoatVec, handcoded_boat
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LearnerConfig, check_fields
-from wfnn_common.learner import WFNN
+from wfnn_common.config import LEARNERS, LearnerConfig, check_fields
+from wfnn_common.learners import make_population
 
 log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
@@ -40,8 +40,11 @@ class BoatBenchConfig:
     mode: Literal["advantage", "q", "both"] = "both"
     targets: int = 40
     steps_per_target: int = 200
-    thinks: int = 200
-    """Experience replays per action."""
+    thinks: int | None = None
+    """Experience replays (thesis) or updates (deep) per action; None: the learner's default
+    (the thesis' 200, the deep learner's 1)."""
+    learner: str = "thesis"
+    """Which learner the controllers are: "thesis" or "deep" (its defaults)."""
     dt: float = 0.1
     """Boat time step per action (see sims.boat)."""
     greedy_targets: int = 10
@@ -52,6 +55,8 @@ class BoatBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.learner not in LEARNERS:
+            raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
 
 
 def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> LearnerConfig:
@@ -63,14 +68,16 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
     one time unit per action random thrusting travels ~5 units per target), so only
     non-finite states are refused here.
     """
+    thinks = {} if bench.thinks is None else {"thinks_per_action": bench.thinks}
     return LearnerConfig.for_task(
         BoatVec,
+        learner=bench.learner,
         advantage_k=advantage_k,
-        thinks_per_action=bench.thinks,
         replay_capacity=bench.targets * bench.steps_per_target,
         divergence_patience=0,
         valid_margin=1e6,
         seed=seed,
+        **thinks,
     )
 
 
@@ -124,7 +131,7 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
     """Train and score `bench.controllers` learners of one condition."""
     k = CONDITIONS[condition]
     seed = bench.seed * 1000 + (1 if condition == "advantage" else 2)
-    learner = WFNN(learner_config(bench, k, seed), population=bench.controllers)
+    learner = make_population(learner_config(bench, k, seed), bench.controllers)
     boat = BoatVec(bench.controllers, BoatConfig(dt=bench.dt, steps_per_target=bench.steps_per_target))
     rng = np.random.default_rng(seed)
     boat.reset(rng)

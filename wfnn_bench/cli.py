@@ -86,8 +86,11 @@ def boat(
     controllers: Annotated[int, typer.Option(min=1, help="Controllers per condition.")] = 20,
     mode: Annotated[str, typer.Option(help="advantage, q or both.")] = "both",
     targets: Annotated[int, typer.Option(min=1)] = 40,
-    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
+    thinks: Annotated[
+        int | None, typer.Option(min=0, help="Replays (updates) per action [learner's: thesis 200, deep 1].")
+    ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
+    learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -103,6 +106,7 @@ def boat(
         targets=targets,
         thinks=thinks,
         dt=dt,
+        learner=learner,
         seed=seed,
     )
     n_cond = 2 if mode == "both" else 1
@@ -209,7 +213,8 @@ def hydra(
     controllers: Annotated[int, typer.Option(min=1, help="1-DOF controllers per training regime.")] = 4,
     episodes: Annotated[int, typer.Option(min=1, help="1-DOF training episodes (30 s each).")] = 30,
     eval_episodes: Annotated[int, typer.Option(min=1)] = 4,
-    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
+    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action (thesis).")] = 200,
+    learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     four_dof_controllers: Annotated[int, typer.Option(min=1)] = 2,
     four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
     advantage_k: Annotated[
@@ -231,6 +236,7 @@ def hydra(
         controllers=controllers, train_episodes=episodes, eval_episodes=eval_episodes, thinks=thinks,
         four_dof_controllers=four_dof_controllers, four_dof_episodes=four_dof_episodes, seed=seed,
         render=render, render_ticks=render_ticks, velocity_weight=velocity_weight, advantage_k=advantage_k,
+        learner=learner,
     )  # fmt: skip
     with _progress() as bar:
         task = bar.add_task("hydra episodes", total=hydra_bench.steps(cfg))

@@ -31,8 +31,9 @@ import numpy as np
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
+from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
+from wfnn_common.learners import make_population
 
 FloatArray = np.ndarray
 REGIMES_71 = ("static", "swing")
@@ -50,6 +51,10 @@ class HydraBenchConfig:
     """30 s episodes of training (1-DOF)."""
     eval_episodes: int = 4
     thinks: int = 200
+    """The thesis' learner's replays per action (the deep learner's updates per action are its
+    own default, `thinks_per_action` 1)."""
+    learner: str = "thesis"
+    """Which learner the heads learn with: "thesis" or "deep"."""
     sigma: float = 0.1
     """Gaussian exploration (scaled action units) while training."""
     advantage_k: float = 1.0
@@ -70,6 +75,8 @@ class HydraBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.learner not in LEARNERS:
+            raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
 
 
 def steps(cfg: HydraBenchConfig) -> int:
@@ -78,15 +85,16 @@ def steps(cfg: HydraBenchConfig) -> int:
     return one + cfg.four_dof_episodes + 1 + (len(REGIMES) if cfg.render else 0)
 
 
-def _learner(task: HydraVec, population: int, cfg: HydraBenchConfig, episodes: int) -> WFNN:
+def _learner(task: HydraVec, population: int, cfg: HydraBenchConfig, episodes: int) -> Any:
+    thinks = {"thinks_per_action": cfg.thinks} if cfg.learner == "thesis" else {}
     lcfg = LearnerConfig.for_task(
-        task, exploration=ExplorationConfig(kind="gaussian", sigma=cfg.sigma), thinks_per_action=cfg.thinks,
-        replay_capacity=episodes * EPISODE, advantage_k=cfg.advantage_k, seed=cfg.seed,
+        task, learner=cfg.learner, exploration=ExplorationConfig(kind="gaussian", sigma=cfg.sigma),
+        replay_capacity=episodes * EPISODE, advantage_k=cfg.advantage_k, seed=cfg.seed, **thinks,
     )  # fmt: skip
-    return WFNN(lcfg, population=population)
+    return make_population(lcfg, population)
 
 
-def learn_episode(learner: WFNN, task: HydraVec, rng: np.random.Generator) -> FloatArray:
+def learn_episode(learner: Any, task: HydraVec, rng: np.random.Generator) -> FloatArray:
     """One 30 s episode with new targets, acting, learning and thinking every tick.
 
     Returns each head's mean |pixel error| over the episode [P].
@@ -137,7 +145,7 @@ def _bearing(task: HydraVec) -> FloatArray:
 
 
 def evaluate(
-    learner: WFNN, hydra: HydraConfig, episodes: int, seed: int, progress: Progress
+    learner: Any, hydra: HydraConfig, episodes: int, seed: int, progress: Progress
 ) -> dict[str, Any]:
     """Greedy, learning off: traces and the Table 7.1 figures per controller."""
     n = learner.population
@@ -204,7 +212,7 @@ def lag_s(target: FloatArray, joint: FloatArray, rate_hz: float, max_lag_s: floa
     return lag / rate_hz
 
 
-def analysis(learner: WFNN, task: HydraVec) -> dict[str, Any]:
+def analysis(learner: Any, task: HydraVec) -> dict[str, Any]:
     """Figs 7.19 and 7.22: implied joint acceleration from synthetic states, per controller."""
     rate = task.config.rate_hz
     limit = task.state_high[0]
@@ -324,7 +332,7 @@ def four_dof(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
         regime="elastic",
     )
     result = train(hydra, cfg.four_dof_controllers, cfg.four_dof_episodes, cfg, progress)
-    learner: WFNN = result.pop("learner")
+    learner: Any = result.pop("learner")
     task = HydraVec(learner.population, hydra, seed=cfg.seed + 7)
     rng = np.random.default_rng(cfg.seed + 7)
     x = task.reset(rng)
@@ -358,7 +366,7 @@ def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, An
     for trained in REGIMES_71:
         hydra = HydraConfig(regime=trained, velocity_weight=cfg.velocity_weight)  # type: ignore[arg-type]
         result = train(hydra, cfg.controllers, cfg.train_episodes, cfg, progress)
-        learner: WFNN = result.pop("learner")
+        learner: Any = result.pop("learner")
         training[trained] = result
         analyses[trained] = analysis(learner, HydraVec(1, hydra))
         table[trained] = {}

@@ -13,7 +13,8 @@ sampling time from consecutive stored experiences. One network per learner (popu
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import replace
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,7 +22,7 @@ from numpy.typing import NDArray
 from wfnn_common import deep_net
 from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import DeepParams, DeepShapes
-from wfnn_common.learner import WFNN, BoolArray, FloatArray
+from wfnn_common.learner import WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
@@ -31,8 +32,6 @@ TRAINING_KEYS = ("theta", "target", "adam_m", "adam_v", "adam_step")
 
 class DeepWFNN(WFNN):
     """One deep wire-fitting learner (see the module docstring)."""
-
-    _compiled_act = False
 
     def __init__(self, config: LearnerConfig, population: int = 1, params: DeepParams | None = None) -> None:
         if config.learner != "deep":
@@ -76,6 +75,19 @@ class DeepWFNN(WFNN):
     # ------------------------------------------------------------------ act
     def _greedy(self, params: Any, x: FloatArray) -> tuple[FloatArray, FloatArray]:
         return deep_net.greedy(params, x)
+
+    def _act_one(self, s: FloatArray, explore: bool, params: Any) -> ActResult:
+        """`act` for one state [S]: the robot's hot path, one-dimensional numpy throughout."""
+        scaler = self.state_scaler
+        x = (s - scaler.mid) / scaler.half
+        valid = bool(np.abs(x).max() <= self._limit)  # NaN compares False, inf exceeds the limit
+        if valid:
+            self._last_valid = x[None]
+        else:
+            x = self._best_estimate(x[None], np.zeros(1, dtype=np.bool_))[0]
+        wire_u, wire_q = deep_net.wires_one(params, x)
+        best = int(wire_q.argmax())
+        return self._finish_one(wire_u[best], float(wire_q[best]), valid, explore, params)
 
     def _explore(self, greedy: FloatArray) -> FloatArray:
         self.acted += 1
@@ -200,3 +212,119 @@ class DeepWFNN(WFNN):
             wire_u, wire_q, self.action_scaler.to_unit(a), self.config.smoothing_c, self.config.eps
         )
         return q[0] if single else q
+
+
+class PopulationParams:
+    """The weights of each member of a `DeepPopulation` (what its `act` takes as `params`)."""
+
+    def __init__(self, members: list[DeepParams]) -> None:
+        self.members = members
+        self.flat = np.concatenate([m.flat for m in members])
+        """All members' weights [P, n_params] (a copy: for saving)."""
+
+    @property
+    def population(self) -> int:
+        """Number of members."""
+        return len(self.members)
+
+    def copy(self) -> PopulationParams:
+        """Deep copy."""
+        return PopulationParams([m.copy() for m in self.members])
+
+
+class _Counts:
+    """The members' replay buffers seen as one population's (`count`, `added`, `contents`)."""
+
+    def __init__(self, members: list[DeepWFNN]) -> None:
+        self._members = members
+
+    @property
+    def count(self) -> NDArray[np.int64]:
+        """Stored experiences per member [P]."""
+        return np.array([int(m.buffer.count[0]) for m in self._members])
+
+    @property
+    def added(self) -> NDArray[np.int64]:
+        """Experiences ever added per member [P]."""
+        return np.array([int(m.buffer.added[0]) for m in self._members])
+
+    def contents(self, learner: int) -> Experiences:
+        """One member's stored experiences, oldest first."""
+        return self._members[learner].buffer.contents(0)
+
+
+class DeepPopulation:
+    """P independent deep learners with a population's interface (for benchmarks of P controllers).
+
+    Member i has the config's seed + i. Arrays in and out are [P, ...] as for `WFNN`.
+    """
+
+    def __init__(self, config: LearnerConfig, population: int) -> None:
+        if population < 1:
+            raise ValueError(f"population must be >= 1, got {population}")
+        self.config = config
+        self.population = population
+        self.members = [DeepWFNN(replace(config, seed=config.seed + i)) for i in range(population)]
+        self.buffer = _Counts(self.members)
+
+    def _stack(self, name: str) -> NDArray[Any]:
+        return np.array([getattr(m, name)[0] for m in self.members])
+
+    @property
+    def thinks(self) -> NDArray[np.int64]:
+        """Updates per member [P]."""
+        return self._stack("thinks")
+
+    @property
+    def resets(self) -> NDArray[np.int64]:
+        """Divergence resets per member [P]."""
+        return self._stack("resets")
+
+    @property
+    def rejected(self) -> NDArray[np.int64]:
+        """Experiences refused by the sanity limits per member [P]."""
+        return self._stack("rejected")
+
+    @property
+    def params(self) -> PopulationParams:
+        """The members' current weights (views: they follow learning)."""
+        return PopulationParams([cast(DeepParams, m.params) for m in self.members])
+
+    def snapshot(self) -> PopulationParams:
+        """Copies of the members' weights."""
+        return PopulationParams([cast(DeepParams, m.snapshot()) for m in self.members])
+
+    def act(self, state: Any, explore: bool = True, params: PopulationParams | None = None) -> ActResult:
+        """Each member's action for its state [P, S] -> ActResult of [P, ...] arrays."""
+        s = np.asarray(state, dtype=np.float64).reshape(self.population, self.config.state_dim)
+        results = [m.act(s[i], explore, None if params is None else params.members[i])
+                   for i, m in enumerate(self.members)]  # fmt: skip
+        return ActResult(*(np.array([getattr(r, f) for r in results]) for f in ActResult._fields))
+
+    def learn(self, state: Any, action: Any, next_state: Any, reward: Any, terminal: Any = False,
+              valid: Any = True) -> BoolArray:  # fmt: skip
+        """One experience per member ([P, ...] rows); -> which stored it [P]."""
+        p = self.population
+        rows = [np.asarray(a, dtype=np.float64).reshape(p, -1) for a in (state, action, next_state)]
+        r, term, ok = (np.broadcast_to(np.asarray(v), (p,)) for v in (reward, terminal, valid))
+        return np.array([bool(m.learn(rows[0][i], rows[1][i], rows[2][i], r[i], term[i], ok[i]))
+                         for i, m in enumerate(self.members)])  # fmt: skip
+
+    def learn_many(self, state: Any, action: Any, next_state: Any, reward: Any, terminal: Any) -> BoolArray:
+        """A block of N experiences for every member; -> which were stored [N]."""
+        stored = [m.learn_many(state, action, next_state, reward, terminal) for m in self.members]
+        return stored[0]
+
+    def think(self, n: int | None = None) -> UpdateStats:
+        """n updates per member."""
+        stats = [m.think(n) for m in self.members]
+        return UpdateStats(np.concatenate([s.q for s in stats]), np.concatenate([s.td_abs for s in stats]))
+
+    def reset_weights(self, which: BoolArray) -> None:
+        """Fresh weights for the members `which`."""
+        for m, w in zip(self.members, np.asarray(which), strict=True):
+            m.reset_weights(np.array([w]))
+
+    def greedy_values(self, state: Any) -> FloatArray:
+        """Value of each member's best wire at states [N, S] -> [P, N]."""
+        return np.concatenate([m.greedy_values(state) for m in self.members])

@@ -147,6 +147,22 @@ def wires(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
     return u, q
 
 
+def wires_one(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """`wires` of one scaled state x [S] -> (actions [N, A], values [N]): matrix-vector products."""
+    b = params.blocks
+    h = x
+    for W, bias in params.trunk:
+        h = W @ h + bias
+        if params.shapes.layer_norm:
+            h = h - h.mean()
+            h = h / np.sqrt((h * h).mean() + LN_EPS)
+        np.maximum(h, 0.0, out=h)
+    u = np.tanh(b["Ww"] @ h + b["bw"]).reshape(params.shapes.n_wires, params.shapes.action_dim)
+    g = (b["Vh"] @ h + b["bv"]) + u @ b["Vu"].T  # [N, Hv]
+    np.maximum(g, 0.0, out=g)
+    return u, g @ b["vo"] + b["bo"][0]
+
+
 def greedy(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Best wire for scaled states x [B, S] -> (action [B, A], value [B])."""
     u, q = wires(params, x)

@@ -104,9 +104,6 @@ class WFNN:
     on estimates, exploration, the divergence monitor, the replay buffer and symmetries).
     """
 
-    _compiled_act = True
-    """Single-learner `act` runs the compiled kernel of the thesis' network."""
-
     def __init__(self, config: LearnerConfig, population: int = 1, params: Params | None = None):
         if population < 1:
             raise ValueError(f"population must be >= 1, got {population}")
@@ -180,7 +177,7 @@ class WFNN:
         return fixed
 
     # ------------------------------------------------------------------ act
-    def act(self, state: ArrayLike, explore: bool = True, params: Params | None = None) -> ActResult:
+    def act(self, state: ArrayLike, explore: bool = True, params: Any = None) -> ActResult:
         """Part 1: the best wire's action for each state, optionally explored.
 
         Invalid states (non-finite or beyond the sanity limits) are acted on with the best
@@ -191,7 +188,7 @@ class WFNN:
         cfg = self.config
         s = np.asarray(state, dtype=np.float64)
         single = s.ndim == 1
-        if single and self._compiled_act and self.population == 1 and s.shape[0] == cfg.state_dim:
+        if single and self.population == 1 and s.shape[0] == cfg.state_dim:
             return self._act_one(s, explore, params or self.params)
         if s.shape[-1] != cfg.state_dim or s.size != self.population * cfg.state_dim:
             raise ValueError(
@@ -225,7 +222,10 @@ class WFNN:
         return self.explorer(greedy)
 
     def _act_one(self, s: FloatArray, explore: bool, params: Params) -> ActResult:
-        """`act` for a single learner: the robot's hot path, with as few array calls as possible."""
+        """`act` for a single learner: the robot's hot path, with as few array calls as possible.
+
+        The thesis' network runs in one compiled kernel (`kernels.act_one`).
+        """
         cfg = self.config
         W1, b1, W2, b2 = params.single
         # Fresh buffers per call: act may run on several threads (a snapshot each).
@@ -240,11 +240,15 @@ class WFNN:
             identity = np.zeros(cfg.state_dim), np.ones(cfg.state_dim)
             _, best, value = act_one(W1, b1, W2, b2, x, *identity, np.inf, cfg.n_wires, cfg.action_dim,
                                      x.copy(), hidden, out)  # fmt: skip
-        u = out[best * cfg.action_dim : (best + 1) * cfg.action_dim]
+        return self._finish_one(out[best * cfg.action_dim : (best + 1) * cfg.action_dim], value, valid,
+                                explore, params)  # fmt: skip
+
+    def _finish_one(self, u: FloatArray, value: float, valid: bool, explore: bool, params: Any) -> ActResult:
+        """The rest of a single learner's `act` after its greedy wire (u [A] scaled, its value)."""
         explored = False
-        if explore and cfg.exploration.kind != "none":
+        if explore:
             greedy = u
-            u = self.explorer(greedy[None])[0]
+            u = self._explore(greedy[None])[0]
             explored = bool((u != greedy).any())
         monitor = self.monitor
         diverged = False

@@ -79,7 +79,7 @@ class Learner(Protocol):
         """Resume from `training_state`'s arrays (ValueError if they do not fit)."""
 
 
-def make_learner(config: LearnerConfig, population: int = 1, params: Weights | None = None) -> WFNN:
+def make_learner(config: LearnerConfig, population: int = 1, params: Weights | None = None) -> Learner:
     """The learner the config names, with given weights (for `act`) or fresh ones."""
     kind = DeepParams if config.learner == "deep" else Params
     if params is not None and not isinstance(params, kind):
@@ -101,3 +101,16 @@ def weights_from_flat(config: LearnerConfig, flat: NDArray[np.float64]) -> Weigh
     if config.learner == "deep":
         return DeepParams(flat, DeepShapes.of(config))
     return Params(flat, Shapes.of(config))
+
+
+def make_population(config: LearnerConfig, population: int) -> Any:
+    """P independently learning controllers of the config's learner, fresh, for benchmarks.
+
+    The thesis' learner is one `WFNN` over P networks; the deep learner, P `DeepWFNN`s behind
+    the same array interface (`deep.DeepPopulation`: act, learn, think, snapshot, counters).
+    """
+    if config.learner == "deep":
+        from wfnn_common.deep import DeepPopulation
+
+        return DeepPopulation(config, population)
+    return WFNN(config, population)

@@ -241,3 +241,15 @@ def test_make_learner_refuses_weights_of_the_other_learner():
         make_learner(thesis, params=make_learner(deep).params)
     with pytest.raises(ValueError, match="population 1"):
         make_learner(deep, population=2)
+
+
+def test_an_invalid_state_is_acted_on_from_the_last_valid_one():
+    learner = make_learner(config())
+    good = learner.act(np.array([0.2, 0.4]), explore=False)
+    for bad in (np.array([np.nan, 0.4]), np.array([0.2, np.inf])):
+        result = learner.act(bad, explore=False)
+        assert not result.valid and np.isfinite(result.action).all()
+    # The non-finite entry takes the last valid value: the same state, the same action.
+    assert learner.act(np.array([np.nan, 0.4]), explore=False).action == pytest.approx(good.action)
+    batch = learner.act(np.array([[0.2, 0.4]]), explore=False)
+    assert batch.action[0] == pytest.approx(good.action)
