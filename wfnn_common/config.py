@@ -112,8 +112,8 @@ class DeepConfig:
     """Widths of the state trunk's ReLU layers."""
     value_hidden: int = 64
     """Width of the value head's ReLU layer, which sees trunk features and one wire action."""
-    layer_norm: bool = False
-    """Normalise each trunk layer's pre-activations (LayerNorm without learned scale)."""
+    layer_norm: bool = True
+    """Normalise the inputs of every ReLU (trunk and value head; LayerNorm without learned scale)."""
     lr: float = 3e-4
     """Adam's step size."""
     grad_clip: float = 10.0

@@ -12,7 +12,9 @@ target averaging are one operation each. One update on a minibatch of B experien
          + bc_weight * mean |best wire of critic 1 at x - u|^2
 
 Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires with the smoothing
-term on normalised values (`deep_net.wirefit_normalised`). Shapes: x [B, S], u [B, A].
+term on normalised values (`deep_net.wirefit_normalised`); the smoothing term's values are
+held constant in the gradient (normalised by a small span, its derivative would dwarf the
+rest). Shapes: x [B, S], u [B, A].
 """
 
 from __future__ import annotations
@@ -70,7 +72,10 @@ class Critics:
         u = u.view(2, batch, shapes.n_wires, shapes.action_dim)
         z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
         zu = torch.bmm(u.reshape(2, batch * shapes.n_wires, shapes.action_dim), p["Vu"].transpose(1, 2))
-        g = tnf.relu(z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1))
+        g = z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1)
+        if shapes.layer_norm:
+            g = tnf.layer_norm(g, g.shape[-1:], eps=LN_EPS)
+        g = tnf.relu(g)
         q = torch.bmm(g.view(2, batch * shapes.n_wires, -1), p["vo"].unsqueeze(2)).view(2, batch, -1)
         return u, q + p["bo"].view(2, 1, 1)
 
@@ -79,9 +84,10 @@ def wirefit(
     wire_u: torch.Tensor, wire_q: torch.Tensor, u: torch.Tensor, c: float, eps: float
 ) -> torch.Tensor:
     """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values."""
-    q_max = wire_q.max(dim=-1, keepdim=True).values
-    span = (q_max - wire_q.min(dim=-1, keepdim=True).values).detach().clamp_min(SPAN_FLOOR)
-    d = ((u.unsqueeze(-2) - wire_u) ** 2).sum(dim=-1) + (q_max - wire_q) * (c / span) + eps
+    q = wire_q.detach()
+    q_max = q.max(dim=-1, keepdim=True).values
+    span = (q_max - q.min(dim=-1, keepdim=True).values).clamp_min(SPAN_FLOOR)
+    d = ((u.unsqueeze(-2) - wire_u) ** 2).sum(dim=-1) + (q_max - q) * (c / span) + eps
     w = 1.0 / d
     return (w * wire_q).sum(dim=-1) / w.sum(dim=-1)
 
@@ -110,6 +116,10 @@ class Trainer:
         d = config.deep
         self.config = config
         self.device = torch.device(d.device)
+        if self.device.type == "cuda" and (
+            not torch.cuda.is_available() or (self.device.index or 0) >= torch.cuda.device_count()
+        ):
+            raise ValueError(f"deep.device {d.device}: torch sees no such CUDA device here")
         if self.device.type == "cpu":
             # One core: the result then does not depend on how many threads the process (or the
             # thread thinking in it) gets, so a server and an in-process learner agree exactly.
@@ -119,15 +129,19 @@ class Trainer:
         self.target = self.theta.detach().clone()
         self._blocks = self.critics.blocks(self.theta)
         self._target_blocks = self.critics.blocks(self.target)
-        self.optimiser = torch.optim.Adam([self.theta], lr=d.lr)
+        self.optimiser = self._adam()
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
+
+    def _adam(self) -> torch.optim.Adam:
+        """A fresh Adam over the weights (fused: one kernel for the whole vector)."""
+        return torch.optim.Adam([self.theta], lr=self.config.deep.lr, fused=True)
 
     def reset(self, theta: np.ndarray) -> None:
         """Fresh weights (targets equal), and Adam's moments forgotten."""
         with torch.no_grad():
             self.theta.copy_(torch.as_tensor(theta, dtype=torch.float32))
             self.target.copy_(self.theta)
-        self.optimiser = torch.optim.Adam([self.theta], lr=self.config.deep.lr)
+        self.optimiser = self._adam()
 
     def critic1(self) -> np.ndarray:
         """Critic 1's weights as float64 [n_params] (what `act` uses)."""
@@ -195,10 +209,10 @@ class Trainer:
         with torch.no_grad():
             self.theta.copy_(torch.as_tensor(state["theta"], dtype=torch.float32))
             self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
-        self.optimiser = torch.optim.Adam([self.theta], lr=self.config.deep.lr)
+        self.optimiser = self._adam()
         if "adam_m" in state:
             self.optimiser.state[self.theta] = {
-                "step": torch.tensor(float(state["adam_step"])),
+                "step": torch.tensor(float(state["adam_step"]), dtype=torch.float32, device=self.device),
                 "exp_avg": torch.as_tensor(state["adam_m"], dtype=torch.float32, device=self.device).clone(),
                 "exp_avg_sq": torch.as_tensor(
                     state["adam_v"], dtype=torch.float32, device=self.device

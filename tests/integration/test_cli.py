@@ -52,6 +52,16 @@ def test_bench_boat_writes_json_fields_and_plot(tmp_path):
         assert r["median_last10"] > 0 and r["thinks_per_s"] > 0
 
 
+def test_bench_boat_runs_deep_controllers(tmp_path):
+    j = tmp_path / "boat.json"
+    run([BIN / "wfnn-bench", "boat", "--learner", "deep", "--mode", "q", "--controllers", "2", "--targets", "2",
+         "--json", j])  # fmt: skip
+    (r,) = json.loads(j.read_text())["results"]
+    assert r["condition"] == "q" and r["controllers"] == 2 and len(r["scores"][0]) == 2
+    # One update per action by default: two targets of 200 actions for each controller.
+    assert r["thinks"] == 2 * 2 * 200 and all(0 < s < 10 for row in r["scores"] for s in row)
+
+
 def test_bench_boat_refuses_a_bad_mode():
     proc = subprocess.run(
         [BIN / "wfnn-bench", "boat", "--mode", "sideways"], capture_output=True, text=True, timeout=120

@@ -8,6 +8,7 @@ from wfnn_client.controllers import Controllers, PolicyShare, parse_mix, source_
 from wfnn_client.run import ClientConfig, SetupError, learner_config, run
 from wfnn_common import logs
 from wfnn_common.learner import WFNN
+from wfnn_common.learners import make_learner
 from wfnn_common.persist import save_weights
 
 
@@ -88,3 +89,18 @@ def test_the_learner_learns_off_policy_from_a_mix_and_the_log_names_who_drove(tm
         name: [s for d, s in zip(drove, metrics["scores"], strict=True) if d == name] for name in set(drove)
     }
     assert max(by["handcoded"]) < 0.5 < min(by["random"])
+
+
+def test_a_deep_learners_saved_weights_drive_as_a_behaviour_policy(tmp_path):
+    cfg = learner_config(BoatVec(1), ClientConfig(sim="boat", learner="deep"))
+    saved = make_learner(cfg)
+    save_weights(tmp_path / "deep.npz", cfg, saved.params, {})
+    low, high = np.array(cfg.action_low), np.array(cfg.action_high)
+    mix = Controllers(parse_mix(f"weights:{tmp_path / 'deep.npz'}"), cfg.spec_hash(), low, high, None,
+                      np.random.default_rng(0))  # fmt: skip
+    x = np.array([1.0, -0.5, 0.1, 0.0, 0.2, 0.0, 0.0])
+    acted = mix.act(f"weights:{tmp_path / 'deep.npz'}", x)
+    np.testing.assert_array_equal(acted.result.action, saved.act(x, explore=False).action)
+    # The thesis' learner's spec is another: its controllers refuse the deep weights.
+    with pytest.raises(ValueError, match="learner spec"):
+        _controllers(f"weights:{tmp_path / 'deep.npz'}")
