@@ -316,7 +316,7 @@ class DeepPopulation:
         return stored[0]
 
     def think(self, n: int | None = None) -> UpdateStats:
-        """n updates per member."""
+        """Each member thinks n updates (default thinks_per_action)."""
         stats = [m.think(n) for m in self.members]
         return UpdateStats(np.concatenate([s.q for s in stats]), np.concatenate([s.td_abs for s in stats]))
 

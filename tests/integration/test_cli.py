@@ -54,8 +54,8 @@ def test_bench_boat_writes_json_fields_and_plot(tmp_path):
 
 def test_bench_boat_runs_deep_controllers(tmp_path):
     j = tmp_path / "boat.json"
-    run([BIN / "wfnn-bench", "boat", "--learner", "deep", "--mode", "q", "--controllers", "2", "--targets", "2",
-         "--json", j])  # fmt: skip
+    run([BIN / "wfnn-bench", "boat", "--learner", "deep", "--mode", "q", "--controllers", "2",
+         "--targets", "2", "--json", j])  # fmt: skip
     (r,) = json.loads(j.read_text())["results"]
     assert r["condition"] == "q" and r["controllers"] == 2 and len(r["scores"][0]) == 2
     # One update per action by default: two targets of 200 actions for each controller.
