@@ -9,8 +9,10 @@ value after it), as an ordinary one when only the time limit truncated it.
 Declared ranges (the learner scales states and actions by them) come from the spaces. Where an
 observation bound is infinite (most MuJoCo tasks), its range is measured instead: the 1st and
 99th percentiles of the observations met over `probe_steps` random actions, widened by half
-their span on each side (observations beyond the declared range by more than the learner's
-sanity margin are then not learned, so the margin is generous).
+their span on each side. Such ranges are estimates from a random policy, which rarely goes
+where a good one does (a balanced pole's cart drifts far beyond where random pushes ever
+took it), so the task then declares `valid_margin` = MEASURED_MARGIN: the learner's sanity
+limits refuse only non-finite observations, not those beyond an estimated range.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from numpy.typing import NDArray
 from sims.base import Transition
 
 FloatArray = NDArray[np.float64]
+MEASURED_MARGIN = 1e6
+"""The sanity margin of a task whose ranges were measured: only non-finite states are refused."""
 
 
 def make_env(env_id: str, **make_kwargs: Any) -> gym.Env[Any, Any]:
@@ -63,8 +67,11 @@ class GymVec:
         self.action_low = tuple(float(v) for v in act.low)
         self.action_high = tuple(float(v) for v in act.high)
         low, high = obs.low.astype(np.float64), obs.high.astype(np.float64)
+        self.valid_margin = 1.0
+        """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
             low, high = self._measured_ranges(low, high, probe_steps)
+            self.valid_margin = MEASURED_MARGIN
         self.state_low = tuple(float(v) for v in low)
         self.state_high = tuple(float(v) for v in high)
         self.state_names = tuple(f"obs_{i}" for i in range(len(low)))

@@ -113,7 +113,7 @@ class DeepConfig:
     value_hidden: int = 64
     """Width of the value head's ReLU layer, which sees trunk features and one wire action."""
     layer_norm: bool = True
-    """Normalise the inputs of every ReLU (trunk and value head; LayerNorm without learned scale)."""
+    """Normalise the inputs of the trunk's ReLUs (LayerNorm without learned scale)."""
     lr: float = 3e-4
     """Adam's step size."""
     grad_clip: float = 10.0
@@ -329,10 +329,13 @@ class LearnerConfig:
     def for_task(cls, task: Any, learner: str = "thesis", **overrides: Any) -> LearnerConfig:
         """A config over a task's declared ranges, the learner's defaults where not overridden.
 
-        `task` is anything with state_low, state_high, action_low and action_high; the deep
-        learner starts from `DEEP_DEFAULTS`, the thesis' learner from the thesis' values.
+        `task` is anything with state_low, state_high, action_low and action_high (and, where
+        it declares one, `valid_margin`: how far outside those ranges its states may go); the
+        deep learner starts from `DEEP_DEFAULTS`, the thesis' learner from the thesis' values.
         """
-        defaults = DEEP_DEFAULTS if learner == "deep" else {}
+        defaults = dict(DEEP_DEFAULTS) if learner == "deep" else {}
+        if getattr(task, "valid_margin", None) is not None:
+            defaults["valid_margin"] = float(task.valid_margin)
         return cls(
             state_low=tuple(task.state_low), state_high=tuple(task.state_high),
             action_low=tuple(task.action_low), action_high=tuple(task.action_high),

@@ -72,10 +72,7 @@ class Critics:
         u = u.view(2, batch, shapes.n_wires, shapes.action_dim)
         z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
         zu = torch.bmm(u.reshape(2, batch * shapes.n_wires, shapes.action_dim), p["Vu"].transpose(1, 2))
-        g = z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1)
-        if shapes.layer_norm:
-            g = tnf.layer_norm(g, g.shape[-1:], eps=LN_EPS)
-        g = tnf.relu(g)
+        g = tnf.relu(z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1))
         q = torch.bmm(g.view(2, batch * shapes.n_wires, -1), p["vo"].unsqueeze(2)).view(2, batch, -1)
         return u, q + p["bo"].view(2, 1, 1)
 

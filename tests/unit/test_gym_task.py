@@ -4,7 +4,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from sims.gym import GymVec
+from sims.gym import MEASURED_MARGIN, GymVec
+from wfnn_common.config import LearnerConfig
+from wfnn_common.learners import make_learner
 
 
 def test_pendulum_ranges_steps_and_restarts_at_its_time_limit():
@@ -65,4 +67,16 @@ def test_infinite_observation_bounds_are_measured_from_random_play():
     assert np.isfinite(low).all() and np.isfinite(high).all()
     # The second coordinate wanders about 17 times further than the first.
     assert 8 < (high[1] - low[1]) / (high[0] - low[0]) < 35  # steps of 10 against about 0.6
+    # Measured ranges are estimates: a state far beyond them is still learned (only non-finite
+    # ones are refused), by either learner.
+    for learner in ("thesis", "deep"):
+        lcfg = LearnerConfig.for_task(task, learner=learner)
+        assert lcfg.valid_margin == MEASURED_MARGIN
+        wfnn = make_learner(lcfg)
+        far = high + 50 * (high - low)
+        assert wfnn.learn(far, np.zeros(task.env.action_space.shape), far, 0.0)
+        assert not wfnn.learn(far * np.nan, np.zeros(task.env.action_space.shape), far, 0.0)
     task.close()
+    declared = GymVec("Pendulum-v1")
+    assert LearnerConfig.for_task(declared).valid_margin == declared.valid_margin == 1.0
+    declared.close()
