@@ -182,9 +182,10 @@ class ClientConfig:
         )
         learner = ", ".join(f"{name} {value}" for name, value in (
             ("k", self.advantage_k), ("thinks", self.thinks_per_action), ("bc_weight", self.bc_weight),
+            ("options", self.learner_options or None),
         ) if value is not None) or "defaults"  # fmt: skip
         keyed = ", key" if self.key_file else ""
-        return f"{task}, {rate}, {where}{keyed}; learner {learner}; run directory {self.out}"
+        return f"{task}, {rate}, {where}{keyed}; {self.learner} learner {learner}; run directory {self.out}"
 
 
 class SetupError(ValueError):
@@ -192,7 +193,7 @@ class SetupError(ValueError):
 
 
 def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfig:
-    """The thesis' defaults over the declared ranges (with the client's overrides)."""
+    """The learner's defaults over the declared ranges (with the client's overrides)."""
     extra: dict[str, Any] = {}
     if config.thinks_per_action is not None:
         extra["thinks_per_action"] = config.thinks_per_action
