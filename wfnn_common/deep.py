@@ -41,15 +41,16 @@ class DeepWFNN(WFNN):
         super().__init__(config, population, params)  # type: ignore[arg-type]
 
     def _init_network(self, params: Any) -> None:
-        """Critic 1 from `params` (both critics start equal to it) or fresh; no torch yet."""
+        """Critic 1 from `params` (critic 2 near it) or both fresh; no torch yet."""
         self.shapes = DeepShapes.of(self.config)
         if params is not None and not isinstance(params, DeepParams):
             raise ValueError("a deep learner's params must be DeepParams")
         if params is None:
             theta = self._fresh_theta()
             params = DeepParams(theta[None, : self.shapes.n_params].copy(), self.shapes)
-        else:
-            theta = np.concatenate([params.flat[0], params.flat[0]])
+        else:  # critic 2 starts near critic 1, apart enough that the twins do not stay equal
+            nudge = 0.01 * deep_net.init_critic(self.shapes, self._weights_rng)
+            theta = np.concatenate([params.flat[0], params.flat[0] + nudge])
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
         self._trainer: Any = None

@@ -298,3 +298,14 @@ def test_thinking_on_cuda_matches_the_cpu():
     batch = learners[0]._n_step(np.arange(32))
     steps = [learner._train().update(batch) for learner in learners]
     np.testing.assert_allclose(steps[0], steps[1], rtol=1e-4)
+
+
+def test_learning_on_from_saved_weights_starts_the_twins_apart():
+    cfg = config()
+    saved = DeepWFNN(cfg)
+    learner = make_learner(cfg, params=saved.params.copy())
+    theta = learner.training_state()["theta"].astype(np.float64)
+    n = n_params(cfg)
+    np.testing.assert_allclose(theta[:n], saved.params.flat[0], atol=1e-6)
+    gap = np.abs(theta[n:] - theta[:n])
+    assert 0 < gap.max() < 0.05 * np.abs(theta[:n]).max()
