@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 from dataclasses import dataclass, field
@@ -188,6 +189,7 @@ MAX_WIRES = 1024
 MAX_THINKS = 1_000_000
 MAX_BATCH = 1 << 20
 MAX_REPLAY_BYTES = 8 << 30
+MAX_DEEP_PARAMS = 20_000_000
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
 for more memory or work than any robot here needs is refused rather than attempted."""
 
@@ -319,6 +321,15 @@ class LearnerConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"{message} (config: {self.short_repr()})")
+        if self.learner == "deep":
+            d, widths = self.deep, (len(s_lo), *self.deep.hidden)
+            # Exactly `deep_net.DeepShapes.n_params`: the trunk, the wire head, the value head.
+            size = sum(a * b + b for a, b in itertools.pairwise(widths))
+            size += (widths[-1] + 1) * self.n_wires * len(a_lo)
+            size += d.value_hidden * (widths[-1] + len(a_lo) + 2) + 1
+            if size > MAX_DEEP_PARAMS:
+                raise ConfigError(f"the deep learner's critic would have {size:,} parameters, more than "
+                                  f"{MAX_DEEP_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
         for symmetry in self.symmetries:
             try:
                 symmetry.check_dims(self.state_dim, self.action_dim)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from wfnn_common import config as config_module
 from wfnn_common import deep_net
 from wfnn_common.config import ConfigError, DeepConfig, LearnerConfig, with_options
 from wfnn_common.deep import DeepWFNN
@@ -309,3 +310,18 @@ def test_learning_on_from_saved_weights_starts_the_twins_apart():
     np.testing.assert_allclose(theta[:n], saved.params.flat[0], atol=1e-6)
     gap = np.abs(theta[n:] - theta[:n])
     assert 0 < gap.max() < 0.05 * np.abs(theta[:n]).max()
+
+
+def test_a_deep_config_too_large_for_memory_is_refused(monkeypatch):
+    cfg = config()
+    with pytest.raises(ConfigError, match="parameters"):
+        with_options(cfg, {"deep": {"hidden": [4096] * 3}})
+    # The bound counts exactly the parameters the network has.
+    for hidden in ((7,), (32, 5, 9)):
+        monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", 10**9)
+        size = deep_net.DeepShapes.of(with_options(cfg, {"deep": {"hidden": list(hidden)}})).n_params
+        monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", size)
+        with_options(cfg, {"deep": {"hidden": list(hidden)}})
+        monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", size - 1)
+        with pytest.raises(ConfigError, match="parameters"):
+            with_options(cfg, {"deep": {"hidden": list(hidden)}})
