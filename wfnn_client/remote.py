@@ -215,6 +215,7 @@ class RemoteBrain:
         self._sent: collections.deque[tuple[float, int]] = collections.deque()
         self._overdue = -1
         self.produced_through = self.journal.next_seq - 1
+        learner.experienced(self.journal.next_seq)  # a robot restarting is not starting to learn
         self.rejected: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
         self.apply_latency_ms: list[float] = []

@@ -151,7 +151,8 @@ class DeepConfig:
             (1 <= self.n_step <= 100, "deep.n_step must be in [1, 100]"),
             (0 <= self.warmup <= 10_000_000, "deep.warmup must be in [0, 1e7]"),
             (self.device == "cpu" or self.device == "cuda" or
-             (self.device.startswith("cuda:") and self.device[5:].isdigit()),
+             (self.device.startswith("cuda:") and self.device[5:].isascii() and self.device[5:].isdigit()
+              and len(self.device) <= 8),
              "deep.device must be cpu, cuda or cuda:N"),
         ]  # fmt: skip
         for ok, message in checks:
@@ -189,7 +190,11 @@ MAX_WIRES = 1024
 MAX_THINKS = 1_000_000
 MAX_BATCH = 1 << 20
 MAX_REPLAY_BYTES = 8 << 30
-MAX_DEEP_PARAMS = 20_000_000
+MAX_DEEP_PARAMS = 4_000_000
+"""A deep critic's weights travel in one snapshot (float64, at most 32 MiB with the rest)."""
+MAX_DEEP_WORK = 1 << 24
+"""Largest batch_size x n_wires x (value_hidden + n_wires + action_dim) of a deep learner's
+update: its value head's working arrays (4 bytes each, for both critics, with gradients)."""
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
 for more memory or work than any robot here needs is refused rather than attempted."""
 
@@ -330,6 +335,10 @@ class LearnerConfig:
             if size > MAX_DEEP_PARAMS:
                 raise ConfigError(f"the deep learner's critic would have {size:,} parameters, more than "
                                   f"{MAX_DEEP_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
+            work = self.batch_size * self.n_wires * (d.value_hidden + self.n_wires + len(a_lo))
+            if work > MAX_DEEP_WORK:
+                raise ConfigError(f"batch_size x n_wires x (value_hidden + n_wires + action_dim) = {work:,} "
+                                  f"is more than {MAX_DEEP_WORK:,} ({self.short_repr()})")  # fmt: skip
         for symmetry in self.symmetries:
             try:
                 symmetry.check_dims(self.state_dim, self.action_dim)
@@ -371,8 +380,15 @@ class LearnerConfig:
 
     # ----------------------------------------------------------------- serialisation
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON form of the config."""
-        return dataclasses.asdict(self)
+        """Plain-JSON form of the config.
+
+        A thesis' learner's config leaves out `learner` and `deep` (their defaults), so that
+        it reads as before wherever it goes.
+        """
+        data = dataclasses.asdict(self)
+        if self.learner == "thesis":
+            del data["learner"], data["deep"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LearnerConfig:

@@ -43,6 +43,7 @@ class DeepWFNN(WFNN):
     def _init_network(self, params: Any) -> None:
         """Critic 1 from `params` (critic 2 near it) or both fresh; no torch yet."""
         self.shapes = DeepShapes.of(self.config)
+        given = params
         if params is not None and not isinstance(params, DeepParams):
             raise ValueError("a deep learner's params must be DeepParams")
         if params is None:
@@ -54,8 +55,9 @@ class DeepWFNN(WFNN):
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
         self._trainer: Any = None
-        self.acted = 0
-        """Explored actions taken so far (the first deep.warmup are uniformly random)."""
+        self.acted = 0 if given is None else self.config.deep.warmup
+        """Explored actions taken so far (the first deep.warmup are uniformly random; none with
+        given weights)."""
 
     def _fresh_theta(self) -> FloatArray:
         return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng) for _ in range(2)])
@@ -90,6 +92,10 @@ class DeepWFNN(WFNN):
         best = int(wire_q.argmax())
         return self._finish_one(wire_u[best], float(wire_q[best]), valid, explore, params)
 
+    def experienced(self, n: int) -> None:
+        """Count n experiences produced before this process (a robot's journal): warm-up included."""
+        self.acted = max(self.acted, n)
+
     def _explore(self, greedy: FloatArray) -> FloatArray:
         self.acted += 1
         if self.acted <= self.config.deep.warmup:
@@ -100,27 +106,39 @@ class DeepWFNN(WFNN):
     def _n_step(self, idx: NDArray[np.int64]) -> dict[str, FloatArray]:
         """Minibatch arrays at buffer indices idx [B], with n-step returns where the data allow.
 
-        Experience i+k continues experience i+k-1 when it was stored right after it, starts
-        from its next state, and that was not terminal; the return stops at the first break.
+        An experience continues the one before when it was stored at most 1 + len(symmetries)
+        places after it (mirrored copies are stored between real ones), starts from its next
+        state, and that was not terminal; the return stops at the first break.
         """
         cfg, buf = self.config, self.buffer
         gamma = cfg.gamma
+        flags = buf.arrays().terminal[0]  # the 0/1 column itself (no copy of the buffer)
         state, action = buf.state[0, idx], buf.action[0, idx]
         reward = self._reward(buf.reward[0, idx])
         next_state = buf.next_state[0, idx].copy()
-        terminal = buf.terminal[0, idx]
+        terminal = flags[idx] != 0.0
         discount = np.where(terminal, 0.0, gamma)
         if cfg.deep.n_step > 1:
-            age = (buf.added[0] - 1 - idx) % buf.capacity  # experiences stored after each one
+            reach = 1 + len(cfg.symmetries)
+            newest = int(buf.added[0]) - 1
+            now = idx.copy()
             going = ~terminal
             for k in range(1, cfg.deep.n_step):
-                j = (idx + k) % buf.capacity
-                going = going & (age >= k) & (buf.state[0, j] == next_state).all(axis=1)
+                found = np.zeros_like(going)
+                after = now.copy()
+                for offset in range(1, reach + 1):  # the first stored after `now` that continues it
+                    j = (now + offset) % buf.capacity
+                    stored = (newest - now) % buf.capacity >= offset
+                    hit = going & ~found & stored & (buf.state[0, j] == next_state).all(axis=1)
+                    after = np.where(hit, j, after)
+                    found |= hit
+                going = found
                 if not going.any():
                     break
-                reward = reward + np.where(going, gamma**k * self._reward(buf.reward[0, j]), 0.0)
-                term_j = buf.terminal[0, j]
-                next_state = np.where(going[:, None], buf.next_state[0, j], next_state)
+                now = after
+                reward = reward + np.where(going, gamma**k * self._reward(buf.reward[0, now]), 0.0)
+                term_j = flags[now] != 0.0
+                next_state = np.where(going[:, None], buf.next_state[0, now], next_state)
                 discount = np.where(going, np.where(term_j, 0.0, gamma ** (k + 1)), discount)
                 going = going & ~term_j
         return {"state": state, "action": action, "reward": reward, "next_state": next_state,
@@ -136,9 +154,9 @@ class DeepWFNN(WFNN):
         if n <= 0 or self.buffer.count[0] == 0:
             return self.last_think
         trainer = self._train()
-        idx = self.buffer.sample_indices(self._replay_rng, n * cfg.batch_size)[0].reshape(n, cfg.batch_size)
         q = td = 0.0
-        for rows in idx:
+        for _ in range(n):  # sampled per update: n x batch_size indices at once could be large
+            rows = self.buffer.sample_indices(self._replay_rng, cfg.batch_size)[0]
             q, td = trainer.update(self._n_step(rows))
         self.thinks += n
         self._sync()
@@ -189,10 +207,18 @@ class DeepWFNN(WFNN):
                 arr = np.asarray(state[key])
                 if arr.shape != (n,) or not np.isfinite(arr).all():
                     raise ValueError(f"training state {key}: shape {arr.shape}, expected ({n},) and finite")
+        if not state:  # weights only (saved without their training): Adam starts afresh
+            return
         if "theta" not in state or "target" not in state:
             raise ValueError("training state lacks theta or target")
         if ("adam_m" in state) != ("adam_v" in state) or ("adam_m" in state) != ("adam_step" in state):
             raise ValueError("training state has part of Adam's state")
+        if "adam_v" in state and (np.asarray(state["adam_v"]) < 0).any():
+            raise ValueError("training state adam_v has negative entries")
+        if "adam_step" in state:
+            step = np.asarray(state["adam_step"])
+            if step.shape != () or not np.isfinite(step) or step < 0 or step > 1e15 or step != np.round(step):
+                raise ValueError(f"training state adam_step is not a count: {step!r}")
         self._theta0 = np.asarray(state["theta"], dtype=np.float64)
         self._train().load(state)
         self._sync()
@@ -288,8 +314,12 @@ class DeepPopulation:
 
     @property
     def params(self) -> PopulationParams:
-        """The members' current weights (views: they follow learning)."""
-        return PopulationParams([cast(DeepParams, m.params) for m in self.members])
+        """The members' current weights, as new views of them.
+
+        They follow learning; acting on them is acting on given weights, which a divergence
+        does not reset.
+        """
+        return PopulationParams([DeepParams(cast(DeepParams, m.params).flat, m.shapes) for m in self.members])
 
     def snapshot(self) -> PopulationParams:
         """Copies of the members' weights."""

@@ -430,6 +430,9 @@ class WFNN:
             reinit(self.params, self.config, self._weights_rng, idx)
             self.resets[idx] += 1
 
+    def experienced(self, n: int) -> None:
+        """Count n experiences produced before this process (the thesis' learner has no use for it)."""
+
     def training_state(self) -> dict[str, FloatArray]:
         """What training needs beyond `params` to resume: nothing for the thesis' learner."""
         return {}

@@ -72,6 +72,9 @@ class Learner(Protocol):
     def q_value(self, state: ArrayLike, action: ArrayLike) -> Any:
         """Q(x, u) by wire fitting."""
 
+    def experienced(self, n: int) -> None:
+        """Count n experiences this robot produced before (a journal's): the deep learner's warm-up."""
+
     def training_state(self) -> dict[str, NDArray[Any]]:
         """What training needs beyond the weights to resume (saved with checkpoints)."""
 

@@ -69,6 +69,7 @@ def serve(
         typer.Option(help="Take experiences, status and pictures only from this client id (repeatable)."),
     ] = None,
     seed: Annotated[int | None, typer.Option(help="Override the learner's seed.")] = None,
+    device: Annotated[str, typer.Option(help="Where a deep learner trains: cpu, cuda or cuda:N.")] = "cpu",
     bc_weight: Annotated[
         float | None,
         typer.Option(
@@ -125,7 +126,7 @@ def serve(
     config = ServerConfig(
         controller=controller, server_id=server_id, net=net, data_dir=data_dir,
         learner_config=learner_config, key_file=key_file, insecure=insecure,
-        allow_clients=tuple(allow_client or ()), seed=seed, bc_weight=bc_weight, alpha=alpha,
+        allow_clients=tuple(allow_client or ()), seed=seed, device=device, bc_weight=bc_weight, alpha=alpha,
         publish_period_s=publish_period,
         checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
         replay=tuple(replay_only or ()), replay_only=bool(replay_only),

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from wfnn_common.config import check_fields
+from wfnn_common.config import DeepConfig, check_fields
 from wfnn_common.net import NetConfig
 from wfnn_common.protocol import check_id
 from wfnn_common.segments import FsyncPolicy
@@ -60,6 +60,9 @@ class ServerConfig:
     """Client ids whose experiences, status and pictures are taken; empty: any client."""
     seed: int | None = None
     """Overrides the learner config's seed (servers on the same data learn differently)."""
+    device: str = "cpu"
+    """Where a deep learner trains on this server ("cpu", "cuda", "cuda:N"): the server's own
+    choice, whatever the config it adopts from a client says."""
     bc_weight: float | None = None
     """Overrides the learner config's `bc_weight` (the best wire pulled toward the actions taken:
     for passive learning from other controllers' logs, `wfnn-bench passive`)."""
@@ -113,6 +116,13 @@ class ServerConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        DeepConfig(device=self.device)  # the same rule for a device name as a learner config's
+        if self.device != "cpu":
+            import torch
+
+            index = int(self.device[5:]) if ":" in self.device else 0
+            if not torch.cuda.is_available() or index >= torch.cuda.device_count():
+                raise ValueError(f"device {self.device}: torch sees no such CUDA device here")
         check_id(self.controller, "controller name")
         check_id(self.server_id, "server id")
         for client in self.allow_clients:

@@ -250,14 +250,15 @@ class ThinkServer:
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
         """`cfg` with this server's overrides (seed, bc_weight, learning rate) where it sets them.
 
-        The learning rate is the thesis' learner's `alpha`, or the deep learner's `deep.lr`.
+        The learning rate is the thesis' learner's `alpha`, or the deep learner's `deep.lr`; a
+        deep learner also trains on this server's device.
         """
         changes: dict[str, Any] = {"seed": self.config.seed, "bc_weight": self.config.bc_weight}
-        if self.config.alpha is not None:
-            if cfg.learner == "deep":
-                changes["deep"] = dataclasses.replace(cfg.deep, lr=self.config.alpha)
-            else:
-                changes["alpha"] = self.config.alpha
+        if cfg.learner == "deep":  # trains where this server says, whatever the client's config says
+            lr = cfg.deep.lr if self.config.alpha is None else self.config.alpha
+            changes["deep"] = dataclasses.replace(cfg.deep, lr=lr, device=self.config.device)
+        elif self.config.alpha is not None:
+            changes["alpha"] = self.config.alpha
         return dataclasses.replace(cfg, **{key: value for key, value in changes.items() if value is not None})
 
     def _import_logs(self, directories: tuple[Path, ...]) -> tuple[int, LearnerConfig | None]:

@@ -325,3 +325,67 @@ def test_a_deep_config_too_large_for_memory_is_refused(monkeypatch):
         monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", size - 1)
         with pytest.raises(ConfigError, match="parameters"):
             with_options(cfg, {"deep": {"hidden": list(hidden)}})
+
+
+def test_n_step_returns_step_over_mirrored_copies():
+    mirror = Symmetry(name="mirror", state_index=(0, 1), state_sign=(-1.0, 1.0), action_index=(0,),
+                      action_sign=(-1.0,))  # fmt: skip
+    learner = DeepWFNN(config(gamma=0.5, deep={"n_step": 3}, symmetries=(mirror,)))
+    z = np.zeros(1)
+    for s, sn, r in (((0.1, 0), (0.2, 0), 1.0), ((0.2, 0), (0.3, 0), 2.0), ((0.3, 0), (0.4, 0), 4.0)):
+        learner.learn(np.array(s), z, np.array(sn), r)
+    # Stored: real, mirror, real, mirror, real, mirror. Each chain follows its own kind.
+    batch = learner._n_step(np.arange(6))
+    np.testing.assert_allclose(batch["reward"], [1 + 1 + 1, 1 + 1 + 1, 2 + 2, 2 + 2, 4, 4])
+    np.testing.assert_allclose(batch["next_state"][:, 0], [0.4, -0.4, 0.4, -0.4, 0.4, -0.4])
+    # learn_many stores the block of real ones, then the block of mirrored ones: the same chains.
+    block = DeepWFNN(config(gamma=0.5, deep={"n_step": 3}, symmetries=(mirror,)))
+    s = np.array([[0.1, 0], [0.2, 0], [0.3, 0]])
+    sn = np.array([[0.2, 0], [0.3, 0], [0.4, 0]])
+    block.learn_many(s, np.zeros((3, 1)), sn, np.array([1.0, 2.0, 4.0]), np.zeros(3, dtype=bool))
+    np.testing.assert_allclose(block._n_step(np.arange(6))["reward"], [3, 4, 4, 3, 4, 4])
+
+
+def test_damaged_or_partial_training_state():
+    learner = DeepWFNN(config())
+    learner.learn(np.zeros(2), np.zeros(1), np.zeros(2), -1.0)
+    learner.think(3)
+    state = learner.training_state()
+    for bad in ({"adam_v": -np.abs(state["adam_v"]) - 1.0}, {"adam_step": np.float64(np.nan)},
+                {"adam_step": np.float64(2.5)}, {"adam_m": state["adam_m"][:5]}):  # fmt: skip
+        with pytest.raises(ValueError, match="training state"):
+            make_learner(learner.config, params=learner.params.copy()).load_training_state({**state, **bad})
+    # Weights saved without their training: they are kept, Adam starts afresh.
+    resumed = make_learner(learner.config, params=learner.params.copy())
+    resumed.load_training_state({})
+    np.testing.assert_array_equal(resumed.params.flat, learner.params.flat)
+    assert "adam_m" not in resumed.training_state()
+
+
+def test_warm_up_is_skipped_with_given_weights_and_counts_earlier_experiences():
+    cfg = with_options(config(deep={"warmup": 50}), {"exploration": {"kind": "none"}})
+    fresh, given = DeepWFNN(cfg), make_learner(cfg, params=DeepWFNN(cfg).params.copy())
+    x = np.zeros(2)
+    assert bool(fresh.act(x).explored) and not bool(given.act(x).explored)
+    fresh.experienced(50)  # a robot whose journal holds 50 experiences already
+    assert not bool(fresh.act(x).explored)
+
+
+def test_acting_on_a_populations_weights_never_resets_them():
+    population = make_population(config(divergence_threshold=-1e9, divergence_patience=1), 2)
+    before = population.snapshot().flat
+    acted = population.act(np.zeros((2, 2)), explore=False, params=population.params)
+    assert acted.diverged.all() and population.resets.tolist() == [0, 0]
+    np.testing.assert_array_equal(population.snapshot().flat, before)
+    population.act(np.zeros((2, 2)), explore=False)  # its own weights: reset
+    assert population.resets.tolist() == [1, 1]
+
+
+def test_thesis_configs_read_as_before_and_deep_work_is_bounded():
+    thesis = LearnerConfig.for_task(Task())
+    assert "learner" not in thesis.to_dict() and "deep" not in thesis.to_dict()
+    assert LearnerConfig.from_json(thesis.to_json()) == thesis
+    with pytest.raises(ConfigError, match="batch_size x n_wires"):
+        with_options(config(), {"batch_size": 65536, "n_wires": 1024, "deep": {"hidden": [1]}})
+    with pytest.raises(ConfigError, match="device"):
+        with_options(config(), {"deep": {"device": "cuda:\u0663"}})

@@ -253,3 +253,16 @@ def test_silent_clients_are_reported(tmp_path, monkeypatch):
         assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 1)
         hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
         assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 0)
+
+
+def test_a_deep_learner_trains_on_the_servers_device_not_the_clients(tmp_path):
+    hub = Hub()
+    cfg = small_config(learner="deep")
+    cfg = type(cfg).from_dict({**cfg.to_dict(), "deep": {**cfg.to_dict()["deep"], "device": "cuda:7"}})
+    server = make_server(tmp_path, hub, cfg)
+    assert server.learner_config.deep.device == "cpu"
+    assert server.learner_config.spec_hash() == cfg.spec_hash()  # the same learner to its clients
+    server.store.close()
+    if not __import__("torch").cuda.is_available():
+        with pytest.raises(ValueError, match="no such CUDA device"):
+            ServerConfig(controller="t", server_id="s2", data_dir=tmp_path / "s2", device="cuda")
