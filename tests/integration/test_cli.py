@@ -263,6 +263,12 @@ with ActLearnThinkMT(learner) as mt:
         time.sleep(0.01)
 assert mt.error is None and learner.thinks[0] > 0, (mt.error, learner.thinks)
 import wfnn_client.remote, wfnn_client.run, wfnn_common.net, wfnn_common.protocol  # the C/S client too
+from wfnn_common.learners import make_learner, weights_from_flat
+deep = make_learner(learner_config(task, ClientConfig(learner="deep")))  # acting on a server's snapshots
+for _ in range(5):
+    u = deep.act(x).action
+    deep.learn(x, u, x, -1.0)
+assert deep.act(x, explore=False, params=weights_from_flat(deep.config, deep.params.flat.copy())).valid
 assert "torch" not in [m for m in sys.modules if sys.modules[m] is not None]
 print("ok")
 """
