@@ -185,7 +185,8 @@ class ClientConfig:
             ("options", self.learner_options or None),
         ) if value is not None) or "defaults"  # fmt: skip
         keyed = ", key" if self.key_file else ""
-        return f"{task}, {rate}, {where}{keyed}; {self.learner} learner {learner}; run directory {self.out}"
+        kind = "" if self.learner == "thesis" else f"{self.learner} "  # the thesis' learner: as before
+        return f"{task}, {rate}, {where}{keyed}; {kind}learner {learner}; run directory {self.out}"
 
 
 class SetupError(ValueError):
