@@ -23,7 +23,7 @@ from wfnn_client.run import ClientConfig, jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.cli_errors import guarded
-from wfnn_common.config import LEARNERS, ExplorationConfig
+from wfnn_common.config import ExplorationConfig
 from wfnn_common.net import NetConfig
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
@@ -190,9 +190,6 @@ def client(
     if sim not in SIMS:
         raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
     rate = rate_hz if rate_hz is not None else (0.0 if lockstep else SIMS[sim].rate_hz)
-    if learner not in LEARNERS:
-        raise typer.BadParameter(f"unknown learner {learner!r}; choose from {', '.join(LEARNERS)}",
-                                 param_hint="--learner")  # fmt: skip
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):

@@ -26,9 +26,6 @@ from wfnn_common.learner import WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
-TRAINING_KEYS = ("theta", "target", "adam_m", "adam_v", "adam_step")
-"""Arrays of the training state (`training_state`): weights, targets, Adam's moments and step."""
-
 
 class DeepWFNN(WFNN):
     """One deep wire-fitting learner (see the module docstring)."""
@@ -43,7 +40,9 @@ class DeepWFNN(WFNN):
     def _init_network(self, params: Any) -> None:
         """Critic 1 from `params` (critic 2 near it) or both fresh; no torch yet."""
         self.shapes = DeepShapes.of(self.config)
-        given = params
+        self.acted = 0 if params is None else self.config.deep.warmup
+        """Explored actions taken so far (the first deep.warmup are uniformly random; none with
+        given weights)."""
         if params is not None and not isinstance(params, DeepParams):
             raise ValueError("a deep learner's params must be DeepParams")
         if params is None:
@@ -55,9 +54,6 @@ class DeepWFNN(WFNN):
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
         self._trainer: Any = None
-        self.acted = 0 if given is None else self.config.deep.warmup
-        """Explored actions taken so far (the first deep.warmup are uniformly random; none with
-        given weights)."""
 
     def _fresh_theta(self) -> FloatArray:
         return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng) for _ in range(2)])
@@ -158,6 +154,10 @@ class DeepWFNN(WFNN):
         for _ in range(n):  # sampled per update: n x batch_size indices at once could be large
             rows = self.buffer.sample_indices(self._replay_rng, cfg.batch_size)[0]
             q, td = trainer.update(self._n_step(rows))
+        return self._thought(n, q, td)
+
+    def _thought(self, n: int, q: float, td: float) -> UpdateStats:
+        """Count n updates done, show `act` the new weights; -> the last update's stats."""
         self.thinks += n
         self._sync()
         self.last_think = UpdateStats(np.array([q]), np.array([td]))
@@ -173,11 +173,7 @@ class DeepWFNN(WFNN):
         discount = np.where(terminal, 0.0, self.config.gamma)
         batch = {"state": exp.state[0], "action": exp.action[0], "reward": self._reward(exp.reward[0]),
                  "next_state": exp.next_state[0], "discount": discount}  # fmt: skip
-        q, td = self._train().update(batch)
-        self.thinks += 1
-        self._sync()
-        self.last_think = UpdateStats(np.array([q]), np.array([td]))
-        return self.last_think
+        return self._thought(1, *self._train().update(batch))
 
     # ------------------------------------------------------------------ weights
     def reset_weights(self, which: BoolArray) -> None:

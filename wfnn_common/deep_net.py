@@ -74,6 +74,15 @@ class DeepShapes:
         ]
         return out
 
+    def slices(self) -> dict[str, tuple[int, int, tuple[int, ...]]]:
+        """Each block's (start, end, shape) in the flat vector."""
+        out, a = {}, 0
+        for name, shape in self.blocks():
+            size = int(np.prod(shape))
+            out[name] = (a, a + size, shape)
+            a += size
+        return out
+
     @property
     def n_params(self) -> int:
         """Parameters of one critic."""
@@ -112,12 +121,7 @@ class DeepParams:
             raise ValueError("flat params must be C-contiguous float64")
         self.flat = flat
         self.shapes = shapes
-        self.blocks: dict[str, FloatArray] = {}
-        a = 0
-        for name, shape in shapes.blocks():
-            n = int(np.prod(shape))
-            self.blocks[name] = flat[0, a : a + n].reshape(shape)
-            a += n
+        self.blocks = {name: flat[0, a:b].reshape(shape) for name, (a, b, shape) in shapes.slices().items()}
         self.trunk = [(self.blocks[f"W{k}"], self.blocks[f"b{k}"]) for k in range(len(shapes.hidden))]
 
     @property
@@ -158,7 +162,7 @@ def wires_one(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray
     h = x
     for W, bias in params.trunk:
         h = W @ h + bias
-        if params.shapes.layer_norm:
+        if params.shapes.layer_norm:  # `_layer_norm` for one vector, without its keepdims broadcasts
             h = h - h.mean()
             h = h / np.sqrt((h * h).mean() + LN_EPS)
         np.maximum(h, 0.0, out=h)

@@ -42,12 +42,7 @@ class Critics:
     def __init__(self, shapes: DeepShapes) -> None:
         self.shapes = shapes
         self.n = shapes.n_params
-        self.slices: dict[str, tuple[int, int, tuple[int, ...]]] = {}
-        a = 0
-        for name, shape in shapes.blocks():
-            size = int(np.prod(shape))
-            self.slices[name] = (a, a + size, shape)
-            a += size
+        self.slices = shapes.slices()
 
     def blocks(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
         """Views [2, *shape] of each block of both critics in theta [2 n].
