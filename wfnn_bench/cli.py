@@ -735,10 +735,12 @@ def vs_sb3(
                 )
             )
         for name in cfg.learners:
-            if f"sac_act_over_{name}_act" in algos:
-                latency, cost = algos[f"sac_act_over_{name}_act"], algos[f"{name}_s_per_step_over_sac"]
-                rows.append((f"{env_id}: SAC predict / {name} act latency; {name} / SAC s per step",
-                             f"{latency:.1f}x; {cost:.2f}"))  # fmt: skip
+            for sb3 in ("sac", "td3"):
+                if f"{sb3}_act_over_{name}_act" in algos:
+                    latency = algos[f"{sb3}_act_over_{name}_act"]
+                    cost = algos[f"{name}_s_per_step_over_{sb3}"]
+                    what = f"{sb3.upper()} predict / {name} act latency; {name} / {sb3.upper()} s per step"
+                    rows.append((f"{env_id}: {what}", f"{latency:.1f}x; {cost:.2f}"))
     rows.append(("wall_s", result["wall_s"]))
     _table("WFNN vs Stable-Baselines3", rows)
     if json_path:

@@ -191,6 +191,13 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     problem = sb3_problem()
+    if problem is None or "deep" in cfg.learners:
+        from wfnn_common.deep_torch import keep_freed_memory
+
+        # The deep learner's trainer keeps freed memory for reuse (its update's temporaries would
+        # page-fault otherwise); set for the whole process first, so that every algorithm timed
+        # here runs under the same allocator settings.
+        keep_freed_memory()
     out: dict[str, Any] = {"benchmark": "vs-sb3", "config": asdict(cfg), "machine": machine_info(),
                            "sb3": problem or "available", "tasks": {}}  # fmt: skip
     for env_id, steps in zip(cfg.tasks, cfg.steps, strict=True):
@@ -218,11 +225,12 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                 **({"config": runs[0]["config"]} if "config" in runs[0] else {}),
             }  # fmt: skip
         task = out["tasks"][env_id]
-        sac = task.get("sac", {})
         for name in cfg.learners:
-            if name in task and "act_us" in sac:
-                task[f"sac_act_over_{name}_act"] = sac["act_us"] / task[name]["act_us"]
-                task[f"{name}_s_per_step_over_sac"] = task[name]["s_per_step"] / sac["s_per_step"]
+            for sb3 in ("sac", "td3"):
+                other = task.get(sb3, {})
+                if name in task and "act_us" in other:
+                    task[f"{sb3}_act_over_{name}_act"] = other["act_us"] / task[name]["act_us"]
+                    task[f"{name}_s_per_step_over_{sb3}"] = task[name]["s_per_step"] / other["s_per_step"]
     out["wall_s"] = time.perf_counter() - t0
     return out
 

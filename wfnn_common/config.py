@@ -109,7 +109,7 @@ class DeepConfig:
     wires, with the smoothing term on the wires' values min-max normalised per state.
     """
 
-    hidden: tuple[int, ...] = (256, 256)
+    hidden: tuple[int, ...] = (128, 128)
     """Widths of the state trunk's ReLU layers."""
     value_hidden: int = 64
     """Width of the value head's ReLU layer, which sees trunk features and one wire action."""
@@ -135,6 +135,11 @@ class DeepConfig:
     """Actions of a learner that are uniformly random, before its own choices explore."""
     device: str = "cpu"
     """Where torch trains: "cpu", "cuda" or "cuda:N" (`act` always runs on numpy)."""
+    compile: bool = False
+    """Compile the update with torch.compile: the same arithmetic, about twice as fast on a CPU,
+    after a one-off compile of 5 to 30 s in the first update (so not for a learner that thinks
+    in a robot's tick). Needs a C++ compiler; where compiling fails, training goes on uncompiled
+    with a warning."""
 
     def __post_init__(self) -> None:
         check_fields(self)

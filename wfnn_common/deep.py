@@ -68,8 +68,8 @@ class DeepWFNN(WFNN):
         return self._trainer
 
     def _sync(self) -> None:
-        """Copy critic 1's trained weights into `params` (the weights `act` reads)."""
-        self.params.flat[0] = self._train().critic1()
+        """Critic 1's trained weights become `params` (the weights `act` reads)."""
+        self.params = DeepParams(self._train().critic1()[None], self.shapes)
 
     # ------------------------------------------------------------------ act
     def _greedy(self, params: Any, x: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -183,7 +183,7 @@ class DeepWFNN(WFNN):
         theta = self._fresh_theta()
         if self._trainer is None:
             self._theta0 = theta
-            self.params.flat[0] = theta[: self.shapes.n_params]
+            self.params = DeepParams(theta[None, : self.shapes.n_params].copy(), self.shapes)
         else:
             self._trainer.reset(theta)
             self._sync()

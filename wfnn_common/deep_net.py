@@ -23,6 +23,8 @@ interpolation, with the smoothing term on values min-max normalised over the sta
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,7 +77,11 @@ class DeepShapes:
         return out
 
     def slices(self) -> dict[str, tuple[int, int, tuple[int, ...]]]:
-        """Each block's (start, end, shape) in the flat vector."""
+        """Each block's (start, end, shape) in the flat vector (the same dict each call: read only)."""
+        return self._slices
+
+    @functools.cached_property
+    def _slices(self) -> dict[str, tuple[int, int, tuple[int, ...]]]:
         out, a = {}, 0
         for name, shape in self.blocks():
             size = int(np.prod(shape))
@@ -83,7 +89,7 @@ class DeepShapes:
             a += size
         return out
 
-    @property
+    @functools.cached_property
     def n_params(self) -> int:
         """Parameters of one critic."""
         return sum(int(np.prod(shape)) for _, shape in self.blocks())
@@ -112,17 +118,34 @@ def init_critic(shapes: DeepShapes, rng: np.random.Generator) -> FloatArray:
 
 
 class DeepParams:
-    """Weights of one critic (the part `act` needs) over a flat [1, n_params] float64 array."""
+    """Weights of one critic (the part `act` needs) over a flat [1, n_params] float64 array.
+
+    Immutable: `flat` is made read-only, because `act`'s arrays are derived from it here (new
+    weights are a new DeepParams). Those arrays let `wires_one` take a few fused numpy calls:
+    - each LayerNorm layer's weights with their mean over units taken out, so that its output
+      arrives centred ((W - mean W) h + (b - mean b) = W h + b - mean(W h + b));
+    - the wire head and the value head's state part stacked into one matrix.
+    """
 
     def __init__(self, flat: FloatArray, shapes: DeepShapes) -> None:
         if flat.ndim != 2 or flat.shape != (1, shapes.n_params):
             raise ValueError(f"flat params must be [1, {shapes.n_params}], got {flat.shape}")
         if flat.dtype != np.float64 or not flat.flags.c_contiguous:
             raise ValueError("flat params must be C-contiguous float64")
+        flat.flags.writeable = False
         self.flat = flat
         self.shapes = shapes
         self.blocks = {name: flat[0, a:b].reshape(shape) for name, (a, b, shape) in shapes.slices().items()}
         self.trunk = [(self.blocks[f"W{k}"], self.blocks[f"b{k}"]) for k in range(len(shapes.hidden))]
+        b = self.blocks
+        self._act_trunk = (
+            [(W - W.sum(axis=0) / W.shape[0], bias - bias.sum() / bias.shape[0]) for W, bias in self.trunk]
+            if shapes.layer_norm
+            else self.trunk
+        )
+        self._act_head = np.concatenate([b["Ww"], b["Vh"]])
+        self._act_head_bias = np.concatenate([b["bw"], b["bv"]])
+        self._act_vu = np.ascontiguousarray(b["Vu"].T)
 
     @property
     def population(self) -> int:
@@ -157,19 +180,28 @@ def wires(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def wires_one(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """`wires` of one scaled state x [S] -> (actions [N, A], values [N]): matrix-vector products."""
-    b = params.blocks
+    """`wires` of one scaled state x [S] -> (actions [N, A], values [N]): matrix-vector products.
+
+    The robot's hot path: the fewest numpy calls, in place where possible (see `DeepParams`).
+    """
+    shapes = params.shapes
     h = x
-    for W, bias in params.trunk:
-        h = W @ h + bias
-        if params.shapes.layer_norm:  # `_layer_norm` for one vector, without its keepdims broadcasts
-            h = h - h.mean()
-            h = h / np.sqrt((h * h).mean() + LN_EPS)
+    for W, bias in params._act_trunk:
+        h = W @ h
+        h += bias
+        if shapes.layer_norm:  # already centred: only the scale is left
+            h *= 1.0 / math.sqrt(float(np.dot(h, h)) / h.shape[0] + LN_EPS)
         np.maximum(h, 0.0, out=h)
-    u = np.tanh(b["Ww"] @ h + b["bw"]).reshape(params.shapes.n_wires, params.shapes.action_dim)
-    g = (b["Vh"] @ h + b["bv"]) + u @ b["Vu"].T  # [N, Hv]
+    y = params._act_head @ h
+    y += params._act_head_bias
+    na = shapes.n_wires * shapes.action_dim
+    u = np.tanh(y[:na]).reshape(shapes.n_wires, shapes.action_dim)
+    g = u @ params._act_vu  # [N, Hv]
+    g += y[na:]
     np.maximum(g, 0.0, out=g)
-    return u, g @ b["vo"] + b["bo"][0]
+    q = g @ params.blocks["vo"]
+    q += params.blocks["bo"][0]
+    return u, q
 
 
 def greedy(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:

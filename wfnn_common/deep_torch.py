@@ -19,7 +19,10 @@ rest). Shapes: x [B, S], u [B, A].
 
 from __future__ import annotations
 
-from typing import Any
+import ctypes
+import ctypes.util
+import logging
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -27,6 +30,11 @@ import torch.nn.functional as tnf
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes
+
+logger = logging.getLogger(__name__)
+
+Losses = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+"""What `Trainer._loss` gives: (loss, critic 1's Q(x, u) [B], targets y [B])."""
 
 SEPARATION_EPS = 0.1
 """Distance added in the separation term, so that coinciding wires give a bounded push."""
@@ -66,9 +74,11 @@ class Critics:
         u = torch.tanh(torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2)))
         u = u.view(2, batch, shapes.n_wires, shapes.action_dim)
         z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
-        zu = torch.bmm(u.reshape(2, batch * shapes.n_wires, shapes.action_dim), p["Vu"].transpose(1, 2))
-        g = tnf.relu(z.unsqueeze(2) + zu.view(2, batch, shapes.n_wires, -1))
-        q = torch.bmm(g.view(2, batch * shapes.n_wires, -1), p["vo"].unsqueeze(2)).view(2, batch, -1)
+        # einsum and a broadcast product rather than bmm: with A or the output width 1 these
+        # are outer and inner products, which a batched matrix product does several times slower.
+        zu = torch.einsum("cbna,cha->cbnh", u, p["Vu"])
+        g = tnf.relu(z.unsqueeze(2) + zu)
+        q = (g * p["vo"].view(2, 1, 1, -1)).sum(dim=-1)
         return u, q + p["bo"].view(2, 1, 1)
 
 
@@ -101,8 +111,39 @@ def separation(wire_u: torch.Tensor) -> torch.Tensor:
     return (inverse.sum(dim=(-1, -2)) - diagonal).mean() / (n * (n - 1))
 
 
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+"""Adam's moment decays and denominator term (Kingma and Ba 2015's defaults)."""
+
+
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+"""glibc's mallopt parameter numbers (malloc.h)."""
+
+
+def keep_freed_memory() -> None:
+    """Ask glibc's malloc to keep freed blocks for reuse instead of returning them to the system.
+
+    An update allocates and frees the same few megabytes of temporaries each time. With glibc's
+    default thresholds, blocks above 128 KiB go back to the system when freed, and every fresh one
+    page-faults as it is written: that doubled a small network's update here. Process-wide and
+    harmless where it does not apply (another C library: nothing happens).
+    """
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(M_MMAP_THRESHOLD, 64 << 20)
+        libc.mallopt(M_TRIM_THRESHOLD, 128 << 20)
+    except (OSError, AttributeError):
+        pass
+
+
 class Trainer:
-    """The critics' weights, targets and Adam state, and the minibatch update."""
+    """The critics' weights, targets and Adam state, and the minibatch update.
+
+    Adam and gradient-norm clipping are written out over the one flat vector: a handful of
+    in-place operations, where torch's optimiser and clipping utilities spend more time in
+    their Python bookkeeping than a small network's whole backward pass.
+    """
 
     def __init__(self, config: LearnerConfig, theta: np.ndarray, seed: int) -> None:
         d = config.deep
@@ -116,24 +157,44 @@ class Trainer:
             # One core: the result then does not depend on how many threads the process (or the
             # thread thinking in it) gets, so a server and an in-process learner agree exactly.
             torch.set_num_threads(1)
+        keep_freed_memory()
         self.critics = Critics(DeepShapes.of(config))
         self.theta = torch.tensor(theta, dtype=torch.float32, device=self.device).requires_grad_(True)
         self.target = self.theta.detach().clone()
         self._blocks = self.critics.blocks(self.theta)
         self._target_blocks = self.critics.blocks(self.target)
-        self.optimiser = self._adam()
+        self.adam_m = torch.zeros_like(self.target)
+        self.adam_v = torch.zeros_like(self.target)
+        self.adam_step = 0
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
-
-    def _adam(self) -> torch.optim.Adam:
-        """A fresh Adam over the weights (fused: one kernel for the whole vector)."""
-        return torch.optim.Adam([self.theta], lr=self.config.deep.lr, fused=True)
+        self._compiled: Any = None
+        """`_loss` compiled (deep.compile), False where compiling failed, None until first used."""
 
     def reset(self, theta: np.ndarray) -> None:
         """Fresh weights (targets equal), and Adam's moments forgotten."""
         with torch.no_grad():
             self.theta.copy_(torch.as_tensor(theta, dtype=torch.float32))
             self.target.copy_(self.theta)
-        self.optimiser = self._adam()
+        self._forget_adam()
+
+    def _forget_adam(self) -> None:
+        self.adam_m.zero_()
+        self.adam_v.zero_()
+        self.adam_step = 0
+
+    def _step(self, grad: torch.Tensor) -> None:
+        """Clip the gradient's norm at deep.grad_clip, then one Adam step (in place)."""
+        d = self.config.deep
+        if d.grad_clip > 0.0:
+            scale = (d.grad_clip / (torch.linalg.vector_norm(grad) + 1e-6)).clamp_(max=1.0)
+            grad.mul_(scale)
+        beta1, beta2 = ADAM_BETAS
+        self.adam_step += 1
+        self.adam_m.lerp_(grad, 1.0 - beta1)
+        self.adam_v.mul_(beta2).addcmul_(grad, grad, value=1.0 - beta2)
+        denominator = (self.adam_v / (1.0 - beta2**self.adam_step)).sqrt_().add_(ADAM_EPS)
+        with torch.no_grad():
+            self.theta.addcdiv_(self.adam_m, denominator, value=-d.lr / (1.0 - beta1**self.adam_step))
 
     def critic1(self) -> np.ndarray:
         """Critic 1's weights as float64 [n_params] (what `act` uses)."""
@@ -151,49 +212,78 @@ class Trainer:
 
     def update(self, batch: dict[str, np.ndarray]) -> tuple[float, float]:
         """One Adam step on a minibatch (arrays [B, ...]) -> (mean Q(x, u), mean |y - Q(x, u)|)."""
-        cfg, d, critics = self.config, self.config.deep, self.critics
+        d = self.config.deep
         t = self._tensors(batch)
-        x, u = t["state"], t["action"]
-        c, eps = cfg.smoothing_c, cfg.eps
+        noise = torch.randn(t["action"].shape, generator=self.generator, device=self.device)
+        args = (self.theta, self.target, t["state"], t["action"], t["reward"], t["next_state"], t["discount"],
+                noise)  # fmt: skip
+        loss, Q1, y = self._compiled_loss(args) if d.compile else self._loss(*args)
+        (grad,) = torch.autograd.grad(loss, self.theta)
+        self._step(grad)
         with torch.no_grad():
-            tu, tq = critics.wires(self._target_blocks, t["next_state"])
+            self.target.lerp_(self.theta.detach(), d.tau)
+        return float(Q1.mean()), float((y - Q1).abs().mean())
+
+    def _compiled_loss(self, args: tuple[torch.Tensor, ...]) -> Losses:
+        """`_loss` through torch.compile (compiled in its first call); uncompiled where that fails."""
+        if self._compiled is None:
+            self._compiled = torch.compile(self._loss, dynamic=False)
+        if self._compiled is not False:
+            try:
+                return cast(Losses, self._compiled(*args))
+            except Exception as exc:  # a compiler fault: the uncompiled loss is the same arithmetic
+                logger.warning("deep.compile: torch.compile failed (%s); training uncompiled", exc)
+                self._compiled = False
+        return self._loss(*args)
+
+    def _loss(
+        self,
+        theta: torch.Tensor,
+        target: torch.Tensor,
+        x: torch.Tensor,
+        u: torch.Tensor,
+        reward: torch.Tensor,
+        next_state: torch.Tensor,
+        discount: torch.Tensor,
+        noise: torch.Tensor,
+    ) -> Losses:
+        """The update's loss (module docstring) -> (loss, critic 1's Q(x, u) [B], targets y [B]).
+
+        Pure in its arguments (x [B, S], u [B, A], reward, discount [B], next_state [B, S], noise
+        [B, A] standard normal), so that torch.compile can take it whole.
+        """
+        cfg, d, critics = self.config, self.config.deep, self.critics
+        c, eps = cfg.smoothing_c, cfg.eps
+        blocks, target_blocks = critics.blocks(theta), critics.blocks(target)
+        with torch.no_grad():
+            tu, tq = critics.wires(target_blocks, next_state)
             next_u = best_wire(tu[0], tq[0])
             if d.target_noise > 0.0:
-                noise = torch.randn(next_u.shape, generator=self.generator, device=self.device)
                 next_u = next_u + (noise * d.target_noise).clamp(-d.target_noise_clip, d.target_noise_clip)
                 next_u = next_u.clamp(-1.0, 1.0)
             next_q = wirefit(tu, tq, next_u, c, eps).min(dim=0).values
-            y = t["reward"] + t["discount"] * next_q
+            y = reward + discount * next_q
             if cfg.advantage_k < 1.0:
-                nu, nq = critics.wires(self._target_blocks, x)
+                nu, nq = critics.wires(target_blocks, x)
                 v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps).min(dim=0).values
                 y = v + (y - v) / cfg.advantage_k
-        wu, wq = critics.wires(self._blocks, x)
+        wu, wq = critics.wires(blocks, x)
         Q = wirefit(wu, wq, u, c, eps)  # [2, B]
         loss = ((Q - y) ** 2).mean(dim=1).sum()
         if d.separation > 0.0:
             loss = loss + 2.0 * d.separation * separation(wu)
         if cfg.bc_weight > 0.0:
             loss = loss + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
-        Q1 = Q[0].detach()
-        self.optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        if d.grad_clip > 0.0:
-            torch.nn.utils.clip_grad_norm_([self.theta], d.grad_clip)
-        self.optimiser.step()
-        with torch.no_grad():
-            self.target.lerp_(self.theta.detach(), d.tau)
-        return float(Q1.mean()), float((y - Q1).abs().mean())
+        return loss, Q[0].detach(), y
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict[str, np.ndarray]:
         """Everything training needs to resume: weights, targets, Adam's moments and step."""
         out = {"theta": self.theta.detach().cpu().numpy().copy(), "target": self.target.cpu().numpy().copy()}
-        st: dict[str, Any] = self.optimiser.state.get(self.theta, {})
-        if st:
-            out["adam_m"] = st["exp_avg"].cpu().numpy().copy()
-            out["adam_v"] = st["exp_avg_sq"].cpu().numpy().copy()
-            out["adam_step"] = np.asarray(float(st["step"]), dtype=np.float64)
+        if self.adam_step > 0:
+            out["adam_m"] = self.adam_m.cpu().numpy().copy()
+            out["adam_v"] = self.adam_v.cpu().numpy().copy()
+            out["adam_step"] = np.asarray(float(self.adam_step), dtype=np.float64)
         return out
 
     def load(self, state: dict[str, np.ndarray]) -> None:
@@ -201,12 +291,8 @@ class Trainer:
         with torch.no_grad():
             self.theta.copy_(torch.as_tensor(state["theta"], dtype=torch.float32))
             self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
-        self.optimiser = self._adam()
-        if "adam_m" in state:
-            self.optimiser.state[self.theta] = {
-                "step": torch.tensor(float(state["adam_step"]), dtype=torch.float32, device=self.device),
-                "exp_avg": torch.as_tensor(state["adam_m"], dtype=torch.float32, device=self.device).clone(),
-                "exp_avg_sq": torch.as_tensor(
-                    state["adam_v"], dtype=torch.float32, device=self.device
-                ).clone(),
-            }
+            self._forget_adam()
+            if "adam_m" in state:
+                self.adam_m.copy_(torch.as_tensor(state["adam_m"], dtype=torch.float32))
+                self.adam_v.copy_(torch.as_tensor(state["adam_v"], dtype=torch.float32))
+                self.adam_step = int(state["adam_step"])

@@ -70,6 +70,13 @@ def serve(
     ] = None,
     seed: Annotated[int | None, typer.Option(help="Override the learner's seed.")] = None,
     device: Annotated[str, typer.Option(help="Where a deep learner trains: cpu, cuda or cuda:N.")] = "cpu",
+    compile_update: Annotated[
+        bool,
+        typer.Option(
+            "--compile/--no-compile",
+            help="Compile a deep learner's update (torch.compile): faster after a first update of 5-30 s.",
+        ),
+    ] = False,
     bc_weight: Annotated[
         float | None,
         typer.Option(
@@ -126,7 +133,8 @@ def serve(
     config = ServerConfig(
         controller=controller, server_id=server_id, net=net, data_dir=data_dir,
         learner_config=learner_config, key_file=key_file, insecure=insecure,
-        allow_clients=tuple(allow_client or ()), seed=seed, device=device, bc_weight=bc_weight, alpha=alpha,
+        allow_clients=tuple(allow_client or ()), seed=seed, device=device, compile=compile_update,
+        bc_weight=bc_weight, alpha=alpha,
         publish_period_s=publish_period,
         checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
         replay=tuple(replay_only or ()), replay_only=bool(replay_only),

@@ -251,12 +251,14 @@ class ThinkServer:
         """`cfg` with this server's overrides (seed, bc_weight, learning rate) where it sets them.
 
         The learning rate is the thesis' learner's `alpha`, or the deep learner's `deep.lr`; a
-        deep learner also trains on this server's device.
+        deep learner also trains on this server's device, compiled where the server says.
         """
         changes: dict[str, Any] = {"seed": self.config.seed, "bc_weight": self.config.bc_weight}
         if cfg.learner == "deep":  # trains where this server says, whatever the client's config says
             lr = cfg.deep.lr if self.config.alpha is None else self.config.alpha
-            changes["deep"] = dataclasses.replace(cfg.deep, lr=lr, device=self.config.device)
+            changes["deep"] = dataclasses.replace(
+                cfg.deep, lr=lr, device=self.config.device, compile=self.config.compile
+            )
         elif self.config.alpha is not None:
             changes["alpha"] = self.config.alpha
         return dataclasses.replace(cfg, **{key: value for key, value in changes.items() if value is not None})

@@ -1,5 +1,9 @@
 """The deep wire-fitting learner: its numpy act, torch update, returns, state and interface."""
 
+import logging
+import platform
+import resource
+import shutil
 import subprocess
 import sys
 
@@ -11,7 +15,7 @@ from wfnn_common import config as config_module
 from wfnn_common import deep_net
 from wfnn_common.config import ConfigError, DeepConfig, LearnerConfig, with_options
 from wfnn_common.deep import DeepWFNN
-from wfnn_common.deep_torch import Critics, best_wire, separation, wirefit
+from wfnn_common.deep_torch import Critics, best_wire, keep_freed_memory, separation, wirefit
 from wfnn_common.learners import make_learner, make_population, n_params, weights_from_flat
 from wfnn_common.persist import load_checkpoint, load_weights, save_weights
 from wfnn_common.surface import SurfaceGrid
@@ -104,6 +108,85 @@ def test_act_is_the_best_wire_and_needs_no_torch():
         "assert 'torch' not in sys.modules, 'torch imported'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+@pytest.mark.parametrize("layer_norm", [False, True])
+def test_the_act_path_matches_the_batch_wires_and_weights_are_immutable(layer_norm):
+    learner = DeepWFNN(config(deep={"layer_norm": layer_norm}))
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1, 1, (4, 2))
+
+    def agree() -> None:
+        u, q = deep_net.wires(learner.params, x)
+        for i in range(4):
+            u1, q1 = deep_net.wires_one(learner.params, x[i])
+            np.testing.assert_allclose(u1, u[i], atol=1e-12)
+            np.testing.assert_allclose(q1, q[i], atol=1e-12)
+
+    agree()
+    # act's arrays are derived from the weights once: writing them in place would leave act stale.
+    with pytest.raises(ValueError, match="read-only"):
+        learner.params.flat[0, 0] = 1.0
+    before = learner.params
+    learner.learn(np.zeros(2), np.zeros(1), np.zeros(2), -1.0)
+    learner.think(2)
+    assert learner.params is not before and not np.array_equal(learner.params.flat, before.flat)
+    agree()
+    learner.reset_weights(np.ones(1, dtype=bool))
+    agree()
+
+
+def _fed(learner: DeepWFNN) -> DeepWFNN:
+    rng = np.random.default_rng(4)
+    learner.learn_many(rng.uniform(-1, 1, (64, 2)), rng.uniform(-2, 2, (64, 1)),
+                       rng.uniform(-1, 1, (64, 2)), -rng.random(64), np.zeros(64, dtype=bool))  # fmt: skip
+    return learner
+
+
+def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
+    def broken(fn, **kwargs):
+        def compiled(*args):
+            raise RuntimeError("no C++ compiler here")
+
+        return compiled
+
+    monkeypatch.setattr(torch, "compile", broken)
+    compiled, plain = _fed(DeepWFNN(config(deep={"compile": True}))), _fed(DeepWFNN(config()))
+    with caplog.at_level(logging.WARNING):
+        compiled.think(3)
+    plain.think(3)
+    assert "training uncompiled" in caplog.text and compiled._trainer._compiled is False
+    np.testing.assert_array_equal(compiled.params.flat, plain.params.flat)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
+def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones():
+    trainer = _fed(DeepWFNN(config(deep={"compile": True})))._train()
+    rng = np.random.default_rng(5)
+    args = (trainer.theta, trainer.target, *(torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
+            for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
+    compiled = trainer._compiled_loss(args)
+    assert trainer._compiled not in (None, False), "torch.compile fell back"
+    plain = trainer._loss(*args)
+    for a, b in zip(compiled, plain, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    (grad_compiled,) = torch.autograd.grad(compiled[0], trainer.theta)
+    (grad_plain,) = torch.autograd.grad(plain[0], trainer.theta)
+    torch.testing.assert_close(grad_compiled, grad_plain, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the setting is glibc's malloc's")
+def test_freed_memory_is_kept_for_reuse():
+    """An update's temporaries, freed and made again, must not page-fault each time (that doubled it)."""
+    keep_freed_memory()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(50):
+        block = torch.empty(1 << 20)  # 4 MiB: 1,024 pages
+        block.fill_(1.0)
+        del block
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+    assert faults < 3_000, f"{faults} page faults for 50 reused blocks (51,200 if each were fresh)"
 
 
 def test_warmup_actions_are_uniform_then_the_learners_own():

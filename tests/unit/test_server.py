@@ -255,14 +255,18 @@ def test_silent_clients_are_reported(tmp_path, monkeypatch):
         assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 0)
 
 
-def test_a_deep_learner_trains_on_the_servers_device_not_the_clients(tmp_path):
+def test_a_deep_learner_trains_on_the_servers_device_and_compiler_not_the_clients(tmp_path):
     hub = Hub()
     cfg = small_config(learner="deep")
     cfg = type(cfg).from_dict({**cfg.to_dict(), "deep": {**cfg.to_dict()["deep"], "device": "cuda:7"}})
+    cfg = type(cfg).from_dict({**cfg.to_dict(), "deep": {**cfg.to_dict()["deep"], "compile": True}})
     server = make_server(tmp_path, hub, cfg)
-    assert server.learner_config.deep.device == "cpu"
+    assert server.learner_config.deep.device == "cpu" and not server.learner_config.deep.compile
     assert server.learner_config.spec_hash() == cfg.spec_hash()  # the same learner to its clients
     server.store.close()
+    compiling = make_server(tmp_path, hub, small_config(learner="deep"), server_id="s3", compile=True)
+    assert compiling.learner_config.deep.compile
+    compiling.store.close()
     if not __import__("torch").cuda.is_available():
         with pytest.raises(ValueError, match="no such CUDA device"):
             ServerConfig(controller="t", server_id="s2", data_dir=tmp_path / "s2", device="cuda")
