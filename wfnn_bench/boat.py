@@ -21,7 +21,7 @@ from scipy import stats
 from sims.base import Transition
 from sims.boat import BoatConfig, BoatVec, handcoded_boat
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LEARNERS, LearnerConfig, check_fields
+from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_population
 
 log = logging.getLogger(__name__)
@@ -45,6 +45,8 @@ class BoatBenchConfig:
     (the thesis' 200, the deep learner's 1)."""
     learner: str = "thesis"
     """Which learner the controllers are: "thesis" or "deep" (its defaults)."""
+    learner_options: str = ""
+    """Learner config fields over those defaults, a JSON object (as `wfnn-client --learner-options`)."""
     dt: float = 0.1
     """Boat time step per action (see sims.boat)."""
     greedy_targets: int = 10
@@ -57,6 +59,8 @@ class BoatBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        if self.learner_options:
+            learner_config(self, 1.0, self.seed)  # a ConfigError (a ValueError) now, not mid-run
 
 
 def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> LearnerConfig:
@@ -69,7 +73,7 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
     non-finite states are refused here.
     """
     thinks = {} if bench.thinks is None else {"thinks_per_action": bench.thinks}
-    return LearnerConfig.for_task(
+    config = LearnerConfig.for_task(
         BoatVec,
         learner=bench.learner,
         advantage_k=advantage_k,
@@ -79,6 +83,9 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
         seed=seed,
         **thinks,
     )
+    if bench.learner_options:
+        config = with_options(config, parse_json(bench.learner_options, "learner options"))
+    return config
 
 
 def run_protocol(
@@ -172,6 +179,7 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         "thinks": thinks,
         "wall_s": wall,
         "thinks_per_s": thinks / think_s[0] if think_s[0] > 0 else float("nan"),
+        "learner_config": learner.config.to_dict(),
     }
 
 

@@ -40,8 +40,9 @@ from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
+from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
+from wfnn_common.learners import Learner, make_population
 
 FloatArray = NDArray[np.float64]
 SERVO_EPISODE = 150
@@ -96,10 +97,18 @@ class NomadBenchConfig:
     """Also check rendered vision (needs off-screen GL; reported unavailable otherwise)."""
     render_wander_ticks: int = 1200
     """Ticks of hand-coded wandering per robot in the rendered-vision check (2 robots)."""
+    learner: str = "thesis"
+    """The servo controllers learning from scratch: the thesis' learner with the settings above,
+    or the deep learner with its own defaults (`thinks`, `advantage_k`, `sigma` and
+    `exploration` are the thesis' learner's). Every other part uses the thesis' learner."""
+    servo_only: bool = False
+    """Run servoing from scratch only (and the proportional controller's reference)."""
     seed: int = 0
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.learner not in LEARNERS:
+            raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
 
 
 def steps(cfg: NomadBenchConfig) -> int:
@@ -108,6 +117,8 @@ def steps(cfg: NomadBenchConfig) -> int:
     Servo episodes, wandering episodes (with and without the veto), minutes of foraging (watched
     by the thesis' learner and by the passive one, every second target pursued).
     """
+    if cfg.servo_only:
+        return cfg.servo_episodes
     return (
         cfg.servo_episodes + 2 * (cfg.wander_episodes + max(cfg.wander_episodes // 3, 1))
         + 3 * cfg.forage_minutes + (2 if cfg.render else 0)
@@ -190,7 +201,11 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     """Servo controllers learn from scratch; greedy evaluations along the way."""
     p = cfg.controllers
     task = NomadVec(p, replace(cfg.task, behaviour="servo"), seed=cfg.seed)
-    learner = _learner(task, cfg)
+    learner: Learner = (
+        make_population(LearnerConfig.for_task(task, learner="deep", seed=cfg.seed), p)
+        if cfg.learner == "deep"
+        else _learner(task, cfg)
+    )
     rng = np.random.default_rng(cfg.seed)
     x = task.reset(rng)
     experiences = np.zeros(p)
@@ -220,6 +235,7 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
         "evaluations": evaluations,
         "final_traces": last_traces[:, :3].tolist(),
         "divergence_resets": learner.resets.copy(),
+        "learner_config": learner.config.to_dict(),
         "wall_s": time.perf_counter() - t0,
     }
 
@@ -495,6 +511,16 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
     reference = step_responses(lambda x: proportional(x, cfg.task), cfg, 1, cfg.seed + 1000)
     servo = learn_servo(cfg, progress)
     last = servo["evaluations"][-1]
+    servo_figures = {
+        "servo": servo,
+        "servo_final_error_px": float(np.median(last["final_error_px"])),
+        "servo_time_to_goal_s": float(np.nanmedian(last["time_to_goal_s"])),
+        "servo_experiences": float(np.median(last["experiences"])),
+        "proportional": {k: v for k, v in reference.items() if k != "traces"},
+    }
+    if cfg.servo_only:
+        return {"benchmark": "nomad", "config": asdict(cfg), "machine": machine_info(), **servo_figures,
+                "wall_s": time.perf_counter() - t0}  # fmt: skip
     learned_wander = wander(cfg, True, cfg.wander_episodes, progress)
     handcoded = wander(cfg, False, max(cfg.wander_episodes // 3, 1), progress)
     # Without the veto the robots do collide: metres per collision as the wandering is learned.
@@ -510,11 +536,7 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
         "benchmark": "nomad",
         "config": asdict(cfg),
         "machine": machine_info(),
-        "servo": servo,
-        "servo_final_error_px": float(np.median(last["final_error_px"])),
-        "servo_time_to_goal_s": float(np.nanmedian(last["time_to_goal_s"])),
-        "servo_experiences": float(np.median(last["experiences"])),
-        "proportional": {k: v for k, v in reference.items() if k != "traces"},
+        **servo_figures,
         "wander": learned_wander,
         "wander_handcoded": handcoded,
         "wander_m_per_collision": {
@@ -556,7 +578,9 @@ def plot(result: dict[str, Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    servo_only = "wander" not in result
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5)) if servo_only else plt.subplots(2, 2, figsize=(13, 9))
+    axes = np.asarray(axes).reshape(-1, 2)
     ax = axes[0, 0]
     evals = result["servo"]["evaluations"]
     experiences = np.array([e["experiences"] for e in evals])
@@ -568,12 +592,13 @@ def plot(result: dict[str, Any], path: Path) -> None:
     forages = (("servo_from_wander", "x", ":", "learned watching the wandering only"),
                ("servo_from_wander_passive", "d", "--", "the same, passive learner (pull, phantom goals)"),
                ("servo_every_second_target", "+", "-.", "every second target pursued"))  # fmt: skip
-    for key, marker, ls, label in forages:
+    for key, marker, ls, label in forages if not servo_only else ():
         fe = result[key]["evaluations"]
         counts = [float(np.median(e["experiences"])) for e in fe]
         ax.plot(counts, [float(np.median(e["final_error_px"])) for e in fe], marker=marker, color="k", ls=ls,
                 label=f"{label} (median)")  # fmt: skip
-    ax.axhline(result["servo_untrained_px"], color="gray", ls=":", label="untrained (greedy)")
+    if not servo_only:
+        ax.axhline(result["servo_untrained_px"], color="gray", ls=":", label="untrained (greedy)")
     ax.set(xlabel="experiences learned", ylabel="median final |pixel error| (px)",
            title="learned visual servoing, greedy step responses (one line per controller)")  # fmt: skip
     ax.legend(fontsize=8)
@@ -585,6 +610,9 @@ def plot(result: dict[str, Any], path: Path) -> None:
             ax.plot(t, traces[c, k], lw=0.8, color=f"C{c % 10}", alpha=0.8)
     ax.set(xlabel="s", ylabel="|pixel error to the goal| (lost: 200)",
            title="step responses of the final controllers (Fig 6.13)")  # fmt: skip
+    if servo_only:
+        _save(fig, path)
+        return
     ax = axes[1, 0]
     trail = np.asarray(result["wander"]["path"])
     room = NomadModelConfig()
@@ -625,6 +653,12 @@ def plot(result: dict[str, Any], path: Path) -> None:
         title="wandering: vetoes, collisions, distance (means over robots)",
     )
     ax.legend(fontsize=7)
+    _save(fig, path)
+
+
+def _save(fig: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

@@ -13,6 +13,7 @@ sampling time from consecutive stored experiences. One network per learner (popu
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 from typing import Any, cast
 
@@ -310,12 +311,12 @@ class DeepPopulation:
 
     @property
     def params(self) -> PopulationParams:
-        """The members' current weights, as new views of them.
+        """The members' current weights, as new objects over the same (immutable) arrays.
 
-        They follow learning; acting on them is acting on given weights, which a divergence
-        does not reset.
+        Acting on them is acting on given weights, which a divergence does not reset; they are
+        the weights of now (learning makes new ones).
         """
-        return PopulationParams([DeepParams(cast(DeepParams, m.params).flat, m.shapes) for m in self.members])
+        return PopulationParams([copy.copy(cast(DeepParams, m.params)) for m in self.members])
 
     def snapshot(self) -> PopulationParams:
         """Copies of the members' weights."""

@@ -15,13 +15,21 @@ Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires with th
 term on normalised values (`deep_net.wirefit_normalised`); the smoothing term's values are
 held constant in the gradient (normalised by a small span, its derivative would dwarf the
 rest). Shapes: x [B, S], u [B, A].
+
+Adam (Kingma and Ba 2015) and gradient-norm clipping are written out over the flat vector;
+with `deep.compile` the loss and its gradient go through torch.compile (the same arithmetic,
+fused). Making a trainer has one effect outside it: glibc's malloc is asked to keep freed
+memory for reuse (`keep_freed_memory`), which halves a small network's update.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import dataclasses
+import functools
 import logging
+from collections.abc import Callable
 from typing import Any, cast
 
 import numpy as np
@@ -34,7 +42,7 @@ from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes
 logger = logging.getLogger(__name__)
 
 Losses = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
-"""What `Trainer._loss` gives: (loss, critic 1's Q(x, u) [B], targets y [B])."""
+"""What `loss` gives: (loss, critic 1's Q(x, u) [B], targets y [B])."""
 
 SEPARATION_EPS = 0.1
 """Distance added in the separation term, so that coinciding wires give a bounded push."""
@@ -111,6 +119,65 @@ def separation(wire_u: torch.Tensor) -> torch.Tensor:
     return (inverse.sum(dim=(-1, -2)) - diagonal).mean() / (n * (n - 1))
 
 
+def loss(
+    critics: Critics,
+    config: LearnerConfig,
+    theta: torch.Tensor,
+    target: torch.Tensor,
+    x: torch.Tensor,
+    u: torch.Tensor,
+    reward: torch.Tensor,
+    next_state: torch.Tensor,
+    discount: torch.Tensor,
+    noise: torch.Tensor,
+) -> Losses:
+    """The update's loss (module docstring) -> (loss, critic 1's Q(x, u) [B], targets y [B]).
+
+    theta and target [2 n] are both critics' weights and targets; x [B, S], u [B, A], reward and
+    discount [B], next_state [B, S], noise [B, A] standard normal. Pure in its arguments, so
+    that torch.compile can take it whole.
+    """
+    cfg, d = config, config.deep
+    c, eps = cfg.smoothing_c, cfg.eps
+    blocks, target_blocks = critics.blocks(theta), critics.blocks(target)
+    with torch.no_grad():
+        tu, tq = critics.wires(target_blocks, next_state)
+        next_u = best_wire(tu[0], tq[0])
+        if d.target_noise > 0.0:
+            next_u = next_u + (noise * d.target_noise).clamp(-d.target_noise_clip, d.target_noise_clip)
+            next_u = next_u.clamp(-1.0, 1.0)
+        next_q = wirefit(tu, tq, next_u, c, eps).min(dim=0).values
+        y = reward + discount * next_q
+        if cfg.advantage_k < 1.0:
+            nu, nq = critics.wires(target_blocks, x)
+            v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps).min(dim=0).values
+            y = v + (y - v) / cfg.advantage_k
+    wu, wq = critics.wires(blocks, x)
+    Q = wirefit(wu, wq, u, c, eps)  # [2, B]
+    total = ((Q - y) ** 2).mean(dim=1).sum()
+    if d.separation > 0.0:
+        total = total + 2.0 * d.separation * separation(wu)
+    if cfg.bc_weight > 0.0:
+        total = total + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
+    return total, Q[0].detach(), y
+
+
+@functools.lru_cache(maxsize=8)
+def compiled_loss(config: LearnerConfig) -> Callable[..., Losses]:
+    """`loss` for this config, through torch.compile (compiled when first called).
+
+    One per config in a process, so that learners with one config (a population's members,
+    given seed 0 here) share one compiled graph: torch recompiles a function at most a few
+    times before it gives up and runs it uncompiled.
+    """
+    critics = Critics(DeepShapes.of(config))
+
+    def bound(*args: torch.Tensor) -> Losses:
+        return loss(critics, config, *args)
+
+    return torch.compile(bound, dynamic=False)
+
+
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 """Adam's moment decays and denominator term (Kingma and Ba 2015's defaults)."""
@@ -161,14 +228,12 @@ class Trainer:
         self.critics = Critics(DeepShapes.of(config))
         self.theta = torch.tensor(theta, dtype=torch.float32, device=self.device).requires_grad_(True)
         self.target = self.theta.detach().clone()
-        self._blocks = self.critics.blocks(self.theta)
-        self._target_blocks = self.critics.blocks(self.target)
         self.adam_m = torch.zeros_like(self.target)
         self.adam_v = torch.zeros_like(self.target)
         self.adam_step = 0
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self._compiled: Any = None
-        """`_loss` compiled (deep.compile), False where compiling failed, None until first used."""
+        """`loss` compiled (deep.compile), False where compiling failed, None until first used."""
 
     def reset(self, theta: np.ndarray) -> None:
         """Fresh weights (targets equal), and Adam's moments forgotten."""
@@ -217,64 +282,24 @@ class Trainer:
         noise = torch.randn(t["action"].shape, generator=self.generator, device=self.device)
         args = (self.theta, self.target, t["state"], t["action"], t["reward"], t["next_state"], t["discount"],
                 noise)  # fmt: skip
-        loss, Q1, y = self._compiled_loss(args) if d.compile else self._loss(*args)
-        (grad,) = torch.autograd.grad(loss, self.theta)
+        total, Q1, y = self._compiled_loss(args) if d.compile else loss(self.critics, self.config, *args)
+        (grad,) = torch.autograd.grad(total, self.theta)
         self._step(grad)
         with torch.no_grad():
             self.target.lerp_(self.theta.detach(), d.tau)
         return float(Q1.mean()), float((y - Q1).abs().mean())
 
     def _compiled_loss(self, args: tuple[torch.Tensor, ...]) -> Losses:
-        """`_loss` through torch.compile (compiled in its first call); uncompiled where that fails."""
+        """`loss` through torch.compile (compiled in its first call); uncompiled where that fails."""
         if self._compiled is None:
-            self._compiled = torch.compile(self._loss, dynamic=False)
+            self._compiled = compiled_loss(dataclasses.replace(self.config, seed=0))
         if self._compiled is not False:
             try:
                 return cast(Losses, self._compiled(*args))
             except Exception as exc:  # a compiler fault: the uncompiled loss is the same arithmetic
                 logger.warning("deep.compile: torch.compile failed (%s); training uncompiled", exc)
                 self._compiled = False
-        return self._loss(*args)
-
-    def _loss(
-        self,
-        theta: torch.Tensor,
-        target: torch.Tensor,
-        x: torch.Tensor,
-        u: torch.Tensor,
-        reward: torch.Tensor,
-        next_state: torch.Tensor,
-        discount: torch.Tensor,
-        noise: torch.Tensor,
-    ) -> Losses:
-        """The update's loss (module docstring) -> (loss, critic 1's Q(x, u) [B], targets y [B]).
-
-        Pure in its arguments (x [B, S], u [B, A], reward, discount [B], next_state [B, S], noise
-        [B, A] standard normal), so that torch.compile can take it whole.
-        """
-        cfg, d, critics = self.config, self.config.deep, self.critics
-        c, eps = cfg.smoothing_c, cfg.eps
-        blocks, target_blocks = critics.blocks(theta), critics.blocks(target)
-        with torch.no_grad():
-            tu, tq = critics.wires(target_blocks, next_state)
-            next_u = best_wire(tu[0], tq[0])
-            if d.target_noise > 0.0:
-                next_u = next_u + (noise * d.target_noise).clamp(-d.target_noise_clip, d.target_noise_clip)
-                next_u = next_u.clamp(-1.0, 1.0)
-            next_q = wirefit(tu, tq, next_u, c, eps).min(dim=0).values
-            y = reward + discount * next_q
-            if cfg.advantage_k < 1.0:
-                nu, nq = critics.wires(target_blocks, x)
-                v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps).min(dim=0).values
-                y = v + (y - v) / cfg.advantage_k
-        wu, wq = critics.wires(blocks, x)
-        Q = wirefit(wu, wq, u, c, eps)  # [2, B]
-        loss = ((Q - y) ** 2).mean(dim=1).sum()
-        if d.separation > 0.0:
-            loss = loss + 2.0 * d.separation * separation(wu)
-        if cfg.bc_weight > 0.0:
-            loss = loss + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
-        return loss, Q[0].detach(), y
+        return loss(self.critics, self.config, *args)
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict[str, np.ndarray]:

@@ -55,11 +55,17 @@ def test_bench_boat_writes_json_fields_and_plot(tmp_path):
 def test_bench_boat_runs_deep_controllers(tmp_path):
     j = tmp_path / "boat.json"
     run([BIN / "wfnn-bench", "boat", "--learner", "deep", "--mode", "q", "--controllers", "2",
-         "--targets", "2", "--json", j])  # fmt: skip
+         "--targets", "2", "--learner-options", '{"deep": {"hidden": [32, 32]}, "batch_size": 64}',
+         "--json", j])  # fmt: skip
     (r,) = json.loads(j.read_text())["results"]
     assert r["condition"] == "q" and r["controllers"] == 2 and len(r["scores"][0]) == 2
     # One update per action by default: two targets of 200 actions for each controller.
     assert r["thinks"] == 2 * 2 * 200 and all(0 < s < 10 for row in r["scores"] for s in row)
+    assert r["learner_config"]["deep"]["hidden"] == [32, 32] and r["learner_config"]["batch_size"] == 64
+    zero_width = '{"deep": {"hidden": [0]}}'
+    refused = [BIN / "wfnn-bench", "boat", "--learner", "deep", "--learner-options", zero_width]
+    bad = subprocess.run(refused, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "deep.hidden" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_bench_boat_refuses_a_bad_mode():
@@ -229,6 +235,19 @@ def test_bench_nomad_writes_servo_figures_and_tick_cost(tmp_path):
     else:
         assert "render" in rendering["reason"] or "GL" in rendering["reason"]
     assert 0 <= data["servo_untrained_px"] <= 200
+
+
+def test_bench_nomad_servo_only_with_the_deep_learner(tmp_path):
+    j, p = tmp_path / "nomad.json", tmp_path / "nomad.png"
+    out = run([BIN / "wfnn-bench", "nomad", "--controllers", "2", "--episodes", "2", "--eval-every", "1",
+               "--learner", "deep", "--servo-only", "--json", j, "--plot", p])  # fmt: skip
+    assert "servo_final_error_px" in out.stdout and "wander" not in out.stdout
+    data = json.loads(j.read_text())
+    assert data["servo"]["learner_config"]["learner"] == "deep" and "wander" not in data
+    assert [e["episode"] for e in data["servo"]["evaluations"]] == [1, 2]
+    # Two episodes of 150 actions per controller, most of them learned from.
+    assert all(150 < e <= 300 for e in data["servo"]["evaluations"][-1]["experiences"])
+    assert 0 <= data["servo_final_error_px"] <= 200 and p.stat().st_size > 10_000
 
 
 def test_client_refuses_an_unknown_vision_source(tmp_path):

@@ -15,7 +15,15 @@ from wfnn_common import config as config_module
 from wfnn_common import deep_net
 from wfnn_common.config import ConfigError, DeepConfig, LearnerConfig, with_options
 from wfnn_common.deep import DeepWFNN
-from wfnn_common.deep_torch import Critics, best_wire, keep_freed_memory, separation, wirefit
+from wfnn_common.deep_torch import (
+    Critics,
+    best_wire,
+    compiled_loss,
+    keep_freed_memory,
+    loss,
+    separation,
+    wirefit,
+)
 from wfnn_common.learners import make_learner, make_population, n_params, weights_from_flat
 from wfnn_common.persist import load_checkpoint, load_weights, save_weights
 from wfnn_common.surface import SurfaceGrid
@@ -151,9 +159,13 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
         return compiled
 
     monkeypatch.setattr(torch, "compile", broken)
+    compiled_loss.cache_clear()  # compiled in an earlier test with this config: compile again
     compiled, plain = _fed(DeepWFNN(config(deep={"compile": True}))), _fed(DeepWFNN(config()))
-    with caplog.at_level(logging.WARNING):
-        compiled.think(3)
+    try:
+        with caplog.at_level(logging.WARNING):
+            compiled.think(3)
+    finally:
+        compiled_loss.cache_clear()  # the broken compiler's function is not for later tests
     plain.think(3)
     assert "training uncompiled" in caplog.text and compiled._trainer._compiled is False
     np.testing.assert_array_equal(compiled.params.flat, plain.params.flat)
@@ -168,12 +180,16 @@ def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones():
             for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
     compiled = trainer._compiled_loss(args)
     assert trainer._compiled not in (None, False), "torch.compile fell back"
-    plain = trainer._loss(*args)
+    plain = loss(trainer.critics, trainer.config, *args)
     for a, b in zip(compiled, plain, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
     (grad_compiled,) = torch.autograd.grad(compiled[0], trainer.theta)
     (grad_plain,) = torch.autograd.grad(plain[0], trainer.theta)
     torch.testing.assert_close(grad_compiled, grad_plain, rtol=1e-4, atol=1e-6)
+    # Learners that differ only in their seed (a population's members) share the compiled loss.
+    other = _fed(DeepWFNN(config(seed=7, deep={"compile": True})))
+    other.think(1)
+    assert other._trainer._compiled is trainer._compiled
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the setting is glibc's malloc's")
