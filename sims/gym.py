@@ -93,6 +93,7 @@ class GymVec:
         rng = np.random.default_rng(self.seed + 12345)
         seen = []
         obs, _ = self.env.reset(seed=self.seed + 12345)
+        self.env.action_space.seed(self.seed + 12345)  # unseeded, the ranges would differ per run
         for _ in range(steps):
             seen.append(obs)
             obs, _, terminated, truncated, _ = self.env.step(self.env.action_space.sample())
