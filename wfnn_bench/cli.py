@@ -325,7 +325,7 @@ def nomad(
     ] = 1200,
     learner: Annotated[
         str, typer.Option(help="The servo controllers learning from scratch: thesis or deep.")
-    ] = ("thesis"),
+    ] = "thesis",
     servo_only: Annotated[bool, typer.Option(help="Run servoing from scratch only.")] = False,
     seed: int = 0,
     json_path: JsonOpt = None,

@@ -89,10 +89,10 @@ class DeepShapes:
             a += size
         return out
 
-    @functools.cached_property
+    @property
     def n_params(self) -> int:
-        """Parameters of one critic."""
-        return sum(int(np.prod(shape)) for _, shape in self.blocks())
+        """Parameters of one critic (where the last block ends)."""
+        return max(end for _, end, _ in self._slices.values())
 
     def fan_ins(self) -> dict[str, int]:
         """Inputs feeding each block (its initial weights are uniform in +-1/sqrt(fan-in))."""

@@ -188,6 +188,7 @@ M_MMAP_THRESHOLD = -3
 """glibc's mallopt parameter numbers (malloc.h)."""
 
 
+@functools.cache  # once per process: every trainer calls it, and loading libc is not free
 def keep_freed_memory() -> None:
     """Ask glibc's malloc to keep freed blocks for reuse instead of returning them to the system.
 

@@ -64,8 +64,8 @@ class ServerConfig:
     """Where a deep learner trains on this server ("cpu", "cuda", "cuda:N"): the server's own
     choice, whatever the config it adopts from a client says."""
     compile: bool = False
-    """Compile a deep learner's update (`DeepConfig.compile`): about twice as fast on a CPU after
-    a compile of 5 to 30 s in the first update, in which this server thinks of nothing else."""
+    """Compile a deep learner's update (`DeepConfig.compile`): about 1.4 times as fast on a CPU
+    after a compile of 5 to 30 s in the first update, in which this server thinks of nothing else."""
     bc_weight: float | None = None
     """Overrides the learner config's `bc_weight` (the best wire pulled toward the actions taken:
     for passive learning from other controllers' logs, `wfnn-bench passive`)."""
