@@ -5,11 +5,12 @@
 # FOR TESTING ONLY. Production needs real certificates: issued by your organisation's CA (or a
 # CA whose key is kept offline), with planned expiry and renewal; never ship these files.
 #
-#   bash deploy/make-tls-certs.sh HOST [DIR]
+#   bash deploy/make-tls-certs.sh HOST[,HOST...] [DIR]
 #
-# HOST: the robot host's name or IP address exactly as think servers write it in
+# HOST: the listening host's name or IP address exactly as the others write it in
 #       `--connect tls/HOST:7447` (it goes into the server certificate's subjectAltName, which
-#       Zenoh checks when verify_name_on_connect is true).
+#       Zenoh checks when verify_name_on_connect is true). A router reached at several addresses
+#       (one per network) lists them all, comma-separated.
 # DIR:  output directory (default: ./wfnn-tls), created if needed. It receives
 #       ca.pem ca-key.pem              the CA (keep ca-key.pem off the robot and think hosts)
 #       server.pem server-key.pem      robot (listening) side:
@@ -30,7 +31,12 @@ cd "$dir"
 umask 077
 
 # subjectAltName: an IP address entry for an address, a DNS entry otherwise.
-if [[ $host =~ ^[0-9.]+$ || $host == *:* ]]; then san="IP:$host"; else san="DNS:$host"; fi
+san=""
+IFS=, read -ra names <<< "$host"
+for name in "${names[@]}"; do
+  if [[ $name =~ ^[0-9.]+$ || $name == *:* ]]; then entry="IP:$name"; else entry="DNS:$name"; fi
+  san="${san:+$san,}$entry"
+done
 
 key() { openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$1"; }
 
@@ -51,7 +57,7 @@ cert() {
 cert ca "wfnn test CA" "basicConstraints=critical,CA:TRUE
 keyUsage=critical,keyCertSign,cRLSign
 subjectKeyIdentifier=hash"
-cert server "$host" "basicConstraints=critical,CA:FALSE
+cert server "${names[0]}" "basicConstraints=critical,CA:FALSE
 keyUsage=critical,digitalSignature
 extendedKeyUsage=serverAuth
 subjectAltName=$san" -CA ca.pem -CAkey ca-key.pem

@@ -24,6 +24,7 @@ from rich.table import Table
 from wfnn_bench import boat as boat_bench
 from wfnn_bench import cartpole as cartpole_bench
 from wfnn_bench import dashboard as dashboard_bench
+from wfnn_bench import faults as faults_bench
 from wfnn_bench import hydra as hydra_bench
 from wfnn_bench import nomad as nomad_bench
 from wfnn_bench import passive as passive_bench
@@ -33,6 +34,7 @@ from wfnn_bench import speed as speed_bench
 from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
+from wfnn_bench.hosts import unavailable as hosts_unavailable
 from wfnn_common.cli_errors import guarded
 
 app = typer.Typer(
@@ -771,6 +773,54 @@ def vs_sb3(
         write_json(json_path, result)
     if plot_path:
         vs_sb3_bench.plot(result, plot_path)
+
+
+@app.command()
+def faults(
+    cases: Annotated[str, typer.Option(help="Of a-f, comma-separated (see the list below).")] = "a,b,c,d,e,f",
+    impair_s: Annotated[float, typer.Option(min=1.0, help="Loss and delay length (a, e).")] = 60.0,
+    partition_s: Annotated[float, typer.Option(min=1.0, help="Partition length (b, d).")] = 10.0,
+    router_down_s: Annotated[float, typer.Option(min=0.5, help="Router down time (c).")] = 5.0,
+    rate_limit_s: Annotated[float, typer.Option(min=1.0, help="Rate limit length (f).")] = 30.0,
+    warmup_s: Annotated[float, typer.Option(min=1.0, help="Learning before each fault.")] = 10.0,
+    after_s: Annotated[float, typer.Option(min=1.0, help="Running on after each fault.")] = 20.0,
+    keep: Annotated[Path | None, typer.Option(help="Keep every case's logs, stores and traces here.")] = None,
+    seed: int = 0,
+    json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
+    verbose: bool = False,
+) -> None:
+    """C/S across hosts (network namespaces) under faults; needs root, ip, iptables and tc.
+
+    Cases: a 5% loss and 20 +- 10 ms delay on the robot's link, b robot partitioned, c router
+    killed and restarted, d followed server partitioned, e as a with TLS, f 1 Mbit/s link while a
+    late server catches up.
+    """
+    _logging(verbose, json_path, plot_path)
+    why = hosts_unavailable()
+    if why is not None:
+        raise OSError(f"wfnn-bench faults cannot make hosts here: {why}")
+    cfg = faults_bench.FaultsBenchConfig(
+        cases=tuple(c.strip() for c in cases.split(",") if c.strip()), impair_s=impair_s,
+        partition_s=partition_s, router_down_s=router_down_s, rate_limit_s=rate_limit_s, warmup_s=warmup_s,
+        after_s=after_s, seed=seed,
+    )  # fmt: skip
+    with _progress() as bar:
+        task = bar.add_task("faults (cases)", total=len(cfg.cases))
+        result = faults_bench.run(cfg, lambda k: bar.advance(task, k), keep=keep)
+    table = Table(title="act-learn-think-C/S across hosts, under faults (HyDrA 1-DOF, 15 Hz)")
+    for name in faults_bench.TABLE_HEADER:
+        table.add_column(name, justify="left" if name == "case" else "right")
+    for row in faults_bench.table_rows(result):
+        table.add_row(*row)
+    console.print(table)
+    missed = [f"{case}: {name}" for case, goals in result["goals"].items()
+              for name, g in goals.items() if not g["met"]]  # fmt: skip
+    console.print("goals: " + ("all met" if not missed else "NOT met: " + ", ".join(missed)))
+    if json_path:
+        write_json(json_path, result)
+    if plot_path:
+        faults_bench.plot(result, plot_path)
 
 
 main = guarded(app)

@@ -173,6 +173,9 @@ def client(
         Path, typer.Option("--out", "--record", help="Run directory (journal, weights...).")
     ] = Path("runs/latest"),
     json_stats: Annotated[Path | None, typer.Option(help="Write the final figures as JSON here.")] = None,
+    timing_trace: Annotated[
+        bool, typer.Option(help="Also write every tick's timing and every applied snapshot into the metrics.")
+    ] = False,
     seed: int = 0,
     verbose: bool = False,
 ) -> None:
@@ -226,7 +229,7 @@ def client(
         net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
                       zenoh_config=str(zenoh_config) if zenoh_config else None),
         key_file=key_file, insecure=insecure, out=out, json_stats=json_stats, seed=seed,
-        camera_every=camera_every,
+        timing_trace=timing_trace, camera_every=camera_every,
         safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                             max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
     )  # fmt: skip

@@ -219,6 +219,9 @@ class RemoteBrain:
         self.rejected: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
         self.apply_latency_ms: list[float] = []
+        self.applied: list[tuple[float, str, int, int]] = []
+        """(Unix time, server, version, this client's experiences learned through) of each snapshot
+        applied, for timelines of faults."""
         self.staleness_s: list[float] = []
         self.failovers: list[dict[str, Any]] = []
         self._lost_at: float | None = None
@@ -734,8 +737,10 @@ class RemoteBrain:
             self._applied_at = now
             self.current = w
             self.apply_latency_ms.append((time.time_ns() - w.published_ns) / 1e6)
+            self.applied.append((time.time(), w.server, w.version, w.learned_through.get(self.id, -1)))
             if len(self.apply_latency_ms) > 100_000:
                 del self.apply_latency_ms[:50_000]
+                del self.applied[:50_000]
             with self._learned:
                 self._learned.notify_all()
 

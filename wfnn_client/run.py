@@ -362,6 +362,8 @@ def _run(
     outage_late: list[float] = []
     startup_ticks = 0
     """Ticks before the first weights arrived."""
+    produced: list[int] = []
+    """With `timing_trace`: the last experience sent on by each tick's end (C/S; -1 otherwise)."""
     episode_policies: list[str] = []
     """The behaviour policy that drove each episode."""
     task.reset(rng)
@@ -432,6 +434,8 @@ def _run(
                     values.append(float(acted.result.value))
                 if frames is not None and spec.views is not None and tick_count % config.camera_every == 0:
                     frames = _save_views(frames, tick_count, spec, task)
+                if config.timing_trace:
+                    produced.append(int(getattr(skills[0].brain, "produced_through", -1)))
                 tick_count += 1
                 steps += 1
                 now = time.perf_counter()
@@ -508,6 +512,9 @@ def _run(
             "tick_lateness_ms": [v * 1e3 for v in ticks.lateness_s],
             "act_latency_ms": [v * 1e3 for v in ticks.latency_s],
             "snapshot_latency_ms": [v for sk in skills for v in getattr(sk.brain, "apply_latency_ms", [])],
+            "tick_due_unix": ticks.due_unix,
+            "tick_produced_through": produced,
+            "snapshots_applied": [list(a) for sk in skills for a in getattr(sk.brain, "applied", [])],
         }
     write_json(out / "metrics.json", metrics)
     if config.json_stats is not None:

@@ -21,6 +21,8 @@ class TickStats:
     """Sense-to-act time per tick."""
     lateness_s: list[float] = field(default_factory=list)
     """How late each tick started against its absolute deadline (the jitter)."""
+    due_unix: list[float] = field(default_factory=list)
+    """When each tick was due, in Unix time (to line ticks up with events outside the process)."""
     overruns: int = 0
     """Ticks missed because a tick started more than one period late."""
 
@@ -51,6 +53,7 @@ class Ticker:
         self.period_s = period_s
         self.stats = stats if stats is not None else TickStats()
         self._start: float | None = None
+        self._start_unix = 0.0
         self._k = 0
         self.deadline = 0.0
         """Scheduled start of the current tick (perf_counter seconds)."""
@@ -59,7 +62,7 @@ class Ticker:
         """Sleep until the next tick is due; returns how late it starts (s)."""
         now = time.perf_counter()
         if self._start is None:
-            self._start = now
+            self._start, self._start_unix = now, time.time()
         if self.period_s == 0.0:
             self.deadline = now
             return 0.0
@@ -76,6 +79,7 @@ class Ticker:
         self.deadline = deadline
         late = now - deadline
         self.stats.lateness_s.append(late)
+        self.stats.due_unix.append(self._start_unix + (deadline - self._start))
         return late
 
     def late_now(self) -> float:

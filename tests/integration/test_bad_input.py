@@ -182,3 +182,9 @@ def test_bench_json_on_a_read_only_path_fails_before_running(tmp_path):
                    "--json", root / "boat.json")  # fmt: skip
         refused(proc, "read-only")
         assert "median" not in proc.stdout  # nothing ran
+
+
+def test_router_refuses_a_mistyped_endpoint_and_a_port_in_use():
+    refused(run(BIN / "wfnn-router", "--listen", "127.0.0.1:7447"), "endpoint", "tcp/")
+    with port_in_use() as port:
+        refused(run(BIN / "wfnn-router", "--listen", endpoint(port)), str(port))
