@@ -114,3 +114,11 @@ def test_figures_count_experiences_that_no_server_holds_as_lost():
     got = figures("b", FaultsBenchConfig(), metrics, events, {"think1": produced - 5, "think2": produced - 2})
     assert got["experiences_lost"] == 2
     assert got["failover_s"] == pytest.approx(1.5)
+
+
+def test_a_switch_of_server_after_the_fault_is_recovery_not_failover():
+    metrics, events = synthetic_run()
+    metrics["failovers"] = [{"from": "think1", "to": "think2", "at_unix": 15.4}]
+    produced = metrics["uplink/produced_through"] + 1
+    got = figures("b", FaultsBenchConfig(), metrics, events, {"think1": produced, "think2": produced})
+    assert got["failover_s"] is None and len(got["failovers"]) == 1
