@@ -220,5 +220,7 @@ class BoatEnv(TaskEnv):
         super().__init__(task, task.config.steps_per_target)
 
 
-# The boat as a Gymnasium task (for third-party learners: `gym.make("wfnn/Boat-v0")`).
+# The boat as a Gymnasium task (for third-party learners: `gym.make("wfnn/Boat-v0")`), at the
+# calibrated step (0.1 per action) and at the text's step of 1 (`wfnn-bench boat --dt 1.0`).
 gym.register(id="wfnn/Boat-v0", entry_point="sims.boat:BoatEnv")
+gym.register(id="wfnn/BoatStep1-v0", entry_point="sims.boat:BoatEnv", kwargs={"config": BoatConfig(dt=1.0)})

@@ -163,3 +163,12 @@ def test_vectorised_equals_individual_instances():
     tr = many.step(u)
     for i, b in enumerate(singles):
         np.testing.assert_allclose(b.step(u[i : i + 1]).state[0], tr.state[i])
+
+
+def test_the_boat_at_the_texts_step_is_its_own_gymnasium_task():
+    import gymnasium as gym
+
+    env = gym.make("wfnn/BoatStep1-v0")
+    assert env.unwrapped.task.config.dt == 1.0
+    assert gym.make("wfnn/Boat-v0").unwrapped.task.config.dt == 0.1
+    check_env(env.unwrapped, skip_render_check=True)
