@@ -99,7 +99,10 @@ SHORT = {"warmup_s": 4.0, "impair_s": 6.0, "partition_s": 5.0, "router_down_s": 
 def test_nothing_is_lost_and_the_tick_holds_across_hosts_under_a_fault(tmp_path, case):
     cfg = faults.FaultsBenchConfig(cases=(case,), **SHORT)
     got = faults.run_case(case, cfg, tmp_path / case)
-    assert got["experiences_produced"] > 15 * (SHORT["warmup_s"] + cfg.fault_s(case))
+    # The tick held through the fault (a HyDrA tick makes an experience only where it is learnable,
+    # so ticks, not experiences, are counted here).
+    assert got["ticks_during_fault"] >= 0.9 * cfg.rate_hz * cfg.fault_s(case)
+    assert got["experiences_produced"] > 0
     assert got["experiences_lost"] == 0, got["experiences_stored"]
     assert got["overruns"] == 0
     assert got["tick_jitter_p99_ms"] < 20.0  # the 2 ms figure is the benchmark's, on a quiet machine
