@@ -152,56 +152,24 @@ class _Case:
 
     def start_server(self, host: str) -> None:
         argv = [
-            str(BIN / "wfnn-server"),
-            "--id",
-            host,
-            "--controller",
-            CONTROLLER,
-            "--mode",
-            "client",
-            "--connect",
-            f"{self.proto}/{self.hosts.hub_address(host)}:{PORT}",
-            "--data-dir",
-            str(self.work / host),
-            "--key-file",
-            str(self.key),
-            "--seed",
-            str(self.cfg.seed + len(self.servers)),
-            "--checkpoint-period",
-            "5",
-            "--quiet",
-            "--verbose",
-        ]
+            str(BIN / "wfnn-server"), "--id", host, "--controller", CONTROLLER, "--mode", "client",
+            "--connect", f"{self.proto}/{self.hosts.hub_address(host)}:{PORT}",
+            "--data-dir", str(self.work / host), "--key-file", str(self.key),
+            "--seed", str(self.cfg.seed + len(self.servers)), "--checkpoint-period", "5",
+            "--quiet", "--verbose",
+        ]  # fmt: skip
         if self.tls:
             argv += ["--zenoh-config", str(self.tls["side"])]
         self.servers[host] = self.hosts.start(host, argv, host)
 
     def client_argv(self, duration_s: float) -> list[str]:
         argv = [
-            str(BIN / "wfnn-client"),
-            "--sim",
-            "hydra",
-            "--rate-hz",
-            f"{self.cfg.rate_hz:g}",
-            "--episodes",
-            "1000000",
-            "--duration",
-            f"{duration_s:.1f}",
-            "--controller",
-            CONTROLLER,
-            "--server",
-            f"{self.proto}/{self.hosts.hub_address('robot')}:{PORT}",
-            "--key-file",
-            str(self.key),
-            "--out",
-            str(self.work / "robot"),
-            "--json-stats",
-            str(self.work / "robot.json"),
-            "--timing-trace",
-            "--seed",
-            str(self.cfg.seed),
-            "--verbose",
-        ]
+            str(BIN / "wfnn-client"), "--sim", "hydra", "--rate-hz", f"{self.cfg.rate_hz:g}",
+            "--episodes", "1000000", "--duration", f"{duration_s:.1f}", "--controller", CONTROLLER,
+            "--server", f"{self.proto}/{self.hosts.hub_address('robot')}:{PORT}", "--key-file", str(self.key),
+            "--out", str(self.work / "robot"), "--json-stats", str(self.work / "robot.json"),
+            "--timing-trace", "--seed", str(self.cfg.seed), "--verbose",
+        ]  # fmt: skip
         if self.tls:
             argv += ["--zenoh-config", str(self.tls["side"])]
         return argv

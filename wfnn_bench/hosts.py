@@ -164,21 +164,8 @@ class Hosts:
             # Interface names are unique per namespace; both ends start in the hub's namespace.
             link = Link(index, host, host_dev=f"h{index}", hub_dev=f"to{host}"[:15])
             hub_ns, host_ns = self.ns(self.hub), self.ns(host)
-            _sh(
-                "ip",
-                "-n",
-                hub_ns,
-                "link",
-                "add",
-                link.hub_dev,
-                "type",
-                "veth",
-                "peer",
-                "name",
-                link.host_dev,
-                "netns",
-                host_ns,
-            )
+            _sh("ip", "-n", hub_ns, "link", "add", link.hub_dev, "type", "veth",
+                "peer", "name", link.host_dev, "netns", host_ns)  # fmt: skip
             _sh("ip", "-n", hub_ns, "addr", "add", f"{link.hub_address}/24", "dev", link.hub_dev)
             _sh("ip", "-n", host_ns, "addr", "add", f"{link.host_address}/24", "dev", link.host_dev)
             _sh("ip", "-n", hub_ns, "link", "set", link.hub_dev, "up")
@@ -248,71 +235,26 @@ class Hosts:
         state = _Impairment()
         self._impaired[host] = state
         if loss > 0:
-            self._rules(
-                host,
-                "-A",
-                "INPUT",
-                "-i",
-                "{dev}",
-                "-m",
-                "statistic",
-                "--mode",
-                "random",
-                "--probability",
-                f"{loss:.6f}",
-                "-j",
-                "DROP",
-            )
-        if delay_ms > 0:
-            for end, (ns, dev) in enumerate(
-                ((self.ns(host), link.host_dev), (self.ns(self.hub), link.hub_dev))
-            ):
-                queue = self._next_queue
-                self._next_queue += 1
-                line = subprocess.Popen(
-                    [
-                        "ip",
-                        "netns",
-                        "exec",
-                        ns,
-                        sys.executable,
-                        "-m",
-                        "wfnn_bench.delay_line",
-                        "--queue",
-                        str(queue),
-                        "--delay-ms",
-                        str(delay_ms),
-                        "--jitter-ms",
-                        str(jitter_ms),
-                        "--seed",
-                        str(seed * 2 + end),
-                    ],
-                    stdout=subprocess.PIPE,
-                    stderr=subprocess.STDOUT,
-                )
-                state.lines.append(line)
-                self.procs.append(line)
-                assert line.stdout is not None
-                ready = line.stdout.readline()  # bound before the rule sends packets its way
-                if not ready.startswith(b"delay line"):
-                    raise RuntimeError(f"the delay line did not start: {ready!r} {line.stdout.read()!r}")
-                _sh(
-                    "ip",
-                    "netns",
-                    "exec",
-                    ns,
-                    "iptables",
-                    "-A",
-                    "OUTPUT",
-                    "-o",
-                    dev,
-                    "-j",
-                    "NFQUEUE",
-                    "--queue-num",
-                    str(queue),
-                    "--queue-bypass",
-                )
-                state.queues.append(queue)
+            self._rules(host, "-A", "INPUT", "-i", "{dev}", "-m", "statistic", "--mode", "random",
+                        "--probability", f"{loss:.6f}", "-j", "DROP")  # fmt: skip
+        if delay_ms <= 0:
+            return
+        for end, (ns, dev) in enumerate(((self.ns(host), link.host_dev), (self.ns(self.hub), link.hub_dev))):
+            queue = self._next_queue
+            self._next_queue += 1
+            argv = [sys.executable, "-m", "wfnn_bench.delay_line", "--queue", str(queue), "--delay-ms",
+                    str(delay_ms), "--jitter-ms", str(jitter_ms), "--seed", str(seed * 2 + end)]  # fmt: skip
+            line = subprocess.Popen(["ip", "netns", "exec", ns, *argv], stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT)  # fmt: skip
+            state.lines.append(line)
+            self.procs.append(line)
+            assert line.stdout is not None
+            ready = line.stdout.readline()  # bound before the rule sends packets its way
+            if not ready.startswith(b"delay line"):
+                raise RuntimeError(f"the delay line did not start: {ready!r} {line.stdout.read()!r}")
+            _sh("ip", "netns", "exec", ns, "iptables", "-A", "OUTPUT", "-o", dev, "-j", "NFQUEUE",
+                "--queue-num", str(queue), "--queue-bypass")  # fmt: skip
+            state.queues.append(queue)
 
     def restore(self, host: str) -> None:
         """End `impair` on `host`'s link."""
@@ -332,25 +274,8 @@ class Hosts:
         """Limit `host`'s link to `rate` each way (tc tbf on both ends)."""
         link = self.links[host]
         for ns, dev in ((self.ns(host), link.host_dev), (self.ns(self.hub), link.hub_dev)):
-            _sh(
-                "ip",
-                "netns",
-                "exec",
-                ns,
-                "tc",
-                "qdisc",
-                "replace",
-                "dev",
-                dev,
-                "root",
-                "tbf",
-                "rate",
-                rate,
-                "burst",
-                "16kb",
-                "latency",
-                "200ms",
-            )
+            _sh("ip", "netns", "exec", ns, "tc", "qdisc", "replace", "dev", dev, "root", "tbf", "rate", rate,
+                "burst", "16kb", "latency", "200ms")  # fmt: skip
 
     def unlimit_rate(self, host: str) -> None:
         """End `limit_rate`."""
