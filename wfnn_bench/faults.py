@@ -184,8 +184,9 @@ class _Case:
 
     def inject(self) -> None:
         h, case = self.hosts, self.case
-        self.target = self.followed() if case in ("d", "f") else "robot"
-        self.events["followed_at_fault"] = self.followed()
+        followed = self.followed()
+        self.target = followed if case in ("d", "f") else "robot"
+        self.events["followed_at_fault"] = followed
         if case in ("a", "e"):
             h.impair("robot", self.cfg.loss, self.cfg.delay_ms, self.cfg.jitter_ms, seed=self.cfg.seed)
         elif case == "b":

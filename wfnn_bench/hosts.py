@@ -117,7 +117,6 @@ class Link:
 
 @dataclass
 class _Impairment:
-    queues: list[int] = field(default_factory=list)
     lines: list[subprocess.Popen[bytes]] = field(default_factory=list)
 
 
@@ -254,7 +253,6 @@ class Hosts:
                 raise RuntimeError(f"the delay line did not start: {ready!r} {line.stdout.read()!r}")
             _sh("ip", "netns", "exec", ns, "iptables", "-A", "OUTPUT", "-o", dev, "-j", "NFQUEUE",
                 "--queue-num", str(queue), "--queue-bypass")  # fmt: skip
-            state.queues.append(queue)
 
     def restore(self, host: str) -> None:
         """End `impair` on `host`'s link."""
