@@ -20,5 +20,5 @@ if ! command -v iptables > /dev/null && [ "$(id -u)" = 0 ] && command -v apt-get
     iptables > /dev/null || echo "could not install iptables: the tests across hosts will be skipped"
 fi
 .venv/bin/ruff check .
-.venv/bin/mypy wfnn_common wfnn_client wfnn_server sims wfnn_bench
+.venv/bin/mypy wfnn_common wfnn_io wfnn_client wfnn_server sims wfnn_bench
 .venv/bin/python -m pytest "$@"

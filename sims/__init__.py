@@ -1,10 +1,14 @@
-"""Simulated tasks for wfnn: pure numpy boat, cart-pole and 1-DOF positioning (thesis Ch 3-4, App A).
+"""Simulated tasks for wfnn, behind one vectorised task interface (`sims.base.VecTask`).
 
-HyDrA (`sims.hydra`) runs on MuJoCo, whose GL backend is fixed when `mujoco` is imported. With no
-display the default (GLFW) cannot render, and a backend whose libraries are missing makes the
-import itself fail, so unless MUJOCO_GL is already set it is set here to the first off-screen
-backend whose libraries load (EGL, then OSMesa); with neither, rendering is reported unavailable
-and everything else works.
+- In numpy: the boat, cart-pole and 1-DOF positioning (thesis Ch 3-4, App A).
+- On MuJoCo: the HyDrA active head (`sims.hydra`) and the Nomad 200 (`sims.nomad`), with their
+  rendered cameras.
+- Any Gymnasium task with Box spaces (`sims.gym`).
+
+MuJoCo's GL backend is fixed when `mujoco` is imported. With no display the default (GLFW)
+cannot render, and a backend whose libraries are missing makes the import itself fail, so unless
+MUJOCO_GL is already set it is set here to the first off-screen backend whose libraries load
+(EGL, then OSMesa); with neither, rendering is reported unavailable and everything else works.
 """
 
 import ctypes

@@ -35,7 +35,7 @@ from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
-from wfnn_common.cli_errors import guarded
+from wfnn_io.cli_errors import guarded
 
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
@@ -824,7 +824,7 @@ def faults(
 
 
 main = guarded(app)
-"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""
 
 if __name__ == "__main__":
     main()

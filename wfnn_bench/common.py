@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_common import persist
+from wfnn_io import persist
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,6 @@ def machine_info() -> dict[str, Any]:
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write `data` as JSON atomically (`wfnn_common.persist.write_json`), and say so."""
+    """Write `data` as JSON atomically (`wfnn_io.persist.write_json`), and say so."""
     persist.write_json(path, data)
     log.info("wrote %s", path)

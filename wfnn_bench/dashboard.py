@@ -101,7 +101,7 @@ class _Watcher:
 
 def _stored(server: ServerProcess) -> int:
     """Experiences in the server's store, read from its log files (the same way on and off)."""
-    from wfnn_common.logs import summarise
+    from wfnn_io.logs import summarise
 
     return summarise(server.data_dir / "store").experiences
 

@@ -40,11 +40,11 @@ from sims.boat import BoatConfig, BoatVec, handcoded_boat, mirror, phantom
 from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.brain import Experience, Recorder
-from wfnn_common import logs
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
-from wfnn_common.protocol import EXP_EXPLORED
 from wfnn_common.update import squash_reward
+from wfnn_io import logs
+from wfnn_io.protocol import EXP_EXPLORED
 
 FloatArray = NDArray[np.float64]
 

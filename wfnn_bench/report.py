@@ -27,8 +27,8 @@ import jinja2
 import numpy as np
 import typer
 
-from wfnn_common.cli_errors import guarded
 from wfnn_common.config import check_fields
+from wfnn_io.cli_errors import guarded
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +189,7 @@ def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
 
 
 def _journal_section(journal: Path) -> Section:
-    from wfnn_common.logs import summarise
+    from wfnn_io.logs import summarise
 
     try:
         s = summarise(journal)
@@ -270,4 +270,4 @@ def report(
 
 
 main = guarded(app)
-"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""

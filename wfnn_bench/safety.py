@@ -32,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common import logs
 from wfnn_common.config import check_fields
-from wfnn_common.net import Channel, NetConfig, ZenohBus
-from wfnn_common.protocol import Codec, Keys, ServerStatus
+from wfnn_io import logs
+from wfnn_io.bus import Channel, NetConfig, ZenohBus
+from wfnn_io.protocol import Codec, Keys, ServerStatus
 from wfnn_server.spawn import ServerProcess, free_port
 
 CONTROLLER = "bench"

@@ -29,12 +29,12 @@ import numpy as np
 from sims.boat import BoatVec
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.brain import Experience
+from wfnn_client.config import ClientConfig
 from wfnn_client.remote import RemoteBrain, RemoteConfig
-from wfnn_client.run import ClientConfig
 from wfnn_client.run import run as run_client
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
-from wfnn_common.net import NetConfig, ZenohBus
+from wfnn_io.bus import NetConfig, ZenohBus
 from wfnn_server.spawn import ServerProcess, free_port
 from wfnn_server.store import ExperienceStore
 

@@ -25,11 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_client.journal import Journal
-from wfnn_common.architectures import ActLearnThinkMT
+from wfnn_client.think_thread import ActLearnThinkMT
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import Learner
-from wfnn_common.protocol import EXP_EXPLORED, Codec, ExperienceBatch
+from wfnn_io.protocol import EXP_EXPLORED, Codec, ExperienceBatch
 
 FloatArray = NDArray[np.float64]
 

@@ -18,13 +18,14 @@ from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.vision import NomadVisionConfig
+from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import LEARNER, parse_mix
-from wfnn_client.run import ClientConfig, jsonable_config, prepare, run
+from wfnn_client.run import jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
-from wfnn_common.cli_errors import guarded
 from wfnn_common.config import ExplorationConfig
-from wfnn_common.net import NetConfig
+from wfnn_io.bus import NetConfig
+from wfnn_io.cli_errors import guarded
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
@@ -204,7 +205,7 @@ def client(
     if [m.name for m in mix] == [LEARNER]:
         mix = ()  # the learner alone: the usual run
     # A config that does not hold (a ValueError), or a run directory, key or endpoint that cannot be
-    # used ends in one `error:` line and exit 2 (`main`, `wfnn_common.cli_errors`).
+    # used ends in one `error:` line and exit 2 (`main`, `wfnn_io.cli_errors`).
     hydra = HydraConfig(
         joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
         vision=VisionConfig(source=vision),  # type: ignore[arg-type]
@@ -262,7 +263,7 @@ def client(
 
 
 main = guarded(app)
-"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""
 
 if __name__ == "__main__":
     main()

@@ -20,7 +20,7 @@ from wfnn_client.brain import Acted
 from wfnn_client.sims import Policy
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import make_learner
-from wfnn_common.persist import load_weights
+from wfnn_io.persist import load_weights
 
 FloatArray = NDArray[np.float64]
 

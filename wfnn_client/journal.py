@@ -4,7 +4,7 @@ Experiences stay here however long servers take to acknowledge them, so batches 
 no server was reachable, or lost on the way, are re-sent from here, and a server that joins
 late catches up from here. The journal continues across client restarts: the client id and the
 next sequence number are recovered from it. The journal is also the run's experience record,
-an experience log (`wfnn_common.logs`: the same format as a server store). A local run, which
+an experience log (`wfnn_io.logs`: the same format as a server store). A local run, which
 sends nothing, records its experiences in the same format (`wfnn_client.brain.Recorder`).
 """
 
@@ -17,10 +17,10 @@ import secrets
 from pathlib import Path
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.logs import ExperienceLog, set_aside
-from wfnn_common.persist import atomic_write_text
-from wfnn_common.protocol import check_id
-from wfnn_common.segments import FsyncPolicy, Position
+from wfnn_io.logs import ExperienceLog, set_aside
+from wfnn_io.persist import atomic_write_text
+from wfnn_io.protocol import check_id
+from wfnn_io.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
 

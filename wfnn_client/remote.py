@@ -38,8 +38,8 @@ from wfnn_client.journal import Journal
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learners import Learner, n_params, weights_from_flat
 from wfnn_common.learners import Weights as NetworkWeights
-from wfnn_common.net import Bus, Channel
-from wfnn_common.protocol import (
+from wfnn_io.bus import Bus, Channel
+from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     Ack,
     CameraView,
@@ -55,7 +55,7 @@ from wfnn_common.protocol import (
     load_key,
     max_frame,
 )
-from wfnn_common.segments import FsyncPolicy
+from wfnn_io.segments import FsyncPolicy
 
 log = logging.getLogger(__name__)
 

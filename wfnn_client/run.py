@@ -15,32 +15,28 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sims.base import Behaviours, Ranges, VecTask
-from sims.hydra import HydraConfig
-from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.brain import Brain, Experience, LocalBrain
-from wfnn_client.controllers import LEARNER, Controllers, PolicyShare, source_name
+from wfnn_client.config import ClientConfig
+from wfnn_client.controllers import LEARNER, Controllers, source_name
 from wfnn_client.frames import FrameWriter
-from wfnn_client.safety import SafetyConfig, SafetyLayer
+from wfnn_client.safety import SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import (
-    LEARNERS,
-    ExplorationConfig,
     LearnerConfig,
-    check_fields,
     parse_json,
     with_options,
 )
 from wfnn_common.learners import Learner, make_learner
-from wfnn_common.net import NetConfig, check_exposure
-from wfnn_common.persist import (
+from wfnn_io.bus import check_exposure
+from wfnn_io.persist import (
     load_weights,
     make_directory,
     save_experiences,
@@ -48,145 +44,9 @@ from wfnn_common.persist import (
     to_jsonable,
     write_json,
 )
-from wfnn_common.protocol import EXP_VETO_PROPOSED, load_key
+from wfnn_io.protocol import EXP_VETO_PROPOSED, load_key
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, kw_only=True)
-class ClientConfig:
-    """Options of `wfnn-client`; the CLI only builds this and calls `run`."""
-
-    sim: str = "boat"
-    episodes: int = 40
-    """Episodes (boat: targets) to run."""
-    duration_s: float | None = None
-    """Stop after this much wall time (whichever comes first)."""
-    rate_hz: float = 50.0
-    """Control rate; 0 runs as fast as possible."""
-    lockstep: bool = False
-    """As fast as possible, each action waiting for the previous experiences' thinks (the
-    single-process act-learn-think order, for reproducible benchmarks); needs rate_hz 0."""
-    lockstep_timeout_s: float = 30.0
-    boat_dt: float = 0.1
-    """Boat time per action (see sims.boat)."""
-    env: str | None = None
-    """`sim` gym: the Gymnasium task id (Box observations and actions), e.g. Pendulum-v1."""
-    hydra: HydraConfig = field(default_factory=HydraConfig)
-    """HyDrA's joints, image axes and target regime (`sim` hydra)."""
-    nomad: NomadConfig = field(default_factory=NomadConfig)
-    """The Nomad's behaviour and camera (`sim` nomad)."""
-    forage: ForageConfig | None = None
-    """nomad: forage instead (learned wandering and learned servoing, Fig 6.3; `nomad.behaviour`
-    must be wander): one learner per behaviour; weights and journals per behaviour, and in C/S
-    mode the controllers `<controller>-servo` and `<controller>-wander`."""
-    thinks_per_action: int | None = None
-    """Override the learner's thinks per action (local thinking and the announced config)."""
-    advantage_k: float | None = None
-    """Override the advantage-learning constant (1: plain Q-learning); None: the sim's default."""
-    bc_weight: float | None = None
-    """Override the learner's `bc_weight` (the best wire pulled toward the actions taken, for
-    learning from other controllers); None: the thesis' 0."""
-    symmetries: bool = False
-    """Learn each experience also as its images under the task's declared symmetries (the
-    boat's mirror; `wfnn_common.symmetry`); they travel in the learner config to the servers."""
-    behaviour_policy: tuple[PolicyShare, ...] = ()
-    """Which controller drives each episode, drawn by share (`wfnn_client.controllers`): the
-    learner, the task's hand-coded controller, random actions or a saved WFNN; the learner
-    learns off-policy from whatever drove. Empty: the learner always."""
-    think_batch: int = 50
-    exploration: ExplorationConfig | None = None
-    """How `act` explores; None: the learner's default."""
-    learner: str = "thesis"
-    """Which learner: "thesis" (the thesis' WFNN) or "deep" (deep wire fitting)."""
-    learner_options: str = ""
-    """Learner config fields over the learner's defaults, as a JSON object (the deep learner's
-    own fields under "deep"), e.g. '{"gamma": 0.95, "deep": {"hidden": [64, 64]}}'."""
-    learn: bool = True
-    """False: act greedily only (no exploration), send and learn nothing."""
-    weights: Path | None = None
-    """Start from these saved weights (local: the learner; C/S: until a server's snapshot)."""
-    server: tuple[str, ...] = ("local",)
-    """`local` thinks in-process; otherwise Zenoh endpoints of think servers (or routers). Empty,
-    with `net.listen` set: the servers connect to this client."""
-    controller: str = "default"
-    client_id: str | None = None
-    follow: str | None = None
-    """Pin a server id (C/S)."""
-    net: NetConfig = field(default_factory=NetConfig)
-    """Zenoh settings (C/S); `connect` is filled from `server`."""
-    key_file: Path | None = None
-    insecure: bool = False
-    """Allow a non-loopback endpoint without a key (anyone reaching it could drive the robot)."""
-    safety: SafetyConfig = field(default_factory=SafetyConfig)
-    out: Path = Path("runs/latest")
-    json_stats: Path | None = None
-    """Also write the final figures here."""
-    camera_every: int = 0
-    """Save what the cameras see every this many ticks to `out/cameras/` (0: never; sims with
-    cameras only)."""
-    timing_trace: bool = False
-    """Put every tick's lateness and every snapshot's latency in the metrics (benchmarks)."""
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-        if self.sim not in SIMS:
-            raise ValueError(f"unknown sim {self.sim!r}; choose from {', '.join(SIMS)}")
-        if (self.sim == "gym") != (self.env is not None):
-            raise ValueError("a Gymnasium task needs sim gym and an env id (wfnn-client --env ID)")
-        if self.lockstep and self.rate_hz != 0:
-            raise ValueError("lock-step runs as fast as possible: set rate_hz to 0")
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
-        if not self.server and not self.net.listen:
-            raise ValueError("server needs `local`, an endpoint, or a listen endpoint servers connect to")
-        if "local" in self.server and len(self.server) > 1:
-            raise ValueError("server is either `local` or endpoints, not both")
-        if self.camera_every < 0:
-            raise ValueError(f"camera_every must be >= 0, got {self.camera_every}")
-        if self.camera_every and SIMS[self.sim].views is None:
-            raise ValueError(f"camera_every: sim {self.sim!r} has no cameras")
-        if self.forage is not None and (self.sim != "nomad" or self.nomad.behaviour != "wander"):
-            raise ValueError("forage: the nomad sim, configured to wander, only")
-        if self.behaviour_policy and self.forage is not None:
-            raise ValueError("behaviour_policy: one learned behaviour only (not forage)")
-        if self.learner not in LEARNERS:
-            raise ValueError(f"unknown learner {self.learner!r}; choose from {', '.join(LEARNERS)}")
-        if self.learner_options and not isinstance(parse_json(self.learner_options, "learner options"), dict):
-            raise ValueError("learner options must be a JSON object of learner config fields")
-
-    @property
-    def local(self) -> bool:
-        """Whether thinking happens in this process."""
-        return self.server == ("local",)
-
-    @property
-    def remote_net(self) -> NetConfig:
-        """The Zenoh settings of a C/S run: `net`, connecting also to the `server` endpoints."""
-        return dataclasses.replace(self.net, connect=tuple(self.net.connect) + tuple(self.server))
-
-    def summary(self) -> str:
-        """One line: the task, where it thinks, the learner's overrides and the run directory."""
-        task = {
-            "hydra": f"hydra ({','.join(self.hydra.joints)}; {','.join(self.hydra.axes)}; "
-                     f"{self.hydra.regime})",
-            "nomad": f"nomad ({'forage' if self.forage else self.nomad.behaviour})",
-            "gym": f"gym {self.env}", "boat": f"boat (dt {self.boat_dt:g})",
-        }.get(self.sim, self.sim)  # fmt: skip
-        where = "thinking locally" if self.local else f"servers {', '.join(self.server) or '(they connect)'}"
-        rate = (
-            "lock-step"
-            if self.lockstep
-            else (f"{self.rate_hz:g} Hz" if self.rate_hz else "as fast as possible")
-        )
-        learner = ", ".join(f"{name} {value}" for name, value in (
-            ("k", self.advantage_k), ("thinks", self.thinks_per_action), ("bc_weight", self.bc_weight),
-            ("options", self.learner_options or None),
-        ) if value is not None) or "defaults"  # fmt: skip
-        keyed = ", key" if self.key_file else ""
-        kind = "" if self.learner == "thesis" else f"{self.learner} "  # the thesis' learner: as before
-        return f"{task}, {rate}, {where}{keyed}; {kind}learner {learner}; run directory {self.out}"
 
 
 class SetupError(ValueError):
@@ -227,7 +87,7 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> B
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id)
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)
     from wfnn_client.remote import RemoteBrain, RemoteConfig, largest_message
-    from wfnn_common.net import ZenohBus
+    from wfnn_io.bus import ZenohBus
 
     # Nothing larger than a snapshot of this learner (or a status) is reassembled by Zenoh here.
     largest = largest_message(learner.config) + 1024
@@ -272,7 +132,7 @@ def run(
     if not prepared:
         prepare(config)
     spec = SIMS[config.sim]
-    task = spec.make(config)
+    task = spec.make(config.sim_options)
     try:
         return _run(config, spec, task, on_status)
     finally:
@@ -316,7 +176,7 @@ def _run(
 ) -> dict[str, Any]:
     rng = np.random.default_rng(config.seed)
     reward_of = spec.reward_of(task) if spec.reward_of else None
-    several = spec.behaviours(task, config) if spec.behaviours else None
+    several = spec.behaviours(task, config.sim_options) if spec.behaviours else None
     behaviours: Behaviours = several or OneBehaviour(task, reward_of)
     can_learn_twice = several is not None or reward_of is not None
     period = 1.0 / config.rate_hz if config.rate_hz > 0 else 0.0

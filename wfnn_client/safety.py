@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import check_fields
-from wfnn_common.protocol import EXP_FILTERED, EXP_SAFE_ACTION, EXP_VETO_ACTUAL
+from wfnn_io.protocol import EXP_FILTERED, EXP_SAFE_ACTION, EXP_VETO_ACTUAL
 
 log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]

@@ -8,8 +8,8 @@ robot's veto rules (sensors outside the learner's state).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,13 +18,11 @@ from sims.base import Behaviours, Ranges, Transition, VecTask
 from sims.boat import BoatConfig, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleVec
 from sims.gym import GymVec
-from sims.hydra import HydraVec
-from sims.nomad import NomadForage, NomadVec, handcoded_wander
+from sims.hydra import HydraConfig, HydraVec
+from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcoded_wander
 from sims.positioning import PositioningVec, handcoded_positioning
 from wfnn_client.safety import Veto
-
-if TYPE_CHECKING:
-    from wfnn_client.run import ClientConfig
+from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
 Policy = Callable[[FloatArray], FloatArray]
@@ -33,11 +31,29 @@ RewardOf = Callable[[FloatArray, FloatArray, FloatArray], float]
 """reward_of(state [S], action [A], next_state [S]) -> reward, for an action not executed."""
 
 
+@dataclass(frozen=True, kw_only=True)
+class SimOptions:
+    """What building a simulated task takes from the client's options (`ClientConfig.sim_options`)."""
+
+    boat_dt: float = 0.1
+    """Boat time per action (see sims.boat)."""
+    env: str | None = None
+    """`sim` gym: the Gymnasium task id."""
+    hydra: HydraConfig = field(default_factory=HydraConfig)
+    nomad: NomadConfig = field(default_factory=NomadConfig)
+    forage: ForageConfig | None = None
+    """nomad: learned wandering and learned servoing, one learner each (Fig 6.3)."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
 @dataclass(frozen=True)
 class SimSpec:
     """How the client drives one simulated task."""
 
-    make: Callable[[ClientConfig], VecTask]
+    make: Callable[[SimOptions], VecTask]
     """Build the task (one instance) from the client's options."""
     episode_steps: int | Callable[[Any], int]
     """Actions per episode (or a function of the task instance)."""
@@ -59,7 +75,7 @@ class SimSpec:
     thesis' default, 0.2)."""
     views: Callable[[Any], dict[str, NDArray[np.uint8]]] | None = None
     """What the robot's cameras see now ({camera: [h, w, 3] RGB}), for tasks with cameras."""
-    behaviours: Callable[[Any, ClientConfig], Behaviours | None] | None = None
+    behaviours: Callable[[Any, SimOptions], Behaviours | None] | None = None
     """Several learned behaviours over the task instance, one learner each (None: the task's one)."""
     handcoded: Callable[[Any], Policy | None] | None = None
     """The task's hand-coded controller for a task instance (state [S] -> action [A]), for

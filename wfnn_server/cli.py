@@ -14,10 +14,10 @@ from rich.logging import RichHandler
 from rich.markup import escape
 from rich.status import Status
 
-from wfnn_common.cli_errors import guarded
-from wfnn_common.net import NetConfig
-from wfnn_common.persist import to_jsonable
-from wfnn_common.protocol import ServerStatus
+from wfnn_io.bus import NetConfig
+from wfnn_io.cli_errors import guarded
+from wfnn_io.persist import to_jsonable
+from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
 from wfnn_server.server import run
 
@@ -154,7 +154,7 @@ def serve(
 
 
 main = guarded(app)
-"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""
 
 if __name__ == "__main__":
     main()

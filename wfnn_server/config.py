@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Literal
 
 from wfnn_common.config import DeepConfig, check_fields
-from wfnn_common.net import NetConfig
-from wfnn_common.protocol import check_id
-from wfnn_common.segments import FsyncPolicy
+from wfnn_io.bus import NetConfig
+from wfnn_io.protocol import check_id
+from wfnn_io.segments import FsyncPolicy
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -34,12 +34,12 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 import orjson
 
-from wfnn_common.protocol import ServerStatus
 from wfnn_common.surface import SurfaceGrid
+from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig
 
 if TYPE_CHECKING:
-    from wfnn_server.server import ThinkServer
+    from wfnn_server.view import ViewModel
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +75,12 @@ def _f32(values: np.ndarray) -> str:
 
 
 class Dashboard:
-    """Serves the page and its JSON view of one `ThinkServer` from background threads."""
+    """Serves the page and its JSON view of one think server (its `ViewModel`) from background threads."""
 
-    def __init__(self, config: DashboardConfig, server: ThinkServer) -> None:
+    def __init__(self, config: DashboardConfig, view: ViewModel) -> None:
         self.config = config
-        self.server = server
+        self.view_of = view
+        """What the server publishes for views (never the server itself)."""
         self._lock = threading.Lock()
         self._seq = 0
         self._samples: collections.deque[dict[str, Any]] = collections.deque(maxlen=config.history)
@@ -100,7 +101,7 @@ class Dashboard:
         self._http.daemon_threads = True
         self.port = int(self._http.server_address[1])
         self._thread = threading.Thread(target=self._http.serve_forever, name="dashboard", daemon=True)
-        server.status_listeners.append(self._sample)
+        view.status_listeners.append(self._sample)
 
     def start(self) -> Dashboard:
         """Serve in a background thread."""
@@ -125,7 +126,7 @@ class Dashboard:
                 "following": c.following,
                 "weights_version": c.weights_version,
             }
-            for cid, c in self.server.clients.items()
+            for cid, c in self.view_of.clients.items()
         }
         sample = {
             "t": round(time.time() - self._started, 3),
@@ -165,17 +166,17 @@ class Dashboard:
         return orjson.dumps(extra)[:-1] + b"," + cached[1][1:], newest
 
     def _current(self) -> dict[str, Any]:
-        srv = self.server
+        srv = self.view_of
         status = srv.last_status
         cfg = srv.learner_config
         if self._static is None or self._static[0] is not cfg:  # what changes only with the config
             self._static = (cfg, {
-                "server": srv.id, "incarnation": srv.incarnation, "controller": srv.config.controller,
+                "server": srv.server, "incarnation": srv.incarnation, "controller": srv.controller,
                 "learner": cfg.short_repr() if cfg is not None else None, "update_hz": self.config.update_hz,
             })  # fmt: skip
         view: dict[str, Any] = {
             **self._static[1],
-            "weights_version": srv.version,
+            "weights_version": srv.weights_version,
             "rejected": dict(status.rejected) if status is not None else {},
             "figures": {k: status.metrics.get(k) for k in FIGURES} if status is not None else {},
             "clients": {
@@ -250,7 +251,7 @@ class _Handler(BaseHTTPRequestHandler):
             elif url.path == "/static/plotly.min.js":
                 self._send(d.plotly, "text/javascript; charset=utf-8", cache=True)
             elif url.path.startswith("/api/camera/") and url.path.endswith(".png"):
-                view = d.server.camera_views.get(url.path[len("/api/camera/") : -len(".png")])
+                view = d.view_of.camera_views.get(url.path[len("/api/camera/") : -len(".png")])
                 if view is None:
                     self._send(b"no pictures from that client", "text/plain", HTTPStatus.NOT_FOUND)
                 else:

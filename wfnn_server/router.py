@@ -19,9 +19,9 @@ from typing import Annotated
 
 import typer
 
-from wfnn_common.cli_errors import guarded
 from wfnn_common.config import check_fields
-from wfnn_common.net import NetConfig, ZenohBus, endpoints, is_loopback
+from wfnn_io.bus import NetConfig, ZenohBus, endpoints, is_loopback
+from wfnn_io.cli_errors import guarded
 
 log = logging.getLogger(__name__)
 

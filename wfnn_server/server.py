@@ -23,7 +23,6 @@ import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,10 +31,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import ConfigError, LearnerConfig
-from wfnn_common.learners import Learner, Weights, make_learner
-from wfnn_common.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
-from wfnn_common.net import Bus, Channel
-from wfnn_common.persist import (
+from wfnn_common.learners import Learner, make_learner
+from wfnn_io.bus import Bus, Channel
+from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
+from wfnn_io.persist import (
     PersistError,
     atomic_write_text,
     load_checkpoint,
@@ -44,7 +43,7 @@ from wfnn_common.persist import (
     save_weights,
     write_json,
 )
-from wfnn_common.protocol import (
+from wfnn_io.protocol import (
     EXP_NON_FINITE,
     MAX_SEQ,
     Ack,
@@ -61,6 +60,7 @@ from wfnn_common.protocol import (
 )
 from wfnn_server.config import ServerConfig
 from wfnn_server.store import ExperienceStore
+from wfnn_server.view import ViewModel
 
 if TYPE_CHECKING:
     from wfnn_server.dashboard import Dashboard
@@ -149,18 +149,8 @@ class ThinkServer:
         """Per client: when its heartbeat (status) last arrived (monotonic)."""
         self._silent: set[str] = set()
         self.error: BaseException | None = None
-        # What a read-only view (the dashboard) may look at; written by one thread each, replaced
-        # whole rather than changed in place so that a reader never sees half an update.
-        self.clients: dict[str, ClientStatus] = {}
-        """Per client: its latest status heartbeat (ingest thread)."""
-        self.camera_views: dict[str, CameraView] = {}
-        """Per client: what its cameras saw last, when it sends pictures (ingest thread)."""
-        self.latest_state: dict[str, FloatArray] = {}
-        """Per client: the newest state it sent, physical units [S] (learner thread)."""
-        self.published: Weights | None = None
-        """A copy of the weights of the newest snapshot (learner thread)."""
-        self.status_listeners: list[Callable[[ServerStatus], None]] = []
-        """Called with every status published (learner thread): must be quick."""
+        self.view = ViewModel(server=self.id, incarnation=self.incarnation, controller=config.controller)
+        """What read-only views (the dashboard) may look at; replaced field by field, never in place."""
         self.dashboard: Dashboard | None = None
         """The live web view, while serving with `config.dashboard`."""
 
@@ -186,7 +176,6 @@ class ThinkServer:
         """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
-        self.last_status: ServerStatus | None = None
         # --learner-config or an earlier run's, else the config the logs say they were recorded for
         cfg = self._initial_config() or (self._overridden(replay_config) if replay_config else None)
         if cfg is not None:
@@ -331,6 +320,7 @@ class ThinkServer:
         for client, through in self.store.stored_through.items():
             self._owed.append(_Owed(self._thinks_owed_total, client, through))
         self.learner, self.learner_config, self.spec_hash = learner, cfg, cfg.spec_hash()
+        self.view.learner_config, self.view.weights_version = cfg, self.version
         log.info(
             "learner %s (spec %s, seed %d); %d stored experiences loaded, %d thinks owed",
             cfg.short_repr(), self.spec_hash, cfg.seed, loaded, self.budget,
@@ -402,7 +392,7 @@ class ThinkServer:
         if self.config.dashboard is not None:
             from wfnn_server.dashboard import Dashboard  # the web view loads only when asked for
 
-            self.dashboard = Dashboard(self.config.dashboard, self).start()
+            self.dashboard = Dashboard(self.config.dashboard, self.view).start()
         log.info(
             "server %s (incarnation %d) serving controller %s; %d experiences stored",
             self.id, self.incarnation, self.config.controller, self.store.count,
@@ -533,7 +523,7 @@ class ThinkServer:
         self._allowed(status.client)
         self.counters["ingest/client_status"] += 1
         self._heard[status.client] = time.monotonic()
-        self.clients = {**self.clients, status.client: status}
+        self.view.clients = {**self.view.clients, status.client: status}
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:
@@ -554,7 +544,7 @@ class ThinkServer:
             raise _Refused("sender", f"camera view from {sender} names client {view.client}")
         self._allowed(view.client)
         self.counters["ingest/camera_views"] += 1
-        self.camera_views = {**self.camera_views, view.client: view}
+        self.view.camera_views = {**self.view.camera_views, view.client: view}
 
     def _ack(self, client: str, through: int) -> None:
         ack = Ack(client=client, server=self.id, incarnation=self.incarnation, store=self.store.id,
@@ -614,7 +604,7 @@ class ThinkServer:
         values = learner.greedy_values(batch.next_state)[0]
         self._q_chosen.extend(values.tolist())
         self._rewards.extend(batch.reward.tolist())
-        self.latest_state = {**self.latest_state, batch.client: batch.next_state[-1].copy()}
+        self.view.latest_state = {**self.view.latest_state, batch.client: batch.next_state[-1].copy()}
         if batch.weights_source == f"{self.id}:{self.incarnation}":
             self._staleness.extend((self.version - batch.weights_version.astype(np.int64)).tolist())
         monitor = learner.monitor
@@ -672,7 +662,7 @@ class ThinkServer:
         )  # fmt: skip
         frame = self.codec.encode(snapshot)
         self._latest_frame = frame
-        self.published = learner.params.copy()
+        self.view.published, self.view.weights_version = learner.params.copy(), self.version
         self.bus.put(self.keys.weights(self.id), frame, Channel.LATEST)
 
     def _check_clients(self) -> int:
@@ -724,9 +714,9 @@ class ThinkServer:
             spec_hash=self.spec_hash, weights_version=self.version,
             stored_through=dict(self.store.durable_through), rejected=dict(self.rejected), metrics=metrics,
         )  # fmt: skip
-        self.last_status = status
+        self.view.last_status = status
         self.bus.put(self.keys.server_status(self.id), self.codec.encode(status), Channel.LATEST)
-        for listener in self.status_listeners:
+        for listener in self.view.status_listeners:
             listener(status)
 
     def checkpoint(self) -> None:
@@ -767,7 +757,7 @@ def prepare(config: ServerConfig) -> list[str]:
     Makes the data directory and writes the whole server config there (`server_config.json`),
     reads the key file, and refuses a non-loopback endpoint without a key unless `insecure`.
     """
-    from wfnn_common.net import check_exposure
+    from wfnn_io.bus import check_exposure
 
     make_directory(config.data_dir, "--data-dir")
     write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
@@ -784,7 +774,7 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
     """
     import signal
 
-    from wfnn_common.net import ZenohBus
+    from wfnn_io.bus import ZenohBus
 
     stop = threading.Event()
 
@@ -812,8 +802,8 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
             while (
                 not stop.wait(0.2) and not server.wait(0) and not (config.replay_only and server.replayed())
             ):
-                if on_status is not None and server.last_status is not shown:
-                    shown = server.last_status
+                if on_status is not None and server.view.last_status is not shown:
+                    shown = server.view.last_status
                     on_status(shown)
         finally:
             server.stop()  # a second signal meanwhile must not cut the final checkpoint short

@@ -7,7 +7,7 @@ re-sends from the acknowledged point). The one exception is a gap the sender dec
 (EXP_AFTER_LOSS: its journal lost those experiences to damage), or one met importing logs that
 none of them fills: the run goes on after it, and the gap is counted and logged, so that one
 damaged record never stalls a client's stream. Records are `ExperienceBatch` frames, the format of the
-client journal (`wfnn_common.logs.ExperienceLog`), stored as verified at ingest (untagged).
+client journal (`wfnn_io.logs.ExperienceLog`), stored as verified at ingest (untagged).
 The store has its own identity (`id`, made when it is created), which the server announces: a
 server restarted under the same id with a new, empty store is known to its clients as another
 store, and they re-send it everything.
@@ -20,9 +20,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from wfnn_common.logs import ExperienceLog
-from wfnn_common.protocol import EXP_AFTER_LOSS, Codec, ExperienceBatch
-from wfnn_common.segments import FsyncPolicy
+from wfnn_io.logs import ExperienceLog
+from wfnn_io.protocol import EXP_AFTER_LOSS, Codec, ExperienceBatch
+from wfnn_io.segments import FsyncPolicy
 
 log = logging.getLogger(__name__)
 

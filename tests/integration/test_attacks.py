@@ -12,8 +12,8 @@ import pytest
 
 from tests.integration.procs import ServerProcess, client, endpoint, finish, free_port
 from tests.mounts import files
-from wfnn_common.net import Channel, NetConfig, ZenohBus
-from wfnn_common.protocol import Keys
+from wfnn_io.bus import Channel, NetConfig, ZenohBus
+from wfnn_io.protocol import Keys
 from wfnn_server.store import ExperienceStore
 
 pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]

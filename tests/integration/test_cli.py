@@ -130,7 +130,7 @@ def test_client_runs_learns_and_saves(tmp_path):
     assert metrics["following"] == "local" and metrics["experiences_learned"] > 0
     for name in ("weights.npz", "experiences.npz", "learning_curve.png"):
         assert (out / name).exists()
-    from wfnn_common.persist import load_experiences, load_weights
+    from wfnn_io.persist import load_experiences, load_weights
 
     cfg, params, meta = load_weights(out / "weights.npz")
     assert meta["sim"] == "positioning" and params.population == 1
@@ -264,8 +264,9 @@ import sys
 sys.modules["torch"] = None  # any import of torch now fails
 import numpy as np
 from sims.boat import BoatVec
-from wfnn_client.run import ClientConfig, learner_config
-from wfnn_common.architectures import ActLearnThinkMT
+from wfnn_client.config import ClientConfig
+from wfnn_client.run import learner_config
+from wfnn_client.think_thread import ActLearnThinkMT
 from wfnn_common.learner import WFNN
 task = BoatVec(1)
 learner = WFNN(learner_config(task, ClientConfig()))
@@ -281,7 +282,7 @@ with ActLearnThinkMT(learner) as mt:
     while learner.thinks[0] == 0 and mt.error is None and time.monotonic() < deadline:
         time.sleep(0.01)
 assert mt.error is None and learner.thinks[0] > 0, (mt.error, learner.thinks)
-import wfnn_client.remote, wfnn_client.run, wfnn_common.net, wfnn_common.protocol  # the C/S client too
+import wfnn_client.remote, wfnn_client.run, wfnn_io.bus, wfnn_io.protocol  # the C/S client too
 from wfnn_common.learners import make_learner, weights_from_flat
 deep = make_learner(learner_config(task, ClientConfig(learner="deep")))  # acting on a server's snapshots
 for _ in range(5):
@@ -377,7 +378,7 @@ def test_client_learns_the_boats_mirror_images_when_asked(tmp_path):
          "--lockstep", "--thinks", "5", "--out", out])  # fmt: skip
     metrics = json.loads((out / "metrics.json").read_text())
     assert [s["name"] for s in metrics["config"]["learner"]["symmetries"]] == ["mirror"]
-    from wfnn_common.persist import load_experiences, load_weights
+    from wfnn_io.persist import load_experiences, load_weights
 
     cfg, _, _ = load_weights(out / "weights.npz")
     stored = load_experiences(out / "experiences.npz", cfg)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from tests.integration.procs import ServerProcess, client, endpoint, finish, free_port
-from wfnn_common.net import NetConfig, ZenohBus
-from wfnn_common.persist import load_weights
-from wfnn_common.protocol import Codec, ExperienceBatch, Keys, ServerStatus, WeightSnapshot
+from wfnn_io.bus import NetConfig, ZenohBus
+from wfnn_io.persist import load_weights
+from wfnn_io.protocol import Codec, ExperienceBatch, Keys, ServerStatus, WeightSnapshot
 from wfnn_server.spawn import ServerProcess as _ServerProcess
 from wfnn_server.store import ExperienceStore
 
@@ -139,7 +139,7 @@ def test_snapshots_without_the_key_are_never_applied(tmp_path):
 
 
 def _latest():
-    from wfnn_common.net import Channel
+    from wfnn_io.bus import Channel
 
     return Channel.LATEST
 
@@ -161,7 +161,7 @@ def test_ten_thousand_corrupted_frames_are_rejected_and_counted(tmp_path):
         try:
             time.sleep(1.0)
             n, good_batches, bad = 10_000, 0, 0
-            from wfnn_common.net import Channel
+            from wfnn_io.bus import Channel
 
             for i in range(n + 100):
                 exp = ExperienceBatch(

@@ -7,8 +7,8 @@ import subprocess
 import pytest
 
 from tests.integration.procs import BIN, endpoint, free_port
-from wfnn_common import logs
-from wfnn_common.persist import load_weights
+from wfnn_io import logs
+from wfnn_io.persist import load_weights
 
 pytestmark = pytest.mark.multiprocess
 ENV = {**os.environ, "COLUMNS": "160"}

@@ -15,12 +15,12 @@ import pytest
 
 from tests.fakes import Hub, small_config
 from tests.fakes import wait_for as wait
-from tests.unit.test_remote import announce, forge, remote
-from tests.unit.test_server import KEYS, Listener, batch, make_server, send
+from tests.unit.wfnn_client.test_remote import announce, forge, remote
+from tests.unit.wfnn_server.test_server import KEYS, Listener, batch, make_server, send
 from wfnn_client.brain import Experience
 from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
-from wfnn_common.net import NetConfig, check_exposure, endpoints
-from wfnn_common.protocol import EXP_NON_FINITE, ClientStatus, Codec
+from wfnn_io.bus import NetConfig, check_exposure, endpoints
+from wfnn_io.protocol import EXP_NON_FINITE, ClientStatus, Codec
 
 
 def feed(brain, n, seed=0):
@@ -149,10 +149,11 @@ def test_every_config_class_checks_its_fields():
     import wfnn_bench
     import wfnn_client
     import wfnn_common
+    import wfnn_io
     import wfnn_server
 
     unchecked = []
-    for package in (wfnn_common, wfnn_client, wfnn_server, sims, wfnn_bench):
+    for package in (wfnn_common, wfnn_io, wfnn_client, wfnn_server, sims, wfnn_bench):
         for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
             module = importlib.import_module(info.name)
             for name, obj in vars(module).items():
@@ -221,7 +222,8 @@ def test_a_non_loopback_endpoint_needs_a_key_or_insecure(where, endpoint):
 
 
 def test_a_client_refuses_to_reach_beyond_loopback_without_a_key(tmp_path):
-    from wfnn_client.run import ClientConfig, prepare
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import prepare
 
     config = ClientConfig(sim="boat", server=("tcp/192.168.1.20:7447",), out=tmp_path / "run")
     with pytest.raises(ValueError, match="no --key-file"):
@@ -315,12 +317,12 @@ def test_allow_client_takes_only_the_named_clients(tmp_path):
         send(hub, batch(cfg, 0, 5, client="robot1"), client="robot1")
         assert listener.wait(lambda: listener.acked("robot1") == 4)
         assert server.rejected["client_not_allowed"] == 2
-        assert server.store.stored_through == {"robot1": 4} and "intruder" not in server.clients
+        assert server.store.stored_through == {"robot1": 4} and "intruder" not in server.view.clients
 
 
 def test_experience_numbers_past_an_int64_are_refused():
-    from tests.unit.test_protocol import make_batch
-    from wfnn_common.protocol import MAX_SEQ, MalformedBody, decode
+    from tests.unit.wfnn_io.test_protocol import make_batch
+    from wfnn_io.protocol import MAX_SEQ, MalformedBody, decode
 
     with pytest.raises(MalformedBody):
         make_batch(n=5, first_seq=MAX_SEQ - 3).validate()

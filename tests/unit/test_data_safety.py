@@ -7,11 +7,11 @@ import pytest
 
 from tests.fakes import Hub, small_config
 from tests.mounts import files, read_only, tmpfs
-from tests.unit.test_server import Listener, batch, make_server, send
+from tests.unit.wfnn_server.test_server import Listener, batch, make_server, send
 from wfnn_client.journal import Journal
-from wfnn_common import logs, segments
-from wfnn_common.logs import LogFormatError
-from wfnn_common.protocol import Codec
+from wfnn_io import logs, segments
+from wfnn_io.logs import LogFormatError
+from wfnn_io.protocol import Codec
 from wfnn_server.server import CHECKPOINT, PREVIOUS_CHECKPOINT
 
 BATCHES, PER_BATCH = 20, 10
@@ -273,7 +273,7 @@ def test_a_journal_reads_alike_with_and_without_its_key(tmp_path):
 
 def test_a_checkpoint_whose_counters_are_not_numbers_is_not_used(tmp_path):
     from wfnn_common.learner import WFNN
-    from wfnn_common.persist import save_weights
+    from wfnn_io.persist import save_weights
 
     hub, cfg = Hub(), small_config(thinks_per_action=2)
     stored_and_checkpointed(tmp_path, hub, cfg, 5, 5)

@@ -13,9 +13,9 @@ from rich.logging import RichHandler
 from rich.markup import escape
 from rich.table import Table
 
-from wfnn_common import logs
-from wfnn_common.cli_errors import guarded
-from wfnn_common.protocol import load_key
+from wfnn_io import logs
+from wfnn_io.cli_errors import guarded
+from wfnn_io.protocol import load_key
 
 app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.")
 console = Console()
@@ -125,7 +125,7 @@ def export(
 
 
 main = guarded(app)
-"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_common.cli_errors`)."""
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""
 
 if __name__ == "__main__":
     main()

@@ -1,7 +1,7 @@
 """Experience logs: the one on-disk format of a client's record and of a server's store.
 
-A log is a directory of segment files (`00000000.seg`, ...; `wfnn_common.segments`: CRC-framed
-records). Every record is one protocol frame (`wfnn_common.protocol`, itself CRC-checked)
+A log is a directory of segment files (`00000000.seg`, ...; `wfnn_io.segments`: CRC-framed
+records). Every record is one protocol frame (`wfnn_io.protocol`, itself CRC-checked)
 holding an `ExperienceBatch`:
 
 - experiences numbered 0, 1, 2, ... per client (`client`, `first_seq`), in physical units:
@@ -47,8 +47,8 @@ from typing import Any
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.persist import atomic_savez, atomic_write_text
-from wfnn_common.protocol import (
+from wfnn_io.persist import atomic_savez, atomic_write_text
+from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
     EXP_FILTERED,
@@ -62,7 +62,7 @@ from wfnn_common.protocol import (
     ProtocolError,
     decode,
 )
-from wfnn_common.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, read_records
+from wfnn_io.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, read_records
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,7 @@ def read_batches(
 class ExperienceLog:
     """The owner's handle on an experience log (a client's journal, a server's store).
 
-    Opening it repairs a torn tail (moved to quarantine, see `wfnn_common.segments`) and gives
+    Opening it repairs a torn tail (moved to quarantine, see `wfnn_io.segments`) and gives
     the log an identity if it has none; `entries` reads it back with the one reader.
     """
 

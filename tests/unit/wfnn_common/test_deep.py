@@ -25,9 +25,9 @@ from wfnn_common.deep_torch import (
     wirefit,
 )
 from wfnn_common.learners import make_learner, make_population, n_params, weights_from_flat
-from wfnn_common.persist import load_checkpoint, load_weights, save_weights
 from wfnn_common.surface import SurfaceGrid
 from wfnn_common.symmetry import Symmetry
+from wfnn_io.persist import load_checkpoint, load_weights, save_weights
 
 
 class Task:

@@ -1,14 +1,11 @@
-import time
-
 import numpy as np
 import pytest
 
 from sims.positioning import PositioningVec
-from wfnn_client.run import ClientConfig
+from wfnn_client.config import ClientConfig
 from wfnn_client.safety import SafetyConfig, SafetyLayer
-from wfnn_client.sims import SIMS, positioning_wall_veto
-from wfnn_client.tick import Ticker
-from wfnn_common.protocol import EXP_FILTERED, EXP_SAFE_ACTION, EXP_VETO_ACTUAL
+from wfnn_client.sims import SIMS, SimOptions, positioning_wall_veto
+from wfnn_io.protocol import EXP_FILTERED, EXP_SAFE_ACTION, EXP_VETO_ACTUAL
 
 LOW, HIGH = (-1.0, -2.0), (1.0, 2.0)
 
@@ -91,36 +88,11 @@ def test_positioning_wall_veto_and_the_reward_of_a_proposal():
 
 
 def test_boat_reward_of_matches_the_task_for_the_executed_action():
-    task = SIMS["boat"].make(ClientConfig())
+    task = SIMS["boat"].make(SimOptions())
     x = task.reset(np.random.default_rng(0))[0]
     u = np.array([0.4, -0.7])
     tr = task.step(u[None])
     assert SIMS["boat"].reward_of(task)(x, u, tr.state[0]) == pytest.approx(tr.reward[0])
-
-
-def test_the_tick_keeps_an_absolute_schedule():
-    ticker = Ticker(0.02)  # 20 ms: a slow tick's 12 ms leaves room for a busy machine
-    starts = []
-    for k in range(40):
-        ticker.wait()
-        starts.append(ticker.deadline)
-        if k == 10:
-            time.sleep(0.012)  # a slow tick shifts nothing after it
-    np.testing.assert_allclose(np.diff(starts), 0.02, atol=1e-9)
-    assert ticker.stats.overruns == 0 and len(ticker.stats.lateness_s) == 40
-
-
-def test_an_overrun_skips_the_missed_ticks_and_keeps_the_phase():
-    ticker = Ticker(0.01)
-    ticker.wait()
-    first = ticker.deadline
-    time.sleep(0.035)  # misses the ticks due at +10 and +20 ms (and +30 ms)
-    ticker.wait()
-    assert ticker.stats.overruns in (2, 3)
-    phase = (ticker.deadline - first) / 0.01
-    assert abs(phase - round(phase)) < 1e-6 and ticker.late_now() < 0.01
-    with pytest.raises(ValueError):
-        Ticker(-1.0)
 
 
 def test_a_vetoed_tick_is_learned_twice(tmp_path, monkeypatch):
@@ -128,7 +100,7 @@ def test_a_vetoed_tick_is_learned_twice(tmp_path, monkeypatch):
 
     from wfnn_client import run as client_run
     from wfnn_client.brain import LocalBrain
-    from wfnn_common.protocol import EXP_VETO_PROPOSED
+    from wfnn_io.protocol import EXP_VETO_PROPOSED
 
     learned = []
 
@@ -146,7 +118,7 @@ def test_a_vetoed_tick_is_learned_twice(tmp_path, monkeypatch):
     monkeypatch.setattr(
         client_run, "make_brain", lambda config, learner, behaviour="": Recording(learner, lockstep=True)
     )
-    config = client_run.ClientConfig(
+    config = ClientConfig(
         sim="positioning", episodes=1, rate_hz=0, lockstep=True, thinks_per_action=1, out=tmp_path
     )
     metrics = client_run.run(config)

@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from wfnn_common.persist import sync_dir
-from wfnn_common.protocol import crc32c
+from wfnn_io.persist import sync_dir
+from wfnn_io.protocol import crc32c
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from wfnn_common.protocol import (
+from wfnn_io.protocol import (
     CRC_SIZE,
     FLAG_MAC,
     HEADER,

@@ -7,8 +7,9 @@ import pytest
 
 from sims.boat import MIRROR, BoatVec, mirror
 from tests.fakes import Hub, small_config
-from tests.unit.test_server import Listener, batch, make_server, send
-from wfnn_client.run import ClientConfig, learner_config
+from tests.unit.wfnn_server.test_server import Listener, batch, make_server, send
+from wfnn_client.config import ClientConfig
+from wfnn_client.run import learner_config
 from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learner import WFNN
 from wfnn_common.symmetry import Symmetry

@@ -35,7 +35,7 @@ from enum import Enum
 from typing import Any, Literal, Protocol
 
 from wfnn_common.config import check_fields
-from wfnn_common.protocol import MAX_FRAME
+from wfnn_io.protocol import MAX_FRAME
 
 log = logging.getLogger(__name__)
 

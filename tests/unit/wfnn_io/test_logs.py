@@ -6,9 +6,9 @@ import pytest
 from sims.boat import BoatVec
 from sims.cartpole import CartPoleVec
 from wfnn_client.brain import Experience, Recorder
-from wfnn_common import logs
 from wfnn_common.config import LearnerConfig
-from wfnn_common.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
+from wfnn_io import logs
+from wfnn_io.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
 
 
 def record(directory, task_type=BoatVec, n=300, client="robot1", source="local", seed=0):

@@ -7,8 +7,8 @@ from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.exploration import Explorer
 from wfnn_common.learner import WFNN, DivergenceMonitor
 from wfnn_common.network import forward, split_wires
-from wfnn_common.persist import PersistError, load_experiences, load_weights, save_experiences, save_weights
 from wfnn_common.replay import ReplayBuffer
+from wfnn_io.persist import PersistError, load_experiences, load_weights, save_experiences, save_weights
 
 
 def test_act_is_the_best_wire_in_physical_units():

@@ -7,8 +7,8 @@ import pytest
 from typer.testing import CliRunner
 
 from wfnn_bench.report import ReportConfig, ReportError, app, run
+from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import parse_mix
-from wfnn_client.run import ClientConfig
 from wfnn_client.run import run as run_client
 
 

@@ -7,7 +7,7 @@ import pytest
 from sims.nomad import NomadConfig, NomadVec
 from sims.nomad.transforms import phantom_goals, servo_mirror
 from sims.nomad.vision import NomadVisionConfig
-from tests.unit.test_nomad import placed
+from tests.unit.sims.test_nomad import placed
 
 EXACT = NomadConfig(
     behaviour="wander", encoder_noise=(0.0, 0.0), encoder_glitch=0.0, person_speed=0.0,

@@ -5,7 +5,7 @@ import pytest
 
 from tests.fakes import Hub, small_config, wait_for
 from wfnn_common.config import LEARNERS
-from wfnn_common.protocol import (
+from wfnn_io.protocol import (
     Ack,
     ClientStatus,
     Codec,

@@ -4,8 +4,8 @@ import types
 import numpy as np
 import pytest
 
-from wfnn_common import segments
-from wfnn_common.protocol import Codec, ExperienceBatch
+from wfnn_io import segments
+from wfnn_io.protocol import Codec, ExperienceBatch
 from wfnn_server.store import Admission, ExperienceStore
 
 ARRAYS = ["state", "action", "next_state", "reward", "terminal", "weights_version", "flags"]

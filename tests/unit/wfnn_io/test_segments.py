@@ -2,9 +2,9 @@ import types
 
 import pytest
 
-from wfnn_common import segments
-from wfnn_common.protocol import crc32c
-from wfnn_common.segments import RECORD, LogError, Position, SegmentLog
+from wfnn_io import segments
+from wfnn_io.protocol import crc32c
+from wfnn_io.segments import RECORD, LogError, Position, SegmentLog
 
 
 def payloads(n, size=20, tag=b"r"):

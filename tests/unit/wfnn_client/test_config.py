@@ -1,7 +1,7 @@
 import pytest
 
-from wfnn_client.run import ClientConfig
-from wfnn_common.net import NetConfig
+from wfnn_client.config import ClientConfig
+from wfnn_io.bus import NetConfig
 
 
 def test_local_and_remote_configs():

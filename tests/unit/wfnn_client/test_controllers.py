@@ -4,12 +4,13 @@ import numpy as np
 import pytest
 
 from sims.boat import BoatVec, handcoded_boat
+from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import Controllers, PolicyShare, parse_mix, source_name
-from wfnn_client.run import ClientConfig, SetupError, learner_config, run
-from wfnn_common import logs
+from wfnn_client.run import SetupError, learner_config, run
 from wfnn_common.learner import WFNN
 from wfnn_common.learners import make_learner
-from wfnn_common.persist import save_weights
+from wfnn_io import logs
+from wfnn_io.persist import save_weights
 
 
 def test_a_mix_is_parsed_with_shares_and_bad_ones_are_named():

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from tests.fakes import Hub, small_config, wait_for
-from tests.unit.test_server import KEYS, Listener, batch, make_server, send
+from tests.unit.wfnn_server.test_server import KEYS, Listener, batch, make_server, send
 from wfnn_common.learner import WFNN
-from wfnn_common.protocol import ClientStatus, Codec
+from wfnn_io.protocol import ClientStatus, Codec
 from wfnn_server.config import DashboardConfig
 
 
@@ -71,7 +71,7 @@ def test_the_view_has_the_servers_figures_clients_and_the_action_value_surface(t
         assert q.shape == (41, 41) and len(f32("wire_value")) == surface["n_wires"] == cfg.n_wires
         assert f32("wire_action").shape == (cfg.n_wires * 2,)
         axes = [np.linspace(*a) for a in surface["axes"]]
-        learner = WFNN(cfg, params=server.published)
+        learner = WFNN(cfg, params=server.view.published)
         state = f32("state").astype(np.float64)
         np.testing.assert_allclose(state, b.next_state[-1], atol=1e-6)
         state = b.next_state[-1]
@@ -109,7 +109,7 @@ def test_the_dashboard_is_off_by_default_and_checks_its_config(tmp_path):
 def test_a_clients_camera_pictures_are_shown_as_they_arrive(tmp_path):
     import cv2
 
-    from wfnn_common.protocol import CameraView
+    from wfnn_io.protocol import CameraView
 
     hub, cfg = Hub(), small_config()
     picture = np.zeros((12, 20, 3), dtype=np.uint8)

@@ -1,0 +1,24 @@
+"""The client's experience journal (`wfnn_client.journal`)."""
+
+from tests.fakes import small_config
+from wfnn_io.protocol import Codec, ExperienceBatch
+
+
+def test_journal_frames_from_a_sequence_number(tmp_path):
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    for first in (0, 5, 12):
+        b = batch(cfg, first, {0: 5, 5: 7, 12: 3}[first])
+        journal.append(Codec("c1").encode(b), b.last_seq)
+    frames, last = journal.frames_from(6, 1)
+    assert len(frames) == 1 and last == 11
+    assert Codec("c1").decode(frames[0], ExperienceBatch)[1].first_seq == 5
+    frames, last = journal.frames_from(0, 10)
+    assert len(frames) == 3 and last == 14
+    assert journal.frames_from(15, 10) == ([], -1)
+    journal.close()
+    again = Journal(tmp_path / "j")
+    assert again.client_id == "c1" and again.next_seq == 15 and again.frames_from(12, 5)[1] == 14
