@@ -203,6 +203,7 @@ def token_storm(cfg: SafetyBenchConfig, work: Path) -> dict[str, Any]:
             for i in range(30):
                 rogue.declare_token(keys.server_alive(f"fake{i:02d}"))
             forged = ServerStatus(server="fake00", incarnation=1, store="fake", started_ns=1, spec_hash="",
+                                  learner_config="",
                                   weights_version=0, stored_through={}, rejected={}, metrics={})  # fmt: skip
             deadline = time.monotonic() + cfg.storm_seconds - 4.0
             while time.monotonic() < deadline:  # unsigned statuses of a fake server, twice a second

@@ -62,7 +62,8 @@ def client(
     duration: Annotated[float | None, typer.Option(min=0.0, help="Stop after this many seconds.")] = None,
     rate_hz: Annotated[
         float | None,
-        typer.Option(min=0.0, help="Control rate; 0 = as fast as possible [sim's rate: 50, hydra 15]."),
+        typer.Option(min=0.0, help="Control rate; 0 = as fast as possible [sim's rate: 50, hydra 15, "
+                                   "nomad 10]. HyDrA and the Nomad are simulated at this rate."),
     ] = None,
     lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
     server: Annotated[
@@ -206,15 +207,17 @@ def client(
         mix = ()  # the learner alone: the usual run
     # A config that does not hold (a ValueError), or a run directory, key or endpoint that cannot be
     # used ends in one `error:` line and exit 2 (`main`, `wfnn_io.cli_errors`).
+    # A simulated robot is simulated at its tick rate (as fast as possible: at its own rate).
+    simulated = {"rate_hz": rate} if rate > 0 else {}
     hydra = HydraConfig(
         joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
-        vision=VisionConfig(source=vision),  # type: ignore[arg-type]
+        vision=VisionConfig(source=vision), **simulated,  # type: ignore[arg-type]
     )  # fmt: skip
     foraging = behaviour == "forage"
     nomad = NomadConfig(
         behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
         camera_yaw_deg=camera_yaw, balls=balls,
-        vision=NomadVisionConfig(source=vision),  # type: ignore[arg-type]
+        vision=NomadVisionConfig(source=vision), **simulated,  # type: ignore[arg-type]
     )  # fmt: skip
     forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
     config = ClientConfig(

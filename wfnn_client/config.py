@@ -11,7 +11,7 @@ from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.controllers import PolicyShare
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS, SimOptions
-from wfnn_common.config import LEARNERS, ExplorationConfig, check_fields, parse_json
+from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerOverrides, check_fields
 from wfnn_io.bus import NetConfig
 
 
@@ -24,8 +24,8 @@ class ClientConfig:
     """Episodes (boat: targets) to run."""
     duration_s: float | None = None
     """Stop after this much wall time (whichever comes first)."""
-    rate_hz: float = 50.0
-    """Control rate; 0 runs as fast as possible."""
+    rate_hz: float | None = None
+    """Control rate; 0 runs as fast as possible; None: the sim's own (0 in lock-step)."""
     lockstep: bool = False
     """As fast as possible, each action waiting for the previous experiences' thinks (the
     single-process act-learn-think order, for reproducible benchmarks); needs rate_hz 0."""
@@ -97,8 +97,17 @@ class ClientConfig:
             raise ValueError(f"unknown sim {self.sim!r}; choose from {', '.join(SIMS)}")
         if (self.sim == "gym") != (self.env is not None):
             raise ValueError("a Gymnasium task needs sim gym and an env id (wfnn-client --env ID)")
-        if self.lockstep and self.rate_hz != 0:
+        if self.lockstep and self.tick_hz != 0:
             raise ValueError("lock-step runs as fast as possible: set rate_hz to 0")
+        simulated = self.simulated_hz
+        if simulated is not None and self.tick_hz > 0 and self.tick_hz != simulated:
+            # A robot's tick is real time: a simulated robot ticking faster than it is simulated
+            # would run in fast motion (as dm_control ties a control step to whole physics steps).
+            raise ValueError(
+                f"rate_hz {self.tick_hz:g} but {self.sim} is simulated at {simulated:g} actions per "
+                f"simulated second ({self.tick_hz / simulated:g} x real time): set {self.sim}.rate_hz "
+                "to the tick rate (wfnn-client --rate-hz sets both)"
+            )
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if not self.server and not self.net.listen:
@@ -115,8 +124,19 @@ class ClientConfig:
             raise ValueError("behaviour_policy: one learned behaviour only (not forage)")
         if self.learner not in LEARNERS:
             raise ValueError(f"unknown learner {self.learner!r}; choose from {', '.join(LEARNERS)}")
-        if self.learner_options and not isinstance(parse_json(self.learner_options, "learner options"), dict):
-            raise ValueError("learner options must be a JSON object of learner config fields")
+        self.overrides  # noqa: B018  # checks the overrides by the learner config's rules
+
+    @property
+    def simulated_hz(self) -> float | None:
+        """Actions per simulated second of a simulated robot (HyDrA, the Nomad); None for the others."""
+        return {"hydra": self.hydra.rate_hz, "nomad": self.nomad.rate_hz}.get(self.sim)
+
+    @property
+    def tick_hz(self) -> float:
+        """The control rate the client runs at (0: as fast as possible)."""
+        if self.rate_hz is not None:
+            return self.rate_hz
+        return 0.0 if self.lockstep else (self.simulated_hz or SIMS[self.sim].rate_hz)
 
     @property
     def local(self) -> bool:
@@ -127,6 +147,12 @@ class ClientConfig:
     def remote_net(self) -> NetConfig:
         """The Zenoh settings of a C/S run: `net`, connecting also to the `server` endpoints."""
         return dataclasses.replace(self.net, connect=tuple(self.net.connect) + tuple(self.server))
+
+    @property
+    def overrides(self) -> LearnerOverrides:
+        """The learner fields this client sets (`--thinks`, `--advantage-k`, `--bc-weight`, options)."""
+        return LearnerOverrides(thinks_per_action=self.thinks_per_action, advantage_k=self.advantage_k,
+                                bc_weight=self.bc_weight, options=self.learner_options)  # fmt: skip
 
     @property
     def sim_options(self) -> SimOptions:
@@ -146,7 +172,7 @@ class ClientConfig:
         rate = (
             "lock-step"
             if self.lockstep
-            else (f"{self.rate_hz:g} Hz" if self.rate_hz else "as fast as possible")
+            else (f"{self.tick_hz:g} Hz" if self.tick_hz else "as fast as possible")
         )
         learner = ", ".join(f"{name} {value}" for name, value in (
             ("k", self.advantage_k), ("thinks", self.thinks_per_action), ("bc_weight", self.bc_weight),

@@ -35,7 +35,7 @@ import numpy as np
 
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
-from wfnn_common.config import LearnerConfig, check_fields
+from wfnn_common.config import LearnerConfig, check_fields, parse_json
 from wfnn_common.learners import Learner, n_params, weights_from_flat
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_io.bus import Bus, Channel
@@ -152,6 +152,8 @@ class ServerView:
     """Its liveliness token disappeared after its latest status."""
     started_ns: int = 0
     spec_hash: str = ""
+    learner_config: str = ""
+    """The learner config it announces that it learns with (JSON), overrides applied."""
     store: str = ""
     """Its store's identity, as announced (status and acks)."""
     incarnation: int = 0
@@ -224,6 +226,10 @@ class RemoteBrain:
         applied, for timelines of faults."""
         self.staleness_s: list[float] = []
         self.failovers: list[dict[str, Any]] = []
+        self.learned_with: dict[str, str] = {}
+        """Per server whose snapshots drove the robot: the learner config it learned with (JSON),
+        which is not this client's where the server adopted another's or overrides fields."""
+        self._config_warned: set[tuple[str, str]] = set()
         self._lost_at: float | None = None
         self._applied_at: float | None = None
         """time.monotonic() when weights were last applied (None before the first)."""
@@ -592,11 +598,24 @@ class RemoteBrain:
             self._announced(view, status.store, status.incarnation)
             view.heard, view.gone = time.monotonic(), False
             view.started_ns, view.spec_hash = status.started_ns, status.spec_hash
+            new_config = view.learner_config != status.learner_config and bool(status.learner_config)
             view.metrics = status.metrics
             if self.id in status.stored_through:
                 view.acked = max(view.acked, status.stored_through[self.id])
             ask = not view.asked and view.latest is None and status.spec_hash == self.spec_hash
             view.asked = view.asked or ask
+        if new_config:  # a config not seen from this server before: checked, and compared with ours once
+            try:
+                differ = config_differences(self._config_json, status.learner_config)
+            except ValueError:
+                self.rejected["status_config"] += 1
+            else:
+                view.learner_config = status.learner_config
+                if differ and (status.server, status.learner_config) not in self._config_warned:
+                    self._config_warned.add((status.server, status.learner_config))
+                    log.warning("server %s learns with a config that is not this client's (%s): its "
+                                "own applies, and metrics.json records it",
+                                status.server, ", ".join(differ))  # fmt: skip
         if ask:  # its newest weights now rather than at its next publication; replies come later
             self.bus.query(self.keys.weights(status.server), self.config.query_timeout_s, self._on_snapshot,
                            self.max_snapshot_bytes)  # fmt: skip
@@ -738,11 +757,36 @@ class RemoteBrain:
             self.current = w
             self.apply_latency_ms.append((time.time_ns() - w.published_ns) / 1e6)
             self.applied.append((time.time(), w.server, w.version, w.learned_through.get(self.id, -1)))
+            view = self.servers.get(w.server)
+            if view is not None and view.learner_config:
+                self.learned_with[w.server] = view.learner_config
             if len(self.apply_latency_ms) > 100_000:
                 del self.apply_latency_ms[:50_000]
                 del self.applied[:50_000]
             with self._learned:
                 self._learned.notify_all()
+
+
+PLACEMENT = ("deep.device", "deep.compile")
+"""Where and how a server runs its updates: its own choice, not a difference in what is learned."""
+
+
+def config_differences(mine: str, theirs: str) -> list[str]:
+    """The fields (dotted: `deep.lr`) in which two learner configs, as JSON objects, differ.
+
+    Raises ValueError when `theirs` is not a JSON object.
+    """
+
+    def flat(data: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(data, dict):
+            raise ValueError("a learner config must be a JSON object")
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {prefix + key: value})
+        return out
+
+    a, b = flat(parse_json(mine, "learner config")), flat(parse_json(theirs, "learner config"))
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in PLACEMENT)
 
 
 def _age(view: ServerView) -> tuple[int, str]:

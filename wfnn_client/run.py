@@ -11,6 +11,7 @@ mode, experiences.npz locally), metrics.json and a learning-curve PNG.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
 from collections import deque
@@ -31,8 +32,6 @@ from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import (
     LearnerConfig,
-    parse_json,
-    with_options,
 )
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
@@ -54,18 +53,11 @@ class SetupError(ValueError):
 
 
 def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfig:
-    """The learner's defaults over the declared ranges (with the client's overrides)."""
+    """The learner's defaults over the declared ranges, with the client's overrides (`overrides`)."""
     extra: dict[str, Any] = {}
-    if config.thinks_per_action is not None:
-        extra["thinks_per_action"] = config.thinks_per_action
     # A sim's advantage k was chosen for the thesis' learner; the deep one starts from its own.
-    k = config.advantage_k
-    if k is None and config.learner == "thesis":
-        k = SIMS[config.sim].advantage_k
-    if k is not None:
-        extra["advantage_k"] = k
-    if config.bc_weight is not None:
-        extra["bc_weight"] = config.bc_weight
+    if config.learner == "thesis" and SIMS[config.sim].advantage_k is not None:
+        extra["advantage_k"] = SIMS[config.sim].advantage_k
     if config.symmetries:
         declared = tuple(getattr(task, "symmetries", ()))
         if not declared:
@@ -74,9 +66,7 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
     if config.exploration is not None:
         extra["exploration"] = config.exploration
     base = LearnerConfig.for_task(task, learner=config.learner, seed=config.seed, **extra)
-    if not config.learner_options:
-        return base
-    return with_options(base, parse_json(config.learner_options, "learner options"))
+    return config.overrides.apply(base)
 
 
 def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> Brain:
@@ -179,7 +169,7 @@ def _run(
     several = spec.behaviours(task, config.sim_options) if spec.behaviours else None
     behaviours: Behaviours = several or OneBehaviour(task, reward_of)
     can_learn_twice = several is not None or reward_of is not None
-    period = 1.0 / config.rate_hz if config.rate_hz > 0 else 0.0
+    period = 1.0 / config.tick_hz if config.tick_hz > 0 else 0.0
     ticks = TickStats()
     ticker = Ticker(period, ticks)
     first = behaviours.ranges(behaviours.names[0])
@@ -332,6 +322,11 @@ def _run(
             save_experiences(
                 out / f"{_named('experiences', sk.name)}.npz", sk.lcfg, sk.learner.buffer.contents(0)
             )
+    config_record: dict[str, Any] = {"client": jsonable_config(config), "learner": skills[0].lcfg.to_dict()}
+    learned_with = {server: json.loads(text) for sk in skills
+                    for server, text in getattr(sk.brain, "learned_with", {}).items()}  # fmt: skip
+    if learned_with:  # what the servers whose snapshots drove the robot actually learned with
+        config_record["learned_with"] = learned_with
     metrics: dict[str, Any] = {
         "sim": config.sim,
         "metric": spec.metric_name(task) if callable(spec.metric_name) else spec.metric_name,
@@ -352,7 +347,7 @@ def _run(
         ),
         "client/outage_ticks": len(outage_late),
         "client/startup_ticks": startup_ticks,
-        "config": {"client": jsonable_config(config), "learner": skills[0].lcfg.to_dict()},
+        "config": config_record,
         "camera_frames": camera_frames,
         **final,
     }

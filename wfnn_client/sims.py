@@ -191,7 +191,7 @@ SIMS["hydra"] = SimSpec(
     new_episode=lambda task, rng: task.new_targets(rng),
     metric=lambda task: task.pixel_error(),
     metric_name="mean |pixel error| (lost: half the image)",
-    rate_hz=15.0,
+    rate_hz=HydraConfig().rate_hz,  # the rate it is simulated at: one source
     exploration="gaussian",
     # Measured on this simulation (README): advantage learning (k 0.2) diverges and is reset
     # repeatedly where one-step Q-learning learns steadily.
@@ -219,7 +219,7 @@ SIMS["nomad"] = SimSpec(
     ),
     reward_of=_nomad_reward,
     veto=lambda task: task.veto(0),
-    rate_hz=10.0,
+    rate_hz=NomadConfig().rate_hz,  # the rate it is simulated at: one source
     exploration="gaussian",
     views=lambda task: task.camera_images(0),
     behaviours=lambda task, c: NomadForage(task, c.forage) if c.forage is not None else None,

@@ -496,3 +496,59 @@ def with_options(config: LearnerConfig, options: dict[str, Any]) -> LearnerConfi
     if "symmetries" not in options:
         data["symmetries"] = config.symmetries
     return LearnerConfig.from_dict(data)
+
+
+@dataclass(frozen=True, kw_only=True)
+class LearnerOverrides:
+    """Learner config fields a command line sets over a config: the one mechanism of both CLIs.
+
+    `wfnn-client` applies them over the task's defaults, `wfnn-server` over the config it adopts
+    (given, from a client or from logs). A server saves the adopted config before its overrides,
+    so a flag dropped at a restart drops its effect. None leaves a field as it is; `options` (a
+    JSON object of config fields, `deep` and `exploration` merged field by field) comes last.
+    Values are checked by `LearnerConfig`'s own rules when the overrides are made.
+    """
+
+    seed: int | None = None
+    thinks_per_action: int | None = None
+    advantage_k: float | None = None
+    bc_weight: float | None = None
+    learning_rate: float | None = None
+    """The thesis' learner's `alpha`, or the deep learner's Adam step `deep.lr`."""
+    options: str = ""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        if self.options and not isinstance(parse_json(self.options, "learner options"), dict):
+            raise ConfigError("learner options must be a JSON object of learner config fields")
+        for learner in LEARNERS:  # each value where a config can hold it, by the config's own rules
+            lo, hi = (-1.0,), (1.0,)
+            probe = LearnerConfig(state_low=lo, state_high=hi, action_low=lo, action_high=hi,
+                                  learner=learner)  # type: ignore[arg-type]  # fmt: skip
+            try:
+                with_options(probe, self._changes(probe))
+            except ConfigError as exc:  # the probe's own figures would only confuse
+                raise ConfigError(f"learner override: {str(exc).split(' (config: ')[0]}") from None
+
+    def __bool__(self) -> bool:
+        return any(getattr(self, f.name) not in (None, "") for f in dataclasses.fields(self))
+
+    def apply(self, config: LearnerConfig) -> LearnerConfig:
+        """`config` with these overrides (a ConfigError where the result is not a valid config)."""
+        changes = self._changes(config)
+        out = with_options(config, changes) if changes else config
+        return with_options(out, parse_json(self.options, "learner options")) if self.options else out
+
+    def _changes(self, config: LearnerConfig) -> dict[str, Any]:
+        """The fields set, as `with_options` takes them for `config`'s learner (options apart)."""
+        names = ("seed", "thinks_per_action", "advantage_k", "bc_weight")
+        changes: dict[str, Any] = {n: getattr(self, n) for n in names if getattr(self, n) is not None}
+        if self.learning_rate is not None:
+            changes.update({"deep": {"lr": self.learning_rate}} if config.learner == "deep"
+                           else {"alpha": self.learning_rate})  # fmt: skip
+        return changes
+
+    def short_repr(self) -> str:
+        """One line for logs: the fields set ("defaults" when none is)."""
+        return ", ".join(f"{f.name} {getattr(self, f.name)}" for f in dataclasses.fields(self)
+                         if getattr(self, f.name) not in (None, "")) or "defaults"  # fmt: skip

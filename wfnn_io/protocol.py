@@ -34,8 +34,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 MAGIC = b"WFNN"
-PROTOCOL_VERSION = 2
-"""Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`."""
+PROTOCOL_VERSION = 3
+"""Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`; version 3 the
+server's effective learner config to `ServerStatus`."""
 FLAG_MAC = 0x01
 HEADER = struct.Struct("<4sBBBB16sQI")
 """magic, version, type, flags, reserved, sender, seq, body_len."""
@@ -145,7 +146,7 @@ class MsgType(IntEnum):
 
 
 SINCE: dict[MsgType, int] = {
-    MsgType.EXPERIENCES: 1, MsgType.ACK: 2, MsgType.WEIGHTS: 2, MsgType.SERVER_STATUS: 2,
+    MsgType.EXPERIENCES: 1, MsgType.ACK: 2, MsgType.WEIGHTS: 2, MsgType.SERVER_STATUS: 3,
     MsgType.CLIENT_STATUS: 1, MsgType.CAMERA_VIEW: 1,
 }  # fmt: skip
 """The oldest protocol version whose body of each type this build reads (logs written by
@@ -319,6 +320,9 @@ class ServerStatus:
     started_ns: int
     spec_hash: str
     """Empty until the server has a learner config."""
+    learner_config: str
+    """The LearnerConfig it learns with, its own overrides applied, as JSON (empty until it has
+    one): a client whose settings were not adopted learns so, and records it."""
     weights_version: int
     stored_through: dict[str, int]
     rejected: dict[str, int]

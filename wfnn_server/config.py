@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from wfnn_common.config import DeepConfig, check_fields
+from wfnn_common.config import DeepConfig, LearnerOverrides, check_fields
 from wfnn_io.bus import NetConfig
 from wfnn_io.protocol import check_id
 from wfnn_io.segments import FsyncPolicy
@@ -117,6 +116,11 @@ class ServerConfig:
         return (f"{self.server_id} (controller {self.controller}, {self.net.mode}{keyed}) "
                 f"{net or 'no endpoints'}; data directory {self.data_dir}; {learner}{replay}")  # fmt: skip
 
+    @property
+    def overrides(self) -> LearnerOverrides:
+        """This server's learner overrides (`seed`, `bc_weight`, `alpha`): the client's mechanism too."""
+        return LearnerOverrides(seed=self.seed, bc_weight=self.bc_weight, learning_rate=self.alpha)
+
     def __post_init__(self) -> None:
         check_fields(self)
         DeepConfig(device=self.device)  # the same rule for a device name as a learner config's
@@ -139,9 +143,6 @@ class ServerConfig:
             raise ValueError(f"fsync must be always, interval or never, got {self.fsync!r}")
         if self.think not in ("budget", "continuous"):
             raise ValueError(f"think must be budget or continuous, got {self.think!r}")
-        if self.bc_weight is not None and not (math.isfinite(self.bc_weight) and self.bc_weight >= 0):
-            raise ValueError(f"bc_weight must be finite and >= 0, got {self.bc_weight}")
-        if self.alpha is not None and not (math.isfinite(self.alpha) and self.alpha > 0):
-            raise ValueError(f"alpha must be finite and > 0, got {self.alpha}")
+        self.overrides  # noqa: B018  # checks seed, bc_weight and alpha by the learner config's rules
         if self.replay_only and self.think != "budget":
             raise ValueError("replay_only learns the stored experiences' think budget: think must be budget")

@@ -162,6 +162,8 @@ class ThinkServer:
         self.learner: Learner | None = None
         self.learner_config: LearnerConfig | None = None
         self.spec_hash = ""
+        self._config_json = ""
+        """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
         self.version = 0
         self.budget = 0
@@ -177,7 +179,7 @@ class ThinkServer:
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
         # --learner-config or an earlier run's, else the config the logs say they were recorded for
-        cfg = self._initial_config() or (self._overridden(replay_config) if replay_config else None)
+        cfg = self._initial_config() or replay_config
         if cfg is not None:
             self._start_learner(cfg)
 
@@ -220,11 +222,11 @@ class ThinkServer:
                 text = path.read_text()
             except OSError as exc:
                 raise ConfigError(f"learner config {path}: {exc.strerror or exc}") from exc
-            return self._overridden(LearnerConfig.from_json(text, f"learner config {path}"))
+            return LearnerConfig.from_json(text, f"learner config {path}")
         path = self.data_dir / LEARNER_JSON
         if path.exists():
             try:
-                return self._overridden(LearnerConfig.from_json(path.read_text(), str(path)))
+                return LearnerConfig.from_json(path.read_text(), str(path))
             except (OSError, ConfigError) as exc:
                 set_aside(path, f"unreadable ({exc})")
         for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
@@ -232,25 +234,20 @@ class ThinkServer:
                 cfg = load_weights(self.data_dir / name)[0]
             except (PersistError, OSError):
                 continue
-            log.warning("learner config taken from %s", name)
-            return self._overridden(cfg)
+            log.warning("learner config taken from %s (with the overrides it was saved with)", name)
+            return cfg
         return None
 
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
-        """`cfg` with this server's overrides (seed, bc_weight, learning rate) where it sets them.
+        """`cfg` with this server's overrides (`ServerConfig.overrides`: seed, bc_weight, learning rate).
 
-        The learning rate is the thesis' learner's `alpha`, or the deep learner's `deep.lr`; a
-        deep learner also trains on this server's device, compiled where the server says.
+        A deep learner also trains on this server's device, compiled where the server says.
         """
-        changes: dict[str, Any] = {"seed": self.config.seed, "bc_weight": self.config.bc_weight}
+        cfg = self.config.overrides.apply(cfg)
         if cfg.learner == "deep":  # trains where this server says, whatever the client's config says
-            lr = cfg.deep.lr if self.config.alpha is None else self.config.alpha
-            changes["deep"] = dataclasses.replace(
-                cfg.deep, lr=lr, device=self.config.device, compile=self.config.compile
-            )
-        elif self.config.alpha is not None:
-            changes["alpha"] = self.config.alpha
-        return dataclasses.replace(cfg, **{key: value for key, value in changes.items() if value is not None})
+            cfg = dataclasses.replace(cfg, deep=dataclasses.replace(cfg.deep, device=self.config.device,
+                                                                    compile=self.config.compile))  # fmt: skip
+        return cfg
 
     def _import_logs(self, directories: tuple[Path, ...]) -> tuple[int, LearnerConfig | None]:
         """Store the experiences of logs that the store lacks.
@@ -301,9 +298,14 @@ class ThinkServer:
             and self.learner.thinks[0] >= self._recover_until
         )  # fmt: skip
 
-    def _start_learner(self, cfg: LearnerConfig) -> None:
-        """Build the learner, resume the checkpoint if it fits, and load the stored experiences."""
-        atomic_write_text(self.data_dir / LEARNER_JSON, cfg.to_json())
+    def _start_learner(self, adopted: LearnerConfig) -> None:
+        """Build the learner, resume the checkpoint if it fits, and load the stored experiences.
+
+        The adopted config is saved as it came, before this server's overrides: a restart
+        without a flag drops the flag's effect.
+        """
+        atomic_write_text(self.data_dir / LEARNER_JSON, adopted.to_json())
+        cfg = self._overridden(adopted)
         learner, meta = self._resume(cfg)
         checkpointed: dict[str, int] = meta.get("stored_through", {})
         self.budget = int(meta.get("budget", 0))
@@ -320,6 +322,7 @@ class ThinkServer:
         for client, through in self.store.stored_through.items():
             self._owed.append(_Owed(self._thinks_owed_total, client, through))
         self.learner, self.learner_config, self.spec_hash = learner, cfg, cfg.spec_hash()
+        self._config_json = cfg.to_json()
         self.view.learner_config, self.view.weights_version = cfg, self.version
         log.info(
             "learner %s (spec %s, seed %d); %d stored experiences loaded, %d thinks owed",
@@ -527,8 +530,8 @@ class ThinkServer:
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:
-            cfg = self._overridden(LearnerConfig.from_json(status.learner_config))
-            if cfg.spec_hash() != status.spec_hash:
+            cfg = LearnerConfig.from_json(status.learner_config)
+            if self._overridden(cfg).spec_hash() != status.spec_hash:
                 raise ConfigError(f"its spec is {cfg.spec_hash()}, the status says {status.spec_hash}")
         except ConfigError as exc:
             self.rejected["config"] += 1
@@ -711,7 +714,7 @@ class ThinkServer:
             self._staleness.clear()
         status = ServerStatus(
             server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
-            spec_hash=self.spec_hash, weights_version=self.version,
+            spec_hash=self.spec_hash, learner_config=self._config_json, weights_version=self.version,
             stored_through=dict(self.store.durable_through), rejected=dict(self.rejected), metrics=metrics,
         )  # fmt: skip
         self.view.last_status = status

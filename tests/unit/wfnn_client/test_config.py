@@ -46,3 +46,37 @@ def test_the_learner_config_takes_the_sims_default_and_the_clients_override():
     assert learner_config(BoatVec(1), ClientConfig(sim="boat")).advantage_k == 0.2  # the thesis' default
     assert learner_config(BoatVec(1), ClientConfig(sim="boat")).bc_weight == 0.0  # the thesis' learner
     assert learner_config(BoatVec(1), ClientConfig(sim="boat", bc_weight=0.5)).bc_weight == 0.5
+
+
+@pytest.mark.parametrize("sim", ["hydra", "nomad"])
+def test_a_simulated_robot_ticks_at_the_rate_it_is_simulated_at(sim):
+    from sims.hydra import HydraConfig
+    from sims.nomad import NomadConfig
+
+    own = {"hydra": HydraConfig().rate_hz, "nomad": NomadConfig().rate_hz}[sim]
+    assert ClientConfig(sim=sim, rate_hz=own).rate_hz == own and ClientConfig(sim=sim, rate_hz=0).rate_hz == 0
+    with pytest.raises(ValueError, match=r"x real time"):
+        ClientConfig(sim=sim, rate_hz=2 * own)
+    faster = {"hydra": HydraConfig(rate_hz=2 * own), "nomad": NomadConfig(rate_hz=2 * own)}[sim]
+    assert ClientConfig(sim=sim, rate_hz=2 * own, **{sim: faster}).tick_hz == 2 * own
+    assert ClientConfig(sim=sim, **{sim: faster}).tick_hz == 2 * own  # None: the rate it is simulated at
+    assert ClientConfig(sim="boat").tick_hz == 50 and ClientConfig(sim="boat", lockstep=True).tick_hz == 0
+
+
+def test_the_command_line_simulates_a_robot_at_its_tick_rate(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+
+    seen = []
+
+    def built(config):  # stop once the config is made: nothing is run
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "prepare", built)
+    result = CliRunner().invoke(cli.app, ["--sim", "hydra", "--rate-hz", "30", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert seen[0].rate_hz == seen[0].hydra.rate_hz == 30
+    CliRunner().invoke(cli.app, ["--sim", "nomad", "--rate-hz", "0", "--out", str(tmp_path)])
+    assert seen[1].nomad.rate_hz == 10  # as fast as possible: simulated at its own rate

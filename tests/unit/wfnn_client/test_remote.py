@@ -164,7 +164,8 @@ def announce(bus, server, cfg, started_ns, key=None, incarnation=1, store="store
         bus.declare_token(KEYS.server_alive(server))
     status = ServerStatus(
         server=server, incarnation=incarnation, store=store, started_ns=started_ns, spec_hash=cfg.spec_hash(),
-        weights_version=0, stored_through=stored_through or {}, rejected={}, metrics={},
+        learner_config=cfg.to_json(), weights_version=0, stored_through=stored_through or {}, rejected={},
+        metrics={},
     )  # fmt: skip
     bus.put(KEYS.server_status(server), Codec(server, key).encode(status), None)
 
@@ -257,3 +258,58 @@ def test_a_new_server_is_asked_for_its_weights(tmp_path):
         assert wait(lambda: brain.following == "s1", timeout=2.0)
         assert brain.current.version == 1
         brain.stop()
+
+
+def test_a_server_that_learns_with_other_settings_is_warned_of_and_recorded(tmp_path, caplog):
+    """The server has another config and overrides bc_weight: this client learns so, and says so."""
+    import json
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    theirs = small_config(thinks_per_action=5)
+    with make_server(tmp_path, hub, theirs, server_id="s1", bc_weight=0.5) as server:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        assert wait(lambda: brain.following == "s1" and "s1" in brain.learned_with)
+        brain.stop()
+    effective = json.loads(brain.learned_with["s1"])
+    assert effective == json.loads(server.learner_config.to_json())
+    assert (effective["bc_weight"], effective["thinks_per_action"]) == (0.5, 5)
+    warned = [r.getMessage() for r in caplog.records if "not this client's" in r.getMessage()]
+    assert len(warned) == 1 and "bc_weight, thinks_per_action" in warned[0]
+
+
+def test_a_server_with_this_clients_config_is_not_warned_of(tmp_path, caplog):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg, server_id="s1"):
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        assert wait(lambda: "s1" in brain.learned_with)
+        brain.stop()
+    assert not [r for r in caplog.records if "not this client's" in r.getMessage()]
+
+
+def test_a_status_with_an_unreadable_config_is_counted_and_never_recorded(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    for text in ("[1, 2]", "{not json"):
+        status = ServerStatus(server="s9", incarnation=1, store="st", started_ns=1, spec_hash=cfg.spec_hash(),
+                              learner_config=text, weights_version=0, stored_through={}, rejected={},
+                              metrics={})  # fmt: skip
+        hub.bus().put(KEYS.server_status("s9"), Codec("s9").encode(status), None)
+    assert wait(lambda: brain.rejected["status_config"] == 2)
+    brain.stop()
+    assert brain.servers["s9"].learner_config == "" and brain.learned_with == {}
+
+
+def test_config_differences_name_dotted_fields_and_leave_out_where_updates_run():
+    import dataclasses
+
+    from wfnn_client.remote import config_differences
+
+    mine = small_config(learner="deep")
+    theirs = dataclasses.replace(mine, gamma=0.5, deep=dataclasses.replace(mine.deep, lr=0.1, compile=True))
+    assert config_differences(mine.to_json(), theirs.to_json()) == ["deep.lr", "gamma"]
+    assert config_differences(mine.to_json(), mine.to_json()) == []
+    with pytest.raises(ValueError):
+        config_differences(mine.to_json(), "[]")

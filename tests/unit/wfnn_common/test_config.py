@@ -64,3 +64,28 @@ def test_for_task_takes_the_tasks_ranges():
     cfg = LearnerConfig.for_task(BoatVec, thinks_per_action=3)
     assert cfg.state_low == BoatVec.state_low and cfg.action_high == BoatVec.action_high
     assert cfg.thinks_per_action == 3 and cfg.gamma == 0.8
+
+
+def test_overrides_set_only_the_fields_given_and_options_come_last():
+    from wfnn_common.config import LearnerOverrides
+
+    base = small_config()
+    assert LearnerOverrides().apply(base) == base and not LearnerOverrides()
+    out = LearnerOverrides(seed=3, thinks_per_action=7, bc_weight=0.5, learning_rate=0.1,
+                           options='{"gamma": 0.9, "thinks_per_action": 9}').apply(base)  # fmt: skip
+    assert (out.seed, out.bc_weight, out.alpha, out.gamma, out.thinks_per_action) == (3, 0.5, 0.1, 0.9, 9)
+    assert out.n_hidden == base.n_hidden and out.advantage_k == base.advantage_k
+    deep = LearnerOverrides(learning_rate=1e-3).apply(small_config(learner="deep"))
+    assert deep.deep.lr == 1e-3 and deep.alpha == small_config(learner="deep").alpha
+
+
+@pytest.mark.parametrize(
+    "kw", [{"bc_weight": 2.0}, {"learning_rate": -1.0}, {"advantage_k": 0.0}, {"options": "[1]"},
+           {"options": "{not json"}, {"seed": "1"}],
+)  # fmt: skip
+def test_bad_overrides_are_refused_when_made(kw):
+    from wfnn_common.config import LearnerOverrides
+
+    with pytest.raises(ValueError) as info:
+        LearnerOverrides(**kw)
+    assert "config:" not in str(info.value)  # the check's own probe config is not the user's

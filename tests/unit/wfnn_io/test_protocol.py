@@ -91,6 +91,7 @@ def make_server_status():
         store="9f2c4e",
         started_ns=123,
         spec_hash="",
+        learner_config="",
         weights_version=0,
         stored_through={"robot1": 100},
         rejected={"crc": 2, "auth": 0},

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from tests.fakes import Hub, small_config, wait_for
-from wfnn_common.config import LEARNERS
+from wfnn_common.config import LEARNERS, LearnerConfig
 from wfnn_io.protocol import (
     Ack,
     ClientStatus,
@@ -162,8 +162,14 @@ def test_adopts_the_first_clients_config(tmp_path):
         assert (cfg.bc_weight, cfg.alpha) == (0.0, 0.25)
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: listener.acked() == 3)
+    # The adopted config is saved as it came: the overrides are this server's flags, applied at each start.
     saved = json.loads((tmp_path / "s1" / "learner_config.json").read_text())
-    assert saved["seed"] == 11 and saved["bc_weight"] == 0.25
+    assert (saved["seed"], saved["bc_weight"], saved["alpha"]) == (cfg.seed, 0.0, 0.25)
+    with make_server(tmp_path, hub, None, bc_weight=0.5) as server:  # a restart with other flags
+        assert server.learner_config.seed == cfg.seed and server.learner_config.thinks_per_action == 3
+        assert (server.learner_config.bc_weight, server.learner_config.alpha) == (0.5, 0.25)
+    with make_server(tmp_path, hub, None) as server:  # and without any: the adopted config itself
+        assert server.learner_config == LearnerConfig.from_json(cfg.to_json())
 
 
 @pytest.mark.parametrize("learner", LEARNERS)
