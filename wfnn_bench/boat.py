@@ -251,3 +251,26 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: BoatBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench boat`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = [
+        ("random_ref", result["random_ref"]),
+        ("handcoded_ref", result["handcoded_ref"]),
+        ("step1_random_ref (dt=1)", result["step1_random_ref"]),
+        ("step1_handcoded_ref (dt=1)", result["step1_handcoded_ref"]),
+    ]
+    for res in result["results"]:
+        c = res["condition"]
+        rows += [
+            (f"{c}: median_last10", res["median_last10"]),
+            (f"{c}: frac_acceptable", res["frac_acceptable"]),
+            (f"{c}: greedy_median", res["greedy_median"]),
+            (f"{c}: divergence_resets", res["divergence_resets"]),
+            (f"{c}: thinks_per_s", res["thinks_per_s"]),
+        ]
+    for name, p in result.get("tests", {}).items():
+        rows.append((name, p))
+    rows.append(("wall_s", result["wall_s"]))
+    return rows

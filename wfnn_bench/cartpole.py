@@ -116,3 +116,17 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: CartPoleBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench cartpole`'s table: (name, value) rows."""
+    med = np.asarray(result["median_per_attempt"], dtype=float)
+    rows: list[tuple[str, Any]] = [
+        ("attempts per run (min)", min(result["attempts_per_run"])),
+        ("best attempt per run (median)", float(np.median(result["best_attempt"]))),
+        ("median steps, first 10 attempts", float(np.median(med[:10])) if med.size else float("nan")),
+        ("median steps, last 10 attempts", float(np.median(med[-10:])) if med.size else float("nan")),
+        ("thinks_per_s", result["thinks_per_s"]),
+        ("wall_s", result["wall_s"]),
+    ]
+    return rows

@@ -39,3 +39,8 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write `data` as JSON atomically (`wfnn_io.persist.write_json`), and say so."""
     persist.write_json(path, data)
     log.info("wrote %s", path)
+
+
+def fmt2(value: float | None) -> str:
+    """A figure for a table: two decimals, or "-" where there is none (None, NaN)."""
+    return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"

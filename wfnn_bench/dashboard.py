@@ -215,3 +215,19 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: DashboardBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench dashboard`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = [
+        ("dashboard CPU / server's other CPU (attributed, median)", result["added_fraction_attributed"]),
+        ("server CPU per experience, on / off - 1 (A/B, medians)", result["added_fraction_ab"]),
+        ("server CPU ms per experience, off", result["server_cpu_ms_per_experience_off"]),
+        ("server CPU ms per experience, on", result["server_cpu_ms_per_experience_on"]),
+        ("dashboard CPU ms per update", result["dashboard_cpu_ms_per_update"]),
+        ("server CPU (fraction of a core), runs", " ".join(
+            f"{r['server_cpu_fraction_of_a_core']:.3f}{'*' * r['dashboard']}" for r in result["runs"])),
+        (f"goal {result['goal']['goal']}", "met" if result["goal"]["met"] else "NOT met"),
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    return rows

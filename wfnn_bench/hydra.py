@@ -30,7 +30,7 @@ import numpy as np
 
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.learners import make_population
@@ -77,6 +77,10 @@ class HydraBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+
+
+NOT_IN_JSON = ("render_views",)
+"""Rendered pictures: in the PNG, not in the JSON."""
 
 
 def steps(cfg: HydraBenchConfig) -> int:
@@ -480,3 +484,45 @@ def plot_views(views_by_regime: dict[str, list[dict[str, Any]]], path: Path) -> 
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: HydraBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench hydra`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = []
+    for trained, cells in result["table71"].items():
+        for evaluated, c in cells.items():
+            rows += [
+                (f"{trained}-trained on {evaluated}: rms_error_px", c["rms_error_px"]),
+                (f"{trained}-trained on {evaluated}: lag_s", c["lag_s"]),
+                (f"{trained}-trained on {evaluated}: action_roughness", c["action_roughness"]),
+                (f"{trained}-trained on {evaluated}: lost_fraction", c["lost_fraction"]),
+            ]
+    for trained, res in result["training"].items():
+        curve = np.asarray(res["curve"])
+        rows.append((f"{trained} training: error first / last episode (median)",
+                     f"{np.median(curve[:, 0]):.1f} / {np.median(curve[:, -1]):.1f}"))  # fmt: skip
+        rows.append((f"{trained} training: divergence resets", int(np.sum(res["divergence_resets"]))))
+    dof4 = result["four_dof"]
+    curve4 = np.asarray(dof4["curve"])
+    rows += [
+        ("4-DOF error first / last episode (median)",
+         f"{np.median(curve4[:, 0]):.1f} / {np.median(curve4[:, -1]):.1f}"),
+        ("4-DOF divergence resets", int(np.sum(dof4["divergence_resets"]))),
+        ("4-DOF joint motion share pan/tilt/left/right",
+         " / ".join(f"{float(np.median(v)):.2f}" for v in dof4["joint_motion_share"].values())),
+        ("tick_ms_p50", result["tick_ms_p50"]),
+        ("tick_ms_p99", result["tick_ms_p99"]),
+    ]  # fmt: skip
+    rendering = result["render"]
+    if rendering["available"]:
+        for regime, r in rendering["regimes"].items():
+            rows.append((f"rendered vision, {regime}: tracked (projection) / error p50, p95 px",
+                         f"{r['tracked_fraction']:.2f} ({r['tracked_fraction_projection']:.2f}) / "
+                         f"{fmt2(r['error_px_p50'])}, {fmt2(r['error_px_p95'])}"))  # fmt: skip
+        rows.append(("tick_ms_p50_render", rendering["tick_ms_p50_render"]))
+    else:
+        rows.append(("rendered vision", f"not checked: {rendering['reason']}"))
+    rows += [
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    return rows

@@ -39,7 +39,7 @@ from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcod
 from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.learners import Learner, make_population
@@ -663,3 +663,87 @@ def _save(fig: Any, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: NomadBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench nomad`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = []
+    for e in result["servo"]["evaluations"]:
+        label = f"servo after {e['episode']} episodes ({np.median(e['experiences']):.0f} experiences)"
+        to_goal = fmt2(float(np.nanmedian(e["time_to_goal_s"])))
+        reached = float(np.median(e["reached_fraction"]))
+        rows.append((f"{label}: final error px / time to goal s / reached",
+                     f"{np.median(e['final_error_px']):.1f} / {to_goal} / {reached:.2f}"))  # fmt: skip
+    ref = result["proportional"]
+    ref_goal = fmt2(float(np.nanmedian(ref["time_to_goal_s"])))
+    rows += [
+        ("proportional controller: final error px / time to goal s",
+         f"{float(np.median(ref['final_error_px'])):.1f} / {ref_goal}"),
+        ("servo_final_error_px", result["servo_final_error_px"]),
+        ("servo_time_to_goal_s", result["servo_time_to_goal_s"]),
+    ]  # fmt: skip
+    if not cfg.servo_only:
+        rows += _rows_after_servoing(result)
+    rows.append(("wall_s", result["wall_s"]))
+    return rows
+
+
+def _rows_after_servoing(result: dict[str, Any]) -> list[tuple[str, Any]]:
+    """The Nomad benchmark's rows after servoing from scratch."""
+    rows: list[tuple[str, Any]] = [
+        ("servo_untrained_px (fresh learners, greedy)", result["servo_untrained_px"]),
+    ]
+    scratch = result["servo_from_scratch_same_experiences"]
+    for key, label in (("servo_from_wander", "learned watching the wandering only"),
+                       ("servo_from_wander_passive", "the same, passive learner"),
+                       ("servo_every_second_target", "every second target pursued")):  # fmt: skip
+        f = result[key]
+        for e in f["evaluations"]:
+            to_goal = fmt2(float(np.nanmedian(e["time_to_goal_s"])))
+            rows.append((f"{label}, {e['minutes']:.0f} min ({np.median(e['experiences']):.0f} experiences): "
+                         "final error px / time to goal s",
+                         f"{np.median(e['final_error_px']):.1f} / {to_goal}"))  # fmt: skip
+        found, reached = np.median(f["targets_found_per_min"]), np.median(f["targets_reached_per_min"])
+        rows.append((f"  {label}: experiences watched / own, targets found / reached per min",
+                     f"{np.median(f['experiences_watched']):.0f} / {np.median(f['experiences_own']):.0f}, "
+                     f"{found:.1f} / {reached:.2f}"))  # fmt: skip
+    rows += [
+        ("servo_from_wander_score (final error px, median)", result["servo_from_wander_score"]),
+        ("servo_from_wander_passive_score (px, median)", result["servo_from_wander_passive_score"]),
+        ("  from scratch with about as many experiences: final error px",
+         f"{scratch['final_error_px']:.1f} ({scratch['experiences']:.0f} experiences)"),
+    ]  # fmt: skip
+    w, h = result["wander"], result["wander_handcoded"]
+    rows += [
+        ("wander_m_per_collision early / late / hand-coded (-: no collision)",
+         " / ".join(fmt2(result["wander_m_per_collision"][k]) for k in ("early", "late", "handcoded"))),
+        ("wander collisions early / late (all robots)",
+         f"{w['collisions_early']:.0f} / {w['collisions_late']:.0f}"),
+        ("without the veto: metres per collision early / late / hand-coded",
+         " / ".join(fmt2(result["wander_m_per_collision"][k])
+                    for k in ("no_veto_early", "no_veto_late", "no_veto_handcoded"))),
+        ("without the veto: collisions early / late (all robots)",
+         "{collisions_early:.0f} / {collisions_late:.0f}".format(**result["wander_no_veto"])),
+        ("wander_m_per_veto early / late", " / ".join(fmt2(v) for v in result["wander_m_per_veto"].values())),
+        ("wander vetoes per minute early / late / hand-coded",
+         f"{w['vetoes_per_min_early']:.0f} / {w['vetoes_per_min_late']:.0f} / {np.mean(h['vetoes']):.0f}"),
+        ("wander metres per minute early / late / hand-coded",
+         f"{w['m_per_min_early']:.1f} / {w['m_per_min_late']:.1f} / {np.mean(h['distance_m']):.1f}"),
+        ("tick_ms_p50 servo", result["tick_ms_p50_servo"]),
+        ("tick_ms_p50 wander", result["tick_ms_p50_wander"]),
+    ]  # fmt: skip
+    r = result.get("render")
+    if r is not None and r["available"]:
+        rows += [
+            ("rendered vision: proportional servo final error px / time to goal s",
+             f"{r['servo_final_error_px']:.1f} / {fmt2(r['servo_time_to_goal_s'])}"),
+            ("rendered vision: carpet cells agreeing with the camera model / mean |difference|",
+             f"{r['carpet_agreement']:.3f} / {r['carpet_mean_abs_difference']:.3f}"),
+            ("rendered vision: ticks with an interesting object, rendered / camera model",
+             f"{r['interest_fraction']['render']:.3f} / {r['interest_fraction']['projection']:.3f}"),
+            ("rendered vision: tick_ms_p50 servo / wander",
+             f"{r['tick_ms_p50_servo']:.2f} / {r['tick_ms_p50_wander']:.2f}"),
+        ]  # fmt: skip
+    elif r is not None:
+        rows.append(("rendered vision", f"not checked: {r['reason']}"))
+    return rows

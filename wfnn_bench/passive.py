@@ -412,3 +412,38 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: PassiveBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench passive`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = [
+        (f"log policy {k}: score", v) for k, v in result["logs"]["policy_scores"].items()
+    ]
+    rows.append(("experiences learned from the logs", result["logs"]["learned"]))
+    for name in ("handcoded", "zero_thrust"):
+        rows.append((f"{name}: score / reward per action",
+                     f"{result[f'{name}_score']:.3f} / {result[f'{name}_reward']:.4f}"))  # fmt: skip
+    for key in PASSIVE_LABELS:
+        name_of = label(result, key)
+        for c in result[key]["curve"]:
+            rows.append((f"passive, {name_of}: greedy score / reward after {c['thinks']:,} thinks (median)",
+                         f"{np.median(c['scores']):.3f} / {np.median(c['rewards']):.4f}"))  # fmt: skip
+        d = result[key]["diagnosis"]
+        rows.append((f"passive, {name_of}: value of the greedy / logged action (median over logged states)",
+                     f"{d['greedy_value']:.3f} / {d['logged_action_value']:.3f}"))  # fmt: skip
+    ratio = result["mirror_experience_ratio"]
+    rows += [
+        ("handcoded_score", result["handcoded_score"]),
+        ("passive_score", result["passive_score"]),
+        ("passive_phantom_only_score", result["passive_phantom_only_score"]),
+        *((f"criterion {k}", str(v)) for k, v in result["criteria"].items()),
+        ("online: last-10 median / greedy",
+         f"{result['online']['score_last10']:.3f} / {result['online']['greedy']:.3f}"),
+        ("online + mirror: last-10 median / greedy",
+         f"{result['online_mirror']['score_last10']:.3f} / {result['online_mirror']['greedy']:.3f}"),
+        ("phantom_only_score (online, last-10 median)", result["phantom_only_score"]),
+        ("mirror_experience_ratio (experiences to reach the plain learners' last-10 score)",
+         "-" if ratio is None else f"{ratio:.2f}"),
+        ("wall_s", result["wall_s"]),
+    ]  # fmt: skip
+    return rows

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from sims.hydra import HydraConfig, HydraVec
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
 from wfnn_bench.hydra import EPISODE, learn_episode
 from wfnn_bench.passive import PassiveBenchConfig
 from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
@@ -305,3 +305,30 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: RelearnBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench relearn`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = [("relearn_fraction (robot time after a reset, store kept / from scratch)",
+                                    result["relearn_fraction"])]  # fmt: skip
+    for i, c in enumerate(result["controllers"]):
+        rows += [
+            (f"controller {i}: pre-divergence / untrained error px",
+             f"{c['pre_divergence_error_px']:.1f} / {c['untrained_error_px']:.1f}"),
+            (f"controller {i}: robot s to reach: from scratch / store kept",
+             f"{c['online_robot_s_to_reach']} / {c['with_store_robot_s_to_reach']}"),
+            (f"controller {i}: store alone: thinks to reach / best error px",
+             f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
+            (f"controller {i}: store alone, passive learner: thinks / wall s to reach / best error px",
+             f"{c['store_only_passive_thinks_to_reach']} / "
+             f"{fmt2(c['store_only_passive_wall_s_to_reach'])} / "
+             f"{c['store_only_passive_best_error_px']:.1f}"),
+        ]  # fmt: skip
+    rows += [("competent controllers / relearned with the store kept / with the store alone / "
+              "with the store alone by the passive learner",
+              f"{result['competent_controllers']} / {result['relearned_with_store']} / "
+              f"{result['relearned_store_only']} / {result['relearned_store_only_passive']}"),
+             ("online divergence resets", str(result["online_divergence_resets"].tolist())),
+             ("stored experiences", str(result["stored_experiences"].tolist())),
+             ("online wall_s", result["online_wall_s"])]  # fmt: skip
+    return rows

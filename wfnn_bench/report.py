@@ -152,13 +152,14 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
     return buffer.getvalue()
 
 
-RUN_FIGURES = (
+RUN_FIGURES: tuple[tuple[str, str | tuple[str, ...]], ...] = (
     ("sim", "sim"), ("metric", "metric"), ("episodes", "episode"), ("first-10 median", "first10_median"),
     ("last-10 median", "last10_median"), ("experiences learned", "experiences_learned"),
     ("thinking in", "following"), ("wall time (s)", "wall_s"), ("control ticks", "ticks"),
     ("tick jitter p99 (ms)", "client/tick_jitter_ms_p99"), ("overruns", "client/overruns"),
-    ("act latency p99 (ms)", "client/act_latency_ms_p99"), ("safe actions", "safe_actions"),
-    ("vetoes", "vetoes"), ("divergence resets (server)", "server/learn/divergence_resets"),
+    ("act latency p99 (ms)", "client/act_latency_ms_p99"),
+    ("safe actions", ("client/safe_actions", "safe_actions")), ("vetoes", ("client/vetoes", "vetoes")),
+    ("divergence resets (server)", "server/learn/divergence_resets"),
     ("server thinks/s", "server/think/thinks_per_s"), ("failovers", "downlink/failovers"),
 )  # fmt: skip
 
@@ -168,7 +169,11 @@ def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
     if "scores" not in metrics:
         raise ReportError(f"{directory / 'metrics.json'} is not a client run's metrics (no scores)")
     figure = _run_figure(metrics)
-    rows = [(name, _fmt(metrics[key])) for name, key in RUN_FIGURES if key in metrics]
+    rows = []
+    for name, keys in RUN_FIGURES:  # a figure renamed since is read under its earlier name too
+        present = [k for k in ((keys,) if isinstance(keys, str) else keys) if k in metrics]
+        if present:
+            rows.append((name, _fmt(metrics[present[0]])))
     sections = [Section("Run", rows, [("learning curve and episode scores", _uri(figure))], [])]
     policies = metrics.get("episode_policies") or []
     if policies and len(set(policies)) > 1:

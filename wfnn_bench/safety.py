@@ -315,3 +315,33 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: SafetyBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench safety`'s table: (name, value) rows."""
+    d = result["damaged_logs"]
+    rows: list[tuple[str, Any]] = [("experiences in the recorded log", d["experiences"])]
+    for case in ("torn_tail", "middle"):
+        c = d[case]
+        rows += [
+            (f"{case}: read by inspect / imported by replay-only",
+             f"{c['inspect_experiences']} / {c['replay_experiences']}"),
+            (f"{case}: bytes changed by inspect / replay-only",
+             f"{c['inspect_bytes_changed']} / {c['replay_bytes_changed']}"),
+        ]  # fmt: skip
+    r, s = result["restart_empty"], result["token_storm"]
+    rows += [
+        (
+            "restart empty: produced / stored by the new server",
+            f"{r['produced']} / {r['stored_by_new_server']}",
+        ),
+        ("token storm: longest without new weights (s)", s["longest_without_weights_s"]),
+        ("token storm: unsigned statuses refused", s["rejected_status_auth"]),
+    ]
+    for f in result["huge_frames"]:
+        rows.append((f"{f['megabytes']} MB frames x{f['frames']} at 50 Hz: overruns, jitter p99 / max (ms)",
+                     f"{f['overruns']:.0f}, {f['tick_jitter_p99_ms']:.2f} / "
+                     f"{f['tick_jitter_max_ms']:.2f}"))  # fmt: skip
+    rows += [(f"goal {k} {g['goal']}", "met" if g["met"] else "NOT met") for k, g in result["goals"].items()]
+    rows.append(("wall_s", result["wall_s"]))
+    return rows

@@ -132,3 +132,17 @@ def run(bench: SpeedBenchConfig, progress: Progress = no_progress) -> dict[str, 
 def steps(bench: SpeedBenchConfig) -> int:
     """Progress units of `run`."""
     return 3 + len(bench.batch_sizes)
+
+
+def rows(result: dict[str, Any], cfg: SpeedBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench speed`'s table: (name, value) rows."""
+    keys = [
+        "act_p50_us", "act_p99_us", "act_p50_us_gc_paused", "act_p99_us_gc_paused",
+        "incremental_thinks_per_s", "minibatch_updates_per_s", "population_thinks_per_s",
+    ]  # fmt: skip
+    rows: list[tuple[str, Any]] = [(k, result[k]) for k in keys]
+    rows += [
+        (f"minibatch_updates_per_s (batch {b})", v)
+        for b, v in result["minibatch_updates_per_s_by_batch"].items()
+    ]
+    return rows

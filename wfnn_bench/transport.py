@@ -175,7 +175,7 @@ def realtime(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[
     return {
         "ticks": int(late.size),
         "overruns": int(metrics["client/overruns"]),
-        "safe_actions": int(metrics["safe_actions"]),
+        "safe_actions": int(metrics["client/safe_actions"]),
         "tick_jitter_p50_ms": float(np.percentile(late, 50)),
         "tick_jitter_p99_ms": float(np.percentile(late, 99)),
         "tick_jitter_max_ms": float(late.max()),
@@ -310,3 +310,31 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: TransportBenchConfig) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench transport`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = [
+        (k, result[k])
+        for k in (
+            "experiences_per_s",
+            "experiences_lost",
+            "snapshot_p50_ms",
+            "snapshot_p99_ms",
+            "tick_jitter_p99_ms",
+        )
+    ]
+    rt = result["realtime"]
+    rows += [
+        ("experiences_per_s over TCP (no shared memory)", result["experiences_per_s_tcp"]),
+        ("tick_jitter_p50_ms", rt["tick_jitter_p50_ms"]),
+        ("tick_jitter_max_ms", rt["tick_jitter_max_ms"]),
+        ("ticks / overruns / safe actions", f"{rt['ticks']} / {rt['overruns']} / {rt['safe_actions']}"),
+        ("snapshots applied", rt["snapshots_applied"]),
+        ("server thinks/s while ticking", rt["server_thinks_per_s"]),
+        ("outage: tick jitter p99 ms (server dead)", result["outage_tick_jitter_p99_ms"]),
+        ("outage: experiences missing after restart", result["outage_experiences_missing"]),
+        ("wall_s", result["wall_s"]),
+    ]
+    rows += [(f"goal {k} {g['goal']}", "met" if g["met"] else "NOT met") for k, g in result["goals"].items()]
+    return rows

@@ -260,3 +260,34 @@ def plot(result: dict[str, Any], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
+    """The figures of `wfnn-bench vs-sb3`'s table: (name, value) rows."""
+    rows: list[tuple[str, Any]] = []
+    for env_id, algos in result["tasks"].items():
+        for algorithm, r in algos.items():
+            if not isinstance(r, dict):
+                continue
+            if "skipped" in r:
+                rows.append((f"{env_id} {algorithm}", f"skipped: {r['skipped']}"))
+                continue
+            curve = " / ".join(f"{v:.0f}" for v in r["return_median"])
+            rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
+            rows.append((f"{env_id} {algorithm}: final return per seed",
+                         " / ".join(f"{v:.0f}" for v in r["final_returns"])))  # fmt: skip
+            rows.append(
+                (
+                    f"{env_id} {algorithm}: s_per_step / act_us p50 / p99",
+                    f"{r['s_per_step'] * 1e3:.2f} ms / {r['act_us']:.1f} / {r['act_us_p99']:.1f} us",
+                )
+            )
+        for name in cfg.learners:
+            for sb3 in ("sac", "td3"):
+                if f"{sb3}_act_over_{name}_act" in algos:
+                    latency = algos[f"{sb3}_act_over_{name}_act"]
+                    cost = algos[f"{name}_s_per_step_over_{sb3}"]
+                    what = f"{sb3.upper()} predict / {name} act latency; {name} / {sb3.upper()} s per step"
+                    rows.append((f"{env_id}: {what}", f"{latency:.1f}x; {cost:.2f}"))
+    rows.append(("wall_s", result["wall_s"]))
+    return rows

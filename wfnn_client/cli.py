@@ -48,10 +48,11 @@ def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
     return (
-        f"score {f['score']:.3f} | jitter p99 {f['client/tick_jitter_ms_p99']:.2f} ms | "
-        f"overruns {f['client/overruns']:.0f} | safe {f['safe_actions']:.0f} | "
-        f"thinks/s {thinks if thinks is not None else float('nan'):,.0f} | r {f['reward_mean']:+.3f} | "
-        f"Q {f['q_mean']:+.3f} | v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"
+        f"score {f['client/score']:.3f} | jitter p99 {f['client/tick_jitter_ms_p99']:.2f} ms | "
+        f"overruns {f['client/overruns']:.0f} | safe {f['client/safe_actions']:.0f} | "
+        f"thinks/s {thinks if thinks is not None else float('nan'):,.0f} | "
+        f"r {f['client/reward_mean']:+.3f} | Q {f['client/q_mean']:+.3f} | "
+        f"v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"
     )
 
 
@@ -62,8 +63,11 @@ def client(
     duration: Annotated[float | None, typer.Option(min=0.0, help="Stop after this many seconds.")] = None,
     rate_hz: Annotated[
         float | None,
-        typer.Option(min=0.0, help="Control rate; 0 = as fast as possible [sim's rate: 50, hydra 15, "
-                                   "nomad 10]. HyDrA and the Nomad are simulated at this rate."),
+        typer.Option(
+            min=0.0,
+            help="Control rate; 0 = as fast as possible [sim's rate: 50, hydra 15, "
+            "nomad 10]. HyDrA and the Nomad are simulated at this rate.",
+        ),
     ] = None,
     lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
     server: Annotated[

@@ -446,13 +446,13 @@ def _status(
     """Figures of the run; tick timing over the last RECENT ticks, or all with `whole_run`."""
     return {
         "episode": episode,
-        "score": scores[-1] if scores else float("nan"),
+        "client/score": scores[-1] if scores else float("nan"),
         "elapsed_s": elapsed,
         "following": brain.following,
-        "reward_mean": float(np.mean(rewards)) if rewards else float("nan"),
-        "q_mean": float(np.mean(values)) if values else float("nan"),
-        "safe_actions": float(safety.counts["no_weights"] + safety.counts["late"]),
-        "vetoes": float(safety.counts["vetoed"]),
+        "client/reward_mean": float(np.mean(rewards)) if rewards else float("nan"),
+        "client/q_mean": float(np.mean(values)) if values else float("nan"),
+        "client/safe_actions": float(safety.counts["no_weights"] + safety.counts["late"]),
+        "client/vetoes": float(safety.counts["vetoed"]),
         **ticks.summary("client/", None if whole_run else RECENT),
         **brain.metrics(),
     }

@@ -58,8 +58,8 @@ FIGURES = ("think/thinks_per_s", "store/experiences", "learn/divergence_resets",
 """Server figures shown as numbers (the view sends only what the page shows)."""
 
 CLIENT_SERIES = {
-    "reward": "reward_mean",
-    "q": "q_mean",
+    "reward": "client/reward_mean",
+    "q": "client/q_mean",
     "jitter_p99_ms": "client/tick_jitter_ms_p99",
     "overruns": "client/overruns",
 }

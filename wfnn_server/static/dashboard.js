@@ -120,7 +120,7 @@ function drawClientTable(clients) {
     const m = c.metrics;
     const row = document.createElement("tr");
     for (const text of [client, c.following || "-", c.weights_version, fmt(m["client/tick_jitter_ms_p99"], 2),
-                        fmt(m["client/overruns"]), fmt(m.reward_mean, 3), fmt(m.q_mean, 3)]) {
+                        fmt(m["client/overruns"]), fmt(m["client/reward_mean"], 3), fmt(m["client/q_mean"], 3)]) {
       const cell = document.createElement("td");
       cell.textContent = text;
       row.appendChild(cell);

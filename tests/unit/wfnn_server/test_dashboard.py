@@ -24,7 +24,7 @@ def _heartbeat(hub, cfg, client="c1", jitter=0.2):
     status = ClientStatus(
         client=client, spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="s1",
         weights_version=3, produced_through=5, acked={},
-        metrics={"client/tick_jitter_ms_p99": jitter, "client/overruns": 1.0, "reward_mean": -0.5},
+        metrics={"client/tick_jitter_ms_p99": jitter, "client/overruns": 1.0, "client/reward_mean": -0.5},
     )  # fmt: skip
     hub.bus().put(KEYS.client_status(client), Codec(client).encode(status), None)
 
