@@ -48,12 +48,12 @@ from wfnn_io.protocol import (
     ExperienceBatch,
     Keys,
     MsgType,
-    ProtocolError,
     ServerStatus,
     WeightSnapshot,
     check_id,
     load_key,
     max_frame,
+    take,
 )
 from wfnn_io.segments import FsyncPolicy
 
@@ -285,13 +285,6 @@ class RemoteBrain:
         self._snapshots[Keys.last(key)] = data
         self._wake_down.set()
 
-    def _count_error(self, what: str, exc: Exception) -> None:
-        """A message that provoked an unforeseen error: counted and logged, the thread goes on."""
-        self.rejected["error"] += 1
-        if self.rejected["error"] <= 10:
-            log.error("a %s could not be handled (%s: %s); counted as rejected 'error'", what,
-                      type(exc).__name__, exc, exc_info=exc)  # fmt: skip
-
     def _guard(self, target: Any) -> Any:
         def run() -> None:
             try:
@@ -458,19 +451,17 @@ class RemoteBrain:
                 data = self._acks.get_nowait()
             except queue.Empty:
                 return
-            try:
-                sender, ack = self.codec.decode(data, Ack)
-                if ack.client != self.id or sender != ack.server:
-                    self.rejected["ack_misrouted"] += 1
-                    continue
-                with self._lock:
-                    view = self.servers.setdefault(ack.server, ServerView(ack.server))
-                    self._announced(view, ack.store, ack.incarnation)
-                    view.acked = max(view.acked, ack.stored_through)
-            except ProtocolError as exc:
-                self.rejected[f"ack_{exc.reason}"] += 1
-            except Exception as exc:
-                self._count_error("ack", exc)
+            take(data, self._take_ack, self.rejected, "ack", "ack_")
+
+    def _take_ack(self, data: bytes) -> None:
+        sender, ack = self.codec.decode(data, Ack)
+        if ack.client != self.id or sender != ack.server:
+            self.rejected["ack_misrouted"] += 1
+            return
+        with self._lock:
+            view = self.servers.setdefault(ack.server, ServerView(ack.server))
+            self._announced(view, ack.store, ack.incarnation)
+            view.acked = max(view.acked, ack.stored_through)
 
     def _announced(self, view: ServerView, store: str, incarnation: int) -> None:
         """A server says which store and incarnation it is (caller holds the lock).
@@ -551,10 +542,7 @@ class RemoteBrain:
             for server in list(self._snapshots):
                 data = self._snapshots.pop(server, None)
                 if data is not None:
-                    try:
-                        self._take_snapshot(data)
-                    except Exception as exc:
-                        self._count_error("snapshot", exc)
+                    take(data, self._take_snapshot, self.rejected, "snapshot")
             self._choose()
             self._watch_weights()
 
@@ -577,12 +565,7 @@ class RemoteBrain:
                 data = self._statuses.get_nowait()
             except queue.Empty:
                 return
-            try:
-                self._take_status(data)
-            except ProtocolError as exc:
-                self.rejected[f"status_{exc.reason}"] += 1
-            except Exception as exc:
-                self._count_error("server status", exc)
+            take(data, self._take_status, self.rejected, "server status", "status_")
 
     def _take_status(self, data: bytes) -> None:
         sender, status = self.codec.decode(data, ServerStatus)
@@ -631,11 +614,7 @@ class RemoteBrain:
                 view.alive = alive
 
     def _take_snapshot(self, data: bytes) -> None:
-        try:
-            sender, snap = self.codec.decode(data, WeightSnapshot)
-        except ProtocolError as exc:
-            self.rejected[exc.reason] += 1
-            return
+        sender, snap = self.codec.decode(data, WeightSnapshot)
         reason = self._invalid(sender, snap)
         if reason:
             self.rejected[reason] += 1

@@ -22,8 +22,11 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import hmac
+import logging
 import re
 import struct
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, ClassVar, Literal, NamedTuple, TypeVar
@@ -32,6 +35,8 @@ import crcmod.predefined
 import msgpack
 import numpy as np
 from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
 
 MAGIC = b"WFNN"
 PROTOCOL_VERSION = 3
@@ -605,6 +610,29 @@ def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacP
         use_list=True,
     )  # fmt: skip
     return Frame(sender, seq, from_body(msg_type, body))
+
+
+def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str], what: str,
+         prefix: str = "") -> None:  # fmt: skip
+    """Hand one received frame to `handle`; what it provokes is counted in `rejected`, never raised.
+
+    Whoever receives frames (client and server alike) takes them this way: a `ProtocolError`
+    counts as `prefix` + its reason; an exception no check foresaw counts as "error" (logged the
+    first ten times) and the receiving thread goes on. An OSError is raised: it is a fault of this
+    host (a store that cannot be written), not of the sender.
+    """
+    try:
+        handle(frame)
+    except ProtocolError as exc:
+        rejected[prefix + exc.reason] += 1
+        log.debug("rejected %s: %s", what, exc)
+    except OSError:
+        raise
+    except Exception as exc:
+        rejected["error"] += 1
+        if rejected["error"] <= 10:
+            log.error("a %s could not be handled (%s: %s); counted as rejected 'error'", what,
+                      type(exc).__name__, exc, exc_info=exc)  # fmt: skip
 
 
 class Codec:

@@ -57,6 +57,7 @@ from wfnn_io.protocol import (
     SpecMismatch,
     WeightSnapshot,
     load_key,
+    take,
 )
 from wfnn_server.config import ServerConfig
 from wfnn_server.store import ExperienceStore
@@ -453,23 +454,9 @@ class ThinkServer:
             self._ack(client, through)
 
     def _handle(self, kind: str, data: bytes) -> None:
-        """One received message; whatever it provokes is counted, never raised."""
-        try:
-            if kind == "exp":
-                self._ingest(data)
-            elif kind == "status":
-                self._client_status(data)
-            elif kind == "camera":
-                self._camera_view(data)
-        except ProtocolError as exc:
-            self.rejected[exc.reason] += 1
-            log.debug("rejected %s frame: %s", kind, exc)
-        except OSError:
-            raise  # the store cannot be written: that is this server's fault, not the sender's
-        except Exception as exc:  # a case no check foresaw: counted and logged, the thread goes on
-            self.rejected["error"] += 1
-            if self.rejected["error"] <= 10:
-                log.exception("a %s frame could not be handled (%s); counted as rejected 'error'", kind, exc)
+        """One received message; what it provokes is counted, never raised (a store's OSError is)."""
+        handle = {"exp": self._ingest, "status": self._client_status, "camera": self._camera_view}[kind]
+        take(data, handle, self.rejected, f"{kind} frame")
 
     def _allowed(self, client: str) -> None:
         allowed = self.config.allow_clients
