@@ -660,3 +660,24 @@ def test_a_camera_view_must_carry_a_png():
     body["png"]["data"] = b"GIF89a" + body["png"]["data"][6:]
     with pytest.raises(MalformedBody, match="not a PNG"):
         decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.CAMERA_VIEW))
+
+
+def test_take_counts_what_a_frame_provokes_and_raises_only_a_local_fault():
+    from collections import Counter
+
+    from wfnn_io.protocol import Codec, take
+
+    rejected: Counter[str] = Counter()
+    codec = Codec("srv1")
+    good = codec.encode(make_ack())
+    got = []
+    take(good, lambda f: got.append(codec.decode(f, Ack)[1]), rejected, "ack", "ack_")
+    take(good[:-1] + bytes([good[-1] ^ 1]), lambda f: codec.decode(f, Ack), rejected, "ack", "ack_")
+    take(good, lambda f: 1 / 0, rejected, "ack", "ack_")
+    assert len(got) == 1 and rejected == Counter({"ack_crc": 1, "error": 1})
+
+    def disk_full(frame):
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        take(good, disk_full, rejected, "ack")
