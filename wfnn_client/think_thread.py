@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import Learner
 from wfnn_common.network import Params
+from wfnn_common.schedule import ThinkSchedule
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +51,8 @@ class ActLearnThinkMT:
         self.think_batch = think_batch
         self.publish_period_s = publish_period_s
         self.idle_sleep_s = idle_sleep_s
-        self.budget = 0
-        """Replays still owed: thinks_per_action for every experience stored (the thesis'
+        self.schedule = ThinkSchedule()
+        """Replays owed: thinks_per_action for every experience stored (the thesis'
         thinks-per-action setting; more replays than that over-fit, Fig 4.9)."""
         self._queue: collections.deque[tuple[Any, ...]] = collections.deque()
         self._snapshot: Params = learner.snapshot()
@@ -88,7 +89,7 @@ class ActLearnThinkMT:
             self._thread = None
         while self._queue:
             stored = self.learner.learn(*self._queue.popleft())
-            self.budget += self.learner.config.thinks_per_action * int(np.sum(stored))
+            self.schedule.owe(self.learner.config.thinks_per_action * int(np.sum(stored)))
 
     def __enter__(self) -> ActLearnThinkMT:
         return self.start()
@@ -122,6 +123,11 @@ class ActLearnThinkMT:
         self._queue.append((state, action, next_state, reward, terminal, valid))
 
     @property
+    def budget(self) -> int:
+        """Replays still owed."""
+        return self.schedule.budget
+
+    @property
     def queued(self) -> int:
         """Experiences waiting for the think thread."""
         return len(self._queue)
@@ -135,21 +141,20 @@ class ActLearnThinkMT:
             while not self._stop.is_set():
                 while self._queue:
                     stored = learner.learn(*self._queue.popleft())
-                    self.budget += per_action * int(np.sum(stored))
+                    self.schedule.owe(per_action * int(np.sum(stored)))
                 if self._reset_requested.any():
                     which = self._reset_requested.copy()
                     self._reset_requested[which] = False
                     learner.reset_weights(which)
                     self._publish()
                     log.warning("divergence: reset weights of %d learner(s)", int(which.sum()))
-                if self.budget <= 0 or learner.buffer.count.max() == 0:
+                n = self.schedule.next_thinks(self.think_batch, 0, stored=learner.buffer.count.max() > 0)
+                if n == 0:
                     if self.version == 0 or learner.thinks.sum() > self._published_thinks:
                         self._publish()
                     time.sleep(self.idle_sleep_s)
                     continue
-                n = min(self.think_batch, self.budget)
                 learner.think(n)
-                self.budget -= n
                 now = time.perf_counter()
                 if now - last_publish >= self.publish_period_s:
                     self._publish()

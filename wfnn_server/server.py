@@ -23,7 +23,6 @@ import queue
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,6 +31,7 @@ from numpy.typing import NDArray
 
 from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
+from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel
 from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_io.persist import (
@@ -76,15 +76,6 @@ PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 LEARNER_JSON = "learner_config.json"
-
-
-@dataclass
-class _Owed:
-    """Thinks owed up to a client's experience: done when the think counter reaches `mark`."""
-
-    mark: int
-    client: str
-    seq: int
 
 
 def lower_priority(nice: int) -> None:
@@ -167,11 +158,8 @@ class ThinkServer:
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
         self.version = 0
-        self.budget = 0
-        self.learned_through: dict[str, int] = {}
-        self._owed: collections.deque[_Owed] = collections.deque()
-        self._thinks_owed_total = 0
-        self._recover_until = 0
+        self.schedule = ThinkSchedule()
+        """Thinks owed, how far they have reached (`learned_through`) and relearning after a reset."""
         self._staleness: list[int] = []
         self._q_chosen: list[float] = []
         self._rewards: list[float] = []
@@ -294,10 +282,8 @@ class ThinkServer:
 
     def replayed(self) -> bool:
         """Whether every stored experience has had its thinks (nothing queued or owed)."""
-        return (
-            self.learner is not None and self.budget <= 0 and not self._to_learn and not self._owed
-            and self.learner.thinks[0] >= self._recover_until
-        )  # fmt: skip
+        learner = self.learner
+        return learner is not None and not self._to_learn and self.schedule.settled(int(learner.thinks[0]))
 
     def _start_learner(self, adopted: LearnerConfig) -> None:
         """Build the learner, resume the checkpoint if it fits, and load the stored experiences.
@@ -309,8 +295,7 @@ class ThinkServer:
         cfg = self._overridden(adopted)
         learner, meta = self._resume(cfg)
         checkpointed: dict[str, int] = meta.get("stored_through", {})
-        self.budget = int(meta.get("budget", 0))
-        self.learned_through = dict(meta.get("learned_through", {}))
+        budget = int(meta.get("budget", 0))
         tpa = cfg.thinks_per_action
         loaded = 0
         for batch in self.store.batches():
@@ -318,10 +303,9 @@ class ThinkServer:
             loaded += len(batch)
             # Experiences stored after the checkpoint have not had their thinks yet.
             after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
-            self.budget += tpa * int(np.count_nonzero(ok & after))
-        self._thinks_owed_total = int(learner.thinks[0]) + self.budget
-        for client, through in self.store.stored_through.items():
-            self._owed.append(_Owed(self._thinks_owed_total, client, through))
+            budget += tpa * int(np.count_nonzero(ok & after))
+        self.schedule = ThinkSchedule(learned_through=dict(meta.get("learned_through", {})))
+        self.schedule.resume(int(learner.thinks[0]), budget, self.store.stored_through)
         self.learner, self.learner_config, self.spec_hash = learner, cfg, cfg.spec_hash()
         self._config_json = cfg.to_json()
         self.view.learner_config, self.view.weights_version = cfg, self.version
@@ -582,10 +566,7 @@ class ThinkServer:
         while self._to_learn:
             batch = self._to_learn.popleft()
             ok = self._learn_batch(learner, batch)
-            owed = tpa * int(np.count_nonzero(ok))
-            self.budget += owed
-            self._thinks_owed_total += owed
-            self._owed.append(_Owed(self._thinks_owed_total, batch.client, batch.last_seq))
+            self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
             self._queued_through[batch.client] = batch.last_seq
             self._observe(learner, batch)
 
@@ -603,9 +584,8 @@ class ThinkServer:
                 continue
             learner.reset_weights(np.ones(1, dtype=np.bool_))
             n = int(learner.buffer.count[0])
-            self._recover_until = int(learner.thinks[0]) + min(
-                learner.config.thinks_per_action * n, self.config.recovery_thinks_max
-            )
+            relearn = min(learner.config.thinks_per_action * n, self.config.recovery_thinks_max)
+            self.schedule.recover(int(learner.thinks[0]), relearn)
             log.warning(
                 "divergence: chosen-action values above %.2f for %d experiences; weights reset, "
                 "relearning from %d stored experiences", monitor.threshold, monitor.patience, n,
@@ -614,28 +594,26 @@ class ThinkServer:
             break
 
     def _think(self, learner: Learner) -> bool:
-        recovering = learner.thinks[0] < self._recover_until
-        if self.budget > 0:
-            n = min(self.config.think_batch, self.budget)
-            self.budget -= n
-        elif (self.config.think == "continuous" or recovering) and learner.buffer.count[0] > 0:
-            n = self.config.think_batch
-            self._thinks_owed_total += n
-        else:
-            return False
-        learner.think(n)
-        return True
+        n = self.schedule.next_thinks(self.config.think_batch, int(learner.thinks[0]),
+                                      stored=learner.buffer.count[0] > 0,
+                                      continuous=self.config.think == "continuous")  # fmt: skip
+        if n:
+            learner.think(n)
+        return n > 0
 
     def _advance_learned(self, learner: Learner) -> bool:
         """Move learned_through past the experiences whose thinks are done; True if it moved."""
-        done = int(learner.thinks[0])
-        moved = False
-        while self._owed and self._owed[0].mark <= done:
-            owed = self._owed.popleft()
-            if self.learned_through.get(owed.client, -1) < owed.seq:
-                self.learned_through[owed.client] = owed.seq
-                moved = True
-        return moved
+        return self.schedule.advance(int(learner.thinks[0]))
+
+    @property
+    def budget(self) -> int:
+        """Thinks still owed."""
+        return self.schedule.budget
+
+    @property
+    def learned_through(self) -> dict[str, int]:
+        """Per client: the experiences whose thinks are all done."""
+        return self.schedule.learned_through
 
     def publish(self) -> None:
         """Publish the current weights as a snapshot (and keep it for the queryable)."""
@@ -647,7 +625,7 @@ class ThinkServer:
             server=self.id, incarnation=self.incarnation, store=self.store.id, version=self.version,
             spec_hash=self.spec_hash,
             published_ns=time.time_ns(), thinks=int(learner.thinks[0]),
-            diverged=bool(learner.thinks[0] < self._recover_until),
+            diverged=self.schedule.recovering(int(learner.thinks[0])),
             learned_through=dict(self.learned_through), params=learner.params.flat[:1],
         )  # fmt: skip
         frame = self.codec.encode(snapshot)
@@ -681,7 +659,7 @@ class ThinkServer:
             "store/damaged_spans": float(len(self.store.log.counts.damage)),
             "store/unreadable_records": float(self.store.unreadable),
             "learn/divergence_resets": float(learner.resets[0]) if learner else 0.0,
-            "learn/diverged": float(bool(learner is not None and learner.thinks[0] < self._recover_until)),
+            "learn/diverged": float(learner is not None and self.schedule.recovering(int(learner.thinks[0]))),
             "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,
             "clients/heard": float(self._check_clients()),
             "clients/silent": float(len(self._silent)),
