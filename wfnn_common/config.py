@@ -547,8 +547,3 @@ class LearnerOverrides:
             changes.update({"deep": {"lr": self.learning_rate}} if config.learner == "deep"
                            else {"alpha": self.learning_rate})  # fmt: skip
         return changes
-
-    def short_repr(self) -> str:
-        """One line for logs: the fields set ("defaults" when none is)."""
-        return ", ".join(f"{f.name} {getattr(self, f.name)}" for f in dataclasses.fields(self)
-                         if getattr(self, f.name) not in (None, "")) or "defaults"  # fmt: skip
