@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from sims.base import Transition
 from sims.boat import BoatConfig, BoatVec, handcoded_boat
 from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_population
 
@@ -93,14 +93,16 @@ def run_protocol(
     targets: int,
     rng: np.random.Generator,
     choose: Callable[[FloatArray], FloatArray],
-    after_step: Callable[[FloatArray, FloatArray, Transition], None] | None = None,
+    learn: Learn | None = None,
+    think: Callable[[], object] | None = None,
     progress: Progress = no_progress,
 ) -> FloatArray:
     """Score `boat.n` controllers on `targets` successive targets -> scores [n, targets].
 
-    `choose(states [n, 7]) -> thrusts [n, 2]`; `after_step(x, u, transition)` is where a
-    learner records and thinks. The boat keeps its motion from one target to the next; the
-    target jump itself is never part of an experience.
+    `choose(states [n, 7]) -> thrusts [n, 2]`; every step, `learn` (a `robot_step` learner:
+    state, action, next state, reward, terminal, valid) records the experience and `think` thinks.
+    The boat keeps its motion from one target to the next; the target jump itself is never part
+    of an experience.
     """
     steps = boat.config.steps_per_target
     scores = np.zeros((boat.n, targets))
@@ -108,10 +110,9 @@ def run_protocol(
         x = boat.new_targets(rng)
         total = np.zeros(boat.n)
         for _ in range(steps):
-            u = choose(x)
-            tr = boat.step(u)
-            if after_step is not None:
-                after_step(x, u, tr)
+            tr = robot_step(Decided.unchanged(choose(x)), boat.step, [Pupil(x, learn)] if learn else [])
+            if think is not None:
+                think()
             total += boat.distance()
             x = tr.state
         scores[:, t] = total / steps
@@ -147,14 +148,13 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
     def choose(x: FloatArray) -> FloatArray:
         return learner.act(x).action
 
-    def after_step(x: FloatArray, u: FloatArray, tr: Transition) -> None:
-        learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+    def think() -> None:
         t0 = time.perf_counter()
         learner.think()
         think_s[0] += time.perf_counter() - t0
 
     start = time.perf_counter()
-    scores = run_protocol(boat, bench.targets, rng, choose, after_step, progress)
+    scores = run_protocol(boat, bench.targets, rng, choose, learner.learn, think, progress)
     wall = time.perf_counter() - start
     # Greedy evaluation on fresh targets: no exploration, no learning.
     frozen = learner.snapshot()

@@ -18,6 +18,7 @@ import numpy as np
 
 from sims.cartpole import CartPoleVec
 from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 
@@ -60,9 +61,7 @@ def run(bench: CartPoleBenchConfig, progress: Progress = no_progress) -> dict[st
     start = time.perf_counter()
     chunk = max(bench.steps // 100, 1)
     for step in range(bench.steps):
-        u = learner.act(x).action
-        tr = task.step(u)
-        learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+        tr = robot_step(Decided.unchanged(learner.act(x).action), task.step, [Pupil(x, learner.learn)])
         learner.think()
         capped = task.steps >= bench.max_attempt_steps
         for i in np.flatnonzero(tr.terminal):

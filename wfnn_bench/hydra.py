@@ -31,6 +31,7 @@ import numpy as np
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
 from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
+from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.learners import make_population
@@ -106,9 +107,7 @@ def learn_episode(learner: Any, task: HydraVec, rng: np.random.Generator) -> Flo
     error = np.zeros(task.n)
     x = task.new_targets(rng)
     for _ in range(EPISODE):
-        u = learner.act(x).action
-        tr = task.step(u)
-        learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+        tr = robot_step(Decided.unchanged(learner.act(x).action), task.step, [Pupil(x, learner.learn)])
         learner.think()
         error += task.pixel_error() / EPISODE
         x = tr.state

@@ -28,6 +28,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -40,11 +41,13 @@ from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
 from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
+from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_common.learners import Learner, make_population
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 SERVO_EPISODE = 150
 """Actions per servo training episode (15 s at 10 Hz)."""
 
@@ -186,15 +189,25 @@ def _apply_vetoes(
     vetoes: list[Callable[[FloatArray, FloatArray], FloatArray | None]],
     states: FloatArray,
     proposed: FloatArray,
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Each robot's veto over its proposed action -> (executed actions [n, 2], vetoed [n])."""
+) -> Decided:
+    """Each robot's veto over its proposed action [n, 2]."""
     executed = proposed.copy()
     vetoed = np.zeros(len(vetoes), dtype=np.bool_)
     for i, veto in enumerate(vetoes):
         replacement = veto(states[i], proposed[i])
         if replacement is not None:
             executed[i], vetoed[i] = replacement, True
-    return executed, vetoed
+    return Decided(executed, proposed, vetoed)
+
+
+def _if_any(learn: Learn) -> Learn:
+    """`learn`, skipped on a step with no learnable row."""
+
+    def learn_some(*experience: Any) -> None:
+        if experience[5].any():
+            learn(*experience)
+
+    return learn_some
 
 
 def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
@@ -218,9 +231,7 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     for episode in range(1, cfg.servo_episodes + 1):
         x = task.new_targets(rng)
         for _ in range(SERVO_EPISODE):
-            u = learner.act(x).action
-            tr = task.step(u)
-            learner.learn(x, u, tr.state, tr.reward, tr.terminal, tr.learnable)
+            tr = robot_step(Decided.unchanged(learner.act(x).action), task.step, [Pupil(x, learner.learn)])
             experiences += tr.learnable
             learner.think()
             x = tr.state
@@ -267,15 +278,13 @@ def wander(
                 proposed = learner.act(x).action
             else:
                 proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(p)])
-            executed, vetoed = _apply_vetoes(vetoes, x, proposed) if veto else (proposed, np.zeros(p, bool))
-            tr = task.step(executed)
+            decided = _apply_vetoes(vetoes, x, proposed) if veto else Decided.unchanged(proposed)
+            # Learning twice: a vetoed proposal is learned too, with its own reward (Eq 5.4).
+            pupils = [Pupil(x, learner.learn, reward=task.reward)] if learner is not None else []
+            tr = robot_step(decided, task.step, pupils)
             if learner is not None:
-                learner.learn(x, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
-                if vetoed.any():  # learn twice: the proposal too, with its own reward (Eq 5.4)
-                    r = task.reward(x, proposed, tr.state)
-                    learner.learn(x, proposed, tr.state, r, tr.terminal, tr.learnable & vetoed)
                 learner.think()
-            out["vetoes"][:, ep] += vetoed
+            out["vetoes"][:, ep] += decided.vetoed
             path.append(task.pose()[0, :2].tolist())
             x = tr.state
         out["distance_m"][:, ep] = task.distance - distance0
@@ -347,6 +356,23 @@ def forage_servo(
     def greedy(states: FloatArray) -> FloatArray:
         return learner.act(states, explore=False, params=learner.params).action
 
+    def watch(
+        state: FloatArray, u: FloatArray, xn: FloatArray, r: FloatArray, term: BoolArray, valid: BoolArray
+    ) -> None:
+        """The servo learner learns the executed action, and passively its phantom-goal copies."""
+        if not valid.any():
+            return
+        learner.learn(state, u, xn, r, term, valid)
+        if passive:
+            # Untracked rows (NaN) are not learnable; zeros keep the arithmetic quiet.
+            tracked, tracked_next = np.nan_to_num(state), np.nan_to_num(xn)
+            for _ in range(cfg.watch_phantoms):
+                offset = np.stack(
+                    [phantom_rng.uniform(x_lo, x_hi, p), phantom_rng.uniform(y_lo, y_hi, p)], axis=1
+                )
+                block = phantom_goals(tracked, u, tracked_next, r, offset, task.config)
+                learner.learn(*block, term, valid)
+
     for tick in range(1, cfg.forage_minutes * WANDER_EPISODE + 1):
         pursuing = forage.driving() == 0
         s = forage.observe("servo")
@@ -357,28 +383,17 @@ def forage_servo(
             proposed += rng.normal(0.0, cfg.forage_wander_noise, proposed.shape) * limits
         if pursuing.any():
             proposed[pursuing] = learner.act(np.nan_to_num(s)).action[pursuing]
-        executed, vetoed = _apply_vetoes(vetoes, s, proposed)
-        steps = forage.step(executed)
-        for name, who, state in (("wander", wanderer, x), ("servo", learner, s)):
-            tr = steps[name]
-            if who is None or not tr.learnable.any():
-                continue
-            who.learn(state, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
-            if passive and name == "servo":
-                # Untracked rows (NaN) are not learnable; zeros keep the arithmetic quiet.
-                tracked, tracked_next = np.nan_to_num(state), np.nan_to_num(tr.state)
-                for _ in range(cfg.watch_phantoms):
-                    offset = np.stack(
-                        [phantom_rng.uniform(x_lo, x_hi, p), phantom_rng.uniform(y_lo, y_hi, p)], axis=1
-                    )
-                    block = phantom_goals(tracked, executed, tracked_next, tr.reward, offset, task.config)
-                    who.learn(*block, tr.terminal, tr.learnable)
-            # A vetoed proposal is learned too (Eq 5.4) by the behaviour that proposed it.
-            twice = vetoed & tr.learnable & (pursuing if name == "servo" else ~pursuing)
-            if twice.any():
-                r = forage.reward(name, state, proposed, tr.state)
-                who.learn(state, proposed, tr.state, r, tr.terminal, twice)
-            who.think()
+        decided = _apply_vetoes(vetoes, s, proposed)
+        # Both behaviours learn the executed action; a vetoed proposal is learned too (Eq 5.4) by the
+        # behaviour that proposed it.
+        pupils = [Pupil(s, watch, "servo", partial(forage.reward, "servo"), pursuing, learner.learn)]
+        if wanderer is not None:
+            pupils.insert(0, Pupil(x, _if_any(wanderer.learn), "wander", partial(forage.reward, "wander"),
+                                   ~pursuing))  # fmt: skip
+        steps = robot_step(decided, forage.step, pupils)
+        for name, who in (("wander", wanderer), ("servo", learner)):
+            if who is not None and steps[name].learnable.any():
+                who.think()
         x = steps["wander"].state
         ok = steps["servo"].learnable
         watched += ok & ~pursuing
@@ -454,7 +469,7 @@ def render_check(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
         agree, difference, found = [], [], {"render": 0, "projection": 0}
         for _ in range(cfg.render_wander_ticks):
             proposed = np.array([handcoded_wander(task.carpet[i]) for i in range(task.n)])
-            x = task.step(_apply_vetoes(vetoes, x, proposed)[0]).state
+            x = task.step(_apply_vetoes(vetoes, x, proposed).executed).state
             for i in range(task.n):
                 # The camera model's raw matrix on the same state (its own noise draws).
                 model_raw = carpet_mismatch(task.model, *task.camera.look(task.model, task.data[i]),

@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import Transition
 from sims.boat import BoatConfig, BoatVec, handcoded_boat, mirror, phantom
 from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
 from wfnn_bench.common import Progress, machine_info, no_progress
@@ -47,6 +46,7 @@ from wfnn_io import logs
 from wfnn_io.protocol import EXP_EXPLORED
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -128,8 +128,8 @@ def evaluate(
     gamma = _config(cfg, 1).gamma
     rewards = np.zeros(n)
 
-    def add(x: FloatArray, u: FloatArray, tr: Transition) -> None:
-        rewards[:] += squash_reward(tr.reward, gamma)
+    def add(*experience: Any) -> None:  # only the reward counts
+        rewards[:] += squash_reward(experience[3], gamma)
 
     scores = run_protocol(boat, cfg.eval_targets, rng, policy, add)
     return np.asarray(np.median(scores, axis=1)), rewards / (cfg.eval_targets * boat.config.steps_per_target)
@@ -164,11 +164,12 @@ def record_logs(cfg: PassiveBenchConfig, directory: Path) -> dict[str, Any]:
             return np.clip(handcoded_boat(x) + rng.normal(0.0, sigma, (x.shape[0], 2)), -1.0, 1.0)
 
         def keep(
-            x: FloatArray, u: FloatArray, tr: Transition, name: str = name, sigma: float = sigma,
-            recorders: list[Recorder] = recorders,
+            x: FloatArray, u: FloatArray, xn: FloatArray, r: FloatArray, terminal: BoolArray, _: BoolArray,
+            name: str = name, sigma: float = sigma, recorders: list[Recorder] = recorders,
         ) -> None:  # fmt: skip
+            # A log keeps every step, learnable or not, as a robot's journal does.
             for b, recorder in enumerate(recorders):
-                experience = Experience(x[b], u[b], tr.state[b], float(tr.reward[b]), bool(tr.terminal[b]),
+                experience = Experience(x[b], u[b], xn[b], float(r[b]), bool(terminal[b]),
                                         EXP_EXPLORED if sigma > 0 else 0)  # fmt: skip
                 recorder.add(experience, name, 0)
 
@@ -249,22 +250,23 @@ def online(cfg: PassiveBenchConfig, kind: str, progress: Progress) -> dict[str, 
     boat.reset(rng)
     boat_cfg = BoatConfig(dt=cfg.dt)
 
-    def after_step(x: FloatArray, u: FloatArray, tr: Transition) -> None:
+    def learn(
+        x: FloatArray, u: FloatArray, xn: FloatArray, r: FloatArray, terminal: BoolArray, valid: BoolArray
+    ) -> None:
         executed = np.clip(u, -1.0, 1.0)
         if kind == "phantom":
             for _ in range(max(cfg.phantoms, 1)):
                 offsets = _phantom_offsets(rng, p, cfg.phantom_radius)
-                ps, pu, psn, pr = phantom(x, executed, tr.state, tr.reward, offsets, boat_cfg)
-                learner.learn(ps, pu, psn, pr, tr.terminal, tr.learnable)
+                ps, pu, psn, pr = phantom(x, executed, xn, r, offsets, boat_cfg)
+                learner.learn(ps, pu, psn, pr, terminal, valid)
         else:
-            learner.learn(x, executed, tr.state, tr.reward, tr.terminal, tr.learnable)
+            learner.learn(x, executed, xn, r, terminal, valid)
             if kind == "mirror":
-                ms, mu, msn, mr = mirror(x, executed, tr.state, tr.reward)
-                learner.learn(ms, mu, msn, mr, tr.terminal, tr.learnable)
-        learner.think()
+                ms, mu, msn, mr = mirror(x, executed, xn, r)
+                learner.learn(ms, mu, msn, mr, terminal, valid)
 
     choose: Callable[[FloatArray], FloatArray] = lambda x: learner.act(x).action  # noqa: E731
-    scores = run_protocol(boat, cfg.online_targets, rng, choose, after_step, progress)
+    scores = run_protocol(boat, cfg.online_targets, rng, choose, learn, learner.think, progress)
     greedy = float(np.median(greedy_score(learner, cfg)))
     return {"scores": scores, "median_per_target": np.median(scores, axis=0),
             "score_last10": float(np.median(scores[:, -10:])), "greedy": greedy}  # fmt: skip

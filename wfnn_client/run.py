@@ -17,18 +17,20 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sims.base import Behaviours, Ranges, VecTask
-from wfnn_client.brain import Brain, Experience, LocalBrain
+from wfnn_client.brain import Acted, Brain, Experience, LocalBrain
 from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import LEARNER, Controllers, source_name
 from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
+from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import (
     LearnerConfig,
@@ -168,7 +170,6 @@ def _run(
     reward_of = spec.reward_of(task) if spec.reward_of else None
     several = spec.behaviours(task, config.sim_options) if spec.behaviours else None
     behaviours: Behaviours = several or OneBehaviour(task, reward_of)
-    can_learn_twice = several is not None or reward_of is not None
     period = 1.0 / config.tick_hz if config.tick_hz > 0 else 0.0
     ticks = TickStats()
     ticker = Ticker(period, ticks)
@@ -216,6 +217,21 @@ def _run(
     """With `timing_trace`: the last experience sent on by each tick's end (C/S; -1 otherwise)."""
     episode_policies: list[str] = []
     """The behaviour policy that drove each episode."""
+    # A veto's proposal is learned only where its reward can be computed (Eq 5.4).
+    twice = (several is not None or reward_of is not None) and config.safety.learn_twice
+
+    def to_brain(sk: Skill, flags: int, acted: Acted | None) -> Learn:
+        """A skill's learning in `robot_step`: each learnable experience, flagged, to its brain."""
+
+        def learn(x: Any, u: Any, x_next: Any, reward: Any, terminal: Any, valid: Any) -> None:
+            nonlocal learned
+            if valid[0]:
+                sk.brain.learn(Experience(x[0], u[0], x_next[0], float(reward[0]), bool(terminal[0]), flags),
+                               acted)  # fmt: skip
+                learned += 1
+
+        return learn
+
     task.reset(rng)
     next_status = 0.0
     brains.start()
@@ -253,27 +269,18 @@ def _run(
                 proposed = acted.result.action if acted is not None else None
                 decision = safety.decide(proposed, xs[d], ticker.late_now() if period else 0.0)
                 ticks.latency_s.append(time.perf_counter() - t0)
-                transitions = behaviours.step(decision.executed[None])
-                # Every behaviour learns from the executed action, whichever chose it (Section 6.6).
-                for k, sk in enumerate(skills):
-                    tr = transitions[sk.name]
-                    if not (config.learn and tr.learnable[0]):
-                        continue
-                    x, x_next, terminal = xs[k], tr.state[0], bool(tr.terminal[0])
-                    sk.brain.learn(Experience(x, decision.executed, x_next, float(tr.reward[0]), terminal,
-                                              decision.flags), acted if k == d else None)  # fmt: skip
-                    learned += 1
-                    if (
-                        k == d
-                        and decision.proposed is not None
-                        and can_learn_twice
-                        and config.safety.learn_twice
-                    ):
-                        r_proposed = float(behaviours.reward(sk.name, x[None], decision.proposed[None],
-                                                             x_next[None])[0])  # fmt: skip
-                        sk.brain.learn(Experience(x, decision.proposed, x_next, r_proposed, terminal,
-                                                  EXP_VETO_PROPOSED), acted)  # fmt: skip
-                        learned += 1
+                vetoed = decision.proposed is not None
+                proposal = decision.proposed if decision.proposed is not None else decision.executed
+                decided = Decided(decision.executed[None], proposal[None], np.array([vetoed]))
+                # Every behaviour learns from the executed action, whichever chose it (Section 6.6);
+                # the driver also learns a vetoed proposal (learning twice).
+                pupils = [
+                    Pupil(xs[k][None], to_brain(sk, decision.flags, acted if k == d else None), sk.name,
+                          partial(behaviours.reward, sk.name) if k == d and twice else None,
+                          learn_proposal=to_brain(sk, EXP_VETO_PROPOSED, acted))
+                    for k, sk in enumerate(skills)
+                ] if config.learn else []  # fmt: skip
+                transitions = robot_step(decided, behaviours.step, pupils)
                 if config.lockstep and config.learn and not brains.sync(config.lockstep_timeout_s):
                     lockstep_timeouts += 1
                     log.warning("lock-step: no snapshot covering experience %d in %.0f s",
