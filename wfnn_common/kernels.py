@@ -9,12 +9,53 @@ thread never stalls `act`. The arithmetic is `wfnn_common.update.wfnn_update` wi
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
+from wfnn_common.config import LearnerConfig
+from wfnn_common.network import layer_rates
+
 FloatArray = NDArray[np.float64]
+
+
+class Hyperparameters(NamedTuple):
+    """What the compiled think reads of a learner's config: one record, built once per learner.
+
+    Its fields are always a Python float, int or bool whatever the config holds (an int
+    `advantage_k`, a numpy float), so numba compiles the think kernels once: a record typed
+    differently would compile and cache another version. The conversion changes no number:
+    the kernels' float64 arithmetic widens an int or a float32 exactly so.
+
+    Attributes:
+        lr1, lr2: per-layer learning rates (`network.layer_rates`).
+        n_wires, gamma, advantage_k, smoothing_c, eps, squash_reward, bc_weight: as in
+            `LearnerConfig`.
+        exact: `LearnerConfig.derivatives == "exact"`.
+    """
+
+    lr1: float
+    lr2: float
+    n_wires: int
+    gamma: float
+    advantage_k: float
+    smoothing_c: float
+    eps: float
+    exact: bool
+    squash_reward: bool
+    bc_weight: float
+
+    @classmethod
+    def of(cls, config: LearnerConfig) -> Hyperparameters:
+        """The record of a (frozen) config."""
+        lr1, lr2 = layer_rates(config)
+        return cls(
+            float(lr1), float(lr2), int(config.n_wires), float(config.gamma), float(config.advantage_k),
+            float(config.smoothing_c), float(config.eps), config.derivatives == "exact",
+            bool(config.squash_reward), float(config.bc_weight),
+        )  # fmt: skip
 
 
 @njit(cache=True, nogil=True, fastmath=False, inline="always")
@@ -47,28 +88,9 @@ def _forward(W1, b1, W2, b2, x, hidden, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, fastmath=False)
-def _think_learner(  # type: ignore[no-untyped-def]
-    W1,
-    b1,
-    W2,
-    b2,
-    lr1,
-    lr2,
-    xs,
-    us,
-    xns,
-    rs,
-    terms,
-    idx,
-    n_wires,
-    gamma,
-    k,
-    c,
-    eps,
-    exact,
-    squash,
-    bc,
-):
+def _think_learner(W1, b1, W2, b2, xs, us, xns, rs, terms, idx, hyper):  # type: ignore[no-untyped-def]
+    lr1, lr2, n_wires, gamma = hyper.lr1, hyper.lr2, hyper.n_wires, hyper.gamma
+    k, c, eps, bc = hyper.advantage_k, hyper.smoothing_c, hyper.eps, hyper.bc_weight
     n_hidden = W1.shape[0]
     n_out = W2.shape[0]
     action_dim = us.shape[1]
@@ -87,7 +109,7 @@ def _think_learner(  # type: ignore[no-untyped-def]
         x = xs[t]
         u = us[t]
         r = rs[t]
-        if squash:  # Eq 3.6
+        if hyper.squash_reward:  # Eq 3.6
             r = (1.0 - gamma) * math.tanh(r)
         # Part 2: best wire value of the next state.
         value_next = 0.0
@@ -128,7 +150,7 @@ def _think_learner(  # type: ignore[no-untyped-def]
             for j in range(action_dim):
                 err[i * action_dim + j] = g * (out[i * action_dim + j] - u[j])
             correction += rho_w * spread
-        if exact:
+        if hyper.exact:
             err[n_act + top] -= c * correction * delta_q
         if bc != 0.0:  # behaviour-cloning pull: the best wire's action toward the action taken
             for j in range(action_dim):
@@ -157,40 +179,16 @@ def _think_learner(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def think_incremental(  # type: ignore[no-untyped-def]
-    W1,
-    b1,
-    W2,
-    b2,
-    lr1,
-    lr2,
-    xs,
-    us,
-    xns,
-    rs,
-    terms,
-    idx,
-    active,
-    n_wires,
-    gamma,
-    k,
-    c,
-    eps,
-    exact,
-    squash,
-    bc,
-):
+def think_incremental(W1, b1, W2, b2, xs, us, xns, rs, terms, idx, active, hyper):  # type: ignore[no-untyped-def]
     """Replay T experiences per learner, one update each, in order; weights change in place.
 
     Args:
         W1 [P,H,S], b1 [P,H], W2 [P,O,H], b2 [P,O]: the population's weights.
-        lr1, lr2: per-layer learning rates.
         xs, xns [P,N,S]; us [P,N,A]; rs [P,N] raw rewards; terms [P,N] bool: experiences
             (a replay buffer's arrays, read in place: no gather copy).
         idx [P,T]: which experiences each learner replays, in order.
         active [P] bool: learners to update.
-        n_wires, gamma, k, c, eps, exact, squash, bc: as in `LearnerConfig` (exact, squash:
-            bool; bc: `bc_weight`).
+        hyper: the learners' `Hyperparameters` (learning rates and the config's update fields).
 
     Returns:
         (q_mean [P], td_abs_mean [P]) over the replayed experiences.
@@ -202,26 +200,7 @@ def think_incremental(  # type: ignore[no-untyped-def]
     for p in prange(n_pop):
         if active[p] and n_thinks > 0:
             q_sum, td_sum = _think_learner(
-                W1[p],
-                b1[p],
-                W2[p],
-                b2[p],
-                lr1,
-                lr2,
-                xs[p],
-                us[p],
-                xns[p],
-                rs[p],
-                terms[p],
-                idx[p],
-                n_wires,
-                gamma,
-                k,
-                c,
-                eps,
-                exact,
-                squash,
-                bc,
+                W1[p], b1[p], W2[p], b2[p], xs[p], us[p], xns[p], rs[p], terms[p], idx[p], hyper
             )
             q_mean[p] = q_sum / n_thinks
             td_mean[p] = td_sum / n_thinks
@@ -229,29 +208,7 @@ def think_incremental(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def think_incremental_one(  # type: ignore[no-untyped-def]
-    W1,
-    b1,
-    W2,
-    b2,
-    lr1,
-    lr2,
-    xs,
-    us,
-    xns,
-    rs,
-    terms,
-    idx,
-    active,
-    n_wires,
-    gamma,
-    k,
-    c,
-    eps,
-    exact,
-    squash,
-    bc,
-):
+def think_incremental_one(W1, b1, W2, b2, xs, us, xns, rs, terms, idx, active, hyper):  # type: ignore[no-untyped-def]
     """`think_incremental` for a population of one learner, outside a parallel region.
 
     Same arguments and results. A parallel region hands its work to numba's thread pool on
@@ -263,9 +220,8 @@ def think_incremental_one(  # type: ignore[no-untyped-def]
     n_thinks = idx.shape[1]
     if active[0] and n_thinks > 0:
         q_sum, td_sum = _think_learner(
-            W1[0], b1[0], W2[0], b2[0], lr1, lr2, xs[0], us[0], xns[0], rs[0], terms[0], idx[0],
-            n_wires, gamma, k, c, eps, exact, squash, bc,
-        )  # fmt: skip
+            W1[0], b1[0], W2[0], b2[0], xs[0], us[0], xns[0], rs[0], terms[0], idx[0], hyper
+        )
         q_mean[0] = q_sum / n_thinks
         td_mean[0] = td_sum / n_thinks
     return q_mean, td_mean

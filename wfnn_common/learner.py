@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common.config import LearnerConfig
 from wfnn_common.exploration import Explorer
-from wfnn_common.kernels import act_one, think_incremental, think_incremental_one
+from wfnn_common.kernels import Hyperparameters, act_one, think_incremental, think_incremental_one
 from wfnn_common.network import Params, Scaler, forward, init_params, layer_rates, reinit, split_wires
 from wfnn_common.replay import Experiences, ReplayBuffer
 from wfnn_common.update import UpdateStats, squash_reward, wfnn_update
@@ -137,6 +137,8 @@ class WFNN:
         if self.params.population != population:
             raise ValueError(f"params hold {self.params.population} networks, expected {population}")
         self.rates = layer_rates(config)
+        self.hyperparameters = Hyperparameters.of(config)
+        """The compiled think's record of the config, built once: the config is frozen."""
         if population == 1:  # load the compiled act now, not in a robot's first control tick
             W1, b1, W2, b2 = self.params.single
             z = np.zeros(config.state_dim)
@@ -390,13 +392,10 @@ class WFNN:
     def _think_incremental(
         self, exp: Experiences, idx: NDArray[np.int64], active: BoolArray, p: Params
     ) -> UpdateStats:
-        cfg = self.config
         kernel = think_incremental_one if self.population == 1 else think_incremental
         q, td = kernel(
-            p.W1, p.b1, p.W2, p.b2, self.rates[0], self.rates[1],
-            exp.state, exp.action, exp.next_state, exp.reward, exp.terminal, idx, active,
-            cfg.n_wires, cfg.gamma, cfg.advantage_k, cfg.smoothing_c, cfg.eps,
-            cfg.derivatives == "exact", cfg.squash_reward, cfg.bc_weight,
+            p.W1, p.b1, p.W2, p.b2, exp.state, exp.action, exp.next_state, exp.reward, exp.terminal,
+            idx, active, self.hyperparameters,
         )  # fmt: skip
         self.thinks += active * idx.shape[1]
         return UpdateStats(q, td)

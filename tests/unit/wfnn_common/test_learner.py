@@ -203,9 +203,8 @@ def test_a_population_of_one_thinks_exactly_as_the_population_kernel_does():
     results = []
     for kernel in (think_incremental, think_incremental_one):
         p = learner.params.copy()
-        q, td = kernel(p.W1, p.b1, p.W2, p.b2, learner.rates[0], learner.rates[1], exp.state, exp.action,
-                       exp.next_state, exp.reward, exp.terminal, idx, np.ones(1, dtype=np.bool_), cfg.n_wires,
-                       cfg.gamma, cfg.advantage_k, cfg.smoothing_c, cfg.eps, False, True, 0.0)  # fmt: skip
+        q, td = kernel(p.W1, p.b1, p.W2, p.b2, exp.state, exp.action, exp.next_state, exp.reward,
+                       exp.terminal, idx, np.ones(1, dtype=np.bool_), learner.hyperparameters)  # fmt: skip
         results.append((p.flat.copy(), q, td))
     np.testing.assert_array_equal(results[0][0], results[1][0])
     assert not np.array_equal(results[0][0], learner.params.flat)  # the weights did change
