@@ -92,6 +92,23 @@ class Bus(Protocol):
         ...
 
 
+def guarded(target: Callable[[], object], on_error: Callable[[BaseException], object]) -> Callable[[], None]:
+    """`target` for a thread that handles what the bus hands over: whatever ends it goes to `on_error`.
+
+    A thread that fails would otherwise end unseen; `on_error` keeps the failure for its owner to
+    surface (the client's `check`, the server's stop). It is called inside the handler, so a
+    `logger.exception` there logs the traceback.
+    """
+
+    def run() -> None:
+        try:
+            target()
+        except BaseException as exc:
+            on_error(exc)
+
+    return run
+
+
 @dataclass(frozen=True, kw_only=True)
 class NetConfig:
     """How a process joins the Zenoh network."""

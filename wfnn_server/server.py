@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
-from wfnn_io.bus import Bus, Channel
+from wfnn_io.bus import Bus, Channel, guarded
 from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_io.persist import (
     PersistError,
@@ -374,7 +374,7 @@ class ThinkServer:
         bus.queryable(keys.weights(self.id), lambda: self._latest_frame)
         bus.declare_token(keys.server_alive(self.id))
         for name, target in (("ingest", self._ingest_loop), ("learner", self._learner_loop)):
-            thread = threading.Thread(target=self._guard(target), name=f"wfnn-{name}", daemon=True)
+            thread = threading.Thread(target=guarded(target, self._failed), name=f"wfnn-{name}", daemon=True)
             thread.start()
             self._threads.append(thread)
         if self.config.dashboard is not None:
@@ -387,16 +387,11 @@ class ThinkServer:
         )  # fmt: skip
         return self
 
-    def _guard(self, target: Any) -> Any:
-        def run() -> None:
-            try:
-                target()
-            except BaseException as exc:
-                self.error = exc
-                log.exception("server thread failed; stopping")
-                self._stop.set()
-
-        return run
+    def _failed(self, exc: BaseException) -> None:
+        """A thread ended by `exc` (called in its handler): kept, logged, and the others stop."""
+        self.error = exc
+        log.exception("server thread failed; stopping")
+        self._stop.set()
 
     def stop(self) -> None:
         """Stop the threads, write a final checkpoint and close the store."""

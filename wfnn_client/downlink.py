@@ -1,0 +1,365 @@
+"""The client's downlink: weight snapshots down from its think servers (see `wfnn_client.remote`).
+
+    statuses (CRC/MAC) say which servers are alive and which store and incarnation each one
+    is; snapshots (CRC/MAC, spec, shape, finite, of the announced store and incarnation,
+    version newer than the last) per server; follow one server and fail over when it is gone,
+    silent or diverged; swap the weights `act` uses in one reference assignment
+
+Liveliness tokens and queries are not authenticated, so neither decides anything alone: a
+server is alive while its MAC-checked status arrives (a token that disappears marks it gone
+until its next status), and the query for a server's newest weights never waits.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from wfnn_client.link import RemoteConfig, ServerTable, ServerView, Weights, drained
+from wfnn_common.config import LearnerConfig, parse_json
+from wfnn_common.learners import Weights as NetworkWeights
+from wfnn_common.learners import n_params, weights_from_flat
+from wfnn_io.bus import Bus
+from wfnn_io.protocol import Codec, Keys, MsgType, ServerStatus, WeightSnapshot, max_frame, take
+
+log = logging.getLogger(__name__)
+
+
+def max_snapshot_bytes(config: LearnerConfig) -> int:
+    """The largest weights frame of this learner: its parameters, and room for the rest."""
+    return max_frame(MsgType.WEIGHTS, 8 * n_params(config) + (64 << 10))
+
+
+def largest_message(config: LearnerConfig) -> int:
+    """The largest message a client of this learner receives (a snapshot, or a status)."""
+    return max(max_snapshot_bytes(config), max_frame(MsgType.SERVER_STATUS))
+
+
+class Downlink:
+    """Weights down: server presence and statuses, snapshots, which server to follow, the weights `act` uses.
+
+    Its thread runs `run`. The bus hands it statuses, presence changes and snapshots (bytes on
+    queues, the newest snapshot per server); what statuses say goes into the shared
+    `ServerTable`. `current` is replaced by one reference assignment, and `learned` is notified
+    each time.
+    """
+
+    def __init__(
+        self, learner_config: LearnerConfig, config: RemoteConfig, bus: Bus, codec: Codec, table: ServerTable,
+        counters: Counter[str], rejected: Counter[str], initial: NetworkWeights | None = None,
+    ) -> None:  # fmt: skip
+        self.learner_config = learner_config
+        self.config = config
+        self.bus = bus
+        self.keys = Keys(config.controller)
+        self.codec = codec
+        self.id = codec.sender
+        self.spec_hash = learner_config.spec_hash()
+        self._config_json = learner_config.to_json()
+        self._n_params = n_params(learner_config)
+        self.max_snapshot_bytes = max_snapshot_bytes(learner_config)
+        """No larger weights frame is copied."""
+        self.table = table
+        # Shared with the uplink: the client counts its figures and rejections in one place.
+        self.counters = counters
+        self.rejected = rejected
+        self._statuses: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._presence: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
+        self._snapshots: dict[str, bytes] = {}
+        """Newest unprocessed snapshot frame per server (a ring of one)."""
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self.current: Weights | None = None
+        """The weights `act` uses; replaced by one reference assignment."""
+        if initial is not None:  # saved weights drive the robot until a server's snapshot arrives
+            self.current = Weights(initial, "file", 0, "", 0, time.time_ns(), False, {}, time.monotonic())
+        self.following = ""
+        """The server whose snapshots `act` uses ("" before the first)."""
+        self.connected = False
+        """Whether a healthy server is followed (False before the first and during outages)."""
+        self.learned = threading.Condition()
+        """Notified each time weights are applied."""
+        self.apply_latency_ms: list[float] = []
+        self.applied: list[tuple[float, str, int, int]] = []
+        """(Unix time, server, version, this client's experiences learned through) of each snapshot
+        applied, for timelines of faults."""
+        self.failovers: list[dict[str, Any]] = []
+        self.learned_with: dict[str, str] = {}
+        """Per server whose snapshots drove the robot: the learner config it learned with (JSON),
+        which is not this client's where the server adopted another's or overrides fields."""
+        self._config_warned: set[tuple[str, str]] = set()
+        self._lost_at: float | None = None
+        self._applied_at: float | None = None
+        """time.monotonic() when weights were last applied (None before the first)."""
+        self._weightless_since: float | None = None
+        self.longest_without_weights_s = 0.0
+        """The longest stretch without newly applied weights after the first (a stretch still
+        open counted as far as it has gone)."""
+
+    def subscribe(self) -> None:
+        """Take server statuses, snapshots and presence (the bus's callbacks only hand them over)."""
+        bus, keys = self.bus, self.keys
+        bus.subscribe(keys.server_status(), self._on_status, max_frame(MsgType.SERVER_STATUS))
+        bus.subscribe(keys.weights(), self._on_snapshot, self.max_snapshot_bytes)
+        bus.watch_presence(keys.server_alive(), self._on_presence)
+
+    def _on_status(self, key: str, data: bytes) -> None:
+        self._statuses.put(data)
+        self._wake.set()
+
+    def _on_presence(self, key: str, alive: bool) -> None:
+        self._presence.put((Keys.last(key), alive))
+        self._wake.set()
+
+    def _on_snapshot(self, key: str, data: bytes) -> None:
+        self._snapshots[Keys.last(key)] = data
+        self._wake.set()
+
+    def suspect(self, server: str) -> None:
+        """Pass `server` over for diverged_hold_s: its weights diverged when acted on (the tick)."""
+        with self.table.lock:
+            view = self.table.views.get(server)
+            if view is not None:
+                view.suspect_until = time.monotonic() + self.config.diverged_hold_s
+        self._wake.set()
+
+    def stop(self) -> None:
+        """Make `run` return after its current round."""
+        self._stop.set()
+        self._wake.set()
+
+    def run(self) -> None:
+        """The downlink thread: presence, statuses, snapshots; choose whom to follow; apply."""
+        while not self._stop.is_set():
+            self._wake.wait(timeout=0.02)
+            self._wake.clear()
+            self._take_presence()
+            for frame in drained(self._statuses):
+                take(frame, self._take_status, self.rejected, "server status", "status_")
+            self._refresh()
+            for server in list(self._snapshots):
+                data = self._snapshots.pop(server, None)
+                if data is not None:
+                    take(data, self._take_snapshot, self.rejected, "snapshot")
+            self._choose()
+            self._watch_weights()
+
+    def _take_presence(self) -> None:
+        """Tokens are hints: one that disappears marks its server gone until its next status."""
+        for server, alive in drained(self._presence):
+            with self.table.lock:
+                view = self.table.views.get(server)
+                if view is not None and not alive and view.heard > 0 and not view.gone:
+                    view.gone = True
+                    log.info("server %s: its liveliness token is gone", server)
+
+    def _take_status(self, data: bytes) -> None:
+        sender, status = self.codec.decode(data, ServerStatus)
+        if sender != status.server:
+            self.rejected["status_misrouted"] += 1
+            return
+        with self.table.lock:
+            view = self.table.views.get(status.server)
+            if view is None:
+                view = self.table.views[status.server] = ServerView(status.server)
+                log.info("server %s is alive (store %s, incarnation %d)", status.server, status.store,
+                         status.incarnation)  # fmt: skip
+            self.table.announced(view, status.store, status.incarnation)
+            view.heard, view.gone = time.monotonic(), False
+            view.started_ns, view.spec_hash = status.started_ns, status.spec_hash
+            new_config = view.learner_config != status.learner_config and bool(status.learner_config)
+            view.metrics = status.metrics
+            if self.id in status.stored_through:
+                view.acked = max(view.acked, status.stored_through[self.id])
+            ask = not view.asked and view.latest is None and status.spec_hash == self.spec_hash
+            view.asked = view.asked or ask
+        if new_config:  # a config not seen from this server before: checked, and compared with ours once
+            try:
+                differ = config_differences(self._config_json, status.learner_config)
+            except ValueError:
+                self.rejected["status_config"] += 1
+            else:
+                view.learner_config = status.learner_config
+                if differ and (status.server, status.learner_config) not in self._config_warned:
+                    self._config_warned.add((status.server, status.learner_config))
+                    log.warning("server %s learns with a config that is not this client's (%s): its "
+                                "own applies, and metrics.json records it",
+                                status.server, ", ".join(differ))  # fmt: skip
+        if ask:  # its newest weights now rather than at its next publication; replies come later
+            self.bus.query(self.keys.weights(status.server), self.config.query_timeout_s, self._on_snapshot,
+                           self.max_snapshot_bytes)  # fmt: skip
+
+    def _refresh(self) -> None:
+        """Which servers are alive now (a recent status, no token gone since)."""
+        now = time.monotonic()
+        with self.table.lock:
+            for view in self.table.views.values():
+                alive = view.heard > 0 and now - view.heard <= self.config.status_timeout_s and not view.gone
+                if view.alive and not alive:
+                    log.info("server %s is gone", view.server)
+                view.alive = alive
+
+    def _take_snapshot(self, data: bytes) -> None:
+        sender, snap = self.codec.decode(data, WeightSnapshot)
+        reason = self._invalid(sender, snap)
+        if reason:
+            self.rejected[reason] += 1
+            log.debug("snapshot from %s rejected: %s", sender, reason)
+            return
+        weights = Weights(
+            weights_from_flat(self.learner_config, np.ascontiguousarray(snap.params, dtype=np.float64)),
+            snap.server,
+            snap.incarnation, snap.store, snap.version, snap.published_ns, snap.diverged,
+            snap.learned_through,
+            time.monotonic(),
+        )  # fmt: skip
+        with self.table.lock:
+            view = self.table.views.setdefault(snap.server, ServerView(snap.server))
+            view.latest = weights
+            if weights.diverged:  # it has reset: the weights this client suspected are gone
+                view.suspect_until = 0.0
+            if not view.spec_hash:
+                view.spec_hash = snap.spec_hash
+
+    def _invalid(self, sender: str, snap: WeightSnapshot) -> str:
+        """Why a decoded snapshot must not drive the robot ("" when it may)."""
+        if sender != snap.server:
+            return "misrouted"
+        if snap.spec_hash != self.spec_hash:
+            if self.counters["downlink/spec_warned_" + snap.server] == 0:
+                self.counters["downlink/spec_warned_" + snap.server] = 1
+                log.error("server %s publishes weights for spec %s; this client is spec %s: ignored",
+                          snap.server, snap.spec_hash, self.spec_hash)  # fmt: skip
+            return "spec"
+        if snap.params.shape != (1, self._n_params):
+            return "shape"
+        if not np.isfinite(snap.params).all():
+            return "non_finite"
+        with self.table.lock:
+            view = self.table.views.get(snap.server)
+            if view is None or (snap.store, snap.incarnation) != (view.store, view.incarnation):
+                return "unannounced"  # not what that server's own status says it is
+            latest = view.latest
+        if latest is not None and snap.version <= latest.version:
+            return "stale"
+        return ""
+
+    def _fresh_weights(self, view: ServerView, now: float) -> Weights | None:
+        """Its newest weights if it is alive (its status heard lately) and they are fresh."""
+        w = view.latest
+        if w is None or not view.alive or view.started_ns <= 0:
+            return None
+        return w if now - w.received <= self.config.snapshot_timeout_s else None
+
+    def _healthy(self, view: ServerView, now: float) -> bool:
+        """Fresh weights that have not diverged, from a server this client does not suspect."""
+        w = self._fresh_weights(view, now)
+        return w is not None and not w.diverged and now >= view.suspect_until
+
+    def _relearning(self, view: ServerView, now: float) -> bool:
+        """Fresh weights it relearns after a divergence reset."""
+        w = self._fresh_weights(view, now)
+        return w is not None and w.diverged
+
+    def _choose(self) -> None:
+        """Follow the pinned or longest-alive healthy server; apply its newest snapshot.
+
+        With no healthy server, a server relearning after a divergence reset is followed on
+        its fresh weights (Section 7.6.2) rather than keep acting on weights known to have
+        diverged; otherwise the last weights stay in use.
+        """
+        now = time.monotonic()
+        with self.table.lock:
+            views = list(self.table.views.values())
+            if self.config.follow is not None:
+                views = [v for v in views if v.server == self.config.follow]
+            # The longest-alive: deterministic for every client, and a restarted server (a new
+            # start time) never takes over from one that kept running.
+            chosen = min((v for v in views if self._healthy(v, now)), key=_age, default=None)
+            relearning = min((v for v in views if self._relearning(v, now)), key=_age, default=None)
+        self.connected = chosen is not None
+        if chosen is None:
+            if self.following and self._lost_at is None:
+                self._lost_at = now
+                fallback = f"the weights {relearning.server} relearns" if relearning else "its last weights"
+                log.warning("server %s unhealthy and no other healthy server: acting on %s",
+                            self.following, fallback)  # fmt: skip
+            if relearning is not None and relearning.latest is not None:
+                self._apply(relearning.latest)
+            return
+        if chosen.server != self.following:
+            previous = self.table.views.get(self.following)
+            if previous is not None and not self._healthy(previous, now):
+                self.failovers.append({"from": self.following, "to": chosen.server, "at_unix": time.time()})
+                log.warning("failover: following server %s instead of %s", chosen.server, self.following)
+            else:  # the first, or one alive longer than the one followed has just become known
+                log.info("following server %s", chosen.server)
+            self.following = chosen.server
+        self._lost_at = None
+        assert chosen.latest is not None
+        self._apply(chosen.latest)
+
+    def _watch_weights(self) -> None:
+        """Log and count a stretch without newly applied weights (after the first weights)."""
+        if self._applied_at is None:
+            return
+        gap = time.monotonic() - self._applied_at
+        self.longest_without_weights_s = max(self.longest_without_weights_s, gap)
+        if gap > self.config.snapshot_timeout_s and self._weightless_since is None:
+            self._weightless_since = self._applied_at
+            self.counters["downlink/weightless_stretches"] += 1
+            log.warning("no new weights applied for %.1f s (acting on version %d from %s)", gap,
+                        self.current.version if self.current else 0, self.following or "-")  # fmt: skip
+
+    def _apply(self, w: Weights) -> None:
+        """Make `w` the weights `act` uses (one reference swap)."""
+        if w is not self.current:
+            now = time.monotonic()
+            if self._weightless_since is not None:
+                log.warning("new weights applied after %.1f s without", now - self._weightless_since)
+                self._weightless_since = None
+            self._applied_at = now
+            self.current = w
+            self.apply_latency_ms.append((time.time_ns() - w.published_ns) / 1e6)
+            self.applied.append((time.time(), w.server, w.version, w.learned_through.get(self.id, -1)))
+            view = self.table.views.get(w.server)
+            if view is not None and view.learner_config:
+                self.learned_with[w.server] = view.learner_config
+            if len(self.apply_latency_ms) > 100_000:
+                del self.apply_latency_ms[:50_000]
+                del self.applied[:50_000]
+            with self.learned:
+                self.learned.notify_all()
+
+
+PLACEMENT = ("deep.device", "deep.compile")
+"""Where and how a server runs its updates: its own choice, not a difference in what is learned."""
+
+
+def config_differences(mine: str, theirs: str) -> list[str]:
+    """The fields (dotted: `deep.lr`) in which two learner configs, as JSON objects, differ.
+
+    Raises ValueError when `theirs` is not a JSON object.
+    """
+
+    def flat(data: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(data, dict):
+            raise ValueError("a learner config must be a JSON object")
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {prefix + key: value})
+        return out
+
+    a, b = flat(parse_json(mine, "learner config")), flat(parse_json(theirs, "learner config"))
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in PLACEMENT)
+
+
+def _age(view: ServerView) -> tuple[int, str]:
+    """Sort key: the longest-alive server first (ties by id)."""
+    return view.started_ns, view.server

@@ -1,0 +1,175 @@
+"""What the two halves of the client's link to its think servers share (`wfnn_client.remote`).
+
+The uplink (`wfnn_client.uplink`: experiences up) and the downlink (`wfnn_client.downlink`:
+weights down) each own their thread, their inboxes and their state. Besides the bus, this
+client's codec and its counters, they share the settings (`RemoteConfig`) and one table of what
+is known of each server (`ServerTable`), read and written under its lock.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TypeVar
+
+from wfnn_common.config import check_fields
+from wfnn_common.learners import Weights as NetworkWeights
+from wfnn_io.protocol import check_id
+from wfnn_io.segments import FsyncPolicy
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RemoteConfig:
+    """How the client reaches its think servers."""
+
+    controller: str = "default"
+    client_id: str | None = None
+    """Client id (default: the journal's, or a new random one)."""
+    journal_dir: Path = Path("runs/latest/journal")
+    key_file: Path | None = None
+    follow: str | None = None
+    """Pin this server id; None follows the longest-alive healthy server."""
+    batch_max: int = 256
+    """Experiences per batch at most."""
+    batch_period_s: float = 0.01
+    """A batch waits at most this long for more experiences (lock-step: not at all)."""
+    resend_after_s: float = 1.0
+    """A server that has not acknowledged an experience this long after it was sent is sent it
+    again from the journal (also how a restarted or late server catches up)."""
+    resend_window: int = 64
+    """Frames per re-send round (the next round starts when they are acknowledged)."""
+    snapshot_timeout_s: float = 1.5
+    """A followed server with no valid snapshot for this long is unhealthy (a silent peer); no
+    new weights applied for this long is logged and counted as a stretch without weights."""
+    status_timeout_s: float = 2.0
+    """A server whose status has not arrived for this long is no longer alive."""
+    diverged_hold_s: float = 10.0
+    """How long a server whose weights diverged here is passed over."""
+    status_period_s: float = 0.5
+    query_timeout_s: float = 0.5
+    """Deadline of the query for a server's newest weights when it appears."""
+    journal_fsync: FsyncPolicy = "interval"
+    lockstep: bool = False
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        check_id(self.controller, "controller name")
+        for name in ("batch_period_s", "resend_after_s", "snapshot_timeout_s", "status_timeout_s",
+                     "diverged_hold_s", "status_period_s", "query_timeout_s"):  # fmt: skip
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.batch_max < 1 or self.resend_window < 1:
+            raise ValueError("batch_max and resend_window must be >= 1")
+        if self.client_id is not None:
+            check_id(self.client_id, "client id")
+        if self.follow is not None:
+            check_id(self.follow, "server id")
+
+
+@dataclass
+class Weights:
+    """A validated snapshot ready for `act`."""
+
+    params: NetworkWeights
+    server: str
+    incarnation: int
+    store: str
+    version: int
+    published_ns: int
+    diverged: bool
+    learned_through: dict[str, int]
+    received: float
+    """time.monotonic() at arrival."""
+
+    @property
+    def source(self) -> str:
+        """`server:incarnation`, as carried by experiences."""
+        return f"{self.server}:{self.incarnation}"
+
+
+@dataclass
+class ServerView:
+    """What this client knows of one server."""
+
+    server: str
+    alive: bool = False
+    """Its MAC-checked status arrived within status_timeout_s, and no token vanished since."""
+    heard: float = 0.0
+    """time.monotonic() of its latest valid status (0: never)."""
+    gone: bool = False
+    """Its liveliness token disappeared after its latest status."""
+    started_ns: int = 0
+    spec_hash: str = ""
+    learner_config: str = ""
+    """The learner config it announces that it learns with (JSON), overrides applied."""
+    store: str = ""
+    """Its store's identity, as announced (status and acks)."""
+    incarnation: int = 0
+    asked: bool = False
+    """The query for its newest weights was sent (once per announced store and incarnation)."""
+    acked: int = -1
+    """Every experience numbered <= this is stored in its store."""
+    latest: Weights | None = None
+    suspect_until: float = 0.0
+    metrics: dict[str, float] = field(default_factory=dict)
+    """Figures from its latest status."""
+    window_end: int = -1
+    """Last experience of the current re-send round."""
+    last_resend: float = 0.0
+
+
+class ServerTable:
+    """What this client knows of each server: one table, under one lock, for both halves of the link.
+
+    The halves share it because each hears half of what a server is. The downlink learns from its
+    MAC-checked statuses whether it is alive, of this spec, and which store and incarnation it
+    is; the uplink learns from its acks what it has stored. The uplink re-sends only to servers
+    the downlink found alive and of this spec, and a new store announced in a status or an ack
+    restarts what was acknowledged and which snapshots may be followed (`announced`).
+    """
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.views: dict[str, ServerView] = {}
+        """Per server id; its views are read and changed under `lock`."""
+
+    def any_alive(self) -> bool:
+        """Whether some server is alive now."""
+        with self.lock:
+            return any(v.alive for v in self.views.values())
+
+    def announced(self, view: ServerView, store: str, incarnation: int) -> None:
+        """A server says which store and incarnation it is (caller holds the lock).
+
+        Another store than before (a server restarted with a new data directory, or the first
+        word from it) holds what it says it holds, whatever was acknowledged before: the
+        acknowledged point restarts, so the journal re-sends it everything it lacks. Another
+        store or incarnation also restarts the order of its snapshots: weights of one that is
+        no longer announced are not followed.
+        """
+        if (store, incarnation) == (view.store, view.incarnation):
+            return
+        if store != view.store:
+            if view.store:
+                log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,
+                            store, view.store)  # fmt: skip
+            view.acked, view.window_end, view.last_resend = -1, -1, 0.0
+        view.store, view.incarnation = store, incarnation
+        view.latest, view.asked = None, False
+
+
+def drained(inbox: queue.SimpleQueue[T]) -> Iterator[T]:
+    """What `inbox` holds, taken one by one without waiting, until it is empty."""
+    while True:
+        try:
+            yield inbox.get_nowait()
+        except queue.Empty:
+            return

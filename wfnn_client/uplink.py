@@ -1,0 +1,201 @@
+"""The client's uplink: experiences up to its think servers (see `wfnn_client.remote`).
+
+Queued experiences become batches (sequence numbers, weights version), are journaled, then
+published; acks are taken per server; what a server has not acknowledged in time (lost frames,
+a restarted or late-joining server) is re-sent from the journal, and experiences damage took
+from the journal are declared lost. The client's status heartbeat goes up here too.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
+from wfnn_client.journal import Journal
+from wfnn_client.link import RemoteConfig, ServerTable, ServerView, drained
+from wfnn_io.bus import Bus, Channel
+from wfnn_io.protocol import (
+    EXP_AFTER_LOSS,
+    Ack,
+    ClientStatus,
+    Codec,
+    ExperienceBatch,
+    Keys,
+    MsgType,
+    max_frame,
+    take,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Pending:
+    experience: Experience
+    source: str
+    version: int
+    t: float = field(default_factory=time.monotonic)
+
+
+class Uplink:
+    """Experiences up: batches, the journal, acks, re-sends and loss declarations; the status heartbeat.
+
+    Its thread runs `run`. The tick hands it experiences with `add` (never blocks) and the bus
+    hands it acks (bytes on a queue); what the servers acknowledge goes into the shared
+    `ServerTable`. The status it publishes is built by `status` (the client's figures, which are
+    not the uplink's alone).
+    """
+
+    def __init__(
+        self, config: RemoteConfig, bus: Bus, codec: Codec, journal: Journal, spec_hash: str,
+        table: ServerTable, status: Callable[[], ClientStatus], counters: Counter[str],
+        rejected: Counter[str],
+    ) -> None:  # fmt: skip
+        self.config = config
+        self.bus = bus
+        self.keys = Keys(config.controller)
+        self.codec = codec
+        self.id = codec.sender
+        self.journal = journal
+        self.spec_hash = spec_hash
+        self.table = table
+        self._status = status
+        # Shared with the downlink: the client counts its figures and rejections in one place.
+        self.counters = counters
+        self.rejected = rejected
+        self.produced_through = journal.next_seq - 1
+        self._pending: collections.deque[_Pending] = collections.deque()
+        self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._sent: collections.deque[tuple[float, int]] = collections.deque()
+        self._overdue = -1
+
+    @property
+    def queued(self) -> int:
+        """Experiences not yet sent."""
+        return len(self._pending)
+
+    def subscribe(self) -> None:
+        """Take this client's acks (the bus's callback only hands them over)."""
+        self.bus.subscribe(self.keys.ack(self.id), self._on_ack, max_frame(MsgType.ACK))
+
+    def _on_ack(self, key: str, data: bytes) -> None:
+        self._acks.put(data)
+        self._wake.set()
+
+    def add(self, experience: Experience, acted: Acted | None) -> None:
+        """Queue an experience (never blocks)."""
+        self._pending.append(_Pending(*as_recorded(experience, acted)))
+        self.produced_through += 1
+        self._wake.set()
+
+    def all_acked(self) -> bool:
+        """Whether some live server has stored everything produced so far."""
+        with self.table.lock:
+            return any(v.alive and v.acked >= self.produced_through for v in self.table.views.values())
+
+    def stop(self) -> None:
+        """Make `run` send what is queued and return."""
+        self._stop.set()
+        self._wake.set()
+
+    def run(self) -> None:
+        """The uplink thread: batch, journal and send; take acks; re-send; publish the status."""
+        cfg = self.config
+        next_status = 0.0
+        while True:
+            stopping = self._stop.is_set()
+            self._wake.wait(timeout=0.005)
+            self._wake.clear()
+            while self._pending:
+                oldest = self._pending[0].t
+                if not (stopping or cfg.lockstep or len(self._pending) >= cfg.batch_max
+                        or time.monotonic() - oldest >= cfg.batch_period_s):  # fmt: skip
+                    break
+                self._send_batch()
+            for data in drained(self._acks):
+                take(data, self._take_ack, self.rejected, "ack", "ack_")
+            self._resend()
+            if self.journal.due():
+                self.journal.sync()
+            now = time.monotonic()
+            if now >= next_status:
+                self._publish_status()
+                next_status = now + cfg.status_period_s
+            if stopping and not self._pending:
+                return
+
+    def _send_batch(self) -> None:
+        """Take up to batch_max queued experiences with one weights source; journal and publish."""
+        first = self._pending[0]
+        items: list[_Pending] = []
+        while (
+            self._pending and len(items) < self.config.batch_max and self._pending[0].source == first.source
+        ):
+            items.append(self._pending.popleft())
+        batch = experience_batch(self.id, self.spec_hash, self.journal.next_seq, first.source,
+                                 [p.experience for p in items], [p.version for p in items])  # fmt: skip
+        frame = self.codec.encode(batch)
+        self.journal.append(frame, batch.last_seq)
+        self.bus.put(self.keys.experiences(self.id), frame, Channel.DATA)
+        self._sent.append((time.monotonic(), batch.last_seq))
+        self.counters["uplink/batches"] += 1
+
+    def _take_ack(self, data: bytes) -> None:
+        sender, ack = self.codec.decode(data, Ack)
+        if ack.client != self.id or sender != ack.server:
+            self.rejected["ack_misrouted"] += 1
+            return
+        with self.table.lock:
+            view = self.table.views.setdefault(ack.server, ServerView(ack.server))
+            self.table.announced(view, ack.store, ack.incarnation)
+            view.acked = max(view.acked, ack.stored_through)
+
+    def _resend(self) -> None:
+        """Re-send from the journal to live servers missing experiences sent long enough ago."""
+        cfg = self.config
+        now = time.monotonic()
+        while self._sent and now - self._sent[0][0] >= cfg.resend_after_s:
+            self._overdue = self._sent.popleft()[1]
+        with self.table.lock:  # only servers whose MAC-checked status says they are alive and of this spec
+            views = [v for v in self.table.views.values() if v.alive and v.spec_hash == self.spec_hash]
+        for view in views:
+            if view.acked >= self._overdue:
+                continue
+            window_done = view.acked >= view.window_end
+            if not window_done and now - view.last_resend < cfg.resend_after_s:
+                continue
+            frames, last = self.journal.frames_from(view.acked + 1, cfg.resend_window)
+            if not frames:
+                continue
+            if not self.journal.holds(view.acked + 1):  # damage took them: say so, or it waits forever
+                frames[0] = self._declare_loss(frames[0], view)
+            for frame in frames:
+                self.bus.put(self.keys.resend(view.server, self.id), frame, Channel.DATA)
+            view.last_resend = now
+            view.window_end = last
+            self.counters["uplink/resent_frames"] += len(frames)
+            log.info("re-sent %d batches from experience %d to server %s", len(frames), view.acked + 1,
+                     view.server)  # fmt: skip
+
+    def _declare_loss(self, frame: bytes, view: ServerView) -> bytes:
+        """The journaled batch `frame`, re-encoded to declare the experiences before it lost."""
+        _, batch = self.codec.decode(frame, ExperienceBatch)
+        flags = batch.flags.copy()
+        flags[0] |= EXP_AFTER_LOSS
+        log.error("experiences %d-%d are lost from the journal (damaged); server %s is told so",
+                  view.acked + 1, batch.first_seq - 1, view.server)  # fmt: skip
+        self.counters["uplink/declared_lost"] += batch.first_seq - view.acked - 1
+        return self.codec.encode(dataclasses.replace(batch, flags=flags))
+
+    def _publish_status(self) -> None:
+        self.bus.put(self.keys.client_status(self.id), self.codec.encode(self._status()), Channel.LATEST)
