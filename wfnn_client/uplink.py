@@ -167,34 +167,36 @@ class Uplink:
         while self._sent and now - self._sent[0][0] >= cfg.resend_after_s:
             self._overdue = self._sent.popleft()[1]
         with self.table.lock:  # only servers whose MAC-checked status says they are alive and of this spec
-            views = [v for v in self.table.views.values() if v.alive and v.spec_hash == self.spec_hash]
-        for view in views:
-            if view.acked >= self._overdue:
+            views = [(v, v.store, v.acked, v.window_end, v.last_resend) for v in self.table.views.values()
+                     if v.alive and v.spec_hash == self.spec_hash]  # fmt: skip
+        for view, store, acked, window_end, last_resend in views:
+            if acked >= self._overdue:
                 continue
-            window_done = view.acked >= view.window_end
-            if not window_done and now - view.last_resend < cfg.resend_after_s:
+            if acked < window_end and now - last_resend < cfg.resend_after_s:
                 continue
-            frames, last = self.journal.frames_from(view.acked + 1, cfg.resend_window)
+            frames, last = self.journal.frames_from(acked + 1, cfg.resend_window)
             if not frames:
                 continue
-            if not self.journal.holds(view.acked + 1):  # damage took them: say so, or it waits forever
-                frames[0] = self._declare_loss(frames[0], view)
+            if not self.journal.holds(acked + 1):  # damage took them: say so, or it waits forever
+                frames[0] = self._declare_loss(frames[0], view.server, acked)
             for frame in frames:
                 self.bus.put(self.keys.resend(view.server, self.id), frame, Channel.DATA)
-            view.last_resend = now
-            view.window_end = last
+            with self.table.lock:
+                # A new store announced meanwhile restarted this server's window: it is not this one.
+                if view.store == store:
+                    view.last_resend, view.window_end = now, last
             self.counters["uplink/resent_frames"] += len(frames)
-            log.info("re-sent %d batches from experience %d to server %s", len(frames), view.acked + 1,
+            log.info("re-sent %d batches from experience %d to server %s", len(frames), acked + 1,
                      view.server)  # fmt: skip
 
-    def _declare_loss(self, frame: bytes, view: ServerView) -> bytes:
-        """The journaled batch `frame`, re-encoded to declare the experiences before it lost."""
+    def _declare_loss(self, frame: bytes, server: str, acked: int) -> bytes:
+        """The journaled batch `frame`, re-encoded to declare the experiences after `acked` before it lost."""
         _, batch = self.codec.decode(frame, ExperienceBatch)
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
         log.error("experiences %d-%d are lost from the journal (damaged); server %s is told so",
-                  view.acked + 1, batch.first_seq - 1, view.server)  # fmt: skip
-        self.counters["uplink/declared_lost"] += batch.first_seq - view.acked - 1
+                  acked + 1, batch.first_seq - 1, server)  # fmt: skip
+        self.counters["uplink/declared_lost"] += batch.first_seq - acked - 1
         return self.codec.encode(dataclasses.replace(batch, flags=flags))
 
     def _publish_status(self) -> None:

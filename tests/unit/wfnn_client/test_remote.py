@@ -8,6 +8,7 @@ from tests.fakes import Hub, small_config
 from tests.fakes import wait_for as wait
 from tests.unit.wfnn_server.test_server import KEYS, Listener, make_server
 from wfnn_client.brain import Experience, LocalBrain
+from wfnn_client.link import ServerView
 from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
@@ -313,3 +314,34 @@ def test_config_differences_name_dotted_fields_and_leave_out_where_updates_run()
     assert config_differences(mine.to_json(), mine.to_json()) == []
     with pytest.raises(ValueError):
         config_differences(mine.to_json(), "[]")
+
+
+def test_a_store_announced_during_a_resend_keeps_its_restarted_window(tmp_path):
+    # The downlink may hear of a new store (a server restarted empty) while the uplink re-sends to
+    # the old one; the re-send's bookkeeping must not overwrite the restarted window, or the new
+    # store waits a whole resend period for what it lacks.
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg, resend_after_s=0.05)
+    uplink = brain.uplink
+    for _ in range(3):
+        brain.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+    while uplink.queued:
+        uplink._send_batch()
+    time.sleep(0.1)  # the batches are overdue
+    view = uplink.table.views.setdefault("s1", ServerView("s1"))
+    view.alive, view.spec_hash, view.store = True, brain.spec_hash, "old"
+    frames_from = uplink.journal.frames_from
+
+    def announced_meanwhile(first, count):
+        with uplink.table.lock:
+            uplink.table.announced(view, "new", 1)
+        return frames_from(first, count)
+
+    uplink.journal.frames_from = announced_meanwhile
+    uplink._resend()
+    assert brain.counters["uplink/resent_frames"] > 0
+    assert (view.store, view.acked, view.window_end, view.last_resend) == ("new", -1, -1, 0.0)
+    uplink.journal.frames_from = frames_from
+    uplink._resend()  # without a new store, the window advances as before
+    assert view.window_end == 2 and view.last_resend > 0.0
+    brain.stop()
