@@ -24,7 +24,8 @@ from sims.base import Ranges, Transition
 from wfnn_common.config import check_fields
 
 if TYPE_CHECKING:
-    from sims.nomad.task import Behaviour, NomadVec
+    from sims.nomad.config import Behaviour
+    from sims.nomad.task import NomadVec
 
 Pursue = Literal["every", "every_second", "never"]
 PURSUE: tuple[Pursue, ...] = ("every", "every_second", "never")

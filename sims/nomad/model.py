@@ -11,6 +11,9 @@ foliage stays within its pot (the ground-plane constraint), balls to pursue (fre
 robot can push), and a person's feet and legs that walk (mocap bodies).
 
 World frame: x east, y north, z up; the floor is z = 0. The robot's forward is its body x.
+
+`NomadParts` finds the named parts (the base's joints, the balls, the person, the obstacles) in
+the compiled model.
 """
 
 from __future__ import annotations
@@ -18,7 +21,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import mujoco
+import numpy as np
+from numpy.typing import NDArray
+
 from wfnn_common.config import check_fields
+
+FloatArray = NDArray[np.float64]
 
 # Geom groups: what the infrared rays and the camera's rays may hit.
 GROUP_ROBOT, GROUP_FLOOR, GROUP_STATIC, GROUP_OBJECTS = 0, 1, 2, 3
@@ -162,3 +171,61 @@ def nomad_mjcf(cfg: NomadModelConfig) -> str:
   </actuator>
 </mujoco>
 """
+
+
+@dataclass(frozen=True)
+class NomadParts:
+    """Where `nomad_mjcf`'s named parts are in the compiled model (`find`)."""
+
+    q: list[int]
+    """qpos addresses of the base's (x, y, yaw) joints."""
+    v: list[int]
+    """qvel addresses of the base's (x, y, yaw) joints."""
+    balls: list[tuple[int, int]]
+    """qpos and qvel addresses of each ball's free joint."""
+    ball_geoms: list[int]
+    person: int
+    """The walking person's mocap index."""
+    base_body: int
+    base_geom: int
+    floor: int
+    obstacles: list[tuple[float, float, float]]
+    """(x, y, keep-out radius) of the fixed obstacles (pillars, the plant), for placing things."""
+
+    @classmethod
+    def find(cls, model: mujoco.MjModel, balls: int) -> NomadParts:
+        """The parts of a model of `balls` balls."""
+
+        def joint(name: str) -> tuple[int, int]:
+            j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            return int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+
+        def geom(name: str) -> int:
+            return int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name))
+
+        names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or "" for g in range(model.ngeom)]
+        return cls(
+            q=[joint(j)[0] for j in ("x", "y", "yaw")],
+            v=[joint(j)[1] for j in ("x", "y", "yaw")],
+            balls=[joint(f"ball{k}") for k in range(balls)],
+            ball_geoms=[geom(f"ball{k}") for k in range(balls)],
+            person=int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "person")]),
+            base_body=int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "base")),
+            base_geom=geom("base"),
+            floor=geom("floor"),
+            obstacles=[
+                (float(model.geom_pos[g][0]), float(model.geom_pos[g][1]), 0.5)
+                for g, name in enumerate(names)
+                if name == "pot" or name.startswith("pillar")
+            ],
+        )
+
+    def pose(self, data: mujoco.MjData) -> FloatArray:
+        """The robot's (x, y, heading) [3]."""
+        return np.asarray(data.qpos[self.q])
+
+    def velocity(self, data: mujoco.MjData) -> FloatArray:
+        """The robot's true (forward, rotational) velocity [2]."""
+        heading = data.qpos[self.q[2]]
+        vx, vy = data.qvel[self.v[0]], data.qvel[self.v[1]]
+        return np.array([vx * np.cos(heading) + vy * np.sin(heading), data.qvel[self.v[2]]])

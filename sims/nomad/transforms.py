@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.nomad.task import NomadConfig
+from sims.nomad.config import NomadConfig
 from wfnn_common.symmetry import Symmetry
 
 FloatArray = NDArray[np.float64]

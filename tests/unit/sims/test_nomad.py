@@ -12,10 +12,10 @@ from sims.nomad import (
     WanderConfig,
     handcoded_wander,
 )
-from sims.nomad import task as nomad_task
+from sims.nomad import sensing as nomad_sensing
 from sims.nomad.behaviours import strip_lengths
 from sims.nomad.model import NomadModelConfig
-from sims.nomad.task import IR_BEAM_DEG, WILD_ENCODER
+from sims.nomad.sensing import IR_BEAM_DEG, WILD_ENCODER
 from sims.nomad.vision import COLS, ROWS, NomadVisionConfig, interesting_cells, smooth_carpet
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.learner import WFNN
@@ -45,10 +45,10 @@ def test_gymnasium_check_env(behaviour):
 def placed(task, x, y, heading):
     """Robot 0 at rest at (x, y, heading), the balls far away."""
     data = task.data[0]
-    data.qpos[task._q] = (x, y, heading)
+    data.qpos[task.parts.q] = (x, y, heading)
     data.qvel[:] = 0.0
     for k in range(len(task.ball_geoms)):
-        task._put_ball(0, k, (3.6, 2.6 - 0.4 * k))
+        task.world.put_ball(0, k, (3.6, 2.6 - 0.4 * k))
     mujoco.mj_forward(task.model, data)
 
 
@@ -79,7 +79,7 @@ def test_infrared_ring_sees_a_wall_ahead_and_the_veto_stops_driving_into_it():
     task = NomadVec(1, cfg)
     task.reset(np.random.default_rng(0))
     placed(task, 3.5, 0.0, 0.0)  # the east wall is 0.5 m ahead of the centre
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     ahead, behind = task.ir[0, 0], task.ir[0, cfg.ir_sensors // 2]
     assert ahead == pytest.approx(0.5 - task.model_config.radius, abs=0.01)
     assert behind == cfg.ir_range
@@ -88,7 +88,7 @@ def test_infrared_ring_sees_a_wall_ahead_and_the_veto_stops_driving_into_it():
     assert replaced is not None and replaced.tolist() == [0.0, -0.5]  # stops, turns (its way: wall ahead)
     assert veto(np.zeros(37), np.array([0.2, 0.0])) is None  # slowly: it can stop in time
     placed(task, 2.0, 2.68, 0.0)  # the north wall 0.32 m to the left, nothing ahead
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     assert veto(np.zeros(37), np.array([0.4, 0.0])) is None  # along the wall, clear of it
     assert veto(np.zeros(37), np.array([0.5, 0.8])).tolist() == [0.0, -0.5]  # arcing into it: turn right
     assert veto(np.zeros(37), np.array([-0.3, 0.0])) is None  # backing away is allowed
@@ -101,7 +101,7 @@ def test_the_veto_sees_a_pillar_beside_the_arc_the_robot_would_drive():
     task.reset(np.random.default_rng(0))
     (px, py), half = NomadModelConfig().pillars[0], 0.15
     placed(task, px - 0.2, py - half - 0.33, 0.0)  # pillar0 on the left, its face 0.33 m from the centre
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     veto = task.veto(0)
     assert veto(np.zeros(37), np.array([0.5, 0.0])) is None  # straight on passes it
     assert veto(np.zeros(37), np.array([0.5, 0.8])) is not None  # the arc sweeps the side into it
@@ -114,12 +114,12 @@ def test_the_person_waits_for_a_robot_in_the_way():
     placed(task, -(ax - 1.0) + 1.0, -ay + 0.6, np.pi / 2)  # 1 m ahead of the person's start, on their line
     for _ in range(30):
         task.step(np.zeros((1, 2)))
-    person = task.data[0].mocap_pos[task._person].copy()
+    person = task.data[0].mocap_pos[task.parts.person].copy()
     assert person[0] < -(ax - 1.0) + 0.3 and task.collisions[0] == 0  # stopped short of the robot
     placed(task, 0.0, 0.0, 0.0)  # out of the way: they walk on
     for _ in range(10):
         task.step(np.zeros((1, 2)))
-    assert task.data[0].mocap_pos[task._person][0] > person[0] + 0.3
+    assert task.data[0].mocap_pos[task.parts.person][0] > person[0] + 0.3
 
 
 def test_driving_into_a_wall_counts_one_collision():
@@ -166,11 +166,11 @@ def test_the_camera_sees_a_ball_on_open_carpet_as_interesting():
     task = NomadVec(1, NomadConfig(behaviour="wander", person_speed=0.0))
     task.reset(np.random.default_rng(0))
     placed(task, 0.5, -0.2, np.pi)  # facing west over open carpet
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     assert task.carpet_raw[0].max() < 0.5  # carpet only
-    task._put_ball(0, 0, (-1.0, -0.2))
+    task.world.put_ball(0, 0, (-1.0, -0.2))
     mujoco.mj_forward(task.model, task.data[0])
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     found = task.interesting(0)
     assert [geom for geom, _ in found] == [task.ball_geoms[0]]
     np.testing.assert_allclose(found[0][1][:2], (-1.0, -0.2), atol=0.15)  # where it was seen
@@ -241,9 +241,9 @@ def test_the_room_holds_the_configured_number_of_balls():
 def ball_ahead(task, distance=1.3):
     """Robot 0 facing west over open carpet with ball 0 `distance` ahead of it."""
     placed(task, 0.5, -0.2, np.pi)
-    task._put_ball(0, 0, (0.5 - distance, -0.2))
+    task.world.put_ball(0, 0, (0.5 - distance, -0.2))
     mujoco.mj_forward(task.model, task.data[0])
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
 
 
 @pytest.mark.parametrize(
@@ -284,13 +284,13 @@ def test_a_target_held_at_the_goal_is_reached_and_moved_away():
 
 @pytest.mark.parametrize(("beam_deg", "seen"), [(0.0, False), (IR_BEAM_DEG, True)])
 def test_an_infrared_beam_sees_a_ball_between_two_sensors_centre_lines(monkeypatch, beam_deg, seen):
-    monkeypatch.setattr(nomad_task, "IR_BEAM_DEG", beam_deg)
+    monkeypatch.setattr(nomad_sensing, "IR_BEAM_DEG", beam_deg)
     task = NomadVec(1, NomadConfig(behaviour="wander", person_speed=0.0))
     task.reset(np.random.default_rng(0))
     placed(task, 0.0, -0.2, 0.0)  # facing east over open carpet
     bearing = np.deg2rad(11.25)  # half way between sensors 0 and 1
-    task._put_ball(0, 0, (0.7 * np.cos(bearing), -0.2 + 0.7 * np.sin(bearing)))
+    task.world.put_ball(0, 0, (0.7 * np.cos(bearing), -0.2 + 0.7 * np.sin(bearing)))
     mujoco.mj_forward(task.model, task.data[0])
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     near = min(task.ir[0, 0], task.ir[0, 1])
     assert (near < 0.5) == seen

@@ -52,14 +52,15 @@ def test_open_carpet_reads_as_carpet_anywhere_in_the_room(rendering):
     task = NomadVec(1, NomadConfig(behaviour="wander", vision=RENDER))
     task.reset(np.random.default_rng(0))
     data = task.data[0]
-    assert task._grid is not None and task._vision_renderer is not None
+    sensing = task.sensing
+    assert sensing._grid is not None and sensing._vision_renderer is not None
     # Poses whose view stays on the floor (the room is 8 x 6 m; the camera sees 4 m ahead).
     for pose in ((0.0, 0.0, 0.0), (-0.5, 0.4, 0.15), (0.5, -0.4, 3.0), (0.0, 1.0, -0.1)):
-        data.qpos[task._q] = pose
+        data.qpos[task.parts.q] = pose
         mujoco.mj_forward(task.model, data)
         # The room's furniture, balls and person left out: only carpet in view.
-        view = task._vision_renderer.rgb(data, "camera", hidden_groups=(2, 3)).astype(np.float32) / 255
-        assert task._grid.mismatch(task._grid.difference(view)).max() < 0.15, pose
+        view = sensing._vision_renderer.rgb(data, "camera", hidden_groups=(2, 3)).astype(np.float32) / 255
+        assert sensing._grid.mismatch(sensing._grid.difference(view)).max() < 0.15, pose
     task.close()
 
 
@@ -81,10 +82,10 @@ def test_a_ball_on_open_carpet_is_found_and_tracked_in_the_images(rendering):
     task = NomadVec(1, NomadConfig(behaviour="wander", vision=RENDER, person_speed=0.0))
     task.reset(np.random.default_rng(0))
     data = task.data[0]
-    data.qpos[task._q] = (0.5, -0.2, np.pi)  # facing west over open carpet
+    data.qpos[task.parts.q] = (0.5, -0.2, np.pi)  # facing west over open carpet
     for k in range(len(task.ball_geoms)):
-        task._put_ball(0, k, (3.5, -2.6 + 0.4 * k))  # out of view along the east wall
-    task._put_ball(0, 2, (-1.0, -0.2))
+        task.world.put_ball(0, k, (3.5, -2.6 + 0.4 * k))  # out of view along the east wall
+    task.world.put_ball(0, 2, (-1.0, -0.2))
     mujoco.mj_forward(task.model, data)
     task.step(np.zeros((1, 2)))
     assert [geom for geom, _ in task.interesting(0)] == [task.ball_geoms[2]]
@@ -97,7 +98,7 @@ def test_a_ball_on_open_carpet_is_found_and_tracked_in_the_images(rendering):
         errors.append(np.abs(task.pixels[0] + np.asarray(task.config.vision.goal_px) - truth).max())
     assert np.median(errors) < 3.0
     # Taken away in one go (too far for the tracker's window): lost, not found elsewhere.
-    task._put_ball(0, 2, (-3.5, -2.6))
+    task.world.put_ball(0, 2, (-3.5, -2.6))
     mujoco.mj_forward(task.model, data)
     task.step(np.zeros((1, 2)))
     assert not task.valid("servo")[0] and task.tracked()[0] == -1

@@ -22,16 +22,14 @@ def servo_run(side: float, ticks: int = 4) -> tuple[np.ndarray, np.ndarray, np.n
     task = NomadVec(1, EXACT)  # wandering: no experimenter places targets
     task.reset(np.random.default_rng(0))
     placed(task, 0.5, -0.2, np.pi)
-    task._put_ball(0, 0, (0.5 - 1.4, -0.2 - side * 0.3))
+    task.world.put_ball(0, 0, (0.5 - 1.4, -0.2 - side * 0.3))
     mujoco.mj_forward(task.model, task.data[0])
-    task._sense(0, first=True)
+    task.sensing.sense(0, first=True)
     assert task.acquire(0)
     # The interest operator's pick on the ball depends on which of its cells it met first; the
     # ball's centre is tracked instead, the same point in both worlds.
     g = task.tracked()[0]
-    task.trackers[0].start(task.data[0], g, task.data[0].geom_xpos[g].copy())
-    task._last_frame[0] = np.nan
-    task._frame(0)
+    task.sensing.follow(0, g, task.data[0].geom_xpos[g].copy())
     states, actions, rewards = [task.observe("servo")], [], []
     for _ in range(ticks):
         u = np.array([[0.2, side * 0.4]])
