@@ -189,6 +189,8 @@ class LocalBrain:
         recorder: Recorder | None = None,
     ) -> None:
         self.learner = learner
+        # Before the control loop and the think thread run: loading torch among them would hold up ticks.
+        learner.prepare_thinking()
         self.lockstep = lockstep
         self.mt = None if lockstep else ActLearnThinkMT(learner, think_batch=think_batch)
         self.recorder = recorder

@@ -93,6 +93,15 @@ class DeepWFNN(WFNN):
         """Count n experiences produced before this process (a robot's journal): warm-up included."""
         self.acted = max(self.acted, n)
 
+    def prepare_thinking(self) -> None:
+        """Import torch and build the trainer now, as the first think would.
+
+        Importing torch in a thread while others run costs many times its single-threaded time on a
+        busy machine (each handover of the interpreter lock waits for the scheduler), and it holds
+        that lock for long stretches, so a caller with a loop to keep does it before starting threads.
+        """
+        self._train()
+
     def _explore(self, greedy: FloatArray) -> FloatArray:
         self.acted += 1
         if self.acted <= self.config.deep.warmup:

@@ -432,6 +432,9 @@ class WFNN:
     def experienced(self, n: int) -> None:
         """Count n experiences produced before this process (the thesis' learner has no use for it)."""
 
+    def prepare_thinking(self) -> None:
+        """Nothing to load: the compiled think comes from numba's cache at its first call."""
+
     def training_state(self) -> dict[str, FloatArray]:
         """What training needs beyond `params` to resume: nothing for the thesis' learner."""
         return {}

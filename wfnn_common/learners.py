@@ -75,6 +75,9 @@ class Learner(Protocol):
     def experienced(self, n: int) -> None:
         """Count n experiences this robot produced before (a journal's): the deep learner's warm-up."""
 
+    def prepare_thinking(self) -> None:
+        """Load what thinking needs now, before the caller starts its threads (the deep learner: torch)."""
+
     def training_state(self) -> dict[str, NDArray[Any]]:
         """What training needs beyond the weights to resume (saved with checkpoints)."""
 

@@ -294,6 +294,7 @@ class ThinkServer:
         atomic_write_text(self.data_dir / LEARNER_JSON, adopted.to_json())
         cfg = self._overridden(adopted)
         learner, meta = self._resume(cfg)
+        learner.prepare_thinking()  # at construction: before the server's threads run
         checkpointed: dict[str, int] = meta.get("stored_through", {})
         budget = int(meta.get("budget", 0))
         tpa = cfg.thinks_per_action

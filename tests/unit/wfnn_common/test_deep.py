@@ -494,3 +494,20 @@ def test_thesis_configs_read_as_before_and_deep_work_is_bounded():
         with_options(config(), {"batch_size": 65536, "n_wires": 1024, "deep": {"hidden": [1]}})
     with pytest.raises(ConfigError, match="device"):
         with_options(config(), {"deep": {"device": "cuda:\u0663"}})
+
+
+def test_thinking_prepared_early_learns_the_same_numbers():
+    # A server or a local brain loads torch before its threads start; the trainer it builds early
+    # must be the one the first think would have built.
+    learners = [make_learner(config(seed=5)) for _ in range(2)]
+    assert learners[0]._trainer is None
+    learners[0].prepare_thinking()
+    assert learners[0]._trainer is not None and learners[1]._trainer is None
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        s, u, sn = rng.uniform(-1, 1, 2), rng.uniform(-2, 2, 1), rng.uniform(-1, 1, 2)
+        for learner in learners:
+            learner.act(s)
+            learner.learn(s, u, sn, -float(np.abs(s).sum()))
+            learner.think(3)
+    np.testing.assert_array_equal(learners[0].params.flat, learners[1].params.flat)
