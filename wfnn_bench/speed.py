@@ -1,6 +1,7 @@
 """Speed of act and think for a 16-state, 4-action, 9-wire, 32-hidden WFNN.
 
-- act latency: one greedy `act` on numpy (the robot's hot path), p50/p99 over many calls.
+- act latency: one greedy `act` (the robot's hot path), p50/p99 over many calls, for the
+  thesis' network and for the deep learner's default network on the same task (no torch).
 - incremental thinks/s: one learner, one experience per update, one core.
 - minibatch experience-updates/s: experiences processed per second in minibatch mode.
 - population thinks/s: a population of learners thinking incrementally in parallel.
@@ -17,7 +18,8 @@ import numpy as np
 
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import LearnerConfig, check_fields
-from wfnn_common.learner import WFNN
+from wfnn_common.learner import WFNN, FloatArray
+from wfnn_common.learners import Learner, make_learner
 from wfnn_common.replay import Experiences
 
 
@@ -68,32 +70,47 @@ def _fill(learner: WFNN, n: int, rng: np.random.Generator) -> None:
         )  # fmt: skip
 
 
+def _act_latency(learner: Learner, states: FloatArray, suffix: str) -> dict[str, float]:
+    """p50, p99 and max microseconds of one greedy `act`, with the collector running and paused."""
+    for st in states[:500]:
+        learner.act(st, explore=False)
+    out: dict[str, float] = {}
+    for key, pause_gc in (("", False), ("_gc_paused", True)):
+        lat = np.empty(len(states))
+        gc_was = gc.isenabled()
+        if pause_gc:  # a control loop may run with the collector paused (gc.freeze/disable)
+            gc.disable()
+        try:
+            for i, st in enumerate(states):
+                t0 = time.perf_counter()
+                learner.act(st, explore=False)
+                lat[i] = time.perf_counter() - t0
+        finally:
+            if gc_was:
+                gc.enable()
+        for name, value in (
+            ("p50", np.percentile(lat, 50)),
+            ("p99", np.percentile(lat, 99)),
+            ("max", lat.max()),
+        ):
+            out[f"act_{name}_us{suffix}{key}"] = float(value * 1e6)
+    return out
+
+
 def run(bench: SpeedBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
     """All speed figures -> JSON-ready dict."""
     rng = np.random.default_rng(bench.seed)
     out: dict[str, Any] = {"benchmark": "speed", "config": bench.__dict__, "machine": machine_info()}
 
-    # act latency (greedy, single learner, numpy only).
+    # act latency (greedy, single learner, no torch): the thesis' network, then the deep default's.
     learner = WFNN(_config(bench))
     states = rng.uniform(-1, 1, (bench.act_calls, bench.state_dim))
-    for s in states[:500]:
-        learner.act(s, explore=False)
-    for key, pause_gc in (("", False), ("_gc_paused", True)):
-        lat = np.empty(bench.act_calls)
-        gc_was = gc.isenabled()
-        if pause_gc:  # a control loop may run with the collector paused (gc.freeze/disable)
-            gc.disable()
-        try:
-            for i, s in enumerate(states):
-                t0 = time.perf_counter()
-                learner.act(s, explore=False)
-                lat[i] = time.perf_counter() - t0
-        finally:
-            if gc_was:
-                gc.enable()
-        out[f"act_p50_us{key}"] = float(np.percentile(lat, 50) * 1e6)
-        out[f"act_p99_us{key}"] = float(np.percentile(lat, 99) * 1e6)
-        out[f"act_max_us{key}"] = float(lat.max() * 1e6)
+    out.update(_act_latency(learner, states, ""))
+    deep = make_learner(LearnerConfig.for_task(learner.config, learner="deep", seed=bench.seed))
+    out.update(_act_latency(deep, states, "_deep"))
+    d = deep.config.deep
+    out["deep_network"] = {"hidden": list(d.hidden), "value_hidden": d.value_hidden,
+                           "n_wires": deep.config.n_wires, "layer_norm": d.layer_norm}  # fmt: skip
     progress(1)
 
     # incremental thinks/s, one learner (one core).
@@ -138,6 +155,7 @@ def rows(result: dict[str, Any], cfg: SpeedBenchConfig) -> list[tuple[str, Any]]
     """The figures of `wfnn-bench speed`'s table: (name, value) rows."""
     keys = [
         "act_p50_us", "act_p99_us", "act_p50_us_gc_paused", "act_p99_us_gc_paused",
+        "act_p50_us_deep", "act_p99_us_deep", "act_p50_us_deep_gc_paused", "act_p99_us_deep_gc_paused",
         "incremental_thinks_per_s", "minibatch_updates_per_s", "population_thinks_per_s",
     ]  # fmt: skip
     rows: list[tuple[str, Any]] = [(k, result[k]) for k in keys]

@@ -5,7 +5,7 @@
     learner.learn(x, u, x_next, r, terminal)
     learner.think()                      # thinks_per_action minibatch updates (torch)
 
-Acting needs numpy only (`deep_net`): torch is imported the first time the learner thinks, so
+Acting needs numpy and numba only (`deep_net`): torch is imported the first time the learner thinks, so
 a robot that acts on snapshots from a think server never loads it. The first `deep.warmup`
 explored actions are uniformly random. Updates (`deep_torch`) use n-step returns built at
 sampling time from consecutive stored experiences. One network per learner (population 1).
@@ -55,6 +55,9 @@ class DeepWFNN(WFNN):
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
         self._trainer: Any = None
+        # Load the compiled act now, not in a robot's first control tick (compiling it takes seconds).
+        z = np.zeros(self.config.state_dim)
+        deep_net.act_one(params.act_pack, params.act_dims, z, z, z + 1.0, 1.0)
 
     def _fresh_theta(self) -> FloatArray:
         return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng) for _ in range(2)])
@@ -77,16 +80,17 @@ class DeepWFNN(WFNN):
         return deep_net.greedy(params, x)
 
     def _act_one(self, s: FloatArray, explore: bool, params: Any) -> ActResult:
-        """`act` for one state [S]: the robot's hot path, one-dimensional numpy throughout."""
+        """`act` for one state [S]: the robot's hot path, the network in one compiled kernel."""
         scaler = self.state_scaler
-        x = (s - scaler.mid) / scaler.half
-        valid = bool(np.abs(x).max() <= self._limit)  # NaN compares False, inf exceeds the limit
+        valid, x, wire_u, wire_q, best = deep_net.act_one(params.act_pack, params.act_dims, s, scaler.mid,
+                                                          scaler.half, self._limit)  # fmt: skip
         if valid:
             self._last_valid = x[None]
-        else:
+        else:  # act on the best estimate: already scaled, so through an identity scaling
             x = self._best_estimate(x[None], np.zeros(1, dtype=np.bool_))[0]
-        wire_u, wire_q = deep_net.wires_one(params, x)
-        best = int(wire_q.argmax())
+            identity = np.zeros(x.shape[0]), np.ones(x.shape[0])
+            _, _, wire_u, wire_q, best = deep_net.act_one(params.act_pack, params.act_dims, x, *identity,
+                                                          np.inf)  # fmt: skip
         return self._finish_one(wire_u[best], float(wire_q[best]), valid, explore, params)
 
     def experienced(self, n: int) -> None:

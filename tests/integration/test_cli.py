@@ -115,11 +115,14 @@ def test_bench_cartpole_and_speed(tmp_path):
     for key in (
         "act_p50_us",
         "act_p99_us",
+        "act_p50_us_deep",
+        "act_p99_us_deep",
         "incremental_thinks_per_s",
         "minibatch_updates_per_s",
         "population_thinks_per_s",
     ):
         assert speed[key] > 0
+    assert speed["deep_network"]["hidden"] == [128, 128]
 
 
 def test_client_runs_learns_and_saves(tmp_path):
