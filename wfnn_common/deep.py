@@ -122,11 +122,9 @@ class DeepWFNN(WFNN):
         """
         cfg, buf = self.config, self.buffer
         gamma = cfg.gamma
-        flags = buf.arrays().terminal[0]  # the 0/1 column itself (no copy of the buffer)
-        state, action = buf.state[0, idx], buf.action[0, idx]
-        reward = self._reward(buf.reward[0, idx])
-        next_state = buf.next_state[0, idx].copy()
-        terminal = flags[idx] != 0.0
+        state, action, next_state, raw_reward, flags = buf.take(0, idx)  # whole rows, in one gather
+        reward = self._reward(raw_reward)
+        terminal = flags != 0.0
         discount = np.where(terminal, 0.0, gamma)
         if cfg.deep.n_step > 1:
             reach = 1 + len(cfg.symmetries)
@@ -136,19 +134,23 @@ class DeepWFNN(WFNN):
             for k in range(1, cfg.deep.n_step):
                 found = np.zeros_like(going)
                 after = now.copy()
+                age = (newest - now) % buf.capacity
                 for offset in range(1, reach + 1):  # the first stored after `now` that continues it
                     j = (now + offset) % buf.capacity
-                    stored = (newest - now) % buf.capacity >= offset
-                    hit = going & ~found & stored & (buf.state[0, j] == next_state).all(axis=1)
+                    candidate = buf.take(0, j)
+                    hit = going & ~found & (age >= offset) & (candidate.state == next_state).all(axis=1)
                     after = np.where(hit, j, after)
                     found |= hit
                 going = found
                 if not going.any():
                     break
                 now = after
-                reward = reward + np.where(going, gamma**k * self._reward(buf.reward[0, now]), 0.0)
-                term_j = flags[now] != 0.0
-                next_state = np.where(going[:, None], buf.next_state[0, now], next_state)
+                # With one candidate, `now` is its j wherever the return goes on: its rows are those
+                # (elsewhere the values below are masked out, whatever they are).
+                later = candidate if reach == 1 else buf.take(0, now)
+                reward = reward + np.where(going, gamma**k * self._reward(later.reward), 0.0)
+                term_j = later.terminal != 0.0
+                next_state = np.where(going[:, None], later.next_state, next_state)
                 discount = np.where(going, np.where(term_j, 0.0, gamma ** (k + 1)), discount)
                 going = going & ~term_j
         return {"state": state, "action": action, "reward": reward, "next_state": next_state,
@@ -165,9 +167,9 @@ class DeepWFNN(WFNN):
             return self.last_think
         trainer = self._train()
         q = td = 0.0
-        for _ in range(n):  # sampled per update: n x batch_size indices at once could be large
-            rows = self.buffer.sample_indices(self._replay_rng, cfg.batch_size)[0]
-            q, td = trainer.update(self._n_step(rows))
+        for i in range(n):  # sampled per update: n x batch_size indices at once could be large
+            rows = self.buffer.sample_one(self._replay_rng, cfg.batch_size)
+            q, td = trainer.update(self._n_step(rows), stats=i == n - 1)  # only the last one's are shown
         return self._thought(n, q, td)
 
     def _thought(self, n: int, q: float, td: float) -> UpdateStats:

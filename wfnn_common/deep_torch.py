@@ -232,6 +232,13 @@ class Trainer:
         self.adam_m = torch.zeros_like(self.target)
         self.adam_v = torch.zeros_like(self.target)
         self.adam_step = 0
+        self._theta_data = self.theta.detach()
+        """theta without its autograd identity (the same storage), made once: updates and reads
+        outside the graph take it instead of a fresh `detach()` each time."""
+        self._denominator = torch.empty_like(self.target)
+        """Adam's denominator, rewritten in place by each step (no new vector per update)."""
+        self._critic1 = self._theta_data[: self.critics.n].numpy() if self.device.type == "cpu" else None
+        """Critic 1's float32 weights as a numpy view of theta (on a CPU), for `critic1`."""
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self._compiled: Any = None
         """`loss` compiled (deep.compile), False where compiling failed, None until first used."""
@@ -249,35 +256,54 @@ class Trainer:
         self.adam_step = 0
 
     def _step(self, grad: torch.Tensor) -> None:
-        """Clip the gradient's norm at deep.grad_clip, then one Adam step (in place)."""
+        """Clip the gradient's norm at deep.grad_clip, then one Adam step (in place).
+
+        The clipping factor is float32 arithmetic on the norm as a numpy scalar, with the roundings
+        of the 0-dim tensor operations it replaces (norm + 1e-6; grad_clip / that, which torch
+        computes as the reciprocal times grad_clip; min with 1) without their overhead. A factor
+        of 1 (no clipping) leaves the gradient as it is, as multiplying by 1 would.
+        """
         d = self.config.deep
         if d.grad_clip > 0.0:
-            scale = (d.grad_clip / (torch.linalg.vector_norm(grad) + 1e-6)).clamp_(max=1.0)
-            grad.mul_(scale)
+            norm = np.float32(torch.linalg.vector_norm(grad).item()) + np.float32(1e-6)
+            scale = np.minimum((np.float32(1.0) / norm) * np.float32(d.grad_clip), np.float32(1.0))
+            if scale != 1.0:  # NaN included: it spreads to the gradient as before
+                grad.mul_(float(scale))
         beta1, beta2 = ADAM_BETAS
         self.adam_step += 1
         self.adam_m.lerp_(grad, 1.0 - beta1)
         self.adam_v.mul_(beta2).addcmul_(grad, grad, value=1.0 - beta2)
-        denominator = (self.adam_v / (1.0 - beta2**self.adam_step)).sqrt_().add_(ADAM_EPS)
-        with torch.no_grad():
-            self.theta.addcdiv_(self.adam_m, denominator, value=-d.lr / (1.0 - beta1**self.adam_step))
+        denominator = torch.div(self.adam_v, 1.0 - beta2**self.adam_step, out=self._denominator)
+        denominator.sqrt_().add_(ADAM_EPS)
+        self._theta_data.addcdiv_(self.adam_m, denominator, value=-d.lr / (1.0 - beta1**self.adam_step))
 
     def critic1(self) -> np.ndarray:
         """Critic 1's weights as float64 [n_params] (what `act` uses)."""
-        return self.theta.detach()[: self.critics.n].to("cpu", torch.float64).numpy()
+        if self._critic1 is not None:  # float32 to float64 is exact, in numpy as in torch
+            return self._critic1.astype(np.float64)
+        return self._theta_data[: self.critics.n].to("cpu", torch.float64).numpy()
 
     def _tensors(self, batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-        """The minibatch's arrays as float32 tensors on the device, moved in one copy."""
+        """The minibatch's arrays as float32 tensors on the device, moved in one copy.
+
+        The arrays are cast into one float32 block [B, columns] by one concatenation, in the
+        batch's order, and the tensors are that block's columns (views).
+        """
         names = list(batch)
-        columns = [np.asarray(batch[k], dtype=np.float32).reshape(len(batch["reward"]), -1) for k in names]
+        b = len(batch["reward"])
+        columns = [np.asarray(batch[k]).reshape(b, -1) for k in names]
         widths = [c.shape[1] for c in columns]
-        packed = torch.from_numpy(np.concatenate(columns, axis=1)).to(self.device)
-        parts = torch.split(packed, widths, dim=1)
+        packed = np.concatenate(columns, axis=1, dtype=np.float32, casting="unsafe")  # as astype
+        parts = torch.split(torch.from_numpy(packed).to(self.device), widths, dim=1)
         return {k: (p if w > 1 or k in ("state", "action", "next_state") else p.squeeze(1))
                 for k, p, w in zip(names, parts, widths, strict=True)}  # fmt: skip
 
-    def update(self, batch: dict[str, np.ndarray]) -> tuple[float, float]:
-        """One Adam step on a minibatch (arrays [B, ...]) -> (mean Q(x, u), mean |y - Q(x, u)|)."""
+    def update(self, batch: dict[str, np.ndarray], stats: bool = True) -> tuple[float, float]:
+        """One Adam step on a minibatch (arrays [B, ...]) -> (mean Q(x, u), mean |y - Q(x, u)|).
+
+        With stats False the step is the same and (nan, nan) comes back: for all but the last
+        of several updates, whose statistics nobody reads.
+        """
         d = self.config.deep
         t = self._tensors(batch)
         noise = torch.randn(t["action"].shape, generator=self.generator, device=self.device)
@@ -286,9 +312,10 @@ class Trainer:
         total, Q1, y = self._compiled_loss(args) if d.compile else loss(self.critics, self.config, *args)
         (grad,) = torch.autograd.grad(total, self.theta)
         self._step(grad)
-        with torch.no_grad():
-            self.target.lerp_(self.theta.detach(), d.tau)
-        return float(Q1.mean()), float((y - Q1).abs().mean())
+        self.target.lerp_(self._theta_data, d.tau)
+        if not stats:
+            return float("nan"), float("nan")
+        return float(Q1.mean()), float((y - Q1).abs_().mean())
 
     def _compiled_loss(self, args: tuple[torch.Tensor, ...]) -> Losses:
         """`loss` through torch.compile (compiled in its first call); uncompiled where that fails."""

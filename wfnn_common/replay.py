@@ -96,6 +96,24 @@ class ReplayBuffer:
         """Uniform indices [P, n] into each learner's stored experiences (0 where it has none)."""
         return (rng.random((self.population, n)) * self.count[:, None]).astype(np.int64)
 
+    def sample_one(self, rng: np.random.Generator, n: int, learner: int = 0) -> IntArray:
+        """Uniform indices [n] into one learner's stored experiences (0 where it has none).
+
+        The same draw as `sample_indices` for a population of one, without its [P, n] arrays.
+        """
+        return (rng.random(n) * int(self.count[learner])).astype(np.int64)
+
+    def take(self, learner: int, idx: IntArray) -> Experiences:
+        """Copies of one learner's experiences at idx [n] -> arrays [n, ...], in one gather.
+
+        The fields are views into one gathered block [n, S + A + S + 2] (one row per experience,
+        as stored); `terminal` is the 0/1 float column, as in `arrays`.
+        """
+        rows = self.data[learner].take(idx, axis=0)
+        s, a = self.state.shape[-1], self.action.shape[-1]
+        return Experiences(rows[:, :s], rows[:, s : s + a], rows[:, s + a : 2 * s + a], rows[:, 2 * s + a],
+                           rows[:, 2 * s + a + 1])  # fmt: skip
+
     def arrays(self) -> Experiences:
         """Views of the buffer [P, capacity, ...] (no copy; rows past `count` are unused).
 
