@@ -57,7 +57,8 @@ class DeepWFNN(WFNN):
         self._trainer: Any = None
         # Load the compiled act now, not in a robot's first control tick (compiling it takes seconds).
         z = np.zeros(self.config.state_dim)
-        deep_net.act_one(params.act_pack, params.act_dims, z, z, z + 1.0, 1.0)
+        pack, dims = params.act_layout
+        deep_net.act_one(pack, dims, z, z, z + 1.0, 1.0)
 
     def _fresh_theta(self) -> FloatArray:
         return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng) for _ in range(2)])
@@ -82,15 +83,14 @@ class DeepWFNN(WFNN):
     def _act_one(self, s: FloatArray, explore: bool, params: Any) -> ActResult:
         """`act` for one state [S]: the robot's hot path, the network in one compiled kernel."""
         scaler = self.state_scaler
-        valid, x, wire_u, wire_q, best = deep_net.act_one(params.act_pack, params.act_dims, s, scaler.mid,
-                                                          scaler.half, self._limit)  # fmt: skip
+        pack, dims = params.act_layout
+        valid, x, wire_u, wire_q, best = deep_net.act_one(pack, dims, s, scaler.mid, scaler.half, self._limit)
         if valid:
             self._last_valid = x[None]
         else:  # act on the best estimate: already scaled, so through an identity scaling
             x = self._best_estimate(x[None], np.zeros(1, dtype=np.bool_))[0]
             identity = np.zeros(x.shape[0]), np.ones(x.shape[0])
-            _, _, wire_u, wire_q, best = deep_net.act_one(params.act_pack, params.act_dims, x, *identity,
-                                                          np.inf)  # fmt: skip
+            _, _, wire_u, wire_q, best = deep_net.act_one(pack, dims, x, *identity, np.inf)
         return self._finish_one(wire_u[best], float(wire_q[best]), valid, explore, params)
 
     def experienced(self, n: int) -> None:

@@ -136,8 +136,15 @@ class DeepParams:
         self.shapes = shapes
         self.blocks = {name: flat[0, a:b].reshape(shape) for name, (a, b, shape) in shapes.slices().items()}
         self.trunk = [(self.blocks[f"W{k}"], self.blocks[f"b{k}"]) for k in range(len(shapes.hidden))]
-        self.act_pack, self.act_dims = _act_layout(self.blocks, shapes)
-        """`act_one`'s weights in one read-only vector, and the widths that lay it out."""
+
+    @functools.cached_property
+    def act_layout(self) -> tuple[FloatArray, NDArray[np.int64]]:
+        """`act_one`'s weights in one read-only vector, and the widths that lay it out.
+
+        Made when first acted on (a think server makes new weights at every think and acts on
+        few of them); two threads that both make it get the same arrays.
+        """
+        return _act_layout(self.blocks, self.shapes)
 
     @property
     def population(self) -> int:
@@ -180,15 +187,31 @@ def _act_layout(blocks: dict[str, FloatArray], shapes: DeepShapes) -> tuple[Floa
     the value head's action part [A, Hv]; its output weights [Hv] and bias [1]. dims: state,
     action, wires, value units, layer_norm (0/1), then the trunk's widths.
     """
-    parts: list[FloatArray] = []
-    for k in range(len(shapes.hidden)):
+    fan = shapes.hidden[-1] if shapes.hidden else shapes.state_dim
+    na = shapes.n_wires * shapes.action_dim
+    pack = np.empty(shapes.n_params)  # the same numbers as the weights, rearranged
+    at = 0
+
+    def put(rows: int, cols: int) -> FloatArray:  # the next [rows, cols] of the pack
+        nonlocal at
+        at += rows * cols
+        return pack[at - rows * cols : at].reshape(rows, cols)
+
+    for k in range(len(shapes.hidden)):  # each matrix written transposed in one strided copy
         W, b = blocks[f"W{k}"], blocks[f"b{k}"]
         if shapes.layer_norm:
-            W, b = W - W.sum(axis=0) / W.shape[0], b - b.sum() / b.shape[0]
-        parts += [W.T.ravel(), b]
-    head = np.concatenate([blocks["Ww"], blocks["Vh"]])
-    parts += [head.T.ravel(), blocks["bw"], blocks["bv"], blocks["Vu"].T.ravel(), blocks["vo"], blocks["bo"]]
-    pack = np.concatenate(parts)
+            np.subtract(W.T, (W.sum(axis=0) / W.shape[0])[:, None], out=put(W.shape[1], W.shape[0]))
+            np.subtract(b, b.sum() / b.shape[0], out=put(1, b.shape[0])[0])
+        else:
+            put(W.shape[1], W.shape[0])[...] = W.T
+            put(1, b.shape[0])[0] = b
+    head = put(fan, na + shapes.value_hidden)
+    head[:, :na] = blocks["Ww"].T
+    head[:, na:] = blocks["Vh"].T
+    for name in ("bw", "bv", "vo", "bo"):
+        if name == "vo":
+            put(shapes.action_dim, shapes.value_hidden)[...] = blocks["Vu"].T
+        put(1, blocks[name].shape[0])[0] = blocks[name]
     pack.flags.writeable = False
     dims = np.array(
         [shapes.state_dim, shapes.action_dim, shapes.n_wires, shapes.value_hidden, int(shapes.layer_norm),
@@ -274,7 +297,7 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
 def wires_one(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
     """`wires` of one scaled state x [S] -> (actions [N, A], values [N]), by `act_one`."""
     unit = np.zeros(x.shape[0]), np.ones(x.shape[0])
-    valid, _, u, q, _ = act_one(params.act_pack, params.act_dims, x, *unit, np.inf)
+    valid, _, u, q, _ = act_one(*params.act_layout, x, *unit, np.inf)
     if not valid:
         raise ValueError("wires_one needs a finite state")
     return u, q

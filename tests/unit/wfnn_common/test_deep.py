@@ -203,15 +203,15 @@ def test_the_compiled_act_is_the_batch_forward_pass(hidden, state_dim, action_di
     states = mid + half * rng.uniform(-3.0, 3.0, (20, state_dim))
     wire_u, wire_q = deep_net.wires(params, (states - mid) / half)
     for s, u, q in zip(states, wire_u, wire_q, strict=True):
-        valid, x, u1, q1, best = deep_net.act_one(params.act_pack, params.act_dims, s, mid, half, 3.0)
+        valid, x, u1, q1, best = deep_net.act_one(*params.act_layout, s, mid, half, 3.0)
         assert valid and best == q.argmax()
         np.testing.assert_allclose(x, (s - mid) / half, rtol=1e-15, atol=1e-15)
         np.testing.assert_allclose(u1, u, atol=1e-12)
         np.testing.assert_allclose(q1, q, atol=1e-12)
     outside = states[0].copy()
     outside[-1] = mid[-1] + 3.5 * half[-1]
-    assert not deep_net.act_one(params.act_pack, params.act_dims, outside, mid, half, 3.0)[0]
-    assert not deep_net.act_one(params.act_pack, params.act_dims, outside * np.nan, mid, half, np.inf)[0]
+    assert not deep_net.act_one(*params.act_layout, outside, mid, half, 3.0)[0]
+    assert not deep_net.act_one(*params.act_layout, outside * np.nan, mid, half, np.inf)[0]
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the setting is glibc's malloc's")
