@@ -245,8 +245,9 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
 
     Scales the state s [S] by (mid, half) into x [S] and flags it invalid when an entry is not
     finite or beyond +-limit (then no wires: the caller acts on its best estimate instead).
-    Returns (valid, x [S], wire actions [N, A], wire values [N], the best wire). Numpy's
-    per-call overhead was most of `act` (24 of 35 us for a 3-128-128 trunk, 8 wires).
+    Returns (valid, x [S], wire actions [N, A], wire values [N], the best wire). In numpy,
+    each call's overhead and OpenBLAS's threads (two of them doubled a matrix-vector product
+    here) made most of `act`'s time.
     """
     n_state, n_action, n_wires, n_value, layer_norm = dims[0], dims[1], dims[2], dims[3], dims[4]
     x = np.empty(n_state)
