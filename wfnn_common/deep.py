@@ -168,7 +168,7 @@ class DeepWFNN(WFNN):
         trainer = self._train()
         q = td = 0.0
         for i in range(n):  # sampled per update: n x batch_size indices at once could be large
-            rows = self.buffer.sample_one(self._replay_rng, cfg.batch_size)
+            rows = self.buffer.sample_indices(self._replay_rng, cfg.batch_size)[0]
             q, td = trainer.update(self._n_step(rows), stats=i == n - 1)  # only the last one's are shown
         return self._thought(n, q, td)
 

@@ -187,7 +187,7 @@ def _act_layout(blocks: dict[str, FloatArray], shapes: DeepShapes) -> tuple[Floa
     the value head's action part [A, Hv]; its output weights [Hv] and bias [1]. dims: state,
     action, wires, value units, layer_norm (0/1), then the trunk's widths.
     """
-    fan = shapes.hidden[-1] if shapes.hidden else shapes.state_dim
+    fan = shapes.hidden[-1]
     na = shapes.n_wires * shapes.action_dim
     pack = np.empty(shapes.n_params)  # the same numbers as the weights, rearranged
     at = 0
@@ -208,10 +208,11 @@ def _act_layout(blocks: dict[str, FloatArray], shapes: DeepShapes) -> tuple[Floa
     head = put(fan, na + shapes.value_hidden)
     head[:, :na] = blocks["Ww"].T
     head[:, na:] = blocks["Vh"].T
-    for name in ("bw", "bv", "vo", "bo"):
-        if name == "vo":
-            put(shapes.action_dim, shapes.value_hidden)[...] = blocks["Vu"].T
-        put(1, blocks[name].shape[0])[0] = blocks[name]
+    put(1, na)[0] = blocks["bw"]
+    put(1, shapes.value_hidden)[0] = blocks["bv"]
+    put(shapes.action_dim, shapes.value_hidden)[...] = blocks["Vu"].T
+    put(1, shapes.value_hidden)[0] = blocks["vo"]
+    put(1, 1)[0] = blocks["bo"]
     pack.flags.writeable = False
     dims = np.array(
         [shapes.state_dim, shapes.action_dim, shapes.n_wires, shapes.value_hidden, int(shapes.layer_norm),
@@ -293,15 +294,6 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
         if value > q[best]:  # the first wire of the highest value
             best = w
     return True, x, u, q, best
-
-
-def wires_one(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """`wires` of one scaled state x [S] -> (actions [N, A], values [N]), by `act_one`."""
-    unit = np.zeros(x.shape[0]), np.ones(x.shape[0])
-    valid, _, u, q, _ = act_one(*params.act_layout, x, *unit, np.inf)
-    if not valid:
-        raise ValueError("wires_one needs a finite state")
-    return u, q
 
 
 def greedy(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -96,13 +96,6 @@ class ReplayBuffer:
         """Uniform indices [P, n] into each learner's stored experiences (0 where it has none)."""
         return (rng.random((self.population, n)) * self.count[:, None]).astype(np.int64)
 
-    def sample_one(self, rng: np.random.Generator, n: int, learner: int = 0) -> IntArray:
-        """Uniform indices [n] into one learner's stored experiences (0 where it has none).
-
-        The same draw as `sample_indices` for a population of one, without its [P, n] arrays.
-        """
-        return (rng.random(n) * int(self.count[learner])).astype(np.int64)
-
     def take(self, learner: int, idx: IntArray) -> Experiences:
         """Copies of one learner's experiences at idx [n] -> arrays [n, ...], in one gather.
 

@@ -124,8 +124,9 @@ def test_the_act_path_matches_the_batch_wires_and_weights_are_immutable(layer_no
 
     def agree() -> None:
         u, q = deep_net.wires(learner.params, x)
+        unit = np.zeros(2), np.ones(2)
         for i in range(4):
-            u1, q1 = deep_net.wires_one(learner.params, x[i])
+            _, _, u1, q1, _ = deep_net.act_one(*learner.params.act_layout, x[i], *unit, np.inf)
             np.testing.assert_allclose(u1, u[i], atol=1e-12)
             np.testing.assert_allclose(q1, q[i], atol=1e-12)
 
