@@ -81,19 +81,24 @@ def sb3_problem() -> str | None:
     return None
 
 
-def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> float:
-    """Mean return of `policy(obs) -> action` over fresh episodes."""
+def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> tuple[float, float]:
+    """Mean return and mean length (steps) of `policy(obs) -> action` over fresh episodes.
+
+    The length tells returns of the same size apart: on Hopper a return near 1,000 can be a
+    whole episode standing still, and one near 200 a lunge that falls within 100 steps.
+    """
     env = gym.make(env_id)
-    total = 0.0
+    total, length = 0.0, 0
     for k in range(episodes):
         obs, _ = env.reset(seed=seed + k)
         done = False
         while not done:
             obs, reward, terminated, truncated, _ = env.step(policy(obs))
             total += float(reward)
+            length += 1
             done = terminated or truncated
     env.close()
-    return total / episodes
+    return total / episodes, length / episodes
 
 
 def _act_us(policy: Any, obs: FloatArray, calls: int) -> tuple[float, float]:
@@ -131,7 +136,7 @@ def run_wfnn(
     def greedy(obs: FloatArray) -> FloatArray:
         return learner.act(np.asarray(obs, dtype=np.float64), explore=False).action
 
-    points, returns, train_s = [], [], 0.0
+    points, returns, lengths, train_s = [], [], [], 0.0
     for step in range(1, steps + 1):
         t0 = time.perf_counter()
         u = learner.act(x).action
@@ -142,11 +147,13 @@ def run_wfnn(
         train_s += time.perf_counter() - t0
         if step % cfg.eval_every == 0 or step == steps:
             points.append(step)
-            returns.append(_evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed))
+            mean_return, mean_length = _evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed)
+            returns.append(mean_return)
+            lengths.append(mean_length)
     act = _act_us(greedy, x, cfg.act_calls)
     task.close()
-    return {"steps": points, "returns": returns, "s_per_step": train_s / steps, "act_us": act[0],
-            "act_us_p99": act[1], "config": learner.config.to_dict()}  # fmt: skip
+    return {"steps": points, "returns": returns, "lengths": lengths, "s_per_step": train_s / steps,
+            "act_us": act[0], "act_us_p99": act[1], "config": learner.config.to_dict()}  # fmt: skip
 
 
 def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, Any]:
@@ -160,7 +167,7 @@ def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config
     def greedy(obs: FloatArray) -> FloatArray:
         return model.predict(obs, deterministic=True)[0]
 
-    points, returns, train_s, done = [], [], 0.0, 0
+    points, returns, lengths, train_s, done = [], [], [], 0.0, 0
     while done < steps:
         chunk = min(cfg.eval_every, steps - done)
         t0 = time.perf_counter()
@@ -168,11 +175,13 @@ def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config
         train_s += time.perf_counter() - t0
         done += chunk
         points.append(done)
-        returns.append(_evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed))
+        mean_return, mean_length = _evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed)
+        returns.append(mean_return)
+        lengths.append(mean_length)
     obs, _ = gym.make(env_id).reset(seed=seed)
     act = _act_us(greedy, obs, cfg.act_calls)
-    return {"steps": points, "returns": returns, "s_per_step": train_s / steps, "act_us": act[0],
-            "act_us_p99": act[1]}  # fmt: skip
+    return {"steps": points, "returns": returns, "lengths": lengths, "s_per_step": train_s / steps,
+            "act_us": act[0], "act_us_p99": act[1]}  # fmt: skip
 
 
 def steps_total(cfg: VsSb3Config) -> int:
@@ -219,6 +228,8 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                 "steps": runs[0]["steps"], "return_q25": q25, "return_median": q50, "return_q75": q75,
                 "returns": returns, "final_return_median": float(q50[-1]),
                 "final_returns": returns[:, -1],
+                "lengths": np.array([r["lengths"] for r in runs]),  # [seeds, points]: mean greedy episode
+                "final_lengths": np.array([r["lengths"][-1] for r in runs]),
                 "s_per_step": float(np.median([r["s_per_step"] for r in runs])),
                 "act_us": float(np.median([r["act_us"] for r in runs])),
                 "act_us_p99": float(np.median([r["act_us_p99"] for r in runs])),
@@ -276,6 +287,9 @@ def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
             rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
             rows.append((f"{env_id} {algorithm}: final return per seed",
                          " / ".join(f"{v:.0f}" for v in r["final_returns"])))  # fmt: skip
+            if "final_lengths" in r:  # absent from results written before lengths were recorded
+                rows.append((f"{env_id} {algorithm}: final greedy episode length per seed",
+                             " / ".join(f"{v:.0f}" for v in r["final_lengths"])))  # fmt: skip
             rows.append(
                 (
                     f"{env_id} {algorithm}: s_per_step / act_us p50 / p99",

@@ -482,6 +482,8 @@ def test_bench_vs_sb3_reports_curves_step_cost_and_act_latency(tmp_path):
         assert r["steps"] == [200, 400] and len(r["return_median"]) == 2 and len(r["final_returns"]) == 2
         assert r["return_q25"][-1] <= r["return_median"][-1] <= r["return_q75"][-1] < 0
         assert r["s_per_step"] > 0 and 0 < r["act_us"] <= r["act_us_p99"]
+        assert len(r["final_lengths"]) == 2 and all(0 < n <= 200 for n in r["final_lengths"])  # 200 a target
+        assert [len(seed) for seed in r["lengths"]] == [2, 2]
     assert boat["deep"]["config"]["learner"] == "deep" and boat["deep"]["config"]["deep"]["hidden"] == [
         16,
         16,

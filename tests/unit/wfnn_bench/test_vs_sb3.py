@@ -1,0 +1,31 @@
+"""vs-sb3's greedy evaluation: mean return and mean episode length."""
+
+import gymnasium as gym
+import numpy as np
+
+from wfnn_bench.vs_sb3 import _evaluate
+
+
+class _Walk(gym.Env):
+    """A walk along a line that ends (terminated) at 3 or beyond; reward 1 per step, 5 on arrival."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = 0.0
+        return np.array([self.x]), {}
+
+    def step(self, action):
+        self.x += float(action[0])
+        arrived = self.x >= 3.0
+        return np.array([self.x]), 5.0 if arrived else 1.0, arrived, False, {}
+
+
+def test_evaluation_reports_the_mean_return_and_the_mean_episode_length():
+    gym.register("WfnnTestWalk-v0", entry_point=_Walk, max_episode_steps=20)
+    # Full steps arrive on the third; half steps on the sixth; standing still runs to the limit.
+    assert _evaluate(lambda obs: np.array([1.0], np.float32), "WfnnTestWalk-v0", 2, 0) == (7.0, 3.0)
+    assert _evaluate(lambda obs: np.array([0.5], np.float32), "WfnnTestWalk-v0", 3, 0) == (10.0, 6.0)
+    assert _evaluate(lambda obs: np.array([0.0], np.float32), "WfnnTestWalk-v0", 1, 0) == (20.0, 20.0)
