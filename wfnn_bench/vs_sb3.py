@@ -223,13 +223,13 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                             else run_sb3(algorithm, env_id, steps, seed, cfg))  # fmt: skip
                 progress(1)
             returns = np.array([r["returns"] for r in runs])  # [seeds, points]
+            lengths = np.array([r["lengths"] for r in runs])  # [seeds, points]: mean greedy episode
             q25, q50, q75 = np.percentile(returns, [25, 50, 75], axis=0)
             out["tasks"][env_id][algorithm] = {
                 "steps": runs[0]["steps"], "return_q25": q25, "return_median": q50, "return_q75": q75,
                 "returns": returns, "final_return_median": float(q50[-1]),
                 "final_returns": returns[:, -1],
-                "lengths": np.array([r["lengths"] for r in runs]),  # [seeds, points]: mean greedy episode
-                "final_lengths": np.array([r["lengths"][-1] for r in runs]),
+                "lengths": lengths, "final_lengths": lengths[:, -1],
                 "s_per_step": float(np.median([r["s_per_step"] for r in runs])),
                 "act_us": float(np.median([r["act_us"] for r in runs])),
                 "act_us_p99": float(np.median([r["act_us_p99"] for r in runs])),
@@ -287,9 +287,8 @@ def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
             rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
             rows.append((f"{env_id} {algorithm}: final return per seed",
                          " / ".join(f"{v:.0f}" for v in r["final_returns"])))  # fmt: skip
-            if "final_lengths" in r:  # absent from results written before lengths were recorded
-                rows.append((f"{env_id} {algorithm}: final greedy episode length per seed",
-                             " / ".join(f"{v:.0f}" for v in r["final_lengths"])))  # fmt: skip
+            rows.append((f"{env_id} {algorithm}: final greedy episode length per seed",
+                         " / ".join(f"{v:.0f}" for v in r["final_lengths"])))  # fmt: skip
             rows.append(
                 (
                     f"{env_id} {algorithm}: s_per_step / act_us p50 / p99",
