@@ -128,6 +128,11 @@ class DeepConfig:
     separation: float = 0.1
     """Weight of the term that keeps a state's wires apart: the mean over wire pairs of
     1 / (distance + 0.1), in scaled action units."""
+    top_k: int = 0
+    """Q(x, u) interpolates only the `top_k` wires of largest weight (nearest u, with the
+    smoothing term), as Q3C does, so that far wires neither shape Q there nor learn from it;
+    0, or at least n_wires, interpolates all wires. The greedy action (the best wire) is the same
+    either way."""
     n_step: int = 1
     """Returns over this many consecutive experiences (cut at a terminal or where the next
     experience does not start from the previous one's next state)."""
@@ -153,6 +158,7 @@ class DeepConfig:
             (0.0 <= self.target_noise <= 10.0, "deep.target_noise must be in [0, 10]"),
             (0.0 <= self.target_noise_clip <= 10.0, "deep.target_noise_clip must be in [0, 10]"),
             (0.0 <= self.separation <= 1e3, "deep.separation must be in [0, 1000]"),
+            (0 <= self.top_k <= MAX_WIRES, f"deep.top_k must be in [0, {MAX_WIRES}]"),
             (1 <= self.n_step <= 100, "deep.n_step must be in [1, 100]"),
             (0 <= self.warmup <= 10_000_000, "deep.warmup must be in [0, 1e7]"),
             (self.device == "cpu" or self.device == "cuda" or

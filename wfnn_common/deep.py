@@ -247,9 +247,9 @@ class DeepWFNN(WFNN):
         s, single = self._rows(state, self.config.state_dim)
         a, _ = self._rows(action, self.config.action_dim)
         wire_u, wire_q = deep_net.wires(self.params, self.state_scaler.to_unit(s))
-        q = deep_net.wirefit_normalised(
-            wire_u, wire_q, self.action_scaler.to_unit(a), self.config.smoothing_c, self.config.eps
-        )
+        cfg = self.config
+        u = self.action_scaler.to_unit(a)
+        q = deep_net.wirefit_normalised(wire_u, wire_q, u, cfg.smoothing_c, cfg.eps, cfg.deep.top_k)
         return q[0] if single else q
 
 

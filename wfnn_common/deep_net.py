@@ -305,11 +305,18 @@ def greedy(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def wirefit_normalised(
-    wire_u: FloatArray, wire_q: FloatArray, u: FloatArray, c: float, eps: float
+    wire_u: FloatArray, wire_q: FloatArray, u: FloatArray, c: float, eps: float, top_k: int = 0
 ) -> FloatArray:
-    """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values."""
+    """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values.
+
+    With 0 < top_k < N only the top_k largest weights count (ties at the k-th weight all count).
+    """
     q_max = wire_q.max(axis=-1, keepdims=True)
     span = np.maximum(q_max - wire_q.min(axis=-1, keepdims=True), SPAN_FLOOR)
     d = ((u[..., None, :] - wire_u) ** 2).sum(axis=-1) + c * (q_max - wire_q) / span + eps
     w = 1.0 / d
+    n = w.shape[-1]
+    if 0 < top_k < n:
+        kth = np.partition(w, n - top_k, axis=-1)[..., n - top_k : n - top_k + 1]
+        w = np.where(w >= kth, w, 0.0)
     return np.asarray((w * wire_q).sum(axis=-1) / w.sum(axis=-1))

@@ -11,8 +11,9 @@ target averaging are one operation each. One update on a minibatch of B experien
     L  = sum_j mean (Q_j(x, u) - y)^2 + separation * sum_j mean_{i<l} 1 / (|u_i - u_l| + 0.1)
          + bc_weight * mean |best wire of critic 1 at x - u|^2
 
-Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires with the smoothing
-term on normalised values (`deep_net.wirefit_normalised`); the smoothing term's values are
+Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires (the deep.top_k of
+largest weight, where set) with the smoothing term on normalised values
+(`deep_net.wirefit_normalised`); the smoothing term's values are
 held constant in the gradient (normalised by a small span, its derivative would dwarf the
 rest). Shapes: x [B, S], u [B, A].
 
@@ -91,14 +92,20 @@ class Critics:
 
 
 def wirefit(
-    wire_u: torch.Tensor, wire_q: torch.Tensor, u: torch.Tensor, c: float, eps: float
+    wire_u: torch.Tensor, wire_q: torch.Tensor, u: torch.Tensor, c: float, eps: float, top_k: int = 0
 ) -> torch.Tensor:
-    """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values."""
+    """Q at actions u [..., A] from wires ([..., N, A], [..., N]), smoothing on normalised values.
+
+    With 0 < top_k < N only the top_k largest weights count (ties at the k-th weight all count).
+    """
     q = wire_q.detach()
     q_max = q.max(dim=-1, keepdim=True).values
     span = (q_max - q.min(dim=-1, keepdim=True).values).clamp_min(SPAN_FLOOR)
     d = ((u.unsqueeze(-2) - wire_u) ** 2).sum(dim=-1) + (q_max - q) * (c / span) + eps
     w = 1.0 / d
+    if 0 < top_k < w.shape[-1]:
+        kth = torch.topk(w.detach(), top_k, dim=-1).values[..., -1:]
+        w = torch.where(w >= kth, w, torch.zeros_like(w))
     return (w * wire_q).sum(dim=-1) / w.sum(dim=-1)
 
 
@@ -138,7 +145,7 @@ def loss(
     that torch.compile can take it whole.
     """
     cfg, d = config, config.deep
-    c, eps = cfg.smoothing_c, cfg.eps
+    c, eps, k = cfg.smoothing_c, cfg.eps, d.top_k
     blocks, target_blocks = critics.blocks(theta), critics.blocks(target)
     with torch.no_grad():
         tu, tq = critics.wires(target_blocks, next_state)
@@ -146,14 +153,14 @@ def loss(
         if d.target_noise > 0.0:
             next_u = next_u + (noise * d.target_noise).clamp(-d.target_noise_clip, d.target_noise_clip)
             next_u = next_u.clamp(-1.0, 1.0)
-        next_q = wirefit(tu, tq, next_u, c, eps).min(dim=0).values
+        next_q = wirefit(tu, tq, next_u, c, eps, k).min(dim=0).values
         y = reward + discount * next_q
         if cfg.advantage_k < 1.0:
             nu, nq = critics.wires(target_blocks, x)
-            v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps).min(dim=0).values
+            v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps, k).min(dim=0).values
             y = v + (y - v) / cfg.advantage_k
     wu, wq = critics.wires(blocks, x)
-    Q = wirefit(wu, wq, u, c, eps)  # [2, B]
+    Q = wirefit(wu, wq, u, c, eps, k)  # [2, B]
     total = ((Q - y) ** 2).mean(dim=1).sum()
     if d.separation > 0.0:
         total = total + 2.0 * d.separation * separation(wu)

@@ -101,7 +101,7 @@ class SurfaceGrid:
         wire_u, wire_q = deep_net.wires(params, x)
         best = int(wire_q[0].argmax())
         u = np.where(self.on_axis, self.grid_u, wire_u[0, best])
-        q = deep_net.wirefit_normalised(wire_u[0], wire_q[0], u, cfg.smoothing_c, cfg.eps)
+        q = deep_net.wirefit_normalised(wire_u[0], wire_q[0], u, cfg.smoothing_c, cfg.eps, cfg.deep.top_k)
         wires = self.actions.from_unit(wire_u[0])
         return Surface(self.dims, self.axes, q.reshape(self.shape), wires, wire_q[0].copy(), best)
 

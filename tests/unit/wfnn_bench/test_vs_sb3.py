@@ -1,9 +1,12 @@
-"""vs-sb3's greedy evaluation: mean return and mean episode length."""
+"""vs-sb3: its greedy evaluation (mean return and mean episode length) and its SB3 runs."""
+
+import tempfile
 
 import gymnasium as gym
 import numpy as np
+import pytest
 
-from wfnn_bench.vs_sb3 import _evaluate
+from wfnn_bench.vs_sb3 import VsSb3Config, _evaluate, run_sb3
 
 
 class _Walk(gym.Env):
@@ -29,3 +32,11 @@ def test_evaluation_reports_the_mean_return_and_the_mean_episode_length():
     assert _evaluate(lambda obs: np.array([1.0], np.float32), "WfnnTestWalk-v0", 2, 0) == (7.0, 3.0)
     assert _evaluate(lambda obs: np.array([0.5], np.float32), "WfnnTestWalk-v0", 3, 0) == (10.0, 6.0)
     assert _evaluate(lambda obs: np.array([0.0], np.float32), "WfnnTestWalk-v0", 1, 0) == (20.0, 20.0)
+
+
+def test_an_sb3_run_leaves_no_log_folders_in_the_temporary_directory(tmp_path, monkeypatch):
+    pytest.importorskip("stable_baselines3")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where SB3's own logger would write
+    result = run_sb3("td3", "Pendulum-v1", 60, 0, VsSb3Config(eval_every=20, eval_episodes=1))
+    assert result["steps"] == [20, 40, 60] and len(result["returns"]) == 3
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("SB3-")] == []

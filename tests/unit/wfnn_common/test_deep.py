@@ -91,6 +91,52 @@ def test_wire_fitting_peaks_at_the_best_wire():
     assert (elsewhere <= at_best + 1e-9).all()
 
 
+def test_top_k_interpolates_only_the_nearest_wires():
+    rng = np.random.default_rng(2)
+    wire_u, wire_q = rng.uniform(-1, 1, (5, 6, 2)), rng.normal(size=(5, 6))
+    u = rng.uniform(-1, 1, (5, 2))
+    everything = deep_net.wirefit_normalised(wire_u, wire_q, u, 0.1, 1e-4)
+    for k in (6, 9):  # k at least N: every wire, as k = 0
+        np.testing.assert_allclose(deep_net.wirefit_normalised(wire_u, wire_q, u, 0.1, 1e-4, k), everything)
+    # k = 1: the value of the wire of largest weight (smallest distance with the smoothing term).
+    span = wire_q.max(1, keepdims=True) - wire_q.min(1, keepdims=True)
+    d = ((u[:, None] - wire_u) ** 2).sum(-1) + 0.1 * (wire_q.max(1, keepdims=True) - wire_q) / span
+    nearest = wire_q[np.arange(5), d.argmin(1)]
+    np.testing.assert_allclose(deep_net.wirefit_normalised(wire_u, wire_q, u, 0.1, 1e-4, 1), nearest)
+    three = deep_net.wirefit_normalised(wire_u, wire_q, u, 0.1, 1e-4, 3)
+    assert not np.allclose(three, everything) and not np.allclose(three, nearest)
+    q_t = torch.tensor(wire_q, requires_grad=True)
+    u_t = torch.tensor(wire_u, requires_grad=True)
+    q = wirefit(u_t, q_t, torch.tensor(u), 0.1, 1e-4, 3)
+    np.testing.assert_allclose(q.detach().numpy(), three, atol=1e-12)
+    q.sum().backward()
+    assert q_t.grad is not None and u_t.grad is not None
+    # Only the three nearest wires of each state learn from it, values and actions alike.
+    far = np.argsort(d, axis=1)[:, 3:]
+    rows = np.arange(5)[:, None]
+    near = np.argsort(d, axis=1)[:, :3]
+    assert (q_t.grad.numpy()[rows, far] == 0).all() and (q_t.grad.numpy()[rows, near] != 0).all()
+    assert (u_t.grad.numpy()[rows, far] == 0).all()
+    with pytest.raises(ConfigError, match=r"deep\.top_k"):
+        config(deep={"top_k": -1})
+
+
+def test_top_k_learners_train_and_show_the_same_q():
+    cfg = config(n_wires=6, batch_size=32, deep={"top_k": 2})
+    learner = DeepWFNN(cfg)
+    rng = np.random.default_rng(3)
+    s, a = rng.uniform(-1, 1, (200, 2)), rng.uniform(-2, 2, (200, 1))
+    learner.learn_many(s, a, s, -(a[:, 0] ** 2), np.ones(200, dtype=bool))
+    learner.think(20)
+    assert np.isfinite(learner.last_think.td_abs[0])
+    surface = SurfaceGrid(cfg, (0,), 11)(learner.params, np.array([0.1, 0.2]))
+    x = np.array([0.1, 0.2])
+    q = [learner.q_value(x, np.array([a])) for a in surface.axes[0]]
+    np.testing.assert_allclose(surface.q, q)
+    every_wire = DeepWFNN(with_options(cfg, {"deep": {"top_k": 0}}), params=learner.params)
+    assert not np.allclose(q, [every_wire.q_value(x, np.array([a])) for a in surface.axes[0]])
+
+
 def test_separation_pushes_wires_apart():
     close = torch.tensor([[[0.0], [0.01], [0.5]]], requires_grad=True)
     separation(close).backward()
@@ -172,8 +218,9 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
-def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones():
-    trainer = _fed(DeepWFNN(config(deep={"compile": True})))._train()
+@pytest.mark.parametrize("top_k", [0, 3])
+def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(top_k):
+    trainer = _fed(DeepWFNN(config(deep={"compile": True, "top_k": top_k})))._train()
     rng = np.random.default_rng(5)
     args = (trainer.theta, trainer.target, *(torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
             for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
@@ -186,7 +233,7 @@ def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones():
     (grad_plain,) = torch.autograd.grad(plain[0], trainer.theta)
     torch.testing.assert_close(grad_compiled, grad_plain, rtol=1e-4, atol=1e-6)
     # Learners that differ only in their seed (a population's members) share the compiled loss.
-    other = _fed(DeepWFNN(config(seed=7, deep={"compile": True})))
+    other = _fed(DeepWFNN(config(seed=7, deep={"compile": True, "top_k": top_k})))
     other.think(1)
     assert other._trainer._compiled is trainer._compiled
 
