@@ -7,6 +7,7 @@ target over those 200 actions. A population of controllers runs as arrays.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Callable
@@ -96,16 +97,20 @@ def run_protocol(
     learn: Learn | None = None,
     think: Callable[[], object] | None = None,
     progress: Progress = no_progress,
-) -> FloatArray:
-    """Score `boat.n` controllers on `targets` successive targets -> scores [n, targets].
+) -> tuple[FloatArray, FloatArray]:
+    """Run `boat.n` controllers on `targets` successive targets -> (scores, returns), [n, targets] each.
 
     `choose(states [n, 7]) -> thrusts [n, 2]`; every step, `learn` (a `robot_step` learner:
     state, action, next state, reward, terminal, valid) records the experience and `think` thinks.
     The boat keeps its motion from one target to the next; the target jump itself is never part
-    of an experience.
+    of an experience. A target's score is the boat's mean distance to it (what the thesis
+    reports); its return is the sum of its steps' rewards (Eq 3.8, unsquashed, undiscounted: what
+    a learner maximises). The two disagree (thrust and sudden changes of thrust cost reward, not
+    score), so the benchmark reports both.
     """
     steps = boat.config.steps_per_target
     scores = np.zeros((boat.n, targets))
+    returns = np.zeros((boat.n, targets))
     for t in range(targets):
         x = boat.new_targets(rng)
         total = np.zeros(boat.n)
@@ -114,10 +119,31 @@ def run_protocol(
             if think is not None:
                 think()
             total += boat.distance()
+            returns[:, t] += tr.reward
             x = tr.state
         scores[:, t] = total / steps
         progress(1)
-    return scores
+    return scores, returns
+
+
+HANDCODED_GAIN_SCALES = (1.0, 0.5, 0.3, 0.2, 0.1, 0.05)
+"""The hand-coded controller's gains are scaled by each of these for the reference sweep: the
+full gains give the reference score, and gentler ones trade score for the reward's thrust and
+smoothness terms."""
+
+
+def handcoded_sweep(n: int, targets: int, boat_config: BoatConfig, seed: int) -> list[dict[str, float]]:
+    """The hand-coded controller at each of HANDCODED_GAIN_SCALES -> median score and return per target."""
+    out = []
+    for scale in HANDCODED_GAIN_SCALES:
+        gains = (2.0 * scale, 2.0 * scale, 2.0 * scale, 4.0 * scale)
+        rng = np.random.default_rng(seed)  # the same targets for every scale
+        boat = BoatVec(n, boat_config)
+        boat.reset(rng)
+        scores, returns = run_protocol(boat, targets, rng, functools.partial(handcoded_boat, gains=gains))
+        out.append({"gain_scale": scale, "score": float(np.median(scores)),
+                    "return": float(np.median(returns))})  # fmt: skip
+    return out
 
 
 def reference_scores(n: int, targets: int, boat_config: BoatConfig, seed: int) -> dict[str, FloatArray]:
@@ -131,7 +157,7 @@ def reference_scores(n: int, targets: int, boat_config: BoatConfig, seed: int) -
     for name, policy in policies.items():
         boat = BoatVec(n, boat_config)
         boat.reset(rng)
-        out[name] = run_protocol(boat, targets, rng, policy)
+        out[name] = run_protocol(boat, targets, rng, policy)[0]
     return out
 
 
@@ -154,11 +180,11 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         think_s[0] += time.perf_counter() - t0
 
     start = time.perf_counter()
-    scores = run_protocol(boat, bench.targets, rng, choose, learner.learn, think, progress)
+    scores, returns = run_protocol(boat, bench.targets, rng, choose, learner.learn, think, progress)
     wall = time.perf_counter() - start
     # Greedy evaluation on fresh targets: no exploration, no learning.
     frozen = learner.snapshot()
-    greedy = run_protocol(
+    greedy, greedy_returns = run_protocol(
         boat, bench.greedy_targets, rng, lambda x: learner.act(x, explore=False, params=frozen).action
     )
     last = scores[:, -min(10, bench.targets) :]
@@ -175,6 +201,10 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         "frac_acceptable": float(np.mean(per_controller < bench.acceptable)),
         "greedy_scores": greedy,
         "greedy_median": float(np.median(greedy)),
+        "returns": returns,
+        "median_return_last10": float(np.median(np.median(returns[:, -min(10, bench.targets) :], axis=1))),
+        "greedy_returns": greedy_returns,
+        "greedy_median_return": float(np.median(greedy_returns)),
         "divergence_resets": int(learner.resets.sum()),
         "thinks": thinks,
         "wall_s": wall,
@@ -211,6 +241,7 @@ def run(bench: BoatBenchConfig, progress: Progress = no_progress) -> dict[str, A
         "handcoded_ref": handcoded_ref,
         "step1_random_ref": float(np.median(step1["random"])),
         "step1_handcoded_ref": float(np.median(step1["handcoded"])),
+        "handcoded_gains": handcoded_sweep(20, bench.targets, boat_config, bench.seed + 9),
         "machine": machine_info(),
     }
     if len(results) == 2:
@@ -261,12 +292,16 @@ def rows(result: dict[str, Any], cfg: BoatBenchConfig) -> list[tuple[str, Any]]:
         ("step1_random_ref (dt=1)", result["step1_random_ref"]),
         ("step1_handcoded_ref (dt=1)", result["step1_handcoded_ref"]),
     ]
+    rows += [(f"hand-coded x{h['gain_scale']:g}: score / return", f"{h['score']:.3f} / {h['return']:.1f}")
+             for h in result.get("handcoded_gains", [])]  # fmt: skip
     for res in result["results"]:
         c = res["condition"]
         rows += [
             (f"{c}: median_last10", res["median_last10"]),
             (f"{c}: frac_acceptable", res["frac_acceptable"]),
             (f"{c}: greedy_median", res["greedy_median"]),
+            (f"{c}: median_return_last10", res["median_return_last10"]),
+            (f"{c}: greedy_median_return", res["greedy_median_return"]),
             (f"{c}: divergence_resets", res["divergence_resets"]),
             (f"{c}: thinks_per_s", res["thinks_per_s"]),
         ]

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
@@ -50,6 +51,10 @@ def test_bench_boat_writes_json_fields_and_plot(tmp_path):
         assert all(0 < s < 10 for row in r["scores"] for s in row)
         assert 0 <= r["frac_acceptable"] <= 1
         assert r["median_last10"] > 0 and r["thinks_per_s"] > 0
+        assert np.shape(r["returns"]) == (3, 2) and np.shape(r["greedy_returns"]) == (3, 10)
+        assert r["median_return_last10"] < 0 and r["greedy_median_return"] < 0
+    assert [h["gain_scale"] for h in data["handcoded_gains"]] == [1.0, 0.5, 0.3, 0.2, 0.1, 0.05]
+    assert "hand-coded x0.1: score / return" in out.stdout
 
 
 def test_bench_boat_runs_deep_controllers(tmp_path):

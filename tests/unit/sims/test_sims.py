@@ -5,7 +5,7 @@ from gymnasium.utils.env_checker import check_env
 from sims.boat import BoatConfig, BoatEnv, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleConfig, CartPoleEnv, CartPoleVec
 from sims.positioning import PositioningEnv, PositioningVec, handcoded_positioning
-from wfnn_bench.boat import run_protocol
+from wfnn_bench.boat import handcoded_sweep, run_protocol
 
 
 @pytest.mark.parametrize("make", [BoatEnv, CartPoleEnv, PositioningEnv])
@@ -61,7 +61,7 @@ def test_handcoded_boat_beats_random_and_zero_on_the_protocol():
         rng = np.random.default_rng(seed)
         boat = BoatVec(10)
         boat.reset(rng)
-        return np.median(run_protocol(boat, 3, rng, policy))
+        return np.median(run_protocol(boat, 3, rng, policy)[0])
 
     rng = np.random.default_rng(1)
     hand = score(handcoded_boat)
@@ -69,6 +69,37 @@ def test_handcoded_boat_beats_random_and_zero_on_the_protocol():
     zero = score(lambda x: np.zeros((x.shape[0], 2)))
     assert zero == pytest.approx(1.0)
     assert hand < 0.4 < rand
+
+
+def test_the_protocol_reports_each_targets_return_beside_its_score():
+    rng = np.random.default_rng(0)
+    boat = BoatVec(4)
+    boat.reset(rng)
+    # Zero thrust from rest: the boat stays one unit from each target, so every step's reward is
+    # -distance_weight (no thrust, no change of thrust): -0.5 x 200 steps per target.
+    scores, returns = run_protocol(boat, 3, rng, lambda x: np.zeros((x.shape[0], 2)))
+    np.testing.assert_allclose(scores, 1.0)
+    np.testing.assert_allclose(returns, -100.0)
+    # A controller that switches full thrust back and forth pays for the changes: 2 x (2^2 + 2^2)
+    # per step after the first (2 x 2 for the first, from rest), and 0.5 x 2 for the thrust,
+    # beside the distance term.
+    sign = [1.0]
+
+    def bang(x):
+        sign[0] = -sign[0]
+        return np.full((x.shape[0], 2), sign[0])
+
+    boat.reset(rng)
+    scores, returns = run_protocol(boat, 1, rng, bang)
+    distance_part = -0.5 * 200 * scores[:, 0]
+    np.testing.assert_allclose(returns[:, 0] - distance_part, -(200 * 1.0 + 199 * 16.0 + 4.0), rtol=1e-9)
+
+
+def test_gentler_hand_coded_gains_trade_score_for_reward():
+    sweep = handcoded_sweep(6, 2, BoatConfig(dt=1.0), 0)
+    assert [h["gain_scale"] for h in sweep] == [1.0, 0.5, 0.3, 0.2, 0.1, 0.05]
+    full, gentlest = sweep[0], sweep[-1]
+    assert full["score"] < gentlest["score"] < 0.5 and full["return"] < gentlest["return"]
 
 
 def test_cartpole_eq43_step_and_failure():
