@@ -144,9 +144,11 @@ class BoatVec:
         )
 
 
-def handcoded_boat(
-    state: FloatArray, gains: tuple[float, float, float, float] = (2.0, 2.0, 2.0, 4.0)
-) -> FloatArray:
+HANDCODED_GAINS = (2.0, 2.0, 2.0, 4.0)
+"""The hand-coded boat controller's gains: (turn, turn damping, throttle, speed damping)."""
+
+
+def handcoded_boat(state: FloatArray, gains: tuple[float, ...] = HANDCODED_GAINS) -> FloatArray:
     """A hand-coded boat controller (the reference, and a behaviour policy for passive learning).
 
     Turn toward the target (or back up toward a target behind), throttle on distance, and damp

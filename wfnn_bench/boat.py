@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from sims.boat import BoatConfig, BoatVec, handcoded_boat
+from sims.boat import HANDCODED_GAINS, BoatConfig, BoatVec, handcoded_boat
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
@@ -136,7 +136,7 @@ def handcoded_sweep(n: int, targets: int, boat_config: BoatConfig, seed: int) ->
     """The hand-coded controller at each of HANDCODED_GAIN_SCALES -> median score and return per target."""
     out = []
     for scale in HANDCODED_GAIN_SCALES:
-        gains = (2.0 * scale, 2.0 * scale, 2.0 * scale, 4.0 * scale)
+        gains = tuple(scale * g for g in HANDCODED_GAINS)
         rng = np.random.default_rng(seed)  # the same targets for every scale
         boat = BoatVec(n, boat_config)
         boat.reset(rng)
@@ -187,8 +187,8 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
     greedy, greedy_returns = run_protocol(
         boat, bench.greedy_targets, rng, lambda x: learner.act(x, explore=False, params=frozen).action
     )
-    last = scores[:, -min(10, bench.targets) :]
-    per_controller = np.median(last, axis=1)
+    last = slice(-min(10, bench.targets), None)  # the last 10 targets
+    per_controller = np.median(scores[:, last], axis=1)
     thinks = int(learner.thinks.sum())
     return {
         "condition": condition,
@@ -202,7 +202,7 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         "greedy_scores": greedy,
         "greedy_median": float(np.median(greedy)),
         "returns": returns,
-        "median_return_last10": float(np.median(np.median(returns[:, -min(10, bench.targets) :], axis=1))),
+        "median_return_last10": float(np.median(np.median(returns[:, last], axis=1))),
         "greedy_returns": greedy_returns,
         "greedy_median_return": float(np.median(greedy_returns)),
         "divergence_resets": int(learner.resets.sum()),

@@ -160,10 +160,9 @@ def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config
     """One SB3 model (defaults, MlpPolicy) on the task, trained in chunks between evaluations."""
     import torch
     from stable_baselines3 import SAC, TD3
-
-    torch.set_num_threads(1)  # the comparison is per core, as WFNN's learner runs on one
     from stable_baselines3.common.logger import Logger
 
+    torch.set_num_threads(1)  # the comparison is per core, as WFNN's learner runs on one
     model = {"sac": SAC, "td3": TD3}[algorithm]("MlpPolicy", gym.make(env_id), seed=seed, verbose=0)
     # A logger with no outputs: SB3's own makes an empty folder in the system's temporary
     # directory at every `learn` call, which a run of many chunks would leave behind.
