@@ -117,6 +117,23 @@ class BoatVec:
             [self.relative_target(), self.vel, self.turn_rate[:, None], self.prev_thrust], axis=1
         )
 
+    def reward_terms(self, thrust: FloatArray, previous: FloatArray) -> FloatArray:
+        """Eq 3.8's three terms [n, 3] for thrusts [n, 2] after `previous` [n, 2].
+
+        Distance (at the boats' present positions), energy and coarseness, each at most 0; they
+        sum to the reward.
+        """
+        cfg = self.config
+        change = thrust - previous
+        return np.stack(
+            [
+                -cfg.distance_weight * self.distance(),
+                -cfg.energy_weight * (thrust * thrust).sum(axis=1),
+                -cfg.coarseness_weight * (change * change).sum(axis=1),
+            ],
+            axis=1,
+        )
+
     def step(self, action: FloatArray) -> Transition:
         """One Euler step of Eq 3.7 with thrusts [n, 2] (clipped to [-1, 1]); reward Eq 3.8."""
         cfg = self.config
@@ -132,12 +149,7 @@ class BoatVec:
         sway_acc = -0.15 * sway
         self.turn_rate = self.turn_rate + dt * turn_acc
         self.vel = self.vel + dt * np.stack([surge_acc, sway_acc], axis=1)
-        change = thrust - self.prev_thrust
-        reward = (
-            -cfg.distance_weight * self.distance()
-            - cfg.energy_weight * (thrust * thrust).sum(axis=1)
-            - cfg.coarseness_weight * (change * change).sum(axis=1)
-        )
+        reward = self.reward_terms(thrust, self.prev_thrust).sum(axis=1)
         self.prev_thrust = thrust
         return Transition(
             self.observe(), reward, np.zeros(self.n, dtype=np.bool_), np.ones(self.n, dtype=np.bool_)

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -89,6 +89,21 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
     return config
 
 
+class ProtocolRun(NamedTuple):
+    """What the Section 4.2 protocol measured of `n` controllers on each of `targets` targets."""
+
+    scores: FloatArray
+    """Mean distance to the target over its steps [n, targets] (what the thesis reports)."""
+    returns: FloatArray
+    """Sum of the target's rewards [n, targets] (Eq 3.8, unsquashed, undiscounted)."""
+    terms: FloatArray
+    """The returns split into Eq 3.8's terms [n, targets, 3]: distance, energy, coarseness."""
+
+
+TERMS = ("distance", "energy", "coarseness")
+"""Eq 3.8's terms, in the order of ProtocolRun.terms."""
+
+
 def run_protocol(
     boat: BoatVec,
     targets: int,
@@ -97,8 +112,8 @@ def run_protocol(
     learn: Learn | None = None,
     think: Callable[[], object] | None = None,
     progress: Progress = no_progress,
-) -> tuple[FloatArray, FloatArray]:
-    """Run `boat.n` controllers on `targets` successive targets -> (scores, returns), [n, targets] each.
+) -> ProtocolRun:
+    """Run `boat.n` controllers on `targets` successive targets -> scores, returns and their terms.
 
     `choose(states [n, 7]) -> thrusts [n, 2]`; every step, `learn` (a `robot_step` learner:
     state, action, next state, reward, terminal, valid) records the experience and `think` thinks.
@@ -106,24 +121,32 @@ def run_protocol(
     of an experience. A target's score is the boat's mean distance to it (what the thesis
     reports); its return is the sum of its steps' rewards (Eq 3.8, unsquashed, undiscounted: what
     a learner maximises). The two disagree (thrust and sudden changes of thrust cost reward, not
-    score), so the benchmark reports both.
+    score), so the benchmark reports both, and the return's terms say where reward was lost.
     """
     steps = boat.config.steps_per_target
     scores = np.zeros((boat.n, targets))
     returns = np.zeros((boat.n, targets))
+    terms = np.zeros((boat.n, targets, len(TERMS)))
     for t in range(targets):
         x = boat.new_targets(rng)
         total = np.zeros(boat.n)
         for _ in range(steps):
+            previous = boat.prev_thrust
             tr = robot_step(Decided.unchanged(choose(x)), boat.step, [Pupil(x, learn)] if learn else [])
             if think is not None:
                 think()
             total += boat.distance()
             returns[:, t] += tr.reward
+            terms[:, t] += boat.reward_terms(boat.prev_thrust, previous)
             x = tr.state
         scores[:, t] = total / steps
         progress(1)
-    return scores, returns
+    return ProtocolRun(scores, returns, terms)
+
+
+def median_terms(terms: FloatArray) -> dict[str, float]:
+    """The median over controllers and targets of each term of the returns, terms [n, targets, 3]."""
+    return {name: float(np.median(terms[..., i])) for i, name in enumerate(TERMS)}
 
 
 HANDCODED_GAIN_SCALES = (1.0, 0.5, 0.3, 0.2, 0.1, 0.05)
@@ -132,17 +155,18 @@ full gains give the reference score, and gentler ones trade score for the reward
 smoothness terms."""
 
 
-def handcoded_sweep(n: int, targets: int, boat_config: BoatConfig, seed: int) -> list[dict[str, float]]:
-    """The hand-coded controller at each of HANDCODED_GAIN_SCALES -> median score and return per target."""
+def handcoded_sweep(n: int, targets: int, boat_config: BoatConfig, seed: int) -> list[dict[str, Any]]:
+    """The hand-coded controller at each of HANDCODED_GAIN_SCALES -> median score, return and its terms."""
     out = []
     for scale in HANDCODED_GAIN_SCALES:
         gains = tuple(scale * g for g in HANDCODED_GAINS)
         rng = np.random.default_rng(seed)  # the same targets for every scale
         boat = BoatVec(n, boat_config)
         boat.reset(rng)
-        scores, returns = run_protocol(boat, targets, rng, functools.partial(handcoded_boat, gains=gains))
-        out.append({"gain_scale": scale, "score": float(np.median(scores)),
-                    "return": float(np.median(returns))})  # fmt: skip
+        run = run_protocol(boat, targets, rng, functools.partial(handcoded_boat, gains=gains))
+        out.append({"gain_scale": scale, "score": float(np.median(run.scores)),
+                    "return": float(np.median(run.returns)),
+                    "return_terms": median_terms(run.terms)})  # fmt: skip
     return out
 
 
@@ -157,7 +181,7 @@ def reference_scores(n: int, targets: int, boat_config: BoatConfig, seed: int) -
     for name, policy in policies.items():
         boat = BoatVec(n, boat_config)
         boat.reset(rng)
-        out[name] = run_protocol(boat, targets, rng, policy)[0]
+        out[name] = run_protocol(boat, targets, rng, policy).scores
     return out
 
 
@@ -180,11 +204,11 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         think_s[0] += time.perf_counter() - t0
 
     start = time.perf_counter()
-    scores, returns = run_protocol(boat, bench.targets, rng, choose, learner.learn, think, progress)
+    scores, returns, terms = run_protocol(boat, bench.targets, rng, choose, learner.learn, think, progress)
     wall = time.perf_counter() - start
     # Greedy evaluation on fresh targets: no exploration, no learning.
     frozen = learner.snapshot()
-    greedy, greedy_returns = run_protocol(
+    greedy, greedy_returns, greedy_terms = run_protocol(
         boat, bench.greedy_targets, rng, lambda x: learner.act(x, explore=False, params=frozen).action
     )
     last = slice(-min(10, bench.targets), None)  # the last 10 targets
@@ -205,6 +229,8 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         "median_return_last10": float(np.median(np.median(returns[:, last], axis=1))),
         "greedy_returns": greedy_returns,
         "greedy_median_return": float(np.median(greedy_returns)),
+        "return_terms_last10": median_terms(terms[:, last]),
+        "greedy_return_terms": median_terms(greedy_terms),
         "divergence_resets": int(learner.resets.sum()),
         "thinks": thinks,
         "wall_s": wall,
@@ -296,12 +322,14 @@ def rows(result: dict[str, Any], cfg: BoatBenchConfig) -> list[tuple[str, Any]]:
              for h in result.get("handcoded_gains", [])]  # fmt: skip
     for res in result["results"]:
         c = res["condition"]
+        greedy_terms = " / ".join(f"{res['greedy_return_terms'][t]:.1f}" for t in TERMS)
         rows += [
             (f"{c}: median_last10", res["median_last10"]),
             (f"{c}: frac_acceptable", res["frac_acceptable"]),
             (f"{c}: greedy_median", res["greedy_median"]),
             (f"{c}: median_return_last10", res["median_return_last10"]),
             (f"{c}: greedy_median_return", res["greedy_median_return"]),
+            (f"{c}: greedy return terms: " + " / ".join(TERMS), greedy_terms),
             (f"{c}: divergence_resets", res["divergence_resets"]),
             (f"{c}: thinks_per_s", res["thinks_per_s"]),
         ]

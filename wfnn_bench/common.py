@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from wfnn_common.config import ExplorationConfig, LearnerConfig, with_options
+from wfnn_common.learners import Learner, make_learner
 from wfnn_io import persist
 
 log = logging.getLogger(__name__)
@@ -44,3 +46,15 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
 def fmt2(value: float | None) -> str:
     """A figure for a table: two decimals, or "-" where there is none (None, NaN)."""
     return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"
+
+
+def tick_learner(task: Any, learner: str) -> Learner:
+    """A fresh learner of one robot, for timing a control tick.
+
+    The thesis' learner with Gaussian exploration, or the deep learner with its defaults and no
+    warm-up (a warm-up action is a random draw, not the network that `act` runs afterwards).
+    """
+    if learner == "deep":
+        deep = LearnerConfig.for_task(task, learner="deep")
+        return make_learner(with_options(deep, {"deep": {"warmup": 0}}))
+    return make_learner(LearnerConfig.for_task(task, exploration=ExplorationConfig(kind="gaussian")))

@@ -30,10 +30,9 @@ import numpy as np
 
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
-from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
+from wfnn_bench.common import Progress, fmt2, machine_info, no_progress, tick_learner
 from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
-from wfnn_common.learner import WFNN
 from wfnn_common.learners import make_population
 
 FloatArray = np.ndarray
@@ -250,10 +249,15 @@ def analysis(learner: Any, task: HydraVec) -> dict[str, Any]:
     }
 
 
-def tick_cost(samples: int, seed: int, source: VisionSource = "projection") -> dict[str, float]:
-    """Milliseconds per control tick (physics + vision + act) at the default 1-DOF settings."""
+def tick_cost(
+    samples: int, seed: int, source: VisionSource = "projection", learner_kind: str = "thesis"
+) -> dict[str, float]:
+    """Milliseconds per control tick (physics + vision + act) at the default 1-DOF settings.
+
+    The tick acts with a fresh learner of the kind the heads learned with.
+    """
     task = HydraVec(1, HydraConfig(vision=VisionConfig(source=source)), seed=seed)
-    learner = WFNN(LearnerConfig.for_task(task, exploration=ExplorationConfig(kind="gaussian")))
+    learner = tick_learner(task, learner_kind)
     x = task.reset(np.random.default_rng(seed))
     times = np.zeros(samples)
     for k in range(samples):
@@ -319,7 +323,7 @@ def render_check(cfg: HydraBenchConfig, progress: Progress) -> dict[str, Any]:
             }
             out["views"][regime] = rendered["views"]
             progress(1)
-        tick = tick_cost(max(cfg.tick_samples // 4, 50), cfg.seed, source="render")
+        tick = tick_cost(max(cfg.tick_samples // 4, 50), cfg.seed, source="render", learner_kind=cfg.learner)
     except RenderUnavailable as exc:
         return {"available": False, "reason": str(exc)}
     out["tick_ms_p50_render"] = tick["tick_ms_p50"]
@@ -382,7 +386,7 @@ def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, An
                 "per_controller": {k: v for k, v in ev.items()},
             }
     dof4 = four_dof(cfg, progress)
-    tick = tick_cost(cfg.tick_samples, cfg.seed)
+    tick = tick_cost(cfg.tick_samples, cfg.seed, learner_kind=cfg.learner)
     progress(1)
     rendering = render_check(cfg, progress) if cfg.render else {"available": False, "reason": "not run"}
     return {

@@ -40,7 +40,7 @@ from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcod
 from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
-from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
+from wfnn_bench.common import Progress, fmt2, machine_info, no_progress, tick_learner
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
@@ -501,11 +501,14 @@ def render_check(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
 
 
 def tick_cost(cfg: NomadBenchConfig) -> dict[str, float]:
-    """Milliseconds per control tick (physics, infrared, carpet matrix, tracker, act), servo and wander."""
+    """Milliseconds per control tick (physics, infrared, carpet matrix, tracker, act), servo and wander.
+
+    Servoing acts with the servo controllers' kind of learner, wandering with the thesis'.
+    """
     out: dict[str, float] = {}
     for behaviour in ("servo", "wander"):
         task = NomadVec(1, replace(cfg.task, behaviour=behaviour), seed=cfg.seed)
-        learner = WFNN(LearnerConfig.for_task(task, exploration=ExplorationConfig(kind="gaussian")))
+        learner = tick_learner(task, cfg.learner if behaviour == "servo" else "thesis")
         x = task.reset(np.random.default_rng(cfg.seed))
         times = np.zeros(cfg.tick_samples)
         for k in range(cfg.tick_samples):

@@ -131,7 +131,7 @@ def evaluate(
     def add(*experience: Any) -> None:  # only the reward counts
         rewards[:] += squash_reward(experience[3], gamma)
 
-    scores = run_protocol(boat, cfg.eval_targets, rng, policy, add)[0]
+    scores = run_protocol(boat, cfg.eval_targets, rng, policy, add).scores
     return np.asarray(np.median(scores, axis=1)), rewards / (cfg.eval_targets * boat.config.steps_per_target)
 
 
@@ -173,7 +173,7 @@ def record_logs(cfg: PassiveBenchConfig, directory: Path) -> dict[str, Any]:
                                         EXP_EXPLORED if sigma > 0 else 0)  # fmt: skip
                 recorder.add(experience, name, 0)
 
-        scores[name] = float(np.median(run_protocol(boats, cfg.log_targets, rng, policy, keep)[0]))
+        scores[name] = float(np.median(run_protocol(boats, cfg.log_targets, rng, policy, keep).scores))
         for recorder in recorders:
             recorder.close()
     return {"policy_scores": scores, "logs": sorted(str(p) for p in directory.iterdir())}
@@ -266,7 +266,7 @@ def online(cfg: PassiveBenchConfig, kind: str, progress: Progress) -> dict[str, 
                 learner.learn(ms, mu, msn, mr, terminal, valid)
 
     choose: Callable[[FloatArray], FloatArray] = lambda x: learner.act(x).action  # noqa: E731
-    scores = run_protocol(boat, cfg.online_targets, rng, choose, learn, learner.think, progress)[0]
+    scores = run_protocol(boat, cfg.online_targets, rng, choose, learn, learner.think, progress).scores
     greedy = float(np.median(greedy_score(learner, cfg)))
     return {"scores": scores, "median_per_target": np.median(scores, axis=0),
             "score_last10": float(np.median(scores[:, -10:])), "greedy": greedy}  # fmt: skip

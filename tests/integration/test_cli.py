@@ -53,8 +53,12 @@ def test_bench_boat_writes_json_fields_and_plot(tmp_path):
         assert r["median_last10"] > 0 and r["thinks_per_s"] > 0
         assert np.shape(r["returns"]) == (3, 2) and np.shape(r["greedy_returns"]) == (3, 10)
         assert r["median_return_last10"] < 0 and r["greedy_median_return"] < 0
+        for terms in (r["return_terms_last10"], r["greedy_return_terms"]):
+            assert set(terms) == {"distance", "energy", "coarseness"} and max(terms.values()) <= 0
+            assert terms["distance"] < 0
     assert [h["gain_scale"] for h in data["handcoded_gains"]] == [1.0, 0.5, 0.3, 0.2, 0.1, 0.05]
     assert "hand-coded x0.1: score / return" in out.stdout
+    assert "q: greedy return terms: distance / energy / coarseness" in out.stdout
 
 
 def test_bench_boat_runs_deep_controllers(tmp_path):

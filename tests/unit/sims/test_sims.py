@@ -61,7 +61,7 @@ def test_handcoded_boat_beats_random_and_zero_on_the_protocol():
         rng = np.random.default_rng(seed)
         boat = BoatVec(10)
         boat.reset(rng)
-        return np.median(run_protocol(boat, 3, rng, policy)[0])
+        return np.median(run_protocol(boat, 3, rng, policy).scores)
 
     rng = np.random.default_rng(1)
     hand = score(handcoded_boat)
@@ -77,9 +77,10 @@ def test_the_protocol_reports_each_targets_return_beside_its_score():
     boat.reset(rng)
     # Zero thrust from rest: the boat stays one unit from each target, so every step's reward is
     # -distance_weight (no thrust, no change of thrust): -0.5 x 200 steps per target.
-    scores, returns = run_protocol(boat, 3, rng, lambda x: np.zeros((x.shape[0], 2)))
+    scores, returns, terms = run_protocol(boat, 3, rng, lambda x: np.zeros((x.shape[0], 2)))
     np.testing.assert_allclose(scores, 1.0)
     np.testing.assert_allclose(returns, -100.0)
+    np.testing.assert_allclose(terms, np.broadcast_to([-100.0, 0.0, 0.0], (4, 3, 3)), atol=1e-9)
     # A controller that switches full thrust back and forth pays for the changes: 2 x (2^2 + 2^2)
     # per step after the first (2 x 2 for the first, from rest), and 0.5 x 2 for the thrust,
     # beside the distance term.
@@ -90,9 +91,14 @@ def test_the_protocol_reports_each_targets_return_beside_its_score():
         return np.full((x.shape[0], 2), sign[0])
 
     boat.reset(rng)
-    scores, returns = run_protocol(boat, 1, rng, bang)
+    scores, returns, terms = run_protocol(boat, 1, rng, bang)
     distance_part = -0.5 * 200 * scores[:, 0]
     np.testing.assert_allclose(returns[:, 0] - distance_part, -(200 * 1.0 + 199 * 16.0 + 4.0), rtol=1e-9)
+    # The terms: the distance term, the thrust (0.5 x 2 per step) and its changes, summing to the return.
+    np.testing.assert_allclose(terms[:, 0, 0], distance_part, rtol=1e-9)
+    np.testing.assert_allclose(terms[:, 0, 1], -200.0, rtol=1e-12)
+    np.testing.assert_allclose(terms[:, 0, 2], -(199 * 16.0 + 4.0), rtol=1e-12)
+    np.testing.assert_allclose(terms.sum(axis=-1), returns, rtol=1e-12)
 
 
 def test_gentler_hand_coded_gains_trade_score_for_reward():
@@ -100,6 +106,10 @@ def test_gentler_hand_coded_gains_trade_score_for_reward():
     assert [h["gain_scale"] for h in sweep] == [1.0, 0.5, 0.3, 0.2, 0.1, 0.05]
     full, gentlest = sweep[0], sweep[-1]
     assert full["score"] < gentlest["score"] < 0.5 and full["return"] < gentlest["return"]
+    # Gentler gains spend less on thrust and on changing it, and more on distance.
+    for term in ("energy", "coarseness"):
+        assert full["return_terms"][term] < gentlest["return_terms"][term] <= 0.0
+    assert gentlest["return_terms"]["distance"] < full["return_terms"]["distance"] < 0.0
 
 
 def test_cartpole_eq43_step_and_failure():
