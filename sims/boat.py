@@ -48,6 +48,24 @@ class BoatConfig:
         check_fields(self)
 
 
+def reward_terms(
+    config: BoatConfig, distance: FloatArray, thrust: FloatArray, previous: FloatArray
+) -> FloatArray:
+    """Eq 3.8's three terms [n, 3] for thrusts [n, 2] after `previous` [n, 2], `distance` [n] after.
+
+    Distance, energy and coarseness, each at most 0; they sum to the reward.
+    """
+    change = thrust - previous
+    return np.stack(
+        [
+            -config.distance_weight * distance,
+            -config.energy_weight * (thrust * thrust).sum(axis=1),
+            -config.coarseness_weight * (change * change).sum(axis=1),
+        ],
+        axis=1,
+    )
+
+
 MIRROR = Symmetry(
     name="mirror",
     state_index=(0, 1, 2, 3, 4, 6, 5), state_sign=(1.0, -1.0, 1.0, -1.0, -1.0, 1.0, 1.0),
@@ -118,21 +136,8 @@ class BoatVec:
         )
 
     def reward_terms(self, thrust: FloatArray, previous: FloatArray) -> FloatArray:
-        """Eq 3.8's three terms [n, 3] for thrusts [n, 2] after `previous` [n, 2].
-
-        Distance (at the boats' present positions), energy and coarseness, each at most 0; they
-        sum to the reward.
-        """
-        cfg = self.config
-        change = thrust - previous
-        return np.stack(
-            [
-                -cfg.distance_weight * self.distance(),
-                -cfg.energy_weight * (thrust * thrust).sum(axis=1),
-                -cfg.coarseness_weight * (change * change).sum(axis=1),
-            ],
-            axis=1,
-        )
+        """`reward_terms` of thrusts [n, 2] after `previous` [n, 2], at the boats' present positions."""
+        return reward_terms(self.config, self.distance(), thrust, previous)
 
     def step(self, action: FloatArray) -> Transition:
         """One Euler step of Eq 3.7 with thrusts [n, 2] (clipped to [-1, 1]); reward Eq 3.8."""

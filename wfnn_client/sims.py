@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from sims.base import Behaviours, Ranges, Transition, VecTask
 from sims.boat import BoatConfig, BoatVec, handcoded_boat
+from sims.boat import reward_terms as boat_reward_terms
 from sims.cartpole import CartPoleVec
 from sims.gym import GymVec
 from sims.hydra import HydraConfig, HydraVec
@@ -123,12 +124,9 @@ def _boat_reward(task: BoatVec) -> RewardOf:
 
     def reward_of(state: FloatArray, action: FloatArray, next_state: FloatArray) -> float:
         # Eq 3.8 with the proposed thrusts; the distance is the one observed after the step.
-        u = np.clip(action, -1.0, 1.0)
-        change = u - state[5:7]
-        return float(
-            -cfg.distance_weight * np.hypot(next_state[0], next_state[1])
-            - cfg.energy_weight * float(u @ u) - cfg.coarseness_weight * float(change @ change)
-        )  # fmt: skip
+        u = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)[None]
+        distance = np.hypot(next_state[None, 0], next_state[None, 1])
+        return float(boat_reward_terms(cfg, distance, u, np.asarray(state)[None, 5:7]).sum())
 
     return reward_of
 
