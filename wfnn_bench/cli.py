@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import tempfile
+import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Annotated, Any
@@ -15,6 +17,7 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    TaskID,
     TextColumn,
     TimeElapsedColumn,
     TimeRemainingColumn,
@@ -67,7 +70,61 @@ def writable(path: Path) -> None:
         pass
 
 
-def _progress() -> Progress:
+class LineProgress:
+    """Progress as plain lines, for output that is not a terminal (a log file, a pipe).
+
+    A progress bar redraws one line in place, which a file receives only when the work ends, so
+    a benchmark run in the background said nothing for an hour. This writes a line when a task
+    starts, at most one every `every_s` seconds as it advances, and one when the work ends.
+    Only `add_task` and `advance` of rich's Progress, as the benchmarks use them.
+    """
+
+    def __init__(
+        self, write: Callable[[str], None], every_s: float = 60.0, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self._write, self._every_s, self._clock = write, every_s, clock
+        self._tasks: list[list[Any]] = []  # [description, total, done, started, last line's time]
+
+    def __enter__(self) -> LineProgress:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        for task in range(len(self._tasks)):
+            self._line(task)
+
+    def add_task(self, description: str, total: float | None = None) -> TaskID:
+        """A new task, announced with a line."""
+        now = self._clock()
+        self._tasks.append([description, total, 0.0, now, now])
+        self._line(len(self._tasks) - 1)
+        return TaskID(len(self._tasks) - 1)
+
+    def advance(self, task: TaskID, advance: float = 1.0) -> None:
+        """`advance` more units of `task` done; a line if the last was `every_s` ago."""
+        entry = self._tasks[task]
+        entry[2] += advance
+        if self._clock() - entry[4] >= self._every_s:
+            self._line(task)
+
+    def _line(self, task: int) -> None:
+        description, total, done, started, _ = entry = self._tasks[task]
+        now = entry[4] = self._clock()
+        elapsed = now - started
+        text = f"{description}: {done:g}" + (f"/{total:g} ({100 * done / total:.0f}%)" if total else "")
+        text += f", {_duration(elapsed)} elapsed"
+        if total and 0 < done < total:
+            text += f", about {_duration(elapsed * (total - done) / done)} left"
+        self._write(text)
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
+def _progress() -> Progress | LineProgress:
+    """A progress bar on a terminal; elsewhere (a log file), lines now and then."""
+    if not console.is_terminal:
+        return LineProgress(lambda text: console.out(text, highlight=False))
     return Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
         TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
@@ -367,13 +424,21 @@ def relearn(
 @app.command()
 def passive(
     controllers: Annotated[int, typer.Option(min=1, help="Learners per condition.")] = 8,
+    learner: Annotated[
+        str, typer.Option(help="thesis | deep: the learner of every condition but the thesis' passive one.")
+    ] = "thesis",
+    learner_options: Annotated[
+        str, typer.Option(help="That learner's config fields over its defaults, a JSON object.")
+    ] = "",
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     log_targets: Annotated[int, typer.Option(min=1, help="Targets per logged boat and policy.")] = 10,
     passive_thinks: Annotated[
         int | None, typer.Option(min=1000, help="Replays per passive learner [thinks per logged experience].")
     ] = None,
     online_targets: Annotated[int, typer.Option(min=10, help="Targets of the online conditions.")] = 40,
-    thinks: Annotated[int, typer.Option(min=0, help="Online replays per action.")] = 200,
+    thinks: Annotated[
+        int | None, typer.Option(min=0, help="Online replays per action [the learner's: thesis 200, deep 1].")
+    ] = None,
     eval_targets: Annotated[int, typer.Option(min=1, help="Targets of each greedy evaluation.")] = 10,
     bc_weight: Annotated[
         float, typer.Option(min=0.0, help="Passive learners' pull of the best wire to the logged actions.")
@@ -382,7 +447,8 @@ def passive(
         float, typer.Option(min=0.01, max=1.0, help="Passive learners' k (the thesis' learner keeps 0.2).")
     ] = 1.0,
     passive_alpha: Annotated[
-        float, typer.Option(min=1e-6, help="Passive learners' learning rate (the thesis' keeps 0.25).")
+        float,
+        typer.Option(min=1e-6, help="The thesis' learner's rate in the pulled and unpulled conditions."),
     ] = 0.05,
     seed: int = 0,
     json_path: JsonOpt = None,
@@ -391,11 +457,15 @@ def passive(
 ) -> None:
     """Boat: passive learning from logs, phantom targets, mirror images (learning from data)."""
     _logging(verbose, json_path, plot_path)
-    cfg = passive_bench.PassiveBenchConfig(
-        controllers=controllers, dt=dt, log_targets=log_targets, passive_thinks=passive_thinks,
-        online_targets=online_targets, thinks=thinks, eval_targets=eval_targets, bc_weight=bc_weight,
-        passive_advantage_k=passive_advantage_k, passive_alpha=passive_alpha, seed=seed,
-    )  # fmt: skip
+    try:
+        cfg = passive_bench.PassiveBenchConfig(
+            controllers=controllers, learner=learner, learner_options=learner_options,  # type: ignore[arg-type]
+            dt=dt, log_targets=log_targets, passive_thinks=passive_thinks, online_targets=online_targets,
+            thinks=thinks, eval_targets=eval_targets, bc_weight=bc_weight,
+            passive_advantage_k=passive_advantage_k, passive_alpha=passive_alpha, seed=seed,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     _measure(passive_bench, cfg, "passive", passive_bench.steps(cfg),
              "Passive and off-policy learning (boat)", json_path, plot_path)  # fmt: skip
 

@@ -21,6 +21,9 @@
 - Diagnosis: in states of the logs, the value of the greedy (best-wire) action against the
   values of the logged actions (a greedy value far above every logged action's is an
   extrapolation to actions the data never tried).
+- Learners: `learner` names the learner of the pulled, unpulled and phantom-only passive
+  conditions and of the online ones ("thesis" or "deep", each with its own defaults); the
+  thesis' passive learner is the thesis' whatever `learner` says, as the reference.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,8 +42,8 @@ from sims.boat import BoatConfig, BoatVec, handcoded_boat, mirror, phantom
 from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.brain import Experience, Recorder
-from wfnn_common.config import LearnerConfig, check_fields
-from wfnn_common.learner import WFNN
+from wfnn_common.config import DEEP_DEFAULTS, LEARNERS, LearnerConfig, check_fields
+from wfnn_common.learners import make_population
 from wfnn_common.update import squash_reward
 from wfnn_io import logs
 from wfnn_io.protocol import EXP_EXPLORED
@@ -55,6 +58,11 @@ class PassiveBenchConfig:
 
     controllers: int = 8
     """Learners per condition (a population learning at once)."""
+    learner: Literal["thesis", "deep"] = "thesis"
+    """The learner of the pulled, unpulled and phantom-only passive conditions and of the online
+    ones (the thesis' passive condition is always the thesis' learner)."""
+    learner_options: str = ""
+    """Config fields of `learner` over its defaults, a JSON object (as `wfnn-bench boat`'s)."""
     dt: float = 0.1
     """Boat time per action (see sims.boat)."""
     noise: tuple[float, ...] = (0.0, 0.3, 1.0)
@@ -64,29 +72,33 @@ class PassiveBenchConfig:
     log_targets: int = 10
     """Each behaviour policy drives `log_boats` boats through this many targets (200 actions each)."""
     passive_thinks: int | None = None
-    """Replays per passive learner; None: `thinks` per logged experience, what a `wfnn-server
-    --replay-only` gives them (4.8 million for the default logs)."""
+    """Replays per passive learner; None: its `thinks_per_action` per logged experience, what a
+    `wfnn-server --replay-only` gives it (4.8 million replays of the thesis' learner for the
+    default logs; 24,000 updates of a minibatch of the deep learner)."""
     passive_checks: int = 4
     """Greedy evaluations along the passive thinking (a curve)."""
     online_targets: int = 40
-    thinks: int = 200
-    """Replays per action of the online learners."""
+    thinks: int | None = None
+    """Replays (thesis) or updates (deep) per action of the online learners; None: the learner's
+    own (the thesis' 200, the deep learner's 1)."""
     phantoms: int = 1
     """Phantom copies learned per real experience."""
     phantom_radius: float = 1.0
     """Phantom targets lie uniformly in a disc of this radius around the real target."""
     eval_targets: int = 10
-    advantage_k: float = 0.2
-    """k of the online learners and of the thesis' passive learner (the thesis' 0.2)."""
+    advantage_k: float | None = None
+    """k of the online learners and of the thesis' passive learner; None: the learner's own (the
+    thesis' 0.2, the deep learner's 1.0)."""
     passive_advantage_k: float = 1.0
     """k of the passive learners with and without the pull. Q-learning: measured here (8
     learners, 400,000 thinks, pull 0.5, alpha 0.25) it scored 0.27 / 0.33 at dt 1 / 0.1 against 0.59 / 0.42
     with k 0.2; advantage learning widens the action gaps for online exploration, which
     passive learning does not do."""
     passive_alpha: float = 0.05
-    """Learning rate of the passive learners with and without the pull (the thesis' learner
-    keeps 0.25). Replaying a fixed set millions of times, the thesis' 0.25 left the greedy
-    controller changing from one evaluation to the next (pulled, dt 0.1: 0.33-0.48 over four
+    """Learning rate of the thesis' learner where it learns passively with and without the pull
+    (the thesis' passive condition keeps 0.25; the deep learner keeps its Adam step, deep.lr).
+    Replaying a fixed set millions of times, the thesis' 0.25 left the greedy controller
+    changing from one evaluation to the next (pulled, dt 0.1: 0.33-0.48 over four
     evaluations of 400,000 thinks); 0.05 settles (8 learners, dt 1: 0.27 -> 0.08 at 3.2 million
     thinks)."""
     bc_weight: float = 0.5
@@ -97,16 +109,25 @@ class PassiveBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.learner not in LEARNERS:
+            raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        _config(self, 1, self.learner)  # a bad learner_options is a ConfigError now, not mid-run
 
 
 PASSIVE_LEARNERS = ("passive", "passive_no_bc", "passive_thesis")
 """JSON keys of the passive conditions: with the pull, without it, the thesis' learner."""
 
 
-def _config(cfg: PassiveBenchConfig, capacity: int, **overrides: Any) -> LearnerConfig:
-    """The boat benchmark's learner (thesis defaults, `cfg.advantage_k`), with `overrides`."""
-    bench = BoatBenchConfig(thinks=cfg.thinks, dt=cfg.dt)
-    base = learner_config(bench, cfg.advantage_k, cfg.seed + 11)
+def _config(cfg: PassiveBenchConfig, capacity: int, kind: str = "thesis", **overrides: Any) -> LearnerConfig:
+    """The boat benchmark's learner of `kind`, with `cfg.advantage_k` and `overrides`.
+
+    `kind`'s defaults, and `cfg.learner_options` over them where `kind` is `cfg.learner`.
+    """
+    options = cfg.learner_options if kind == cfg.learner else ""
+    bench = BoatBenchConfig(thinks=cfg.thinks, dt=cfg.dt, learner=kind, learner_options=options)
+    default_k = DEEP_DEFAULTS["advantage_k"] if kind == "deep" else LearnerConfig.advantage_k
+    k = default_k if cfg.advantage_k is None else cfg.advantage_k
+    base = learner_config(bench, k, cfg.seed + 11)
     return replace(base, replay_capacity=capacity, **overrides)
 
 
@@ -114,36 +135,44 @@ def _boat(cfg: PassiveBenchConfig, n: int) -> BoatVec:
     return BoatVec(n, BoatConfig(dt=cfg.dt))
 
 
-def evaluate(
-    policy: Callable[[FloatArray], FloatArray], n: int, cfg: PassiveBenchConfig
-) -> tuple[FloatArray, FloatArray]:
-    """N controllers on the same `eval_targets` fresh targets -> (score [n], reward [n]).
+class Evaluation(NamedTuple):
+    """Figures of n controllers on the same `eval_targets` fresh targets."""
 
-    score: the median over targets of the Section 4.2 score; reward: the mean squashed reward
-    per action (Eq 3.6 of Eq 3.8, with the learners' gamma), the learners' objective.
-    """
+    scores: FloatArray
+    """Median over targets of the Section 4.2 score (mean distance to the target) [n]."""
+    rewards: FloatArray
+    """Mean squashed reward per action (Eq 3.6 of Eq 3.8, with the thesis' gamma 0.8), what the
+    thesis' learner maximises [n]."""
+    returns: FloatArray
+    """Median over targets of the target's return (Eq 3.8 summed, unsquashed), what the deep
+    learner maximises (discounted) [n]."""
+
+
+def evaluate(policy: Callable[[FloatArray], FloatArray], n: int, cfg: PassiveBenchConfig) -> Evaluation:
+    """N controllers on the same `eval_targets` fresh targets, learning off."""
     boat = _boat(cfg, n)
     rng = np.random.default_rng(cfg.seed + 99)
     boat.reset(rng)
-    gamma = _config(cfg, 1).gamma
+    gamma = _config(cfg, 1, "thesis").gamma  # one scale for every learner's figure
     rewards = np.zeros(n)
 
     def add(*experience: Any) -> None:  # only the reward counts
         rewards[:] += squash_reward(experience[3], gamma)
 
-    scores = run_protocol(boat, cfg.eval_targets, rng, policy, add).scores
-    return np.asarray(np.median(scores, axis=1)), rewards / (cfg.eval_targets * boat.config.steps_per_target)
+    run = run_protocol(boat, cfg.eval_targets, rng, policy, add)
+    per_action = rewards / (cfg.eval_targets * boat.config.steps_per_target)
+    return Evaluation(np.median(run.scores, axis=1), per_action, np.median(run.returns, axis=1))
 
 
-def greedy_eval(learner: WFNN, cfg: PassiveBenchConfig) -> tuple[FloatArray, FloatArray]:
-    """`evaluate` of each learner's greedy controller, learning off -> (score [P], reward [P])."""
+def greedy_eval(learner: Any, cfg: PassiveBenchConfig) -> Evaluation:
+    """`evaluate` of each learner's greedy controller, learning off ([P] figures)."""
     frozen = learner.snapshot()
     return evaluate(lambda x: learner.act(x, explore=False, params=frozen).action, learner.population, cfg)
 
 
-def greedy_score(learner: WFNN, cfg: PassiveBenchConfig) -> FloatArray:
+def greedy_score(learner: Any, cfg: PassiveBenchConfig) -> FloatArray:
     """Each learner's median score over `eval_targets` fresh targets, greedy, learning off [P]."""
-    return greedy_eval(learner, cfg)[0]
+    return greedy_eval(learner, cfg).scores
 
 
 def record_logs(cfg: PassiveBenchConfig, directory: Path) -> dict[str, Any]:
@@ -187,11 +216,17 @@ def _phantom_offsets(rng: np.random.Generator, n: int, radius: float) -> FloatAr
 
 
 def passive(
-    cfg: PassiveBenchConfig, arrays: dict[str, Any], phantom_only: bool, progress: Progress, **overrides: Any
+    cfg: PassiveBenchConfig,
+    arrays: dict[str, Any],
+    phantom_only: bool,
+    progress: Progress,
+    kind: str,
+    **overrides: Any,
 ) -> dict[str, Any]:
     """Learn from the logs only (or only from their phantom-target copies); a greedy curve.
 
-    `overrides`: LearnerConfig fields that differ from the boat benchmark's (thesis) learner.
+    `kind`: the learner; `overrides`: LearnerConfig fields that differ from its boat benchmark
+    config.
     """
     s, a, sn, r = (
         np.asarray(arrays[k], dtype=np.float64) for k in ("state", "action", "next_state", "reward")
@@ -204,26 +239,29 @@ def passive(
                   for _ in range(max(cfg.phantoms, 1))]  # fmt: skip
         s, a, sn, r = (np.concatenate(part) for part in zip(*copies, strict=True))
         terminal = np.tile(terminal, len(copies))
-    learner = WFNN(_config(cfg, len(r) + 1, **overrides), population=cfg.controllers)
+    config = _config(cfg, len(r) + 1, kind, **overrides)
+    learner = make_population(config, cfg.controllers)
     stored = int(learner.learn_many(s, a, sn, r, terminal).sum())
     curve: list[dict[str, Any]] = []
-    thinks = cfg.passive_thinks if cfg.passive_thinks is not None else cfg.thinks * stored
+    thinks = cfg.passive_thinks if cfg.passive_thinks is not None else config.thinks_per_action * stored
     per_check = thinks // cfg.passive_checks
     for _ in range(cfg.passive_checks):
         for _ in range(per_check // 1000):
             learner.think(1000)
         learner.think(per_check % 1000)
-        scores, rewards = greedy_eval(learner, cfg)
-        curve.append({"thinks": int(learner.thinks[0]), "scores": scores, "rewards": rewards})
+        ev = greedy_eval(learner, cfg)
+        curve.append({"thinks": int(learner.thinks[0]), "scores": ev.scores, "rewards": ev.rewards,
+                      "returns": ev.returns})  # fmt: skip
         progress(1)
-    config = learner.config
-    return {"advantage_k": config.advantage_k, "bc_weight": config.bc_weight, "alpha": config.alpha,
-            "experiences": stored, "curve": curve, "score": float(np.median(scores)),
-            "reward": float(np.median(rewards)), "diagnosis": value_gap(learner, s, a, cfg.seed)}  # fmt: skip
+    return {"learner": config.learner, "advantage_k": config.advantage_k, "bc_weight": config.bc_weight,
+            "alpha": config.alpha if config.learner == "thesis" else config.deep.lr,
+            "experiences": stored, "curve": curve, "score": float(np.median(ev.scores)),
+            "reward": float(np.median(ev.rewards)), "return": float(np.median(ev.returns)),
+            "diagnosis": value_gap(learner, s, a, cfg.seed)}  # fmt: skip
 
 
 def value_gap(
-    learner: WFNN, state: FloatArray, action: FloatArray, seed: int, n: int = 300
+    learner: Any, state: FloatArray, action: FloatArray, seed: int, n: int = 300
 ) -> dict[str, float]:
     """Median over logged states of the greedy action's value and the logged action's value."""
     rng = np.random.default_rng(seed)
@@ -244,7 +282,7 @@ def online(cfg: PassiveBenchConfig, kind: str, progress: Progress) -> dict[str, 
     """
     p = cfg.controllers
     capacity = cfg.online_targets * 200 * (2 if kind == "mirror" else max(cfg.phantoms, 1))
-    learner = WFNN(_config(cfg, capacity), population=p)
+    learner = make_population(_config(cfg, capacity, cfg.learner), p)
     boat = _boat(cfg, p)
     rng = np.random.default_rng(cfg.seed + 3)
     boat.reset(rng)
@@ -266,10 +304,12 @@ def online(cfg: PassiveBenchConfig, kind: str, progress: Progress) -> dict[str, 
                 learner.learn(ms, mu, msn, mr, terminal, valid)
 
     choose: Callable[[FloatArray], FloatArray] = lambda x: learner.act(x).action  # noqa: E731
-    scores = run_protocol(boat, cfg.online_targets, rng, choose, learn, learner.think, progress).scores
-    greedy = float(np.median(greedy_score(learner, cfg)))
-    return {"scores": scores, "median_per_target": np.median(scores, axis=0),
-            "score_last10": float(np.median(scores[:, -10:])), "greedy": greedy}  # fmt: skip
+    run = run_protocol(boat, cfg.online_targets, rng, choose, learn, learner.think, progress)
+    greedy = greedy_eval(learner, cfg)
+    return {"learner": cfg.learner, "scores": run.scores, "median_per_target": np.median(run.scores, axis=0),
+            "score_last10": float(np.median(run.scores[:, -10:])), "greedy": float(np.median(greedy.scores)),
+            "return_last10": float(np.median(run.returns[:, -10:])),
+            "greedy_return": float(np.median(greedy.returns))}  # fmt: skip
 
 
 def experiences_to_reach(median_per_target: FloatArray, level: float, window: int = 5) -> int | None:
@@ -293,12 +333,16 @@ def run(cfg: PassiveBenchConfig, progress: Progress = no_progress) -> dict[str, 
         summary = {p.name: logs.summarise(p).experiences for p in sources}
         arrays = logs.to_arrays(sources)
     progress(1)
-    pulled = {"advantage_k": cfg.passive_advantage_k, "alpha": cfg.passive_alpha, "bc_weight": cfg.bc_weight}
-    learners: dict[str, dict[str, Any]] = {
-        "passive": pulled, "passive_no_bc": {**pulled, "bc_weight": 0.0}, "passive_thesis": {},
+    pulled: dict[str, Any] = {"advantage_k": cfg.passive_advantage_k, "bc_weight": cfg.bc_weight}
+    if cfg.learner == "thesis":
+        pulled["alpha"] = cfg.passive_alpha
+    learners: dict[str, tuple[str, dict[str, Any]]] = {
+        "passive": (cfg.learner, pulled), "passive_no_bc": (cfg.learner, {**pulled, "bc_weight": 0.0}),
+        "passive_thesis": ("thesis", {}),
     }  # fmt: skip
-    passives = {key: passive(cfg, arrays, False, progress, **setting) for key, setting in learners.items()}
-    passive_phantom = passive(cfg, arrays, True, progress, **pulled)
+    passives = {key: passive(cfg, arrays, False, progress, kind, **setting)
+                for key, (kind, setting) in learners.items()}  # fmt: skip
+    passive_phantom = passive(cfg, arrays, True, progress, cfg.learner, **pulled)
     plain, mirrored, phantom_online = (online(cfg, kind, progress) for kind in ("plain", "mirror", "phantom"))
     level = plain["score_last10"]
     plain_n = experiences_to_reach(plain["median_per_target"], level)
@@ -306,10 +350,7 @@ def run(cfg: PassiveBenchConfig, progress: Progress = no_progress) -> dict[str, 
     policies: dict[str, Callable[[FloatArray], FloatArray]] = {
         "handcoded": handcoded_boat, "zero_thrust": lambda x: np.zeros((x.shape[0], 2)),
     }  # fmt: skip
-    references = {
-        name: dict(zip(("scores", "rewards"), evaluate(policy, 1, cfg), strict=True))
-        for name, policy in policies.items()
-    }
+    references = {name: evaluate(policy, 1, cfg)._asdict() for name, policy in policies.items()}
     handcoded = references["handcoded"]
     best = passives["passive"]
     return {
@@ -324,11 +365,14 @@ def run(cfg: PassiveBenchConfig, progress: Progress = no_progress) -> dict[str, 
         "references": references,
         "handcoded_score": float(handcoded["scores"][0]),
         "handcoded_reward": float(handcoded["rewards"][0]),
+        "handcoded_return": float(handcoded["returns"][0]),
         "zero_thrust_score": float(references["zero_thrust"]["scores"][0]),
         "zero_thrust_reward": float(references["zero_thrust"]["rewards"][0]),
+        "zero_thrust_return": float(references["zero_thrust"]["returns"][0]),
         **passives,
         "passive_score": best["score"],
         "passive_reward": best["reward"],
+        "passive_return": best["return"],
         "passive_no_bc_score": passives["passive_no_bc"]["score"],
         "passive_thesis_score": passives["passive_thesis"]["score"],
         "passive_phantom_only": passive_phantom,
@@ -366,7 +410,10 @@ PASSIVE_LABELS = {
 def label(result: dict[str, Any], key: str) -> str:
     """A passive condition's name with the learner settings it ran with."""
     c = result[key]
-    return f"{PASSIVE_LABELS[key]} (k {c['advantage_k']:g}, alpha {c['alpha']:g}, pull {c['bc_weight']:g})"
+    kind = c.get("learner", "thesis")  # results from before the deep learner name none
+    step = "alpha" if kind == "thesis" else "lr"
+    return (f"{PASSIVE_LABELS[key]} ({kind}, k {c['advantage_k']:g}, {step} {c['alpha']:g}, "
+            f"pull {c['bc_weight']:g})")  # fmt: skip
 
 
 def plot(result: dict[str, Any], path: Path) -> None:
@@ -397,7 +444,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     for name, (colour, _, text) in refs.items():
         ax.scatter([result[f"{name}_reward"]], [result[f"{name}_score"]], color=colour, marker="*", s=160,
                    label=text)  # fmt: skip
-    ax.set(xlabel="mean squashed reward per action (what the learners maximise)", yscale="log",
+    ax.set(xlabel="mean squashed reward per action (what the thesis' learner maximises)", yscale="log",
            ylabel="score (mean distance to target)",
            title="each controller: score against reward")  # fmt: skip
     ax.legend(fontsize=7)
@@ -408,7 +455,8 @@ def plot(result: dict[str, Any], path: Path) -> None:
         ax.plot(np.arange(1, len(m) + 1) * 200, m, label=text)
     ax.axhline(result["handcoded_score"], color="k", ls="--", label="hand-coded controller")
     ax.set(xlabel="real experiences", ylabel="median score per target", yscale="log",
-           title="learning while acting (Section 4.2 protocol)")  # fmt: skip
+           title=f"learning while acting, {result['online'].get('learner', 'thesis')} learner "
+                 "(Section 4.2 protocol)")  # fmt: skip
     ax.legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -423,13 +471,15 @@ def rows(result: dict[str, Any], cfg: PassiveBenchConfig) -> list[tuple[str, Any
     ]
     rows.append(("experiences learned from the logs", result["logs"]["learned"]))
     for name in ("handcoded", "zero_thrust"):
-        rows.append((f"{name}: score / reward per action",
-                     f"{result[f'{name}_score']:.3f} / {result[f'{name}_reward']:.4f}"))  # fmt: skip
+        rows.append((f"{name}: score / reward per action / return per target",
+                     f"{result[f'{name}_score']:.3f} / {result[f'{name}_reward']:.4f} / "
+                     f"{result[f'{name}_return']:.1f}"))  # fmt: skip
     for key in PASSIVE_LABELS:
         name_of = label(result, key)
         for c in result[key]["curve"]:
-            rows.append((f"passive, {name_of}: greedy score / reward after {c['thinks']:,} thinks (median)",
-                         f"{np.median(c['scores']):.3f} / {np.median(c['rewards']):.4f}"))  # fmt: skip
+            rows.append((f"passive, {name_of}: greedy score / reward / return after {c['thinks']:,} thinks "
+                         "(median)", f"{np.median(c['scores']):.3f} / {np.median(c['rewards']):.4f} / "
+                         f"{np.median(c['returns']):.1f}"))  # fmt: skip
         d = result[key]["diagnosis"]
         rows.append((f"passive, {name_of}: value of the greedy / logged action (median over logged states)",
                      f"{d['greedy_value']:.3f} / {d['logged_action_value']:.3f}"))  # fmt: skip
@@ -439,8 +489,9 @@ def rows(result: dict[str, Any], cfg: PassiveBenchConfig) -> list[tuple[str, Any
         ("passive_score", result["passive_score"]),
         ("passive_phantom_only_score", result["passive_phantom_only_score"]),
         *((f"criterion {k}", str(v)) for k, v in result["criteria"].items()),
-        ("online: last-10 median / greedy",
-         f"{result['online']['score_last10']:.3f} / {result['online']['greedy']:.3f}"),
+        (f"online ({result['online']['learner']}): last-10 median / greedy; return last-10 / greedy",
+         f"{result['online']['score_last10']:.3f} / {result['online']['greedy']:.3f}; "
+         f"{result['online']['return_last10']:.1f} / {result['online']['greedy_return']:.1f}"),
         ("online + mirror: last-10 median / greedy",
          f"{result['online_mirror']['score_last10']:.3f} / {result['online_mirror']['greedy']:.3f}"),
         ("phantom_only_score (online, last-10 median)", result["phantom_only_score"]),

@@ -371,3 +371,10 @@ class DeepPopulation:
     def greedy_values(self, state: Any) -> FloatArray:
         """Value of each member's best wire at states [N, S] -> [P, N]."""
         return np.concatenate([m.greedy_values(state) for m in self.members])
+
+    def q_value(self, state: Any, action: Any) -> FloatArray:
+        """Q(x, u) of each member for its own state and action ([P, S], [P, A]) -> [P]."""
+        p, cfg = self.population, self.config
+        s = np.asarray(state, dtype=np.float64).reshape(p, cfg.state_dim)
+        a = np.asarray(action, dtype=np.float64).reshape(p, cfg.action_dim)
+        return np.array([float(m.q_value(s[i], a[i])) for i, m in enumerate(self.members)])

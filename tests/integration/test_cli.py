@@ -453,6 +453,37 @@ def test_bench_passive_writes_its_figures(tmp_path):
     assert "mirror_experience_ratio" in data and p.stat().st_size > 10_000
 
 
+def test_bench_passive_runs_the_deep_learner_beside_the_thesis_reference(tmp_path):
+    j = tmp_path / "passive_deep.json"
+    options = '{"deep": {"hidden": [32, 32], "value_hidden": 16}, "batch_size": 64}'
+    out = run([BIN / "wfnn-bench", "passive", "--learner", "deep", "--learner-options", options,
+               "--controllers", "1", "--log-targets", "1", "--passive-thinks", "1000",
+               "--online-targets", "10", "--thinks", "0", "--eval-targets", "1", "--bc-weight", "1.0",
+               "--json", j])  # fmt: skip
+    assert "online (deep)" in out.stdout
+    # Not a terminal: progress comes as plain lines, the last at the end of the work.
+    assert "passive: 0/" in out.stdout and "(100%)" in out.stdout
+    data = json.loads(j.read_text())
+    assert data["config"]["learner"] == "deep" and data["logs"]["learned"] == 3 * 4 * 200
+    for key in ("passive", "passive_no_bc", "passive_phantom_only"):
+        c = data[key]
+        assert (c["learner"], c["advantage_k"], c["alpha"]) == ("deep", 1.0, 3e-4)  # the deep defaults
+        assert [e["thinks"] for e in c["curve"]] == [250, 500, 750, 1000]
+        assert c["return"] < 0 and c["score"] > 0
+    assert (data["passive"]["bc_weight"], data["passive_no_bc"]["bc_weight"]) == (1.0, 0.0)
+    # The reference stays the thesis' learner with its own k and rate (its options untouched).
+    thesis = data["passive_thesis"]
+    settings = (thesis["learner"], thesis["advantage_k"], thesis["alpha"], thesis["bc_weight"])
+    assert settings == ("thesis", 0.2, 0.25, 0.0)
+    assert data["online"]["learner"] == "deep" and len(data["online"]["median_per_target"]) == 10
+    # Zero thrust: one unit from every target for all 200 actions; bang-bang thrust costs reward.
+    assert data["zero_thrust_score"] == 1.0
+    assert data["zero_thrust_return"] < 0 and data["handcoded_return"] < 0
+    bad = subprocess.run([BIN / "wfnn-bench", "passive", "--learner", "deep", "--learner-options",
+                          '{"n_wires": 0}'], capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert bad.returncode != 0 and "n_wires" in bad.stdout + bad.stderr
+
+
 def test_client_drives_a_gymnasium_task(tmp_path):
     out = tmp_path / "run"
     run([BIN / "wfnn-client", "--env", "Pendulum-v1", "--episodes", "2", "--rate-hz", "0", "--lockstep",

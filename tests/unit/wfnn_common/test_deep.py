@@ -457,6 +457,13 @@ def test_a_population_of_deep_learners_behaves_as_its_members():
         assert acted.action[i] == pytest.approx(m.act(states[i], explore=False).action)
     assert population.thinks.tolist() == [40, 40, 40] and population.buffer.count.tolist() == [20, 20, 20]
     assert population.greedy_values(states).shape == (3, 3)
+    # Q of each member at its own state and action (what the passive benchmark's diagnosis asks).
+    actions = rng.uniform(-2, 2, (3, 1))
+    q = population.q_value(states, actions)
+    assert q.shape == (3,)
+    for i, m in enumerate(members):
+        assert q[i] == pytest.approx(float(m.q_value(states[i], actions[i])))
+    assert len(set(q.round(9).tolist())) == 3  # members differ: no member answered for another
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device")
