@@ -13,6 +13,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -156,7 +157,7 @@ def _table(title: str, rows: list[tuple[str, Any]]) -> None:
     table.add_column("figure")
     table.add_column("value", justify="right")
     for name, value in rows:
-        table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value))
+        table.add_row(escape(name), f"{value:.4g}" if isinstance(value, float) else escape(str(value)))
     console.print(table)
 
 
@@ -166,7 +167,7 @@ def boat(
     mode: Annotated[str, typer.Option(help="advantage, q or both.")] = "both",
     targets: Annotated[int, typer.Option(min=1)] = 40,
     thinks: Annotated[
-        int | None, typer.Option(min=0, help="Replays (updates) per action [learner's: thesis 200, deep 1].")
+        int | None, typer.Option(min=0, help="Replays (updates) per action (learner's: thesis 200, deep 1).")
     ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
@@ -433,11 +434,11 @@ def passive(
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     log_targets: Annotated[int, typer.Option(min=1, help="Targets per logged boat and policy.")] = 10,
     passive_thinks: Annotated[
-        int | None, typer.Option(min=1000, help="Replays per passive learner [thinks per logged experience].")
+        int | None, typer.Option(min=1000, help="Replays per passive learner (thinks per logged experience).")
     ] = None,
     online_targets: Annotated[int, typer.Option(min=10, help="Targets of the online conditions.")] = 40,
     thinks: Annotated[
-        int | None, typer.Option(min=0, help="Online replays per action [the learner's: thesis 200, deep 1].")
+        int | None, typer.Option(min=0, help="Online replays per action (the learner's: thesis 200, deep 1).")
     ] = None,
     eval_targets: Annotated[int, typer.Option(min=1, help="Targets of each greedy evaluation.")] = 10,
     bc_weight: Annotated[
@@ -545,11 +546,11 @@ def faults(
     for name in faults_bench.TABLE_HEADER:
         table.add_column(name, justify="left" if name == "case" else "right")
     for row in faults_bench.table_rows(result):
-        table.add_row(*row)
+        table.add_row(*(escape(str(cell)) for cell in row))
     console.print(table)
     missed = [f"{case}: {name}" for case, goals in result["goals"].items()
               for name, g in goals.items() if not g["met"]]  # fmt: skip
-    console.print("goals: " + ("all met" if not missed else "NOT met: " + ", ".join(missed)))
+    console.print("goals: " + ("all met" if not missed else "NOT met: " + escape(", ".join(missed))))
     if json_path:
         write_json(json_path, result)
     if plot_path:

@@ -65,8 +65,8 @@ def client(
         float | None,
         typer.Option(
             min=0.0,
-            help="Control rate; 0 = as fast as possible [sim's rate: 50, hydra 15, "
-            "nomad 10]. HyDrA and the Nomad are simulated at this rate.",
+            help="Control rate; 0 = as fast as possible (sim's rate: 50, hydra 15, "
+            "nomad 10). HyDrA and the Nomad are simulated at this rate.",
         ),
     ] = None,
     lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
@@ -109,14 +109,14 @@ def client(
     ] = "",
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
     advantage_k: Annotated[
-        float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) [thesis 0.2].")
+        float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) (thesis 0.2).")
     ] = None,
     bc_weight: Annotated[
         float | None,
         typer.Option(
             min=0.0,
             help="Pull the best wire toward each replayed experience's action (for learning from "
-            "logged or other controllers' actions) [thesis 0].",
+            "logged or other controllers' actions) (thesis 0).",
         ),
     ] = None,
     behaviour_policy: Annotated[
@@ -170,7 +170,7 @@ def client(
         ),
     ] = 0,
     exploration: Annotated[
-        str | None, typer.Option(help="uniform, gaussian, smooth or none [sim's: uniform, hydra gaussian].")
+        str | None, typer.Option(help="uniform, gaussian, smooth or none (sim's: uniform, hydra gaussian).")
     ] = None,
     max_action_rate: Annotated[str | None, typer.Option(help="Max change per second, per action.")] = None,
     safe_action: Annotated[str | None, typer.Option(help="Safe action, comma-separated (default 0).")] = None,
@@ -266,7 +266,7 @@ def client(
     saved = "weights, metrics.json and learning_curve.png"
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
-    console.print(f"saved {saved} in {out}/")
+    console.print(f"saved {saved} in {escape(str(out))}/")
 
 
 main = guarded(app)

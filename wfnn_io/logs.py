@@ -36,6 +36,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import secrets
 import time
 from collections import Counter
@@ -449,17 +450,34 @@ def split(
         raise ValueError("split by count needs every >= 1")
     config = log_config(source)
     groups: dict[str, list[ExperienceBatch]] = {}
+    names: dict[str, str] = {}
     done = 0
     for batch in read_batches(source, key):
         if by == "client":
-            name = batch.client
+            label = batch.client
         elif by == "behaviour":
-            name = batch.weights_source.replace(":", "_") or "none"
+            label = batch.weights_source
         else:
-            name = f"part{done // every:04d}"
-        groups.setdefault(name, []).append(batch)
+            label = f"part{done // every:04d}"
+        if label not in names:
+            names[label] = _directory_name(label, set(names.values()))
+        groups.setdefault(names[label], []).append(batch)
         done += len(batch)
     return {name: write_log(Path(out) / name, batches, config) for name, batches in groups.items()}
+
+
+def _directory_name(label: str, taken: set[str]) -> str:
+    """A directory name for a part of a split log, unique among `taken`.
+
+    Client ids and behaviour names come from the log, which came from the network: "..",
+    "a/../../b" or a 60 KiB name must not write anywhere but one new directory under `out`. Only
+    [A-Za-z0-9_.-] is kept (anything else becomes "_"), no leading dot, at most 64 characters.
+    """
+    name = re.sub(r"[^A-Za-z0-9_.\-]", "_", label).lstrip(".")[:64] or "none"
+    unique, n = name, 2
+    while unique in taken:
+        unique, n = f"{name}-{n}", n + 1
+    return unique
 
 
 def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:

@@ -53,26 +53,28 @@ def inspect(
     if json_out:
         print(json.dumps(summary.to_dict(), indent=1))
         return
-    table = Table(title=f"{log_dir}: {summary.experiences:,} experiences in {summary.batches:,} batches")
+    title = f"{escape(str(log_dir))}: {summary.experiences:,} experiences in {summary.batches:,} batches"
+    table = Table(title=title)
     table.add_column("")
     table.add_column("", justify="right")
     for client, run in summary.clients.items():
-        table.add_row(f"client {client}", f"{run.experiences:,} (seq {run.first_seq}..{run.last_seq}, "
+        table.add_row(f"client {escape(client)}",
+                      f"{run.experiences:,} (seq {run.first_seq}..{run.last_seq}, "
                       f"{run.gaps} gaps, {run.duplicates} duplicates)")  # fmt: skip
     for source, n in summary.behaviour.items():
-        table.add_row(f"chosen by {source}", f"{n:,}")
+        table.add_row(f"chosen by {escape(source)}", f"{n:,}")
     for name, n in summary.flags.items():
-        table.add_row(f"flag {name}", f"{n:,}")
+        table.add_row(f"flag {escape(name)}", f"{n:,}")
     table.add_row("terminal", f"{summary.terminal:,}")
     table.add_row("mean reward", f"{summary.reward_mean:.4f}")
-    table.add_row("learner spec", ", ".join(summary.spec_hashes) or "-")
+    table.add_row("learner spec", escape(", ".join(summary.spec_hashes)) or "-")
     table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
     if summary.description_error:
         table.add_row("[red]description[/]", escape(summary.description_error))
     for why, n in summary.refused.most_common():
-        table.add_row(f"[red]records refused ({why})[/]", f"{n:,}")
+        table.add_row(f"[red]records refused ({escape(why)})[/]", f"{n:,}")
     for d in summary.damage:
-        table.add_row(f"[red]damaged, skipped ({d.kind})[/]",
+        table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]",
                       f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
     console.print(table)
 
@@ -90,7 +92,7 @@ def merge(
         n = logs.merge(sources, out, _key(key_file))
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
-    console.print(f"{n:,} experiences merged into {out}")
+    console.print(f"{n:,} experiences merged into {escape(str(out))}")
 
 
 @app.command()
@@ -107,7 +109,7 @@ def split(
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
     for name, n in parts.items():
-        console.print(f"{out / name}: {n:,} experiences")
+        console.print(f"{escape(str(out / name))}: {n:,} experiences")
 
 
 @app.command()
@@ -121,7 +123,7 @@ def export(
         n = logs.export(sources, out, _key(key_file))
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
-    console.print(f"{n:,} experiences exported to {out}")
+    console.print(f"{n:,} experiences exported to {escape(str(out))}")
 
 
 main = guarded(app)

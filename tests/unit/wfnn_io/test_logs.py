@@ -101,3 +101,46 @@ def test_a_record_of_one_task_is_not_continued_by_another(tmp_path):
     with pytest.raises(ValueError, match="another run directory"):
         Recorder(tmp_path / "log", LearnerConfig.for_task(CartPoleVec))
     assert logs.summarise(tmp_path / "log").experiences == 300
+
+
+HOSTILE_SOURCES = ["../../outside", "a/../../b", "[/]", "[bold]x", "." * 40, "x" * 5000]
+
+
+def test_split_writes_only_under_its_directory_whatever_the_log_names(tmp_path):
+    # Client ids and behaviour names come off the network; "..", "a/../../b" and a 5,000
+    # character name each get a directory of their own under `out`, and nothing is written
+    # elsewhere.
+    for i, source in enumerate(HOSTILE_SOURCES):
+        record(tmp_path / f"s{i}", n=20, client=f"r{i}", source=source, seed=i)
+    record(tmp_path / "dots", n=20, client="..", source="", seed=9)
+    logs_made = [tmp_path / f"s{i}" for i in range(len(HOSTILE_SOURCES))] + [tmp_path / "dots"]
+    logs.merge(logs_made, tmp_path / "all")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    parts = logs.split(tmp_path / "all", tmp_path / "out", by="behaviour")
+    assert sum(parts.values()) == 20 * (len(HOSTILE_SOURCES) + 1) and len(parts) == len(HOSTILE_SOURCES) + 1
+    by_client = logs.split(tmp_path / "all", tmp_path / "out_clients", by="client")
+    assert sum(by_client.values()) == 20 * (len(HOSTILE_SOURCES) + 1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*before, "out", "out_clients"])
+    for out, names in ((tmp_path / "out", parts), (tmp_path / "out_clients", by_client)):
+        assert sorted(p.name for p in out.iterdir()) == sorted(names)
+        for name in names:
+            assert not name.startswith(".") and len(name) <= 64 and "/" not in name
+            assert logs.summarise(out / name).experiences == names[name]
+    # Each part holds one behaviour, the one its name was made from.
+    behaviours = {next(iter(logs.summarise(tmp_path / "out" / n).behaviour)) for n in parts}
+    assert behaviours == {*HOSTILE_SOURCES, "(none)"}
+
+
+def test_inspect_prints_the_names_a_log_holds_verbatim(tmp_path):
+    from typer.testing import CliRunner
+
+    from wfnn_io.logs_cli import app
+
+    for i, source in enumerate(HOSTILE_SOURCES[:4]):
+        record(tmp_path / f"s{i}", n=20, client=f"r{i}", source=source, seed=i)
+    logs.merge([tmp_path / f"s{i}" for i in range(4)], tmp_path / "log [1]")
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log [1]")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    for source in HOSTILE_SOURCES[:4]:
+        assert f"chosen by {source}" in result.output
+    assert "[1]: 80 experiences" in result.output  # the title keeps the path's brackets

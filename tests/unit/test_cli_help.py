@@ -1,0 +1,43 @@
+"""Every command line tool's help says what its source says.
+
+Typer renders help with rich, which reads "[...]" as markup and drops it without a word: a help
+text's "[thesis 0.2]" printed as nothing. The texts must come through whole.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+import pytest
+import typer
+from rich.text import Text
+
+APPS = [
+    "wfnn_client.cli",
+    "wfnn_server.cli",
+    "wfnn_server.router",
+    "wfnn_bench.cli",
+    "wfnn_bench.report",
+    "wfnn_io.logs_cli",
+]
+
+
+def _help_texts(command: Any, path: str) -> list[tuple[str, str]]:
+    """(where, text) for the help of a command, its options and arguments, and its subcommands."""
+    texts = [(path, command.help or ""), (path, command.short_help or "")]
+    for param in command.params:
+        texts.append((f"{path} {param.name}", getattr(param, "help", None) or ""))
+    for name, sub in getattr(command, "commands", {}).items():
+        texts.extend(_help_texts(sub, f"{path} {name}"))
+    return texts
+
+
+@pytest.mark.parametrize("module", APPS)
+def test_help_texts_come_through_rich_markup_whole(module: str) -> None:
+    app = importlib.import_module(module).app
+    assert isinstance(app, typer.Typer)
+    texts = _help_texts(typer.main.get_command(app), module)
+    assert len(texts) > 3, "the walk found no options"
+    eaten = [(where, text) for where, text in texts if Text.from_markup(text).plain != text]
+    assert not eaten, f"rich markup drops part of these help texts: {eaten}"
