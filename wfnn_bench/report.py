@@ -164,10 +164,25 @@ RUN_FIGURES: tuple[tuple[str, str | tuple[str, ...]], ...] = (
 )  # fmt: skip
 
 
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ReportError(f"{path}: not readable JSON ({exc})") from exc
+
+
 def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
-    metrics = json.loads((directory / "metrics.json").read_text())
-    if "scores" not in metrics:
-        raise ReportError(f"{directory / 'metrics.json'} is not a client run's metrics (no scores)")
+    path = directory / "metrics.json"
+    metrics = _read_json(path)
+    if not isinstance(metrics, dict) or "scores" not in metrics:
+        raise ReportError(f"{path} is not a client run's metrics (no scores)")
+    try:
+        return _run_sections_of(directory, metrics)
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        raise ReportError(f"{path}: malformed metrics ({type(exc).__name__}: {exc})") from exc
+
+
+def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Section], bytes]:
     figure = _run_figure(metrics)
     rows = []
     for name, keys in RUN_FIGURES:  # a figure renamed since is read under its earlier name too
@@ -208,10 +223,7 @@ def _journal_section(journal: Path) -> Section:
 
 
 def _bench_section(path: Path) -> Section:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ReportError(f"{path}: not readable JSON ({exc})") from exc
+    data = _read_json(path)
     if not isinstance(data, dict):
         raise ReportError(f"{path}: a benchmark result is a JSON object")
     png = path.with_suffix(".png")

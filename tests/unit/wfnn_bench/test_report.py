@@ -51,3 +51,21 @@ def test_unusable_input_is_refused_with_the_reason(tmp_path):
         run(ReportConfig(path=tmp_path / "bad.json"))
     result = CliRunner().invoke(app, ["report", str(tmp_path / "missing")])
     assert result.exit_code == 2 and "give a run directory" in result.output
+
+
+@pytest.mark.parametrize(
+    ("metrics", "reason"),
+    [
+        (b"\x92\x00not text", "not readable JSON"),
+        (b"[1, 2]", "no scores"),
+        (b'{"scores": [1, "x"]}', "malformed metrics"),
+        (b'{"scores": [1, 2], "config": 5}', "malformed metrics"),
+    ],
+)
+def test_a_damaged_run_metrics_file_is_named_in_one_line_and_left_as_it_was(tmp_path, metrics, reason):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.json").write_bytes(metrics)
+    result = CliRunner().invoke(app, ["report", str(tmp_path / "run")])
+    assert result.exit_code == 2 and reason in result.output and "metrics.json" in result.output
+    assert result.output.count("\n") == 1 and not (tmp_path / "run" / "report.html").exists()
+    assert (tmp_path / "run" / "metrics.json").read_bytes() == metrics
