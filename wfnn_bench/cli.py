@@ -429,7 +429,12 @@ def passive(
         str, typer.Option(help="thesis | deep: the learner of every condition but the thesis' passive one.")
     ] = "thesis",
     learner_options: Annotated[
-        str, typer.Option(help="That learner's config fields over its defaults, a JSON object.")
+        str,
+        typer.Option(
+            help="That learner's config fields over its defaults, a JSON object (the passive "
+            "learners' k, pull and rate come from --passive-advantage-k, --bc-weight and "
+            "--passive-alpha over it)."
+        ),
     ] = "",
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     log_targets: Annotated[int, typer.Option(min=1, help="Targets per logged boat and policy.")] = 10,

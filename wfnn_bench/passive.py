@@ -62,7 +62,8 @@ class PassiveBenchConfig:
     """The learner of the pulled, unpulled and phantom-only passive conditions and of the online
     ones (the thesis' passive condition is always the thesis' learner)."""
     learner_options: str = ""
-    """Config fields of `learner` over its defaults, a JSON object (as `wfnn-bench boat`'s)."""
+    """Config fields of `learner` over its defaults, a JSON object (as `wfnn-bench boat`'s); the
+    passive learners' k, pull and (thesis) rate come from the fields below, over these."""
     dt: float = 0.1
     """Boat time per action (see sims.boat)."""
     noise: tuple[float, ...] = (0.0, 0.3, 1.0)
@@ -111,20 +112,34 @@ class PassiveBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
-        _config(self, 1, self.learner)  # a bad learner_options is a ConfigError now, not mid-run
+        # A bad learner_options, bc_weight or k is a ConfigError now, not after the logs are made.
+        _config(self, 1, self.learner, **pulled(self))
 
 
 PASSIVE_LEARNERS = ("passive", "passive_no_bc", "passive_thesis")
 """JSON keys of the passive conditions: with the pull, without it, the thesis' learner."""
 
 
-def _config(cfg: PassiveBenchConfig, capacity: int, kind: str = "thesis", **overrides: Any) -> LearnerConfig:
+def pulled(cfg: PassiveBenchConfig) -> dict[str, Any]:
+    """LearnerConfig fields of the passive learners with the pull (over `cfg.learner_options`)."""
+    fields: dict[str, Any] = {"advantage_k": cfg.passive_advantage_k, "bc_weight": cfg.bc_weight}
+    if cfg.learner == "thesis":
+        fields["alpha"] = cfg.passive_alpha
+    return fields
+
+
+def _config(
+    cfg: PassiveBenchConfig, capacity: int, kind: str = "thesis", reference: bool = False, **overrides: Any
+) -> LearnerConfig:
     """The boat benchmark's learner of `kind`, with `cfg.advantage_k` and `overrides`.
 
-    `kind`'s defaults, and `cfg.learner_options` over them where `kind` is `cfg.learner`.
+    `kind`'s defaults, and `cfg.learner_options` and `cfg.thinks` over them where `kind` is
+    `cfg.learner`; a `reference` (the thesis' passive learner, the logs' spec, the evaluations'
+    gamma) keeps the thesis' own, whatever the options.
     """
-    options = cfg.learner_options if kind == cfg.learner else ""
-    bench = BoatBenchConfig(thinks=cfg.thinks, dt=cfg.dt, learner=kind, learner_options=options)
+    own = kind == cfg.learner and not reference
+    bench = BoatBenchConfig(thinks=cfg.thinks if own else None, dt=cfg.dt, learner=kind,
+                            learner_options=cfg.learner_options if own else "")  # fmt: skip
     default_k = DEEP_DEFAULTS["advantage_k"] if kind == "deep" else LearnerConfig.advantage_k
     k = default_k if cfg.advantage_k is None else cfg.advantage_k
     base = learner_config(bench, k, cfg.seed + 11)
@@ -153,7 +168,7 @@ def evaluate(policy: Callable[[FloatArray], FloatArray], n: int, cfg: PassiveBen
     boat = _boat(cfg, n)
     rng = np.random.default_rng(cfg.seed + 99)
     boat.reset(rng)
-    gamma = _config(cfg, 1, "thesis").gamma  # one scale for every learner's figure
+    gamma = _config(cfg, 1, "thesis", reference=True).gamma  # one scale for every learner's figure
     rewards = np.zeros(n)
 
     def add(*experience: Any) -> None:  # only the reward counts
@@ -178,7 +193,7 @@ def greedy_score(learner: Any, cfg: PassiveBenchConfig) -> FloatArray:
 def record_logs(cfg: PassiveBenchConfig, directory: Path) -> dict[str, Any]:
     """Drive boats with each behaviour policy, recording experience logs; their protocol scores."""
     rng = np.random.default_rng(cfg.seed)
-    config = _config(cfg, 1)
+    config = _config(cfg, 1, reference=True)
     scores: dict[str, float] = {}
     for sigma in cfg.noise:
         name = "handcoded" if sigma == 0 else f"handcoded_noise{sigma:g}"
@@ -333,16 +348,14 @@ def run(cfg: PassiveBenchConfig, progress: Progress = no_progress) -> dict[str, 
         summary = {p.name: logs.summarise(p).experiences for p in sources}
         arrays = logs.to_arrays(sources)
     progress(1)
-    pulled: dict[str, Any] = {"advantage_k": cfg.passive_advantage_k, "bc_weight": cfg.bc_weight}
-    if cfg.learner == "thesis":
-        pulled["alpha"] = cfg.passive_alpha
+    pull = pulled(cfg)
     learners: dict[str, tuple[str, dict[str, Any]]] = {
-        "passive": (cfg.learner, pulled), "passive_no_bc": (cfg.learner, {**pulled, "bc_weight": 0.0}),
-        "passive_thesis": ("thesis", {}),
+        "passive": (cfg.learner, pull), "passive_no_bc": (cfg.learner, {**pull, "bc_weight": 0.0}),
+        "passive_thesis": ("thesis", {"reference": True}),
     }  # fmt: skip
     passives = {key: passive(cfg, arrays, False, progress, kind, **setting)
                 for key, (kind, setting) in learners.items()}  # fmt: skip
-    passive_phantom = passive(cfg, arrays, True, progress, cfg.learner, **pulled)
+    passive_phantom = passive(cfg, arrays, True, progress, cfg.learner, **pull)
     plain, mirrored, phantom_online = (online(cfg, kind, progress) for kind in ("plain", "mirror", "phantom"))
     level = plain["score_last10"]
     plain_n = experiences_to_reach(plain["median_per_target"], level)

@@ -167,8 +167,8 @@ RUN_FIGURES: tuple[tuple[str, str | tuple[str, ...]], ...] = (
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ReportError(f"{path}: not readable JSON ({exc})") from exc
+    except (OSError, ValueError, RecursionError) as exc:
+        raise ReportError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from exc
 
 
 def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
@@ -178,7 +178,7 @@ def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
         raise ReportError(f"{path} is not a client run's metrics (no scores)")
     try:
         return _run_sections_of(directory, metrics)
-    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+    except (TypeError, ValueError, KeyError, AttributeError, ArithmeticError, RecursionError) as exc:
         raise ReportError(f"{path}: malformed metrics ({type(exc).__name__}: {exc})") from exc
 
 
@@ -281,7 +281,7 @@ def report(
     try:
         written = run(ReportConfig(path=path, out=out))
     except ReportError as exc:
-        typer.echo(f"error: {exc}", err=True)
+        typer.echo(f"error: {' '.join(str(exc).split())}", err=True)
         raise typer.Exit(2) from exc
     typer.echo(f"wrote {written}")
 

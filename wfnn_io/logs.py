@@ -476,7 +476,8 @@ def _directory_name(label: str, taken: set[str]) -> str:
     name = re.sub(r"[^A-Za-z0-9_.\-]", "_", label).lstrip(".")[:64] or "none"
     unique, n = name, 2
     while unique in taken:
-        unique, n = f"{name}-{n}", n + 1
+        suffix = f"-{n}"
+        unique, n = name[: 64 - len(suffix)] + suffix, n + 1
     return unique
 
 

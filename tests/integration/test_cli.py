@@ -459,7 +459,7 @@ def test_bench_passive_runs_the_deep_learner_beside_the_thesis_reference(tmp_pat
     out = run([BIN / "wfnn-bench", "passive", "--learner", "deep", "--learner-options", options,
                "--controllers", "1", "--log-targets", "1", "--passive-thinks", "1000",
                "--online-targets", "10", "--thinks", "0", "--eval-targets", "1", "--bc-weight", "1.0",
-               "--json", j])  # fmt: skip
+               "--passive-advantage-k", "0.9", "--json", j])  # fmt: skip
     assert "online (deep)" in out.stdout
     # Not a terminal: progress comes as plain lines, the last at the end of the work.
     assert "passive: 0/" in out.stdout and "(100%)" in out.stdout
@@ -467,7 +467,8 @@ def test_bench_passive_runs_the_deep_learner_beside_the_thesis_reference(tmp_pat
     assert data["config"]["learner"] == "deep" and data["logs"]["learned"] == 3 * 4 * 200
     for key in ("passive", "passive_no_bc", "passive_phantom_only"):
         c = data[key]
-        assert (c["learner"], c["advantage_k"], c["alpha"]) == ("deep", 1.0, 3e-4)  # the deep defaults
+        # k from --passive-advantage-k; Adam's step the deep learner's default
+        assert (c["learner"], c["advantage_k"], c["alpha"]) == ("deep", 0.9, 3e-4)
         assert [e["thinks"] for e in c["curve"]] == [250, 500, 750, 1000]
         assert c["return"] < 0 and c["score"] > 0
     assert (data["passive"]["bc_weight"], data["passive_no_bc"]["bc_weight"]) == (1.0, 0.0)

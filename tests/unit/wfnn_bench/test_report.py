@@ -60,6 +60,9 @@ def test_unusable_input_is_refused_with_the_reason(tmp_path):
         (b"[1, 2]", "no scores"),
         (b'{"scores": [1, "x"]}', "malformed metrics"),
         (b'{"scores": [1, 2], "config": 5}', "malformed metrics"),
+        (b'{"scores": [1, 1' + b"0" * 400 + b"]}", "malformed metrics"),
+        (b'{"scores": ' + b"[" * 100_000 + b"]" * 100_000 + b"}", "metrics.json"),
+        (b'{"scores": [1, 2], "metric": "$\\foo$"}', "malformed metrics"),
     ],
 )
 def test_a_damaged_run_metrics_file_is_named_in_one_line_and_left_as_it_was(tmp_path, metrics, reason):

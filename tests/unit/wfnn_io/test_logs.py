@@ -103,7 +103,7 @@ def test_a_record_of_one_task_is_not_continued_by_another(tmp_path):
     assert logs.summarise(tmp_path / "log").experiences == 300
 
 
-HOSTILE_SOURCES = ["../../outside", "a/../../b", "[/]", "[bold]x", "." * 40, "x" * 5000]
+HOSTILE_SOURCES = ["../../outside", "a/../../b", "[/]", "[bold]x", "." * 40, "x" * 5000, "x" * 64 + "/"]
 
 
 def test_split_writes_only_under_its_directory_whatever_the_log_names(tmp_path):
