@@ -30,6 +30,22 @@ class PersistError(ValueError):
     """A file is not a wfnn file of the expected kind and version, or does not fit."""
 
 
+def _read_umask() -> int:
+    """The process's umask, read without changing it where Linux says it (no race with threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # at import, before any thread of ours creates files
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
+
+
 def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous: Path | None = None) -> None:
     """Write a file so that a crash leaves the old file or the new one, never a torn one.
 
@@ -41,6 +57,13 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
+        # mkstemp makes the file 0600; the new file gets the mode the old one had, or the mode
+        # open() would give it, so that a lab's shared results stay readable to the group.
+        try:
+            mode = path.stat().st_mode & 0o7777
+        except FileNotFoundError:
+            mode = 0o666 & ~_UMASK
+        os.chmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()

@@ -283,3 +283,24 @@ def test_a_checkpoint_whose_counters_are_not_numbers_is_not_used(tmp_path):
     again = make_server(tmp_path, hub, cfg)  # falls back to the previous one, whose meta is sound
     assert int(again.learner.thinks[0]) > 0 and all(type(v) is int for v in again.learned_through.values())
     again.store.close()
+
+
+def test_an_atomic_write_keeps_the_files_mode_and_a_new_file_takes_the_umask(tmp_path):
+    import os
+
+    from wfnn_io.persist import atomic_savez, atomic_write_text
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    atomic_write_text(tmp_path / "new.json", "{}")
+    assert (tmp_path / "new.json").stat().st_mode & 0o777 == 0o666 & ~mask
+    (tmp_path / "shared.json").write_text("{}")
+    for mode in (0o640, 0o604):
+        (tmp_path / "shared.json").chmod(mode)
+        atomic_write_text(tmp_path / "shared.json", '{"a": 1}')
+        assert (tmp_path / "shared.json").stat().st_mode & 0o777 == mode
+    assert (tmp_path / "shared.json").read_text() == '{"a": 1}'
+    atomic_savez(tmp_path / "w.npz", {"x": np.zeros(3)})
+    (tmp_path / "w.npz").chmod(0o600)  # a file kept private stays private
+    atomic_savez(tmp_path / "w.npz", {"x": np.ones(3)})
+    assert (tmp_path / "w.npz").stat().st_mode & 0o777 == 0o600
