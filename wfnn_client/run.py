@@ -157,8 +157,11 @@ def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
         path = config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
         saved_cfg, params, _ = load_weights(path)
         if saved_cfg.spec_hash() != lcfg.spec_hash():
+            kind = saved_cfg.learner
+            hint = (f" (they are the {kind} learner's, this run's is {lcfg.learner}: --learner {kind})"
+                    if kind != lcfg.learner else "")  # fmt: skip
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
-                             f"this task needs {lcfg.spec_hash()}")  # fmt: skip
+                             f"this task needs {lcfg.spec_hash()}{hint}")  # fmt: skip
         learner = make_learner(lcfg, params=params)
     return Skill(name, lcfg, learner, make_brain(config, learner, name))
 
