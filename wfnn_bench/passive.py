@@ -240,8 +240,8 @@ def passive(
 ) -> dict[str, Any]:
     """Learn from the logs only (or only from their phantom-target copies); a greedy curve.
 
-    `kind`: the learner; `overrides`: LearnerConfig fields that differ from its boat benchmark
-    config.
+    `kind`: the learner; `overrides`: `_config`'s, LearnerConfig fields that differ from its boat
+    benchmark config, or `reference=True` for the thesis' own settings.
     """
     s, a, sn, r = (
         np.asarray(arrays[k], dtype=np.float64) for k in ("state", "action", "next_state", "reward")

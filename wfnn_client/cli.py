@@ -109,14 +109,14 @@ def client(
     ] = "",
     thinks: Annotated[int | None, typer.Option(min=0, help="Thinks per action.")] = None,
     advantage_k: Annotated[
-        float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning) (thesis 0.2).")
+        float | None, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning; thesis 0.2).")
     ] = None,
     bc_weight: Annotated[
         float | None,
         typer.Option(
             min=0.0,
             help="Pull the best wire toward each replayed experience's action (for learning from "
-            "logged or other controllers' actions) (thesis 0).",
+            "logged or other controllers' actions; thesis 0).",
         ),
     ] = None,
     behaviour_policy: Annotated[

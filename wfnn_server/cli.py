@@ -82,12 +82,12 @@ def serve(
         typer.Option(
             min=0.0,
             help="Override the learner's bc_weight: pull the best wire toward the actions "
-            "taken (passive learning from other controllers' logs) (thesis 0).",
+            "taken (passive learning from other controllers' logs; thesis 0).",
         ),
     ] = None,
     alpha: Annotated[
         float | None,
-        typer.Option(min=1e-9, help="Override the learner's learning rate (passive: 0.05) (thesis 0.25)."),
+        typer.Option(min=1e-9, help="Override the learner's learning rate (passive: 0.05; thesis 0.25)."),
     ] = None,
     publish_period: Annotated[float, typer.Option(help="Snapshot period (s).")] = 0.25,
     checkpoint_period: Annotated[float, typer.Option(help="Checkpoint period (s).")] = 30.0,
