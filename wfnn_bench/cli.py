@@ -510,7 +510,7 @@ def vs_sb3(
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
-    _measure(vs_sb3_bench, cfg, "vs-sb3 runs", vs_sb3_bench.steps_total(cfg),
+    _measure(vs_sb3_bench, cfg, "vs-sb3 environment steps", vs_sb3_bench.steps_total(cfg),
              "WFNN vs Stable-Baselines3", json_path, plot_path)  # fmt: skip
 
 

@@ -122,9 +122,17 @@ def learner_config(task: GymVec, learner: str, seed: int, cfg: VsSb3Config) -> L
 
 
 def run_wfnn(
-    env_id: str, steps: int, seed: int, cfg: VsSb3Config, learner_name: str = "thesis"
+    env_id: str,
+    steps: int,
+    seed: int,
+    cfg: VsSb3Config,
+    learner_name: str = "thesis",
+    progress: Progress = no_progress,
 ) -> dict[str, Any]:
-    """One WFNN learner on the task: evaluation returns along the way, seconds per step, act latency."""
+    """One WFNN learner on the task: evaluation returns along the way, seconds per step, act latency.
+
+    `progress` hears of the environment steps done at each evaluation.
+    """
     import torch
 
     torch.set_num_threads(1)  # per core, as SB3 below
@@ -136,7 +144,7 @@ def run_wfnn(
     def greedy(obs: FloatArray) -> FloatArray:
         return learner.act(np.asarray(obs, dtype=np.float64), explore=False).action
 
-    points, returns, lengths, train_s = [], [], [], 0.0
+    points, returns, lengths, train_s, reported = [], [], [], 0.0, 0
     for step in range(1, steps + 1):
         t0 = time.perf_counter()
         u = learner.act(x).action
@@ -150,14 +158,21 @@ def run_wfnn(
             mean_return, mean_length = _evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed)
             returns.append(mean_return)
             lengths.append(mean_length)
+            progress(step - reported)
+            reported = step
     act = _act_us(greedy, x, cfg.act_calls)
     task.close()
     return {"steps": points, "returns": returns, "lengths": lengths, "s_per_step": train_s / steps,
             "act_us": act[0], "act_us_p99": act[1], "config": learner.config.to_dict()}  # fmt: skip
 
 
-def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config) -> dict[str, Any]:
-    """One SB3 model (defaults, MlpPolicy) on the task, trained in chunks between evaluations."""
+def run_sb3(
+    algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config, progress: Progress = no_progress
+) -> dict[str, Any]:
+    """One SB3 model (defaults, MlpPolicy) on the task, trained in chunks between evaluations.
+
+    `progress` hears of the environment steps done at each evaluation.
+    """
     import torch
     from stable_baselines3 import SAC, TD3
     from stable_baselines3.common.logger import Logger
@@ -182,6 +197,7 @@ def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config
         mean_return, mean_length = _evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed)
         returns.append(mean_return)
         lengths.append(mean_length)
+        progress(chunk)
     obs, _ = gym.make(env_id).reset(seed=seed)
     act = _act_us(greedy, obs, cfg.act_calls)
     return {"steps": points, "returns": returns, "lengths": lengths, "s_per_step": train_s / steps,
@@ -189,8 +205,13 @@ def run_sb3(algorithm: str, env_id: str, steps: int, seed: int, cfg: VsSb3Config
 
 
 def steps_total(cfg: VsSb3Config) -> int:
-    """Progress units: one per (task, algorithm or learner, seed)."""
-    return len(cfg.tasks) * len(_runs(cfg)) * cfg.seeds
+    """Progress units: environment steps, over every task, algorithm or learner, and seed.
+
+    Steps rather than whole runs, so that a long run (a Hopper seed takes minutes) shows how far
+    it has got; SAC's steps cost several times the deep learner's, so an estimate of the time left
+    made early in a run of both is only rough.
+    """
+    return sum(cfg.steps) * len(_runs(cfg)) * cfg.seeds
 
 
 def _runs(cfg: VsSb3Config) -> list[str]:
@@ -218,14 +239,13 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
         for algorithm in _runs(cfg):
             if algorithm not in LEARNERS and problem is not None:
                 out["tasks"][env_id][algorithm] = {"skipped": problem}
-                progress(cfg.seeds)
+                progress(steps * cfg.seeds)
                 continue
             runs = []
             for k in range(cfg.seeds):
                 seed = cfg.seed + k
-                runs.append(run_wfnn(env_id, steps, seed, cfg, algorithm) if algorithm in LEARNERS
-                            else run_sb3(algorithm, env_id, steps, seed, cfg))  # fmt: skip
-                progress(1)
+                runs.append(run_wfnn(env_id, steps, seed, cfg, algorithm, progress) if algorithm in LEARNERS
+                            else run_sb3(algorithm, env_id, steps, seed, cfg, progress))  # fmt: skip
             returns = np.array([r["returns"] for r in runs])  # [seeds, points]
             lengths = np.array([r["lengths"] for r in runs])  # [seeds, points]: mean greedy episode
             q25, q50, q75 = np.percentile(returns, [25, 50, 75], axis=0)

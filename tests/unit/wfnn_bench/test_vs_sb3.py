@@ -40,3 +40,16 @@ def test_an_sb3_run_leaves_no_log_folders_in_the_temporary_directory(tmp_path, m
     result = run_sb3("td3", "Pendulum-v1", 60, 0, VsSb3Config(eval_every=20, eval_episodes=1))
     assert result["steps"] == [20, 40, 60] and len(result["returns"]) == 3
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith("SB3-")] == []
+
+
+def test_progress_counts_environment_steps_at_each_evaluation():
+    from wfnn_bench.vs_sb3 import run, steps_total
+
+    cfg = VsSb3Config(tasks=("Pendulum-v1",), steps=(25,), algorithms=("wfnn",), seeds=2, eval_every=10,
+                      eval_episodes=1, thinks=1, act_calls=5)  # fmt: skip
+    heard: list[int] = []
+    result = run(cfg, heard.append)
+    # Evaluations at 10, 20 and 25 steps of each seed: a run shows how far it has got as it goes.
+    assert heard == [10, 10, 5, 10, 10, 5]
+    assert sum(heard) == steps_total(cfg) == 50
+    assert result["tasks"]["Pendulum-v1"]["thesis"]["steps"] == [10, 20, 25]
