@@ -126,6 +126,8 @@ class TaskEnv(gym.Env[FloatArray, FloatArray]):
             raise ValueError("TaskEnv wraps a task with n == 1")
         self.task = task
         self.max_steps = max_steps
+        self.max_reward: float | None = getattr(task, "max_reward", 0.0)
+        """The largest reward (this project's tasks: 0, the thesis' convention; `LearnerConfig.for_task`)."""
         # The declared ranges scale the learner's inputs; they are not hard limits, so the
         # observation space is ten times as wide around the same centre.
         low, high = np.asarray(task.state_low), np.asarray(task.state_high)

@@ -12,7 +12,11 @@ observation bound is infinite (most MuJoCo tasks), its range is measured instead
 their span on each side. Such ranges are estimates from a random policy, which rarely goes
 where a good one does (a balanced pole's cart drifts far beyond where random pushes ever
 took it), so the task then declares `valid_margin` = MEASURED_MARGIN: the learner's sanity
-limits refuse only non-finite observations, not those beyond an estimated range.
+limits refuse only non-finite observations, not those beyond an estimated range. A bound of at
+least `UNBOUNDED` in size counts as infinite (Gymnasium tasks often write "no bound" as float32's
+largest number); an observation the probe never saw move (it stayed within `STILL`) gets a range
+of 1 around its value, since the probe cannot tell its scale; the probe's non-finite values are
+left out.
 """
 
 from __future__ import annotations
@@ -28,29 +32,56 @@ from sims.base import Transition
 FloatArray = NDArray[np.float64]
 MEASURED_MARGIN = 1e6
 """The sanity margin of a task whose ranges were measured: only non-finite states are refused."""
+UNBOUNDED = 1e10
+"""A space's bound at least this large stands for no bound."""
+STILL = 1e-3
+"""A measured observation whose 1st-99th percentile span is below this did not move in the probe."""
 
 
 def make_env(env_id: str, **make_kwargs: Any) -> gym.Env[Any, Any]:
-    """`gym.make(env_id)`, checked: both spaces 1-D Boxes, the actions bounded.
+    """`gym.make(env_id)`, checked: 1-D Box spaces, actions real, bounded, with high > low.
 
     Anything else is refused with a ValueError that says why.
     """
     try:
         env = gym.make(env_id, **make_kwargs)
-    except gym.error.Error as exc:
-        raise ValueError(f"Gymnasium cannot make {env_id!r}: {exc}") from exc
+    except gym.error.Error as exc:  # the cause is in the message: not chained, so not told twice
+        raise ValueError(f"Gymnasium cannot make {env_id!r}: {exc}") from None
     except ModuleNotFoundError as exc:
-        raise ValueError(f"{env_id!r} needs a package that is not installed: {exc}") from exc
+        raise ValueError(f"{env_id!r} needs a package that is not installed: {exc}") from None
+    problem = _space_problem(env)
+    if problem:
+        env.close()
+        raise ValueError(f"{env_id}: {problem}")
+    return env
+
+
+def control_rate(env: gym.Env[Any, Any]) -> float:
+    """The task's own control rate in Hz: 1 / its time step `dt`, where it declares one, else 50."""
+    dt = getattr(env.unwrapped, "dt", None)
+    try:
+        rate = 1.0 / float(dt) if dt else 50.0
+    except (TypeError, ValueError):
+        return 50.0
+    return rate if np.isfinite(rate) and rate > 0 else 50.0
+
+
+def _space_problem(env: gym.Env[Any, Any]) -> str:
+    """Why the task's spaces cannot be learned here, or ""."""
     for what, space in (("observation", env.observation_space), ("action", env.action_space)):
         if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
-            env.close()
-            raise ValueError(f"{env_id}: the {what} space must be a 1-D Box, got {space}")
+            return f"the {what} space must be a 1-D Box, got {space}"
     act = env.action_space
     assert isinstance(act, gym.spaces.Box)
-    if not (np.isfinite(act.low).all() and np.isfinite(act.high).all()):
-        env.close()
-        raise ValueError(f"{env_id}: the action space must be bounded, got {act}")
-    return env
+    if not np.issubdtype(act.dtype, np.floating):  # whole numbers would truncate the actions learned
+        return f"the action space must hold real numbers, got {act}"
+    low, high = act.low.astype(np.float64), act.high.astype(np.float64)
+    if not ((np.abs(low) < UNBOUNDED) & (np.abs(high) < UNBOUNDED)).all():
+        return f"the action space must be bounded (each bound below {UNBOUNDED:g} in size), got {act}"
+    fixed = np.flatnonzero(~(high > low))
+    if fixed.size:
+        return f"action {int(fixed[0])} has low = high = {low[fixed[0]]:g}: a fixed action cannot be learned"
+    return ""
 
 
 class GymVec:
@@ -67,19 +98,24 @@ class GymVec:
         self.action_low = tuple(float(v) for v in act.low)
         self.action_high = tuple(float(v) for v in act.high)
         low, high = obs.low.astype(np.float64), obs.high.astype(np.float64)
+        low[~(np.abs(low) < UNBOUNDED)], high[~(np.abs(high) < UNBOUNDED)] = -np.inf, np.inf
         self.valid_margin = 1.0
         """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
             low, high = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
+        constant = ~(high > low)  # declared so: an observation that never changes (range 1 around it)
+        low, high = np.where(constant, low - 0.5, low), np.where(constant, high + 0.5, high)
         self.state_low = tuple(float(v) for v in low)
         self.state_high = tuple(float(v) for v in high)
         self.state_names = tuple(f"obs_{i}" for i in range(len(low)))
         spec = self.env.spec
         self.max_episode_steps = int(spec.max_episode_steps) if spec and spec.max_episode_steps else 1000
-        dt = getattr(self.env.unwrapped, "dt", None)
-        self.rate_hz = 1.0 / float(dt) if dt else 50.0
+        self.rate_hz = control_rate(self.env)
         """The task's own control rate (1 / its time step, where it declares one)."""
+        self.max_reward: float | None = getattr(self.env.unwrapped, "max_reward", None)
+        """The largest reward where the task declares it (this project's own do); else None, unknown,
+        as for Gymnasium's tasks (`LearnerConfig.for_task`)."""
         self._obs = np.zeros((1, len(low)))
         self.last_reward = np.zeros(1)
         self.episode_return = 0.0
@@ -100,8 +136,12 @@ class GymVec:
             if terminated or truncated:
                 obs, _ = self.env.reset(seed=int(rng.integers(2**31)))
         data = np.asarray(seen, dtype=np.float64)
-        p1, p99 = np.percentile(data, [1, 99], axis=0)
-        span = np.maximum(p99 - p1, 1e-3)
+        data[~np.isfinite(data)] = np.nan  # a NaN or infinite observation says nothing of the range
+        finite = ~np.isnan(data).all(axis=0)  # observations with a finite value in the probe
+        p1, p99 = np.zeros(data.shape[1]), np.zeros(data.shape[1])
+        if finite.any():
+            p1[finite], p99[finite] = np.nanpercentile(data[:, finite], [1, 99], axis=0)
+        span = np.where(p99 - p1 < STILL, 1.0, p99 - p1)
         measured_low, measured_high = p1 - 0.5 * span, p99 + 0.5 * span
         return (
             np.where(np.isfinite(low), low, measured_low),

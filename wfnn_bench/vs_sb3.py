@@ -30,13 +30,15 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.gym import GymVec
+from sims.gym import GymVec, make_env
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_learner
 
 FloatArray = NDArray[np.float64]
 ALGORITHMS = ("wfnn", "sac", "td3")
+EVAL_LIMIT = 1000
+"""Steps of an evaluation episode of a task without a time limit (as `GymVec` learns it)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -85,17 +87,20 @@ def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> tuple[float
     """Mean return and mean length (steps) of `policy(obs) -> action` over fresh episodes.
 
     The length tells returns of the same size apart: on Hopper a return near 1,000 can be a
-    whole episode standing still, and one near 200 a lunge that falls within 100 steps.
+    whole episode standing still, and one near 200 a lunge that falls within 100 steps. A task
+    with no time limit of its own is cut at `EVAL_LIMIT` steps (a good policy never ends there).
     """
     env = gym.make(env_id)
+    limit = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EVAL_LIMIT
     total, length = 0.0, 0
     for k in range(episodes):
         obs, _ = env.reset(seed=seed + k)
-        done = False
-        while not done:
+        done, steps = False, 0
+        while not done and steps < limit:
             obs, reward, terminated, truncated, _ = env.step(policy(obs))
             total += float(reward)
             length += 1
+            steps += 1
             done = terminated or truncated
     env.close()
     return total / episodes, length / episodes
@@ -223,6 +228,8 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
     """Every task x algorithm x seed -> a JSON-ready dict."""
     import sims.boat  # noqa: F401  # registers wfnn/Boat-v0
 
+    for env_id in cfg.tasks:  # every task checked before the first run: a typo does not wait an hour
+        make_env(env_id).close()
     t0 = time.perf_counter()
     problem = sb3_problem()
     if problem is None or "deep" in cfg.learners:

@@ -248,12 +248,13 @@ class LocalBrain:
         return True
 
     def metrics(self) -> dict[str, float]:
-        """Thinks, snapshots and resets."""
+        """Thinks, snapshots, resets, and experiences stored and refused (by the learner's sanity checks)."""
         return {
             "think/thinks": float(self.learner.thinks.sum()),
             "weights/version": float(self.mt.version if self.mt else self.learner.thinks[0]),
             "learn/divergence_resets": float(self.learner.resets.sum()),
             "learn/experiences": float(self.learner.buffer.count[0]),
+            "learn/rejected": float(self.learner.rejected.sum()),
         }
 
     def report(self, metrics: dict[str, Any]) -> None:

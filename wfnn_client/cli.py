@@ -13,7 +13,7 @@ from rich.logging import RichHandler
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from sims.gym import make_env
+from sims.gym import control_rate, make_env
 from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
@@ -66,7 +66,7 @@ def client(
         typer.Option(
             min=0.0,
             help="Control rate; 0 = as fast as possible (sim's rate: 50, hydra 15, "
-            "nomad 10). HyDrA and the Nomad are simulated at this rate.",
+            "nomad 10, --env 1 / the task's time step). HyDrA and the Nomad are simulated at this rate.",
         ),
     ] = None,
     lockstep: Annotated[bool, typer.Option(help="As fast as possible, each act after the thinks.")] = False,
@@ -190,15 +190,18 @@ def client(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
+    if sim not in SIMS and env is None:
+        raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
+    own_rate = SIMS[sim].rate_hz if env is None else 0.0
     if env is not None:
         sim = "gym"
         try:
-            make_env(env).close()
+            made = make_env(env)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--env") from exc
-    if sim not in SIMS:
-        raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
-    rate = rate_hz if rate_hz is not None else (0.0 if lockstep else SIMS[sim].rate_hz)
+        own_rate = control_rate(made)  # a Gymnasium task's own time step sets its real-time tick
+        made.close()
+    rate = rate_hz if rate_hz is not None else (0.0 if lockstep else own_rate)
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
@@ -258,8 +261,10 @@ def client(
         if len(scores) >= 20
         else f"episode 1 {scores[0]:.3f} -> episode {len(scores)} {scores[-1]:.3f}"
     )
+    refused = int(metrics.get("learn/rejected", 0))  # in-process: what the learner's sanity checks refused
     console.print(
-        f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences, following "
+        f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences"
+        f"{f' ({refused} refused as not finite or out of range)' if refused else ''}, following "
         f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
         f"jitter p99 {metrics['client/tick_jitter_ms_p99']:.3f} ms, overruns {metrics['client/overruns']:.0f}"
     )

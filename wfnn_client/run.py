@@ -429,7 +429,7 @@ class _Brains:
         return {**totals, **{f"{name}/{k}": v for name, m in each.items() for k, v in m.items()}}
 
 
-TOTALS = ("think/thinks", "learn/experiences", "learn/divergence_resets")
+TOTALS = ("think/thinks", "learn/experiences", "learn/divergence_resets", "learn/rejected")
 """Brain figures that add up over several behaviours' brains."""
 
 
@@ -461,7 +461,7 @@ def _status(
         "following": brain.following,
         "client/reward_mean": float(np.mean(rewards)) if rewards else float("nan"),
         "client/q_mean": float(np.mean(values)) if values else float("nan"),
-        "client/safe_actions": float(safety.counts["no_weights"] + safety.counts["late"]),
+        "client/safe_actions": float(sum(safety.counts[k] for k in ("no_weights", "late", "non_finite"))),
         "client/vetoes": float(safety.counts["vetoed"]),
         **ticks.summary("client/", None if whole_run else RECENT),
         **brain.metrics(),

@@ -110,6 +110,9 @@ class SafetyLayer:
         if proposed is None:
             self.counts["no_weights"] += 1
             action, flags = self.safe.copy(), EXP_SAFE_ACTION
+        elif not np.isfinite(proposed).all():  # clipping keeps a NaN: it must never reach an actuator
+            self.counts["non_finite"] += 1
+            action, flags = self.safe.copy(), EXP_SAFE_ACTION
         else:
             action = np.clip(proposed, self.low, self.high)
             if self.max_step is not None:
@@ -130,6 +133,9 @@ class SafetyLayer:
                     out_proposed = action
                     action = np.clip(np.asarray(replacement, dtype=np.float64), self.low, self.high)
                     flags |= EXP_VETO_ACTUAL
+                    if not np.isfinite(action).all():  # a behaviour's veto gone wrong: stop instead
+                        self.counts["non_finite"] += 1
+                        action, flags, out_proposed = self.safe.copy(), EXP_SAFE_ACTION, None
             if late_s > self.deadline_s:
                 self.counts["late"] += 1
                 action, flags, out_proposed = self.safe.copy(), EXP_SAFE_ACTION, None

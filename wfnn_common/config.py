@@ -185,6 +185,8 @@ class DeepConfig:
 
 
 LEARNERS = ("thesis", "deep")
+POSITIVE_REWARD_THRESHOLD = 1.5
+"""The thesis' learner's divergence threshold on a task whose rewards may be positive (`for_task`)."""
 DEEP_DEFAULTS: dict[str, Any] = {
     "gamma": 0.99, "advantage_k": 1.0, "thinks_per_action": 1, "batch_size": 256, "n_wires": 8,
     "smoothing_c": 0.1, "squash_reward": False, "divergence_threshold": 1e4,
@@ -204,8 +206,11 @@ MAX_REPLAY_BYTES = 8 << 30
 MAX_DEEP_PARAMS = 4_000_000
 """A deep critic's weights travel in one snapshot (float64, at most 32 MiB with the rest)."""
 MAX_DEEP_WORK = 1 << 24
-"""Largest batch_size x n_wires x (value_hidden + n_wires + action_dim) of a deep learner's
-update: its value head's working arrays (4 bytes each, for both critics, with gradients)."""
+"""Largest batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_hidden + n_wires +
+action_dim)) of a deep learner's update: the numbers each minibatch row keeps for the backward
+pass, in the trunk and in the value head (4 bytes each, for both critics, with gradients)."""
+MAX_SEED = (1 << 62) - 1
+"""Largest seed: numpy and torch take it, and benchmarks add a seed number to it."""
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
 for more memory or work than any robot here needs is refused rather than attempted."""
 
@@ -330,6 +335,7 @@ class LearnerConfig:
             (self.valid_margin >= 0.0, "valid_margin must be >= 0"),
             (self.divergence_patience >= 0, "divergence_patience must be >= 0"),
             (0.0 < self.init_scale <= 100.0, "init_scale must be in (0, 100]"),
+            (0 <= self.seed <= MAX_SEED, f"seed must be in [0, {MAX_SEED}]"),
             (self.derivatives in ("approx", "exact"), "derivatives must be 'approx' or 'exact'"),
             (self.update in ("incremental", "minibatch"), "update must be 'incremental' or 'minibatch'"),
             (self.minibatch_dtype in ("float32", "float64"), "minibatch_dtype must be float32 or float64"),
@@ -346,10 +352,11 @@ class LearnerConfig:
             if size > MAX_DEEP_PARAMS:
                 raise ConfigError(f"the deep learner's critic would have {size:,} parameters, more than "
                                   f"{MAX_DEEP_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
-            work = self.batch_size * self.n_wires * (d.value_hidden + self.n_wires + len(a_lo))
-            if work > MAX_DEEP_WORK:
-                raise ConfigError(f"batch_size x n_wires x (value_hidden + n_wires + action_dim) = {work:,} "
-                                  f"is more than {MAX_DEEP_WORK:,} ({self.short_repr()})")  # fmt: skip
+            row = sum(widths) + self.n_wires * (d.value_hidden + self.n_wires + len(a_lo))
+            if self.batch_size * row > MAX_DEEP_WORK:
+                raise ConfigError(f"batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_hidden + "
+                                  f"n_wires + action_dim)) = {self.batch_size * row:,} is more than "
+                                  f"{MAX_DEEP_WORK:,} ({self.short_repr()})")  # fmt: skip
         for symmetry in self.symmetries:
             try:
                 symmetry.check_dims(self.state_dim, self.action_dim)
@@ -363,10 +370,18 @@ class LearnerConfig:
         `task` is anything with state_low, state_high, action_low and action_high (and, where
         it declares one, `valid_margin`: how far outside those ranges its states may go); the
         deep learner starts from `DEEP_DEFAULTS`, the thesis' learner from the thesis' values.
+
+        The thesis' divergence threshold assumes rewards of at most zero, as its tasks' are. A
+        task that declares `max_reward` None (unknown, as a Gymnasium task's is) or above zero
+        may earn values up to 1, the bound squashed rewards keep every value within (Eq 3.6),
+        so the thesis' learner then judges only values beyond `POSITIVE_REWARD_THRESHOLD`.
         """
         defaults = dict(DEEP_DEFAULTS) if learner == "deep" else {}
         if getattr(task, "valid_margin", None) is not None:
             defaults["valid_margin"] = float(task.valid_margin)
+        top = getattr(task, "max_reward", 0.0)  # where not declared, the thesis' tasks: none above zero
+        if learner == "thesis" and (top is None or top > 0.0):
+            defaults["divergence_threshold"] = POSITIVE_REWARD_THRESHOLD
         return cls(
             state_low=tuple(task.state_low), state_high=tuple(task.state_high),
             action_low=tuple(task.action_low), action_high=tuple(task.action_high),

@@ -27,6 +27,9 @@ from wfnn_common.learner import WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""Largest magnitude a training array may hold: the update trains in float32."""
+
 
 class DeepWFNN(WFNN):
     """One deep wire-fitting learner (see the module docstring)."""
@@ -212,25 +215,43 @@ class DeepWFNN(WFNN):
         return dict(self._trainer.state())
 
     def load_training_state(self, state: dict[str, Any]) -> None:
-        """Resume from `training_state`'s arrays; ValueError if they do not fit this config."""
+        """Resume from `training_state`'s arrays; ValueError if they do not fit this config.
+
+        The arrays train in float32, so each must be real, finite and within float32's range (a
+        larger finite float64 would become infinite there), and critic 1 of `theta` must be the
+        weights this learner was made with (the `params` saved beside it, which `act` reads).
+        """
         n = 2 * self.shapes.n_params
+        arrays: dict[str, FloatArray] = {}
         for key in ("theta", "target", "adam_m", "adam_v"):
             if key in state:
                 arr = np.asarray(state[key])
-                if arr.shape != (n,) or not np.isfinite(arr).all():
-                    raise ValueError(f"training state {key}: shape {arr.shape}, expected ({n},) and finite")
+                if arr.dtype.kind not in "fiu" or arr.shape != (n,):
+                    raise ValueError(f"training state {key}: {arr.dtype} {arr.shape}, expected real ({n},)")
+                arrays[key] = arr = arr.astype(np.float64)
+                if not (np.abs(arr) <= FLOAT32_MAX).all():  # NaN fails the comparison too
+                    raise ValueError(f"training state {key}: not finite, or beyond float32's range")
         if not state:  # weights only (saved without their training): Adam starts afresh
             return
         if "theta" not in state or "target" not in state:
             raise ValueError("training state lacks theta or target")
         if ("adam_m" in state) != ("adam_v" in state) or ("adam_m" in state) != ("adam_step" in state):
             raise ValueError("training state has part of Adam's state")
-        if "adam_v" in state and (np.asarray(state["adam_v"]) < 0).any():
+        if "adam_v" in arrays and (arrays["adam_v"] < 0).any():
             raise ValueError("training state adam_v has negative entries")
         if "adam_step" in state:
             step = np.asarray(state["adam_step"])
-            if step.shape != () or not np.isfinite(step) or step < 0 or step > 1e15 or step != np.round(step):
-                raise ValueError(f"training state adam_step is not a count: {step!r}")
+            if (
+                step.dtype.kind not in "fiu"
+                or step.shape != ()
+                or not 0 <= float(step) <= 1e15
+                or step != np.round(step)
+            ):
+                raise ValueError(f"training state adam_step is not a count: {str(step)[:40]!r}")
+        critic1 = arrays["theta"][: self.shapes.n_params].astype(np.float32)
+        if not np.array_equal(critic1, self.params.flat[0].astype(np.float32)):
+            raise ValueError("training state theta: critic 1 is not the weights saved beside it")
+        state = {**state, **arrays}
         self._theta0 = np.asarray(state["theta"], dtype=np.float64)
         self._train().load(state)
         self._sync()

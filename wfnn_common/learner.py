@@ -31,6 +31,9 @@ from wfnn_common.wirefit import wirefit_q
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+MAX_REWARD = float(np.finfo(np.float32).max)
+"""Largest reward magnitude learned: the deep learner trains in float32, where a larger one is
+infinite (and its weights would turn NaN)."""
 
 
 class ActResult(NamedTuple):
@@ -55,7 +58,8 @@ class DivergenceMonitor:
     """Section 7.6.2: chosen actions' values persistently above a threshold mean divergence.
 
     The maximum reward is zero, so values should not rise above zero; a run of `patience`
-    consecutive chosen-action values above `threshold` is judged divergence.
+    consecutive chosen-action values above `threshold` is judged divergence, and a value that
+    is not finite (weights gone NaN or infinite, which never recover) at once.
     """
 
     def __init__(self, population: int, threshold: float, patience: int) -> None:
@@ -69,8 +73,8 @@ class DivergenceMonitor:
         Learners where `mask` is False (an invalid state, acted on from a best estimate) are
         skipped: their run of high values neither grows nor ends.
         """
-        high = value > self.threshold
-        run = (self.run + 1) * high
+        high = ~(value <= self.threshold)  # NaN too
+        run = np.where(np.isfinite(value), (self.run + 1) * high, max(self.patience, 1))  # NaN: at once
         self.run = run if mask is None else np.where(mask, run, self.run)
         diverged = self.run >= self.patience if self.patience > 0 else np.zeros_like(high)
         if diverged.any():
@@ -202,6 +206,10 @@ class WFNN:
         valid: BoolArray = np.asarray((np.abs(x) <= self._limit).all(axis=1))
         x = self._best_estimate(x, valid)
         greedy, value = self._greedy(params or self.params, x)
+        bad: BoolArray = np.asarray(~np.isfinite(greedy).all(axis=1))
+        if bad.any():  # weights gone non-finite: mid-range this once (the monitor resets them)
+            greedy = np.where(bad[:, None], 0.0, greedy)
+            value = np.where(bad, np.nan, value)
         if explore:
             u = self._explore(greedy)
             explored = (u != greedy).any(axis=1)
@@ -247,6 +255,9 @@ class WFNN:
 
     def _finish_one(self, u: FloatArray, value: float, valid: bool, explore: bool, params: Any) -> ActResult:
         """The rest of a single learner's `act` after its greedy wire (u [A] scaled, its value)."""
+        finite = bool(np.isfinite(value)) and bool(np.isfinite(u).all())
+        if not finite:  # weights gone non-finite: the middle of the range this once, then reset below
+            u = np.where(np.isfinite(u), u, 0.0)
         explored = False
         if explore:
             greedy = u
@@ -256,8 +267,9 @@ class WFNN:
         diverged = False
         if not valid:
             pass  # an estimated state: the run of high values neither grows nor ends
-        elif value > monitor.threshold:
-            monitor.run[0] += 1
+        elif not value <= monitor.threshold or not finite:
+            # A non-finite value or wire (weights gone NaN or infinite) never recovers: at once.
+            monitor.run[0] = monitor.run[0] + 1 if finite else max(monitor.patience, 1)
             if 0 < monitor.patience <= monitor.run[0]:
                 monitor.run[0] = 0
                 diverged = True
@@ -294,7 +306,7 @@ class WFNN:
         x, x_ok = self.scale_state(s)
         xn, xn_ok = self.scale_state(sn)
         u = self.action_scaler.to_unit(a)
-        ok &= x_ok & (xn_ok | term) & np.isfinite(u).all(axis=1) & np.isfinite(r)
+        ok &= x_ok & (xn_ok | term) & np.isfinite(u).all(axis=1) & (np.abs(r) <= MAX_REWARD)  # NaN fails
         # Actions are executed clipped, so they are learned clipped.
         u = np.clip(np.nan_to_num(u), -1.0, 1.0)
         xn = np.where(term[:, None], 0.0, np.nan_to_num(xn))

@@ -138,7 +138,10 @@ def _open(path: Path, expected_format: str) -> dict[str, Any]:
     fmt = str(arrays.get("format", ""))
     if fmt != expected_format:
         raise PersistError(f"{path}: expected format {expected_format!r}, found {fmt!r}")
-    version = int(arrays.get("format_version", -1))
+    raw = np.asarray(arrays.get("format_version", -1))
+    if raw.shape != () or raw.dtype.kind not in "iu":  # a float, string, bool or array: damaged
+        raise PersistError(f"{path}: format version {str(raw)[:40]!r} is not an integer")
+    version = int(raw)
     if not 1 <= version <= FORMAT_VERSION:
         raise PersistError(f"{path}: format version {version} is not supported (<= {FORMAT_VERSION})")
     return arrays
@@ -191,6 +194,8 @@ def load_checkpoint(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any],
     if str(arrays.get("spec_hash", "")) != config.spec_hash():
         raise PersistError(f"{path}: spec hash does not match its config")
     try:
+        if np.asarray(arrays["params"]).dtype.kind not in "fiu":  # complex would lose its imaginary part
+            raise TypeError(f"{np.asarray(arrays['params']).dtype} is not a real number type")
         flat = np.ascontiguousarray(arrays["params"], dtype=np.float64)
     except (KeyError, ValueError, TypeError) as exc:
         raise PersistError(f"{path}: no usable params ({exc})") from exc

@@ -157,6 +157,8 @@ class ThinkServer:
         self._config_json = ""
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
+        self._unusable: set[LearnerConfig] = set()
+        """Adopted configs that no learner could be made from (not adopted again)."""
         self.version = 0
         self.schedule = ThinkSchedule()
         """Thinks owed, how far they have reached (`learned_through`) and relearning after a reset."""
@@ -182,19 +184,19 @@ class ThinkServer:
         previous = 0
         if path.exists():
             try:
-                previous = int(path.read_text().strip())
-                if previous < 0:
-                    raise ValueError(f"negative: {previous}")
+                previous = int(path.read_text(errors="replace").strip())
+                if not _is_count(previous) or previous == MAX_SEQ:
+                    raise ValueError(f"not a count below {MAX_SEQ}: {previous}")
             except (OSError, ValueError) as exc:
                 set_aside(path, f"unreadable ({exc})")
                 previous = 0
                 for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
                     try:
-                        previous = max(
-                            previous, int(load_weights(self.data_dir / name)[2].get("incarnation", 0))
-                        )
+                        recorded = load_weights(self.data_dir / name)[2].get("incarnation", 0)
                     except (PersistError, OSError, ValueError, TypeError):
                         continue
+                    if _is_count(recorded) and recorded < MAX_SEQ:  # a damaged record counts for nothing
+                        previous = max(previous, recorded)
         atomic_write_text(path, str(previous + 1))
         return previous + 1
 
@@ -289,12 +291,13 @@ class ThinkServer:
         """Build the learner, resume the checkpoint if it fits, and load the stored experiences.
 
         The adopted config is saved as it came, before this server's overrides: a restart
-        without a flag drops the flag's effect.
+        without a flag drops the flag's effect. It is saved once its learner is built, so that a
+        config no learner can be made from is not adopted again at every restart.
         """
-        atomic_write_text(self.data_dir / LEARNER_JSON, adopted.to_json())
         cfg = self._overridden(adopted)
         learner, meta = self._resume(cfg)
         learner.prepare_thinking()  # at construction: before the server's threads run
+        atomic_write_text(self.data_dir / LEARNER_JSON, adopted.to_json())
         checkpointed: dict[str, int] = meta.get("stored_through", {})
         budget = int(meta.get("budget", 0))
         tpa = cfg.thinks_per_action
@@ -342,7 +345,7 @@ class ThinkServer:
                 learner.thinks[:] = int(meta.get("thinks", 0))
                 learner.resets[:] = int(meta.get("resets", 0))
                 self.version = int(meta.get("version", 0))
-            except (PersistError, OSError, KeyError, ValueError, TypeError) as exc:
+            except (PersistError, OSError, KeyError, ValueError, TypeError, ArithmeticError) as exc:
                 log.error("checkpoint %s cannot be used (%s)", path, exc)
                 # Renamed, so that the next checkpoint's rotation never writes over it.
                 set_aside(path, "unreadable; the previous checkpoint, else fresh weights, are used")
@@ -504,6 +507,9 @@ class ThinkServer:
             self.rejected["config"] += 1
             log.error("client %s announced a learner config that is refused: %s", status.client, exc)
             return
+        if cfg in self._unusable:  # refused once already, and said so then
+            self.rejected["config"] += 1
+            return
         log.info("adopting the learner config of client %s", status.client)
         self._pending_config = cfg
         self._wake.set()
@@ -531,8 +537,14 @@ class ThinkServer:
         last_status, last_thinks = now, 0
         while not self._stop.is_set():
             if self.learner is None and self._pending_config is not None:
-                self._start_learner(self._pending_config)
-                self._pending_config = None
+                pending, self._pending_config = self._pending_config, None
+                try:
+                    self._start_learner(pending)
+                except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
+                    self.rejected["config"] += 1
+                    self._unusable.add(pending)
+                    log.error("the adopted learner config cannot make a learner (%s); waiting for another",
+                              str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)  # fmt: skip
             learner = self.learner
             thought = False
             if learner is not None:

@@ -505,6 +505,11 @@ def test_client_drives_a_gymnasium_mujoco_task(tmp_path):
     # 1,000 steps of the time limit; the pole falls and its episodes restart inside the client's.
     assert metrics["ticks"] == 1000 and metrics["experiences_learned"] == 1000
     assert len(metrics["config"]["learner"]["state_low"]) == 4 and 0 < metrics["scores"][0] <= 1.0
+    # In real time, at the task's own rate (its time step is 0.04 s), not a default one.
+    run([BIN / "wfnn-client", "--env", "InvertedPendulum-v5", "--episodes", "1", "--duration", "0.3",
+         "--thinks", "1", "--out", tmp_path / "timed"])  # fmt: skip
+    timed = json.loads((tmp_path / "timed" / "metrics.json").read_text())
+    assert timed["config"]["client"]["rate_hz"] == pytest.approx(25.0)
 
 
 def test_bench_vs_sb3_reports_curves_step_cost_and_act_latency(tmp_path):

@@ -191,7 +191,9 @@ def test_with_no_readable_checkpoint_fresh_weights_re_earn_every_experiences_thi
     assert missing == []  # nothing deleted: the unreadable checkpoints too are kept, set aside
 
 
-@pytest.mark.parametrize("garbage", [b"", b"seven", b"-3", b"\xff\xfe"])
+@pytest.mark.parametrize(
+    "garbage", [b"", b"seven", b"-3", b"\xff\xfe", b"18446744073709551616", b"4611686018427387903"]
+)
 def test_a_corrupt_incarnation_file_is_set_aside_and_the_count_goes_on(tmp_path, garbage):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     first, _ = stored_and_checkpointed(tmp_path, hub, cfg, 5, 5)
@@ -304,3 +306,33 @@ def test_an_atomic_write_keeps_the_files_mode_and_a_new_file_takes_the_umask(tmp
     (tmp_path / "w.npz").chmod(0o600)  # a file kept private stays private
     atomic_savez(tmp_path / "w.npz", {"x": np.ones(3)})
     assert (tmp_path / "w.npz").stat().st_mode & 0o777 == 0o600
+
+
+@pytest.mark.parametrize("version", [np.float64(np.inf), np.float64(np.nan), np.str_("one"), np.array([1, 1]),
+                                     np.float64(1.0), np.bool_(True)])  # fmt: skip
+def test_a_newest_checkpoint_with_a_damaged_format_version_falls_back_to_the_previous_one(tmp_path, version):
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    _, first_thinks = stored_and_checkpointed(tmp_path, hub, cfg)
+    data = tmp_path / "s1"
+    with np.load(data / CHECKPOINT) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    with open(data / CHECKPOINT, "wb") as f:
+        np.savez(f, **{**arrays, "format_version": version})
+    again = make_server(tmp_path, hub, cfg)
+    assert int(again.learner.thinks[0]) == first_thinks  # the previous checkpoint's
+    assert len(list(data.glob(f"{CHECKPOINT}.unreadable-*"))) == 1
+    again.store.close()
+
+
+def test_a_checkpoints_damaged_incarnation_record_counts_for_nothing(tmp_path):
+    from wfnn_io.persist import load_checkpoint, save_weights
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    first, _ = stored_and_checkpointed(tmp_path, hub, cfg, 5, 5)
+    data = tmp_path / "s1"
+    ck_cfg, params, meta, training = load_checkpoint(data / CHECKPOINT)
+    save_weights(data / CHECKPOINT, ck_cfg, params, {**meta, "incarnation": float("inf")}, training=training)
+    (data / "incarnation").write_bytes(b"garbage")
+    again = make_server(tmp_path, hub, cfg)  # the previous checkpoint's record of it is sound
+    assert again.incarnation == first.incarnation + 1
+    again.store.close()

@@ -83,3 +83,84 @@ def test_infinite_observation_bounds_are_measured_from_random_play():
     declared = GymVec("Pendulum-v1")
     assert LearnerConfig.for_task(declared).valid_margin == declared.valid_margin == 1.0
     declared.close()
+
+
+class _Spaces(gym.Env):
+    """A task whose spaces and observations a test chooses (set on the class before making it)."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    nan_every = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self._obs(), {}
+
+    def _obs(self):
+        # One coordinate moves, one is still (a contact force that random play never makes), one
+        # is NaN now and then where nan_every is set.
+        obs = np.array([self.np_random.normal(), 0.0, self.np_random.normal()])
+        if self.nan_every and self.t % self.nan_every == 0:
+            obs[2] = np.nan
+        return obs
+
+    def step(self, action):
+        self.t += 1
+        return self._obs(), 1.0, False, False, {}
+
+
+def _register(name, **attrs):
+    env_class = type(name, (_Spaces,), attrs)
+    gym.register(f"WfnnTest{name}-v0", entry_point=env_class, max_episode_steps=50)
+    return f"WfnnTest{name}-v0"
+
+
+def test_measured_ranges_leave_out_non_finite_values_and_give_a_still_observation_a_unit_span():
+    task = GymVec(_register("NanSome", nan_every=7), probe_steps=500)
+    low, high = np.array(task.state_low), np.array(task.state_high)
+    assert np.isfinite(low).all() and np.isfinite(high).all()
+    assert (low[1], high[1]) == (-0.5, 0.5)  # never moved: a range of 1 around its value
+    assert 3 < high[2] - low[2] < 12  # a standard normal's 1-99% span (4.7), widened: NaNs left out
+    task.close()
+
+
+def test_bounds_of_float32s_largest_size_stand_for_none():
+    huge = float(np.finfo(np.float32).max)
+    task = GymVec(_register("HugeObs", observation_space=gym.spaces.Box(-huge, huge, (3,), np.float32)))
+    assert task.valid_margin == MEASURED_MARGIN and max(task.state_high) < 100  # measured, not +-3.4e38
+    task.close()
+    with pytest.raises(ValueError, match="action space must be bounded"):
+        GymVec(_register("HugeAct", action_space=gym.spaces.Box(-huge, huge, (1,), np.float32)))
+
+
+@pytest.mark.parametrize(
+    ("space", "message"),
+    [
+        (gym.spaces.Box(0, 3, (1,), np.int64), "real numbers"),
+        (gym.spaces.Box(np.array([0.0, 0.5]), np.array([1.0, 0.5]), (2,), np.float64), "action 1 has low ="),
+    ],
+)
+def test_action_spaces_that_cannot_be_learned_are_refused_naming_the_task(space, message):
+    with pytest.raises(ValueError, match=message) as refused:
+        GymVec(_register(f"Act{len(message)}", action_space=space))
+    assert "WfnnTestAct" in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_a_constant_declared_observation_gets_a_range_and_a_gymnasium_tasks_rewards_may_be_positive():
+    space = gym.spaces.Box(np.array([-1.0, 2.0, -1.0]), np.array([1.0, 2.0, 1.0]), (3,), np.float64)
+    task = GymVec(_register("ConstObs", observation_space=space))
+    assert (task.state_low[1], task.state_high[1]) == (1.5, 2.5)
+    # The thesis' divergence threshold assumes rewards of at most zero; this task pays +1 a step.
+    cfg = LearnerConfig.for_task(task)
+    assert cfg.divergence_threshold == 1.5
+    assert LearnerConfig.for_task(task, learner="deep").divergence_threshold == 1e4
+    task.close()
+
+
+def test_this_projects_own_tasks_declare_rewards_of_at_most_zero_through_gymnasium():
+    import sims.boat  # noqa: F401  # registers wfnn/Boat-v0
+
+    boat = GymVec("wfnn/Boat-v0")
+    assert boat.max_reward == 0.0 and LearnerConfig.for_task(boat).divergence_threshold == 0.5
+    boat.close()

@@ -53,3 +53,24 @@ def test_progress_counts_environment_steps_at_each_evaluation():
     assert heard == [10, 10, 5, 10, 10, 5]
     assert sum(heard) == steps_total(cfg) == 50
     assert result["tasks"]["Pendulum-v1"]["thesis"]["steps"] == [10, 20, 25]
+
+
+def test_an_evaluation_of_a_task_without_a_time_limit_ends():
+    gym.register("WfnnTestEndless-v0", entry_point=_Walk, max_episode_steps=None)
+    # Standing still never arrives; the episode is cut at EVAL_LIMIT steps.
+    from wfnn_bench.vs_sb3 import EVAL_LIMIT
+
+    assert _evaluate(lambda obs: np.array([0.0], np.float32), "WfnnTestEndless-v0", 2, 0) == (
+        EVAL_LIMIT,
+        EVAL_LIMIT,
+    )
+
+
+def test_every_task_is_checked_before_the_first_run():
+    from wfnn_bench.vs_sb3 import run
+
+    cfg = VsSb3Config(tasks=("Pendulum-v1", "CartPole-v1"), steps=(25, 25), algorithms=("wfnn",), seeds=1)
+    heard: list[int] = []
+    with pytest.raises(ValueError, match="CartPole-v1: the action space"):
+        run(cfg, heard.append)
+    assert heard == []  # Pendulum never started

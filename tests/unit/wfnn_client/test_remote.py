@@ -345,3 +345,13 @@ def test_a_store_announced_during_a_resend_keeps_its_restarted_window(tmp_path):
     uplink._resend()  # without a new store, the window advances as before
     assert view.window_end == 2 and view.last_resend > 0.0
     brain.stop()
+
+
+def test_a_local_brain_counts_the_experiences_its_learner_refused():
+    cfg = small_config(state_dim=1, action_dim=1)
+    brain = LocalBrain(WFNN(cfg), lockstep=True)
+    z = np.zeros(1)
+    for reward in (-1.0, np.nan, 1e39, -0.5):
+        brain.learn(Experience(z, z, z, reward), None)
+    figures = brain.metrics()
+    assert figures["learn/experiences"] == 2.0 and figures["learn/rejected"] == 2.0

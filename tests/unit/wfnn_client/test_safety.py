@@ -21,6 +21,19 @@ def test_no_weights_gives_the_safe_action():
     assert d.flags == EXP_SAFE_ACTION and d.proposed is None and s.counts["no_weights"] == 1
 
 
+@pytest.mark.parametrize("proposed", [[np.nan, 0.0], [0.0, np.inf], [-np.inf, np.nan]])
+def test_a_non_finite_proposal_never_reaches_the_actuators(proposed):
+    s = layer(safe_action=(0.5, -1.0), max_action_rate=(2.0, 10.0))
+    d = s.decide(np.array(proposed), np.zeros(2), 0.0)
+    np.testing.assert_array_equal(d.executed, [0.5, -1.0])
+    assert d.flags == EXP_SAFE_ACTION and s.counts["non_finite"] == 1
+    # A veto that answers NaN is not obeyed either.
+    vetoing = layer(safe_action=(0.5, -1.0), veto=lambda state, action: np.array([np.nan, 0.0]))
+    d = vetoing.decide(np.array([0.9, 1.0]), np.zeros(2), 0.0)
+    np.testing.assert_array_equal(d.executed, [0.5, -1.0])
+    assert d.flags == EXP_SAFE_ACTION and d.proposed is None and vetoing.counts["non_finite"] == 1
+
+
 def test_the_filter_limits_each_components_change_per_second():
     s = layer(period=0.1, max_action_rate=(2.0, 10.0))  # per tick: 0.2 and 1.0
     d = s.decide(np.array([1.0, 2.0]), np.zeros(2), 0.0)

@@ -284,7 +284,8 @@ def test_freed_memory_is_kept_for_reuse():
     )
     faults = int(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                                 timeout=120).stdout)  # fmt: skip
-    assert faults < 10_240, f"{faults} page faults for 20 reused blocks (204,800 if each were fresh)"
+    # At most a few fresh blocks' worth (once, on a busy machine, two blocks were): far from all 20.
+    assert faults < 5 * 10_240, f"{faults} page faults for 20 reused blocks (204,800 if each were fresh)"
 
 
 def test_warmup_actions_are_uniform_then_the_learners_own():
@@ -377,6 +378,20 @@ def test_reset_and_divergence_keep_the_experiences():
     assert not np.array_equal(before, learner.params.flat)
     learner.think(1)  # the trainer took the fresh weights too
     assert np.isfinite(learner.params.flat).all()
+
+
+def test_weights_gone_non_finite_are_reset_at_the_first_act():
+    learner = DeepWFNN(config())  # patience 50: a NaN does not wait for it
+    learner.learn(np.zeros(2), np.zeros(1), np.zeros(2), -1.0)
+    learner.think(1)
+    flat = learner.params.flat.copy()
+    flat[0, :] = np.nan
+    learner.params = deep_net.DeepParams(flat, learner.shapes)
+    result = learner.act(np.zeros(2))
+    assert bool(result.diverged) and int(learner.resets[0]) == 1
+    assert np.isfinite(result.action).all()  # this once, the middle of the range
+    assert np.isfinite(learner.params.flat).all()
+    assert np.isfinite(learner.act(np.zeros(2), explore=False).action).all()
 
 
 def test_bc_weight_pulls_the_best_wire_to_logged_actions():
@@ -515,6 +530,23 @@ def test_a_deep_config_too_large_for_memory_is_refused(monkeypatch):
             with_options(cfg, {"deep": {"hidden": list(hidden)}})
 
 
+def test_a_deep_config_whose_trunk_activations_would_not_fit_in_memory_is_refused():
+    # A few thousand parameters, but a [2, B, 4096] float32 activation of 32 GiB per minibatch.
+    with pytest.raises(ConfigError, match="batch_size x"):
+        with_options(
+            config(), {"n_wires": 1, "batch_size": 1 << 20, "deep": {"hidden": [4096], "value_hidden": 1}}
+        )
+    with_options(
+        config(), {"n_wires": 1, "batch_size": 1 << 10, "deep": {"hidden": [4096], "value_hidden": 1}}
+    )
+
+
+@pytest.mark.parametrize("seed", [-1, 1 << 62, 1 << 64])
+def test_a_seed_numpy_or_torch_would_refuse_is_refused_with_the_config(seed):
+    with pytest.raises(ConfigError, match="seed"):
+        config(seed=seed)
+
+
 def test_n_step_returns_step_over_mirrored_copies():
     mirror = Symmetry(name="mirror", state_index=(0, 1), state_sign=(-1.0, 1.0), action_index=(0,),
                       action_sign=(-1.0,))  # fmt: skip
@@ -543,6 +575,18 @@ def test_damaged_or_partial_training_state():
                 {"adam_step": np.float64(2.5)}, {"adam_m": state["adam_m"][:5]}):  # fmt: skip
         with pytest.raises(ValueError, match="training state"):
             make_learner(learner.config, params=learner.params.copy()).load_training_state({**state, **bad})
+    n = 2 * n_params(learner.config)
+    huge = state["theta"].astype(np.float64)
+    huge[n // 2 + 3] = 1e39  # finite in float64, infinite in the float32 the update trains in
+    other = state["theta"].copy()
+    other[0] += 1.0  # critic 1 no longer the weights saved beside it
+    for bad in ({"theta": huge}, {"target": huge}, {"adam_m": huge}, {"adam_v": np.abs(huge)},
+                {"theta": state["theta"].astype(np.complex128)}, {"theta": np.array(["x"] * n)},
+                {"adam_step": np.str_("3")}, {"adam_step": np.complex128(3)}, {"theta": other}):  # fmt: skip
+        resumed = make_learner(learner.config, params=learner.params.copy())
+        with pytest.raises(ValueError, match="training state"):
+            resumed.load_training_state({**state, **bad})
+        np.testing.assert_array_equal(resumed.params.flat, learner.params.flat)
     # Weights saved without their training: they are kept, Adam starts afresh.
     resumed = make_learner(learner.config, params=learner.params.copy())
     resumed.load_training_state({})
@@ -573,7 +617,7 @@ def test_thesis_configs_read_as_before_and_deep_work_is_bounded():
     thesis = LearnerConfig.for_task(Task())
     assert "learner" not in thesis.to_dict() and "deep" not in thesis.to_dict()
     assert LearnerConfig.from_json(thesis.to_json()) == thesis
-    with pytest.raises(ConfigError, match="batch_size x n_wires"):
+    with pytest.raises(ConfigError, match="batch_size x"):
         with_options(config(), {"batch_size": 65536, "n_wires": 1024, "deep": {"hidden": [1]}})
     with pytest.raises(ConfigError, match="device"):
         with_options(config(), {"deep": {"device": "cuda:\u0663"}})

@@ -79,6 +79,21 @@ def test_divergence_monitor_needs_a_persistent_run():
     assert fired == [[False, False], [False, False], [True, False], [False, False]]
 
 
+def test_a_non_finite_value_is_divergence_at_once():
+    mon = DivergenceMonitor(3, threshold=0.5, patience=50)
+    assert mon.observe(np.array([np.nan, 0.1, np.inf])).tolist() == [True, False, True]
+    assert mon.observe(np.array([np.nan, 0.1, 0.1]), np.array([False, True, True])).tolist() == [False] * 3
+    assert not DivergenceMonitor(1, threshold=0.5, patience=0).observe(np.array([np.nan])).any()  # disabled
+
+
+def test_a_reward_too_large_for_float32_is_refused():
+    learner = WFNN(small_config(state_dim=1, action_dim=1))
+    stored = [
+        bool(learner.learn(np.zeros(1), np.zeros(1), np.zeros(1), r)) for r in (1e38, 1e39, -1e39, np.nan)
+    ]
+    assert stored == [True, False, False, False] and int(learner.rejected[0]) == 3
+
+
 def test_divergence_resets_weights_and_keeps_experiences():
     cfg = small_config(divergence_threshold=-2.0, divergence_patience=5)  # any value counts as "high"
     learner = WFNN(cfg, population=2)
@@ -147,6 +162,20 @@ def test_weights_and_experiences_roundtrip(tmp_path):
     with pytest.raises(PersistError):
         load_weights(tmp_path / "junk.npz")
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_weights_whose_params_or_format_version_are_damaged_are_refused_naming_the_file(tmp_path):
+    cfg = small_config()
+    save_weights(tmp_path / "w.npz", cfg, WFNN(cfg).params)
+    with np.load(tmp_path / "w.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    for name, value in (("params", arrays["params"].astype(np.complex128) + 1j), ("params", np.str_("x")),
+                        ("format_version", np.float64(np.inf)), ("format_version", np.array([1, 1])),
+                        ("format_version", np.str_("one"))):  # fmt: skip
+        with open(tmp_path / "bad.npz", "wb") as f:
+            np.savez(f, **{**arrays, name: value})
+        with pytest.raises(PersistError, match=r"bad\.npz"):
+            load_weights(tmp_path / "bad.npz")
 
 
 @pytest.mark.slow

@@ -172,6 +172,38 @@ def test_adopts_the_first_clients_config(tmp_path):
         assert server.learner_config == LearnerConfig.from_json(cfg.to_json())
 
 
+def test_a_client_config_no_learner_can_be_made_from_is_refused_and_not_saved(tmp_path, monkeypatch):
+    import wfnn_server.server as server_module
+
+    hub, cfg, good = Hub(), small_config(seed=5), small_config(seed=6)
+    listener = Listener(hub)
+    real = server_module.make_learner
+
+    def make_learner(config, **kw):  # as a config that passes its checks but fails to build would
+        if config.seed == 5:
+            raise RuntimeError("can't allocate memory: you tried to allocate 34359738368 bytes\nmore")
+        return real(config, **kw)
+
+    monkeypatch.setattr(server_module, "make_learner", make_learner)
+
+    def announce(c):
+        status = ClientStatus(client="c1", spec_hash=c.spec_hash(), learner_config=c.to_json(), following="",
+                              weights_version=0, produced_through=-1, acked={}, metrics={})  # fmt: skip
+        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+
+    with make_server(tmp_path, hub, None) as server:
+        for _ in range(200):  # announced again and again, as a client does: refused, and the server stays up
+            announce(cfg)
+            if listener.wait(lambda: server.rejected["config"] >= 3, timeout=0.05):
+                break
+        assert server.rejected["config"] >= 3
+        assert server.learner is None and server.error is None
+        assert not (tmp_path / "s1" / "learner_config.json").exists()  # a restart does not adopt it again
+        announce(good)
+        assert listener.wait(lambda: server.learner is not None), (server.rejected, server.counters)
+        assert server.learner_config.seed == 6
+
+
 @pytest.mark.parametrize("learner", LEARNERS)
 def test_restart_resumes_checkpoint_and_store(tmp_path, learner):
     hub, cfg = Hub(), small_config(thinks_per_action=5, learner=learner)
