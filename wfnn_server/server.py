@@ -157,8 +157,8 @@ class ThinkServer:
         self._config_json = ""
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
-        self._unusable: set[LearnerConfig] = set()
-        """Adopted configs that no learner could be made from (not adopted again)."""
+        self._unusable: set[str] = set()
+        """Adopted configs (as JSON) that no learner could be made from (not adopted again)."""
         self.version = 0
         self.schedule = ThinkSchedule()
         """Thinks owed, how far they have reached (`learned_through`) and relearning after a reset."""
@@ -507,7 +507,7 @@ class ThinkServer:
             self.rejected["config"] += 1
             log.error("client %s announced a learner config that is refused: %s", status.client, exc)
             return
-        if cfg in self._unusable:  # refused once already, and said so then
+        if cfg.to_json() in self._unusable:  # refused once already, and said so then
             self.rejected["config"] += 1
             return
         log.info("adopting the learner config of client %s", status.client)
@@ -542,7 +542,7 @@ class ThinkServer:
                     self._start_learner(pending)
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
                     self.rejected["config"] += 1
-                    self._unusable.add(pending)
+                    self._unusable.add(pending.to_json())
                     log.error("the adopted learner config cannot make a learner (%s); waiting for another",
                               str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)  # fmt: skip
             learner = self.learner
