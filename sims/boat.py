@@ -46,6 +46,18 @@ class BoatConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        weights = (self.distance_weight, self.energy_weight, self.coarseness_weight)
+        checks = [
+            (0.0 < self.dt <= 10.0, f"dt must be in (0, 10] (the thesis' figures: 0.1 and 1), got {self.dt}"),
+            (0.0 < self.target_distance <= 1e3,
+             f"target_distance must be in (0, 1000], got {self.target_distance}"),
+            (1 <= self.steps_per_target <= 10**6,
+             f"steps_per_target must be in [1, 1e6], got {self.steps_per_target}"),
+            (all(0.0 <= w <= 1e3 for w in weights), f"reward weights must be in [0, 1000], got {weights}"),
+        ]  # fmt: skip
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"boat: {message}")
 
 
 def reward_terms(

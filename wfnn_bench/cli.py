@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -40,6 +39,7 @@ from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
 from wfnn_io.cli_errors import guarded
+from wfnn_io.persist import writable
 
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
@@ -60,15 +60,6 @@ def _logging(verbose: bool, *outputs: Path | None) -> None:
     for path in outputs:
         if path is not None:
             writable(path)
-
-
-def writable(path: Path) -> None:
-    """Raise OSError now if `path` cannot be written (its folder is made if missing)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.is_dir():
-        raise IsADirectoryError(21, "is a directory, not a file", str(path))
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
-        pass
 
 
 class LineProgress:

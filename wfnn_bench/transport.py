@@ -68,6 +68,8 @@ class TransportBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if not 1.0 <= self.rate_hz <= 1000.0:  # a tick the client keeps (as the faults bench's)
+            raise ValueError(f"rate_hz must be in [1, 1000], got {self.rate_hz}")
 
 
 def steps(cfg: TransportBenchConfig) -> int:

@@ -63,8 +63,14 @@ class VsSb3Config:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if not self.tasks or not all(self.tasks):
+            raise ValueError(f"give at least one task, and no empty names: {self.tasks}")
         if len(self.tasks) != len(self.steps):
             raise ValueError("give one step budget per task")
+        if not all(1 <= s <= 100_000_000 for s in self.steps):
+            raise ValueError(f"step budgets must be in [1, 1e8], got {self.steps}")
+        if not self.algorithms:
+            raise ValueError(f"give at least one algorithm of {ALGORITHMS}")
         unknown = set(self.algorithms) - set(ALGORITHMS)
         if unknown:
             raise ValueError(f"unknown algorithms {sorted(unknown)}; choose from {ALGORITHMS}")

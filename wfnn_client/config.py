@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sims.boat import BoatConfig
 from sims.hydra import HydraConfig
 from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.controllers import PolicyShare
@@ -13,6 +14,9 @@ from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS, SimOptions
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerOverrides, check_fields
 from wfnn_io.bus import NetConfig
+
+MAX_RATE_HZ = 1000.0
+"""Fastest control tick a client keeps (a robot's is tens of hertz; a tick above this is a mistake)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -110,6 +114,18 @@ class ClientConfig:
             )
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if self.rate_hz is not None and not 0 <= self.rate_hz <= MAX_RATE_HZ:
+            raise ValueError(
+                f"rate_hz must be in [0, {MAX_RATE_HZ:g}] (0: as fast as possible), got {self.rate_hz}"
+            )
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError(f"duration_s must be > 0 where given, got {self.duration_s}")
+        BoatConfig(dt=self.boat_dt)  # checked now, not when the boat is first made
+        if self.sim == "hydra" and not (self.hydra.joints and self.hydra.axes):
+            # The task itself has every subset (its sizes are checked for all 256); a run with no
+            # joint has nothing to learn, and with no image axis no error: a perfect score of 0.
+            raise ValueError(f"a HyDrA run needs a joint and an image axis, got {self.hydra.joints}, "
+                             f"{self.hydra.axes}")  # fmt: skip
         if not self.server and not self.net.listen:
             raise ValueError("server needs `local`, an endpoint, or a listen endpoint servers connect to")
         if "local" in self.server and len(self.server) > 1:

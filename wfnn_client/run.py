@@ -43,6 +43,7 @@ from wfnn_io.persist import (
     save_experiences,
     save_weights,
     to_jsonable,
+    writable,
     write_json,
 )
 from wfnn_io.protocol import EXP_VETO_PROPOSED, load_key
@@ -107,9 +108,13 @@ def prepare(config: ClientConfig) -> list[str]:
     file, and refuses a non-loopback endpoint without a key unless `insecure`.
     """
     make_directory(config.out, "--out names a run directory")
-    write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
+    if config.json_stats is not None:
+        writable(config.json_stats)  # now, not when the run is over
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
-    return [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
+    warnings = [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
+    # Written once the rest is known to hold: a refused start leaves the last run's record as it was.
+    write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
+    return warnings
 
 
 def run(

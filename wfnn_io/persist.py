@@ -104,6 +104,16 @@ def make_directory(path: Path, what: str) -> None:
     path.mkdir(parents=True, exist_ok=True)
 
 
+def writable(path: Path) -> None:
+    """Raise OSError now if file `path` cannot be written (its folder is made if missing)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise IsADirectoryError(21, "is a directory, not a file", str(path))
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+        pass
+
+
 def to_jsonable(obj: Any) -> Any:
     """Numpy scalars/arrays, paths -> plain JSON values (NaN and infinity -> null)."""
     if isinstance(obj, dict):

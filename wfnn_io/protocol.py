@@ -351,8 +351,15 @@ class ClientStatus:
     acked: dict[str, int]
     metrics: dict[str, float]
 
+    def __post_init__(self) -> None:
+        if self.following not in ("", "local") and not _ID_PATTERN.fullmatch(self.following):
+            raise MalformedBody(f"following: not a server id, 'local' or '': {self.following[:40]!r}")
+
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+MAX_CAMERA_SIDE = 4096
+"""Largest width or height of a camera picture (a small PNG can declare a huge image, which a
+viewer's browser would then allocate)."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -368,8 +375,14 @@ class CameraView:
     png: NDArray[np.uint8] = field(metadata=_U1_1)
 
     def __post_init__(self) -> None:
-        if bytes(self.png[: len(PNG_SIGNATURE)]) != PNG_SIGNATURE:
+        head = bytes(self.png[:24])
+        if head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":  # the header chunk comes first
             raise MalformedBody("png: not a PNG file")
+        width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        if not (1 <= width <= MAX_CAMERA_SIDE and 1 <= height <= MAX_CAMERA_SIDE):
+            raise MalformedBody(
+                f"png: {width} x {height} pixels, more than {MAX_CAMERA_SIDE} on a side or none"
+            )
 
 
 Message = ExperienceBatch | Ack | WeightSnapshot | ServerStatus | ClientStatus | CameraView

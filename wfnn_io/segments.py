@@ -25,6 +25,7 @@ or `never` (the OS decides; survives a process crash, not a power cut).
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import struct
@@ -180,8 +181,32 @@ def read_records(
             yield Position(n, offset), data[offset + RECORD.size : end]
 
 
+LOCK = ".lock"
+"""The file a log's owner holds an exclusive lock on (`flock`), so that a second writer is refused."""
+
+
+def _take_lock(directory: Path) -> int:
+    """Lock `directory`'s LOCK file for this log's lifetime -> its descriptor; LogError if held."""
+    fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise LogError(
+            f"{directory}: in use by another writer (a run, server or merge has it open)"
+        ) from None
+    except OSError:  # a file system without locks: the one-writer rule is then the user's
+        pass
+    return fd
+
+
 class SegmentLog:
-    """Append records to a directory of segment files: the log's owner (one process at a time)."""
+    """Append records to a directory of segment files: the log's owner (one process at a time).
+
+    The owner holds a lock on the directory's LOCK file while the log is open: two clients given
+    one --out, or two servers one --data-dir, would each append its own numbers to one log, and
+    one of them would be lost as duplicates. Readers take no lock.
+    """
 
     def __init__(
         self,
@@ -196,6 +221,14 @@ class SegmentLog:
             raise ValueError(f"fsync must be always, interval or never, got {fsync!r}")
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
+        self._lock = _take_lock(self.directory)
+        try:
+            self._open(segment_bytes, fsync, fsync_interval_s, marker)
+        except BaseException:
+            os.close(self._lock)
+            raise
+
+    def _open(self, segment_bytes: int, fsync: FsyncPolicy, fsync_interval_s: float, marker: bytes) -> None:
         self.segment_bytes = segment_bytes
         self.fsync = fsync
         self.fsync_interval_s = fsync_interval_s
@@ -299,6 +332,7 @@ class SegmentLog:
         if not self._file.closed:
             self.sync()
             self._file.close()
+            os.close(self._lock)  # the lock goes with it
 
     def __enter__(self) -> SegmentLog:
         return self

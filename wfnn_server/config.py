@@ -35,6 +35,22 @@ class DashboardConfig:
             raise ValueError(f"dashboard update_hz must be in [0.1, 30], got {self.update_hz}")
         if self.history < 10 or self.surface_points < 3:
             raise ValueError("dashboard history must be >= 10 and surface_points >= 3")
+        if not self.host.strip() or self.host != self.host.strip():  # "" binds every interface, silently
+            raise ValueError(
+                f"dashboard host must name an interface (127.0.0.1 by default), got {self.host!r}"
+            )
+
+    @property
+    def loopback(self) -> bool:
+        """Whether only this machine can reach the dashboard."""
+        import ipaddress
+
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host.strip("[]")).is_loopback
+        except ValueError:
+            return False
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -51,6 +51,7 @@ from wfnn_io.protocol import (
     ClientStatus,
     Codec,
     ExperienceBatch,
+    FrameTooLarge,
     Keys,
     ProtocolError,
     ServerStatus,
@@ -75,6 +76,15 @@ PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 """The checkpoint before the newest: a server that cannot read the newest falls back to it."""
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
+MAX_LISTED = 256
+"""Clients whose experience numbers a snapshot or status lists: the most recently heard. Every
+client the store ever held would outgrow the frames a robot accepts (and the status's limit)
+on a long-lived server, or under forged ids; a client missing from one is heard again at its
+next heartbeat or batch (and its acknowledgements come on their own)."""
+MAX_CAMERAS = 16
+"""Clients whose newest camera picture is kept for the dashboard (the most recent ones)."""
+MAX_HEARD = 4096
+"""Clients whose heartbeats (and dashboard statuses) are kept: the most recently heard."""
 LEARNER_JSON = "learner_config.json"
 
 
@@ -99,6 +109,17 @@ def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
     if not n:
         return batch, 0
     return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
+
+
+def _noted(heard: dict[str, float], client: str, most: int) -> dict[str, float]:
+    """`heard` with `client` heard now; beyond `most` clients, a new dict of the newer half.
+
+    A new dict rather than one emptied and refilled: another thread may be reading this one.
+    """
+    heard[client] = time.monotonic()
+    if len(heard) <= most:
+        return heard
+    return dict(sorted(list(heard.items()), key=lambda item: item[1])[-(most // 2) :])
 
 
 def _is_count(value: Any) -> bool:
@@ -138,7 +159,9 @@ class ThinkServer:
         self._latest_frame: bytes | None = None
         self._spec_warned: set[str] = set()
         self._heard: dict[str, float] = {}
-        """Per client: when its heartbeat (status) last arrived (monotonic)."""
+        """Per client: when its heartbeat (status) last arrived (monotonic); at most MAX_HEARD."""
+        self._recent: dict[str, float] = {}
+        """Per client: when its heartbeat or an admitted batch last arrived; what MAX_LISTED picks from."""
         self._silent: set[str] = set()
         self.error: BaseException | None = None
         self.view = ViewModel(server=self.id, incarnation=self.incarnation, controller=config.controller)
@@ -449,7 +472,7 @@ class ThinkServer:
     def _ingest(self, frame: bytes) -> None:
         sender, batch = self.codec.decode(frame, ExperienceBatch)
         if sender != batch.client:
-            raise SpecMismatch(f"frame from {sender} carries experiences of {batch.client}")
+            raise _Refused("sender", f"frame from {sender} carries experiences of {batch.client}")
         self._allowed(batch.client)
         self._check_spec(batch)
         batch, non_finite = mark_non_finite(batch)
@@ -468,6 +491,7 @@ class ThinkServer:
                         admitted.new.first_seq - admitted.lost, admitted.new.first_seq - 1)  # fmt: skip
         self.store.append(admitted.new, admitted.lost)
         self._to_learn.append(admitted.new)
+        self._recent = _noted(self._recent, batch.client, 2 * MAX_LISTED)
         self._wake.set()
 
     def _check_spec(self, batch: ExperienceBatch) -> None:
@@ -495,7 +519,11 @@ class ThinkServer:
             raise _Refused("sender", f"status from {sender} names client {status.client}")
         self._allowed(status.client)
         self.counters["ingest/client_status"] += 1
-        self._heard[status.client] = time.monotonic()
+        self._recent = _noted(self._recent, status.client, 2 * MAX_LISTED)
+        heard = _noted(self._heard, status.client, MAX_HEARD)
+        if heard is not self._heard:  # clients forgotten: they leave the dashboard too
+            self._heard, self._silent = heard, self._silent & set(heard)
+            self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
         self.view.clients = {**self.view.clients, status.client: status}
         if self.learner_config is not None or self._pending_config is not None:
             return
@@ -520,7 +548,9 @@ class ThinkServer:
             raise _Refused("sender", f"camera view from {sender} names client {view.client}")
         self._allowed(view.client)
         self.counters["ingest/camera_views"] += 1
-        self.view.camera_views = {**self.view.camera_views, view.client: view}
+        # Only heard clients' pictures are kept (each can be megabytes; ids can be forged).
+        kept = {c: v for c, v in self.view.camera_views.items() if c in self._heard and c != view.client}
+        self.view.camera_views = {**dict(list(kept.items())[-(MAX_CAMERAS - 1) :]), view.client: view}
 
     def _ack(self, client: str, through: int) -> None:
         ack = Ack(client=client, server=self.id, incarnation=self.incarnation, store=self.store.id,
@@ -579,13 +609,20 @@ class ThinkServer:
             self._observe(learner, batch)
 
     def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
-        """Q of the actions the current weights choose in the new states; divergence; staleness."""
-        values = learner.greedy_values(batch.next_state)[0]
-        self._q_chosen.extend(values.tolist())
-        self._rewards.extend(batch.reward.tolist())
-        self.view.latest_state = {**self.view.latest_state, batch.client: batch.next_state[-1].copy()}
+        """Q of the actions the current weights choose in the new states; divergence; staleness.
+
+        Only the learnable rows count: a non-finite or flagged experience is never learned, so it
+        neither feeds the published figures nor becomes the state the dashboard draws.
+        """
+        keep = batch.learnable()
         if batch.weights_source == f"{self.id}:{self.incarnation}":
             self._staleness.extend((self.version - batch.weights_version.astype(np.int64)).tolist())
+        if not keep.any():
+            return
+        values = learner.greedy_values(batch.next_state[keep])[0]
+        self._q_chosen.extend(values.tolist())
+        self._rewards.extend(batch.reward[keep].tolist())
+        self.view.latest_state = {**self.view.latest_state, batch.client: batch.next_state[keep][-1].copy()}
         monitor = learner.monitor
         for v in values:
             if not monitor.observe(np.array([v]))[0]:
@@ -634,12 +671,19 @@ class ThinkServer:
             spec_hash=self.spec_hash,
             published_ns=time.time_ns(), thinks=int(learner.thinks[0]),
             diverged=self.schedule.recovering(int(learner.thinks[0])),
-            learned_through=dict(self.learned_through), params=learner.params.flat[:1],
+            learned_through=self._listed(self.learned_through), params=learner.params.flat[:1],
         )  # fmt: skip
         frame = self.codec.encode(snapshot)
         self._latest_frame = frame
         self.view.published, self.view.weights_version = learner.params.copy(), self.version
         self.bus.put(self.keys.weights(self.id), frame, Channel.LATEST)
+
+    def _listed(self, through: dict[str, int]) -> dict[str, int]:
+        """`through`'s entries of the MAX_LISTED most recently heard clients (all, where fewer)."""
+        if len(through) <= MAX_LISTED:
+            return dict(through)
+        recent = sorted(list(self._recent.items()), key=lambda item: item[1])[-MAX_LISTED:]
+        return {client: through[client] for client, _ in recent if client in through}
 
     def _check_clients(self) -> int:
         """Log clients whose heartbeat stopped or came back; -> how many are heard now."""
@@ -688,10 +732,17 @@ class ThinkServer:
         status = ServerStatus(
             server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
             spec_hash=self.spec_hash, learner_config=self._config_json, weights_version=self.version,
-            stored_through=dict(self.store.durable_through), rejected=dict(self.rejected), metrics=metrics,
+            stored_through=self._listed(self.store.durable_through), rejected=dict(self.rejected),
+            metrics=metrics,
         )  # fmt: skip
         self.view.last_status = status
-        self.bus.put(self.keys.server_status(self.id), self.codec.encode(status), Channel.LATEST)
+        try:
+            frame = self.codec.encode(status)
+        except FrameTooLarge as exc:  # never the end of the learner: robots keep their last status
+            self.counters["publish/status_too_large"] += 1
+            log.error("status not sent: %s", exc)
+            return
+        self.bus.put(self.keys.server_status(self.id), frame, Channel.LATEST)
         for listener in self.view.status_listeners:
             listener(status)
 
@@ -736,9 +787,15 @@ def prepare(config: ServerConfig) -> list[str]:
     from wfnn_io.bus import check_exposure
 
     make_directory(config.data_dir, "--data-dir")
-    write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
-    return check_exposure(config.net, keyed, config.insecure)
+    warnings = check_exposure(config.net, keyed, config.insecure)
+    if config.dashboard is not None and not config.dashboard.loopback:
+        warnings.append(f"the dashboard on {config.dashboard.host} can be read by anyone who reaches it "
+                        "(learner config, clients, camera pictures): no key protects it")  # fmt: skip
+        log.warning(warnings[-1])
+    # Written once the rest is known to hold: a refused start leaves the last run's record as it was.
+    write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
+    return warnings
 
 
 def run(config: ServerConfig, on_status: Any = None) -> None:

@@ -103,8 +103,10 @@ class HydraConfig:
                 raise ValueError(f"{name} must be distinct values of {allowed}, got {chosen}")
         if self.regime not in REGIMES:
             raise ValueError(f"regime must be one of {REGIMES}, got {self.regime!r}")
-        if self.rate_hz <= 0 or self.substeps < 2:
-            raise ValueError("rate_hz must be > 0 and substeps >= 2")
+        if not 0 < self.rate_hz <= 1000 or self.substeps < 2:
+            raise ValueError(
+                f"rate_hz must be in (0, 1000] and substeps >= 2, got {self.rate_hz}, {self.substeps}"
+            )
 
     @property
     def joint_index(self) -> list[int]:

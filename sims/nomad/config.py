@@ -68,8 +68,12 @@ class NomadConfig:
         check_fields(self)
         if self.behaviour not in BEHAVIOURS:
             raise ValueError(f"behaviour must be one of {BEHAVIOURS}, got {self.behaviour!r}")
-        if self.rate_hz <= 0 or self.substeps < 3:
-            raise ValueError("rate_hz must be > 0 and substeps >= 3")
+        if not 1 <= self.balls <= 100:  # each is a body in the model (model.MAX_BALLS)
+            raise ValueError(f"balls must be in [1, 100], got {self.balls}")
+        if not 0 < self.rate_hz <= 1000 or self.substeps < 3:
+            raise ValueError(
+                f"rate_hz must be in (0, 1000] and substeps >= 3, got {self.rate_hz}, {self.substeps}"
+            )
 
     @property
     def max_velocity(self) -> tuple[float, float]:

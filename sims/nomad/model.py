@@ -76,10 +76,14 @@ class NomadModelConfig:
         check_fields(self)
 
 
+MAX_BALLS = 100
+"""Most balls an arena holds."""
+
+
 def nomad_mjcf(cfg: NomadModelConfig) -> str:
     """The MJCF text of the robot and the arena."""
-    if cfg.balls < 1:
-        raise ValueError(f"balls must be >= 1, got {cfg.balls}")
+    if not 1 <= cfg.balls <= MAX_BALLS:  # each is a body in the model: thousands would not load
+        raise ValueError(f"balls must be in [1, {MAX_BALLS}], got {cfg.balls}")
     ax, ay = cfg.arena[0] / 2, cfg.arena[1] / 2
     wall = " ".join(f"{c:.3f}" for c in cfg.wall_colour) + " 1"
     carpet = " ".join(f"{c:.3f}" for c in CARPET) + " 1"

@@ -21,6 +21,10 @@ def test_local_and_remote_configs():
         ({"episodes": 0}, "episodes"),
         ({"sim": "boat", "camera_every": 10}, "no cameras"),
         ({"sim": "hydra", "camera_every": -1}, "camera_every"),
+        ({"rate_hz": 1e18}, "rate_hz"),
+        ({"duration_s": 0.0}, "duration_s"),
+        ({"boat_dt": 1e18}, "dt must be"),
+        ({"boat_dt": 0.0}, "dt must be"),
     ],
 )
 def test_bad_client_configs_are_refused(kw, message):
@@ -80,3 +84,36 @@ def test_the_command_line_simulates_a_robot_at_its_tick_rate(tmp_path, monkeypat
     assert seen[0].rate_hz == seen[0].hydra.rate_hz == 30
     CliRunner().invoke(cli.app, ["--sim", "nomad", "--rate-hz", "0", "--out", str(tmp_path)])
     assert seen[1].nomad.rate_hz == 10  # as fast as possible: simulated at its own rate
+
+
+def test_sim_configs_refuse_what_no_run_could_use():
+    from sims.hydra import HydraConfig
+    from sims.nomad import NomadConfig
+    from wfnn_bench.transport import TransportBenchConfig
+
+    refused = (
+        (lambda: ClientConfig(sim="hydra", hydra=HydraConfig(axes=())), "image axis"),
+        (lambda: ClientConfig(sim="hydra", hydra=HydraConfig(joints=())), "image axis"),
+        (lambda: HydraConfig(rate_hz=1e18), "rate_hz"),
+        (lambda: NomadConfig(balls=10**6), "balls"),
+        (lambda: NomadConfig(rate_hz=1e18), "rate_hz"),
+        (lambda: TransportBenchConfig(rate_hz=1e18), "rate_hz"),
+    )
+    for make, message in refused:
+        with pytest.raises(ValueError, match=message):
+            make()
+
+
+def test_a_refused_client_start_leaves_the_last_runs_record_and_an_unwritable_json_stats_is_refused_first(
+    tmp_path,
+):
+    from wfnn_client.run import prepare
+
+    prepare(ClientConfig(out=tmp_path / "run"))
+    before = (tmp_path / "run" / "config.json").read_bytes()
+    (tmp_path / "empty.key").write_bytes(b"")
+    with pytest.raises(ValueError):
+        prepare(ClientConfig(out=tmp_path / "run", seed=7, key_file=tmp_path / "empty.key"))
+    assert (tmp_path / "run" / "config.json").read_bytes() == before
+    with pytest.raises(IsADirectoryError):
+        prepare(ClientConfig(out=tmp_path / "run", json_stats=tmp_path))

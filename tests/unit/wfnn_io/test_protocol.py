@@ -112,8 +112,14 @@ def make_client_status():
     )
 
 
+def _png_head(width, height):
+    """A PNG's signature and header chunk (what the protocol reads of it)."""
+    ihdr = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([8, 2, 0, 0, 0])
+    return PNG_SIGNATURE + len(ihdr).to_bytes(4, "big") + b"IHDR" + ihdr + bytes(4)
+
+
 def make_camera_view():
-    png = np.frombuffer(PNG_SIGNATURE + bytes(range(40)), dtype=np.uint8).copy()
+    png = np.frombuffer(_png_head(20, 12) + bytes(range(40)), dtype=np.uint8).copy()
     return CameraView(client="robot1", tick=450, png=png)
 
 
@@ -660,6 +666,22 @@ def test_a_camera_view_must_carry_a_png():
     body["png"]["data"] = b"GIF89a" + body["png"]["data"][6:]
     with pytest.raises(MalformedBody, match="not a PNG"):
         decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.CAMERA_VIEW))
+
+
+@pytest.mark.parametrize("size", [(20000, 20000), (0, 12), (20, 0), (4097, 1)])
+def test_a_camera_view_declaring_a_huge_or_empty_picture_is_refused(size):
+    # A few hundred bytes can declare 20,000 x 20,000 pixels, which a viewer's browser would allocate.
+    with pytest.raises(MalformedBody, match="pixels"):
+        CameraView(client="robot1", tick=1, png=np.frombuffer(_png_head(*size), dtype=np.uint8).copy())
+    CameraView(client="robot1", tick=1, png=np.frombuffer(_png_head(4096, 1), dtype=np.uint8).copy())
+
+
+@pytest.mark.parametrize("following", ["x" * 65536, "s1/../..", "<script>"])
+def test_a_client_status_following_anything_but_a_server_id_is_refused(following):
+    with pytest.raises(MalformedBody, match="following"):
+        dataclasses.replace(make_client_status(), following=following)
+    for fine in ("", "local", "srv1"):
+        dataclasses.replace(make_client_status(), following=fine)
 
 
 def test_take_counts_what_a_frame_provokes_and_raises_only_a_local_fault():

@@ -368,3 +368,21 @@ def test_invalid_fsync_policy_is_refused(tmp_path, policy):
     with pytest.raises(ValueError, match="fsync"):
         SegmentLog(tmp_path / "x", fsync=policy)
     assert not (tmp_path / "x").exists()
+
+
+def test_a_second_writer_of_one_log_is_refused_until_the_first_closes(tmp_path):
+    import subprocess
+    import sys
+
+    first = SegmentLog(tmp_path / "log", fsync="never")
+    first.append(b"one")
+    with pytest.raises(LogError, match="in use"):
+        SegmentLog(tmp_path / "log", fsync="never")
+    # Another process too (two clients given one --out, two servers one --data-dir).
+    probe = ("import sys; from wfnn_io.segments import SegmentLog, LogError\n"
+             "try:\n    SegmentLog(sys.argv[1], fsync='never')\nexcept LogError:\n    sys.exit(3)\n")  # fmt: skip
+    assert subprocess.run([sys.executable, "-c", probe, str(tmp_path / "log")], timeout=60).returncode == 3
+    first.close()
+    again = SegmentLog(tmp_path / "log", fsync="never")  # the lock went with the first writer
+    assert [bytes(p) for _, p in again.read()] == [b"one"]
+    again.close()

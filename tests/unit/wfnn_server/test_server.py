@@ -125,7 +125,7 @@ def test_corrupt_and_misrouted_frames_are_counted_never_learned(tmp_path):
         # Experiences for a network of another shape.
         send(hub, batch(cfg, 0, 4, spec="0123456789abcdef"))
         assert listener.wait(lambda: sum(server.rejected.values()) == n + 2)
-        assert server.rejected["spec"] == 2
+        assert server.rejected["spec"] == 1 and server.rejected["sender"] == 1
         assert server.store.count == 0 and server.learner.buffer.count[0] == 0
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: listener.acked() == 3)
@@ -308,3 +308,63 @@ def test_a_deep_learner_trains_on_the_servers_device_and_compiler_not_the_client
     if not __import__("torch").cuda.is_available():
         with pytest.raises(ValueError, match="no such CUDA device"):
             ServerConfig(controller="t", server_id="s2", data_dir=tmp_path / "s2", device="cuda")
+
+
+def test_snapshots_and_statuses_list_only_the_most_recently_heard_clients(tmp_path, monkeypatch):
+    import wfnn_server.server as server_module
+
+    # Every client a long-lived store ever held would outgrow the frames a robot accepts.
+    monkeypatch.setattr(server_module, "MAX_LISTED", 4)
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        for k in range(12):
+            send(hub, batch(cfg, 0, 2, client=f"c{k}"), client=f"c{k}")
+        assert listener.wait(lambda: server.store.count == 24)
+        assert listener.wait(lambda: any("c11" in s.learned_through for s in listener.snapshots))
+        assert listener.wait(lambda: any("c11" in s.stored_through for s in listener.statuses))
+        assert max(len(s.learned_through) for s in listener.snapshots) <= 8  # never every client
+        assert max(len(s.stored_through) for s in listener.statuses) <= 8
+        newest = listener.snapshots[-1].learned_through
+        assert len(newest) == 4 and "c11" in newest
+
+
+def test_only_learnable_rows_feed_the_figures_and_the_state_the_dashboard_draws(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    b = batch(cfg, 0, 3)
+    b.next_state[2, 0] = np.nan
+    b.reward[1] = -1e300
+    b.next_state[1, 0] = np.inf
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, b)
+        assert listener.wait(lambda: "c1" in server.view.latest_state)
+        np.testing.assert_array_equal(server.view.latest_state["c1"], b.next_state[0])
+        assert listener.wait(lambda: any("learn/reward_mean" in s.metrics for s in listener.statuses))
+        means = [
+            s.metrics["learn/reward_mean"] for s in listener.statuses if "learn/reward_mean" in s.metrics
+        ]
+        assert means[0] == pytest.approx(b.reward[0])
+
+
+def test_a_refused_start_leaves_the_last_server_config_as_it_was(tmp_path):
+    from wfnn_server.config import DashboardConfig, ServerConfig
+    from wfnn_server.server import SERVER_JSON, prepare
+
+    data = tmp_path / "s1"
+    prepare(ServerConfig(controller="t", server_id="s1", data_dir=data))
+    before = (data / SERVER_JSON).read_bytes()
+    (tmp_path / "empty.key").write_bytes(b"")
+    with pytest.raises(ValueError):
+        prepare(
+            ServerConfig(controller="other", server_id="s1", data_dir=data, key_file=tmp_path / "empty.key")
+        )
+    assert (data / SERVER_JSON).read_bytes() == before
+    with pytest.raises(ValueError, match="dashboard host"):
+        DashboardConfig(port=0, host="")
+    exposed = ServerConfig(
+        controller="t", server_id="s1", data_dir=data, dashboard=DashboardConfig(port=0, host="0.0.0.0")
+    )
+    assert any("dashboard" in w for w in prepare(exposed))
+    local = ServerConfig(controller="t", server_id="s1", data_dir=data, dashboard=DashboardConfig(port=0))
+    assert not any("dashboard" in w for w in prepare(local))
