@@ -29,6 +29,8 @@ import typer
 
 from wfnn_common.config import check_fields
 from wfnn_io.cli_errors import guarded
+from wfnn_io.logs import is_log
+from wfnn_io.persist import atomic_write_bytes, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -242,6 +244,9 @@ def run(config: ReportConfig) -> Path:
     if path.is_dir() and (path / "metrics.json").exists():
         sections, figure = _run_sections(path)
         title, out = f"wfnn run {path.name}", config.out or path / "report.html"
+    elif is_log(path):  # its log.json and client.json are no benchmarks, and logs are never written to
+        raise ReportError(f"{path} is an experience log: wfnn-logs inspect summarises it (a run's report "
+                          "covers the logs in it)")  # fmt: skip
     elif path.is_dir():
         found = sorted(p for p in path.glob("*.json") if not p.name.startswith("."))
         if not found:
@@ -255,11 +260,13 @@ def run(config: ReportConfig) -> Path:
         raise ReportError(
             f"{path}: give a run directory (with metrics.json), a benchmark JSON or a folder of them"
         )
+    if is_log(out.parent):
+        raise ReportError(f"{out}: a report is never written into an experience log; give --out elsewhere")
     html = TEMPLATE.render(title=title, subtitle=f"from {path.resolve()}", sections=sections)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(html)
+    atomic_write_text(out, html)  # a report being rewritten is never seen half-written
     if figure is not None:
-        out.with_suffix(".png").write_bytes(figure)
+        atomic_write_bytes(out.with_suffix(".png"), figure)
     log.info("wrote %s", out)
     return out
 

@@ -91,6 +91,11 @@ def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None 
     _atomic_write(path, lambda f: np.savez(f, **arrays), keep_previous)
 
 
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write a file's bytes atomically (see `_atomic_write`)."""
+    _atomic_write(path, lambda f: f.write(data))
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     """Write a text file atomically (see `_atomic_write`)."""
     _atomic_write(path, lambda f: f.write(text.encode()))

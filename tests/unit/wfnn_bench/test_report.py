@@ -25,6 +25,14 @@ def test_a_runs_report_has_its_figures_curves_log_and_config(tmp_path):
     assert re.search(r'src="data:image/png;base64,[A-Za-z0-9+/=]{1000,}"', html)
     assert not re.search(r'src="(http|/)', html)
     assert "behaviour policy handcoded" in html and "episodes driven by" in html
+    # An experience log is no folder of benchmarks, and a report is never written into one.
+    journal = out / "journal"
+    before = {p.name: p.read_bytes() for p in journal.iterdir() if p.is_file()}
+    with pytest.raises(ReportError, match="experience log"):
+        run(ReportConfig(path=journal))
+    with pytest.raises(ReportError, match="never written into an experience log"):
+        run(ReportConfig(path=out, out=journal / "r.html"))
+    assert {p.name: p.read_bytes() for p in journal.iterdir() if p.is_file()} == before
 
 
 def test_benchmark_reports_show_scalars_and_the_benchmarks_plot(tmp_path):
