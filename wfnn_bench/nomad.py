@@ -112,6 +112,10 @@ class NomadBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        # The passive learner's settings are checked now, not when its part starts hours in.
+        one = (-1.0,), (1.0,)
+        LearnerConfig(state_low=one[0], state_high=one[1], action_low=one[0], action_high=one[1],
+                      bc_weight=self.watch_bc_weight, alpha=self.watch_alpha)  # fmt: skip
 
 
 def steps(cfg: NomadBenchConfig) -> int:

@@ -42,6 +42,11 @@ class SpeedBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if not 1 <= self.population <= 4096 or not self.batch_sizes:
+            raise ValueError(f"population must be in [1, 4096] and batch sizes given, got {self.population}")
+        _config(self)  # the network's sizes, checked now by the learner config's own rules
+        for batch in self.batch_sizes:
+            _config(self, batch_size=batch)
 
 
 def _config(bench: SpeedBenchConfig, **kw: Any) -> LearnerConfig:
