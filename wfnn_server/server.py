@@ -622,7 +622,9 @@ class ThinkServer:
         values = learner.greedy_values(batch.next_state[keep])[0]
         self._q_chosen.extend(values.tolist())
         self._rewards.extend(batch.reward[keep].tolist())
-        self.view.latest_state = {**self.view.latest_state, batch.client: batch.next_state[keep][-1].copy()}
+        # Newest last (a view shows the newest state sent), and only heard clients kept.
+        others = {c: v for c, v in self.view.latest_state.items() if c != batch.client and c in self._recent}
+        self.view.latest_state = {**others, batch.client: batch.next_state[keep][-1].copy()}
         monitor = learner.monitor
         for v in values:
             if not monitor.observe(np.array([v]))[0]:

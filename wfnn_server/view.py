@@ -37,8 +37,10 @@ class ViewModel:
     clients: dict[str, ClientStatus] = field(default_factory=dict)
     """Per client: its latest status heartbeat (ingest thread)."""
     camera_views: dict[str, CameraView] = field(default_factory=dict)
-    """Per client: what its cameras saw last, when it sends pictures (ingest thread)."""
+    """Per client: what its cameras saw last, when it sends pictures (ingest thread); newest last,
+    for the 16 most recent heard clients."""
     latest_state: dict[str, NDArray[np.float64]] = field(default_factory=dict)
-    """Per client: the newest state it sent, physical units [S] (learner thread)."""
+    """Per client: the newest learnable state it sent, physical units [S] (learner thread); the
+    client heard from last comes last."""
     status_listeners: list[Callable[[ServerStatus], None]] = field(default_factory=list)
     """Called with every status published (learner thread): must be quick."""
