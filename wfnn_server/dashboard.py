@@ -20,8 +20,12 @@ from __future__ import annotations
 
 import base64
 import collections
+import heapq
+import ipaddress
 import itertools
 import logging
+import math
+import socket
 import threading
 import time
 from http import HTTPStatus
@@ -65,6 +69,17 @@ CLIENT_SERIES = {
 }
 """Plotted client figures: name on the page -> ClientStatus metric."""
 
+SAMPLED_CLIENTS = 16
+"""Clients whose figures a sample keeps: the most recently heard (a sample per status, kept
+`history` times, must not grow with every client id the server has ever heard)."""
+RECENT_S = 5.0
+"""A client whose heartbeat has not changed for this long is left out of new samples (heartbeats
+come twice a second)."""
+MAX_CONNECTIONS = 64
+"""Connections served at once; more are closed as they arrive (each holds a thread)."""
+TIMEOUT_S = 30.0
+"""Socket timeout of a connection: an idle, half-sent or unread one ends after this long."""
+
 
 def _f32(values: np.ndarray) -> str:
     """An array as base64 of little-endian float32, which the page reads as a Float32Array.
@@ -87,6 +102,16 @@ class Dashboard:
         self._cached: tuple[float, bytes] | None = None
         """(when, the view without samples as JSON bytes): made at most update_hz times a second."""
         self._grid: SurfaceGrid | None = None
+        self._view_lock = threading.Lock()
+        """Held while the cached view is checked and made: one thread makes it, the others reuse it."""
+        self._grid_lock = threading.Lock()
+        """Held while the grid is used (its compiled kernel writes scratch arrays it keeps, and the
+        surface it answers may be those arrays) until the surface is encoded."""
+        self._heard = _Recency()
+        self._states = _Recency()
+        self._cameras = _Recency()
+        """When each client's heartbeat, newest state and camera picture last changed (seen at
+        each status): the server's dicts keep the order clients first arrived in."""
         self._static: tuple[Any, dict[str, Any]] | None = None
         self.stopping = threading.Event()
         self.cpu_s = 0.0
@@ -97,9 +122,10 @@ class Dashboard:
         self.script = resources.files("wfnn_server").joinpath("static", "dashboard.js").read_bytes()
         self.plotly = _plotly_js()
         handler = type("Handler", (_Handler,), {"dashboard": self})
-        self._http = ThreadingHTTPServer((config.host, config.port), handler)
-        self._http.daemon_threads = True
+        self._http = _Server((config.host, config.port), handler)
         self.port = int(self._http.server_address[1])
+        self.hosts = _allowed_hosts(config.host, self.port)
+        """Host headers served (lower case): the page's own addresses, never another name (DNS rebinding)."""
         self._thread = threading.Thread(target=self._http.serve_forever, name="dashboard", daemon=True)
         view.status_listeners.append(self._sample)
 
@@ -120,13 +146,17 @@ class Dashboard:
     def _sample(self, status: ServerStatus) -> None:
         t0 = time.thread_time()
         m = status.metrics
+        now = time.monotonic()
+        view = self.view_of
+        heard = self._heard.seen(view.clients, now)
+        self._states.seen(view.latest_state, now)
+        self._cameras.seen(view.camera_views, now)
+        # Only what the page plots, of the most recently heard clients still heard.
+        recent = [cid for cid in heard.newest(SAMPLED_CLIENTS) if now - heard.at(cid) <= RECENT_S]
         clients = {
-            cid: {
-                **{name: c.metrics.get(key) for name, key in CLIENT_SERIES.items()},
-                "following": c.following,
-                "weights_version": c.weights_version,
-            }
-            for cid, c in self.view_of.clients.items()
+            cid: {name: c.metrics.get(key) for name, key in CLIENT_SERIES.items()}
+            for cid in recent
+            if (c := view.clients.get(cid)) is not None
         }
         sample = {
             "t": round(time.time() - self._started, 3),
@@ -140,6 +170,21 @@ class Dashboard:
             self.cpu_s += time.thread_time() - t0
 
     # ------------------------------------------------------------------ the view (HTTP threads)
+    def host_allowed(self, hosts: list[str]) -> bool:
+        """Whether a request's Host headers (all of them) name this dashboard.
+
+        One header, of its own addresses, or, where it serves every interface, any IP address
+        with its port.
+        """
+        if len(hosts) != 1:
+            return False
+        host = hosts[0].strip().lower()
+        if host in self.hosts:
+            return True
+        return (
+            self.config.host in WILDCARDS and _ip_literal(host) and host.rpartition(":")[2] == str(self.port)
+        )
+
     def view(self, since: int = 0) -> dict[str, Any]:
         """Everything the page shows, with only the samples newer than `since`."""
         view: dict[str, Any] = orjson.loads(self.view_json(since))
@@ -151,11 +196,12 @@ class Dashboard:
 
     def _view_json(self, since: int) -> tuple[bytes, int]:
         """(`view_json`, the newest sample's number in it, or `since` if none)."""
-        now = time.monotonic()
-        cached = self._cached
-        if cached is None or now - cached[0] >= 1.0 / self.config.update_hz:
-            cached = (now, orjson.dumps(self._current()))
-            self._cached = cached
+        with self._view_lock:
+            now = time.monotonic()
+            cached = self._cached
+            if cached is None or now - cached[0] >= 1.0 / self.config.update_hz:
+                cached = (now, orjson.dumps(self._current()))
+                self._cached = cached
         with self._lock:
             # The newest first, back to `since`: work in proportion to what is new, not to the
             # history kept (a page that keeps up gets one or two samples an update).
@@ -168,11 +214,13 @@ class Dashboard:
     def _current(self) -> dict[str, Any]:
         srv = self.view_of
         status = srv.last_status
+        cameras = srv.camera_views
         cfg = srv.learner_config
         if self._static is None or self._static[0] is not cfg:  # what changes only with the config
             self._static = (cfg, {
                 "server": srv.server, "incarnation": srv.incarnation, "controller": srv.controller,
                 "learner": cfg.short_repr() if cfg is not None else None, "update_hz": self.config.update_hz,
+                "history": self.config.history,
             })  # fmt: skip
         view: dict[str, Any] = {
             **self._static[1],
@@ -188,28 +236,145 @@ class Dashboard:
                 for cid, c in srv.clients.items()
             },
             "surface": None,
-            "cameras": {cid: v.tick for cid, v in srv.camera_views.items()},
+            "cameras": {cid: v.tick for cid, v in cameras.items()},
+            "camera": self._cameras.newest_of(cameras),
         }
-        params, states = srv.published, srv.latest_state
-        if cfg is not None and params is not None and states:
-            client = sorted(states)[0]
+        params = srv.published
+        # The newest state a client sent (a non-finite one is never learned from nor drawn).
+        states = {cid: s for cid, s in srv.latest_state.items() if bool(np.isfinite(s).all())}
+        client = self._states.newest_of(states)
+        if cfg is not None and params is not None and client is not None:
             state = states[client]
-            if self._grid is None or self._grid.config is not cfg:
-                dims = (0, 1) if cfg.action_dim >= 2 else (0,)
-                self._grid = SurfaceGrid(cfg, dims, self.config.surface_points)
-            surface = self._grid(params, state)
-            # Arrays as float32 base64: formatting floats was most of the view's JSON time.
-            view["surface"] = {
-                "client": client,
-                "dims": list(surface.dims),
-                "axes": [[float(a[0]), float(a[-1]), len(a)] for a in surface.axes],
-                "shape": list(surface.q.shape),
-                "best": surface.best,
-                "n_wires": len(surface.wire_value),
-                **{f"{k}_f32": _f32(v) for k, v in (("state", state), ("q", surface.q),
-                   ("wire_action", surface.wire_action), ("wire_value", surface.wire_value))},
-            }  # fmt: skip
+            with self._grid_lock:  # the grid's compiled kernel writes scratch arrays it keeps
+                if self._grid is None or self._grid.config is not cfg:
+                    dims = (0, 1) if cfg.action_dim >= 2 else (0,)
+                    self._grid = SurfaceGrid(cfg, dims, self.config.surface_points)
+                surface = self._grid(params, state)
+                # Arrays as float32 base64: formatting floats was most of the view's JSON time.
+                view["surface"] = {
+                    "client": client,
+                    "dims": list(surface.dims),
+                    "axes": [[float(a[0]), float(a[-1]), len(a)] for a in surface.axes],
+                    "shape": list(surface.q.shape),
+                    "best": surface.best,
+                    "n_wires": len(surface.wire_value),
+                    **{f"{k}_f32": _f32(v) for k, v in (("state", state), ("q", surface.q),
+                       ("wire_action", surface.wire_action), ("wire_value", surface.wire_value))},
+                }  # fmt: skip
         return view
+
+
+class _Recency:
+    """When each client's entry of one of the server's dicts last changed, as the sampler saw.
+
+    The server replaces the values whole, never changing one in place, and its dicts keep the
+    order clients first arrived in, not the order they were last heard in.
+    """
+
+    def __init__(self) -> None:
+        self._seen: dict[str, tuple[object, float, int]] = {}
+        """Per client: (the value seen, when it was first seen, a count that orders ties)."""
+        self._count = 0
+
+    def seen(self, current: dict[str, Any], now: float) -> _Recency:
+        """Note the values of `current` (clients gone from it are forgotten)."""
+        old, new = self._seen, {}
+        for cid, value in current.items():
+            was = old.get(cid)
+            if was is None or was[0] is not value:
+                self._count += 1
+                was = (value, now, self._count)
+            new[cid] = was
+        self._seen = new  # replaced whole: other threads read it
+        return self
+
+    def at(self, cid: str) -> float:
+        """When `cid`'s value last changed (monotonic seconds)."""
+        return self._seen[cid][1]
+
+    def newest(self, n: int) -> list[str]:
+        """The `n` clients whose value changed most recently, the newest first."""
+        return [cid for cid, _ in heapq.nlargest(n, self._seen.items(), key=lambda item: item[1][1:])]
+
+    def newest_of(self, current: dict[str, Any]) -> str | None:
+        """The client of `current` whose value changed last.
+
+        One changed since the sampler last looked counts as newer than all; among those, the
+        last in `current`.
+        """
+        seen, best, best_key = self._seen, None, (-math.inf, -math.inf)
+        for cid, value in current.items():
+            was = seen.get(cid)
+            key = (was[1], was[2]) if was is not None and was[0] is value else (math.inf, math.inf)
+            if key >= best_key:
+                best, best_key = cid, key
+        return best
+
+
+WILDCARDS = ("", "0.0.0.0", "::")
+
+
+def _host_name(host: str) -> str:
+    """A host as a Host header names it: IPv6 addresses in brackets, lower case."""
+    return f"[{host}]".lower() if ":" in host else host.lower()
+
+
+def _allowed_hosts(host: str, port: int) -> frozenset[str]:
+    """The Host headers the dashboard serves: its own address and the loopback names.
+
+    With its port, and without where the port is HTTP's default, as browsers send it.
+    """
+    names = {"127.0.0.1", "localhost", "[::1]", _host_name(host)}
+    if host in WILDCARDS:  # serving every interface: the machine's own names too
+        names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
+    hosts = {f"{name}:{port}" for name in names}
+    if port == 80:
+        hosts |= names
+    return frozenset(hosts)
+
+
+def _ip_literal(host: str) -> bool:
+    name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+    try:
+        ipaddress.ip_address(name[1:-1] if name.startswith("[") else name)
+    except ValueError:
+        return False
+    return True
+
+
+class _Server(ThreadingHTTPServer):
+    """The standard library's threading HTTP server, serving at most MAX_CONNECTIONS at once.
+
+    A connection's failure (a page gone mid-response) is logged at debug level, not printed.
+    """
+
+    daemon_threads = True
+
+    def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler]) -> None:
+        if ":" in address[0]:
+            self.address_family = socket.AF_INET6
+        super().__init__(address, handler)
+        self.slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self.slots.acquire(blocking=False):
+            log.debug("dashboard: %d connections open, one from %s closed", MAX_CONNECTIONS, client_address)
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self.slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        log.debug("dashboard: connection from %s failed", client_address, exc_info=True)
 
 
 def _plotly_js() -> bytes:
@@ -229,6 +394,19 @@ class _Handler(BaseHTTPRequestHandler):
     disable_nagle_algorithm = True
     wbufsize = 1 << 16
     server_version = "wfnn-dashboard"
+    timeout = TIMEOUT_S  # an idle, half-sent or unread connection ends rather than holding its thread
+
+    def parse_request(self) -> bool:
+        """The standard parsing, then the Host header checked.
+
+        A page of another name that resolves to this address (DNS rebinding) gets nothing.
+        """
+        if not super().parse_request():
+            return False
+        if self.dashboard.host_allowed(self.headers.get_all("Host") or []):
+            return True
+        self._send(b"", "text/plain", HTTPStatus.MISDIRECTED_REQUEST, close=True)
+        return False
 
     def do_GET(self) -> None:
         t0 = time.thread_time()
@@ -276,11 +454,15 @@ class _Handler(BaseHTTPRequestHandler):
         paid once.
         """
         d = self.dashboard
-        self.send_response(HTTPStatus.OK)
-        self.send_header("Content-Type", "text/event-stream")
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.flush()  # the messages go straight to the socket, one send each
+        self.close_connection = True
+        try:
+            self.send_response(HTTPStatus.OK)
+            self.send_header("Content-Type", "text/event-stream")
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.flush()  # the messages go straight to the socket, one send each
+        except OSError:  # the page went away (or stopped reading)
+            return
         period = 1.0 / d.config.update_hz
         next_at = time.monotonic()
         while not d.stopping.is_set():
@@ -298,7 +480,6 @@ class _Handler(BaseHTTPRequestHandler):
             if d.stopping.wait(max(0.0, next_at - time.monotonic())):
                 break
             t0 = time.thread_time()
-        self.close_connection = True
 
     def _refuse(self) -> None:
         self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")
@@ -306,16 +487,29 @@ class _Handler(BaseHTTPRequestHandler):
     do_POST = do_PUT = do_DELETE = do_PATCH = _refuse  # noqa: N815 (the standard library's names)
 
     def _send(
-        self, body: bytes, kind: str, status: HTTPStatus = HTTPStatus.OK, cache: bool = False, allow: str = ""
+        self,
+        body: bytes,
+        kind: str,
+        status: HTTPStatus = HTTPStatus.OK,
+        cache: bool = False,
+        allow: str = "",
+        close: bool = False,
     ) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", kind)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
-        if allow:
-            self.send_header("Allow", allow)
-        self.end_headers()
-        self.wfile.write(body)
+        try:
+            self.send_response(status)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
+            if allow:
+                self.send_header("Allow", allow)
+            if close:
+                self.send_header("Connection", "close")
+            self.end_headers()
+            self.wfile.write(body)
+            self.wfile.flush()
+        except (BrokenPipeError, ConnectionResetError, TimeoutError) as exc:  # the page went away
+            self.close_connection = True
+            log.debug("dashboard: %s: %s", self.path, exc)
 
     def log_message(self, format: str, *args: Any) -> None:
         log.debug("dashboard: " + format, *args)

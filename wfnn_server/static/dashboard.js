@@ -3,8 +3,11 @@
 "use strict";
 
 const history = { t: [], reward: [], q_chosen: [], thinks_per_s: [], stored: [], resets: [] };
-const clientHistory = {};  // client -> { t, jitter_p99_ms, overruns, reward, q }
+// client -> { t, jitter_p99_ms, overruns, reward, q }: a Map, never a plain object, since client
+// ids come from the network and may be "__proto__", "constructor" or any other property's name.
+const clientHistory = new Map();
 let seq = 0;
+let kept = 2400;  // samples kept per curve: the server's history length (sent in the view)
 const plotConfig = { displayModeBar: false, responsive: true };
 const margin = { l: 55, r: 55, t: 35, b: 40 };
 let revision = 0;  // the curves' arrays grow in place: Plotly.react redraws when this changes
@@ -14,15 +17,35 @@ function fmt(value, digits = 0) {
   return Number(value).toLocaleString(undefined, { maximumFractionDigits: digits, minimumFractionDigits: digits });
 }
 
+const CLIENT_KEYS = ["jitter_p99_ms", "overruns", "reward", "q"];
+
 function take(samples) {
   for (const s of samples) {
     seq = Math.max(seq, s.seq);
     for (const key of Object.keys(history)) history[key].push(s[key]);
-    for (const [client, c] of Object.entries(s.clients)) {
-      const h = clientHistory[client] ||= { t: [], jitter_p99_ms: [], overruns: [], reward: [], q: [] };
+    for (const [client, c] of Object.entries(s.clients || {})) {
+      let h = clientHistory.get(client);
+      if (h === undefined) {
+        h = { t: [], jitter_p99_ms: [], overruns: [], reward: [], q: [] };
+        clientHistory.set(client, h);
+      }
       h.t.push(s.t);
-      for (const key of ["jitter_p99_ms", "overruns", "reward", "q"]) h[key].push(c[key]);
+      for (const key of CLIENT_KEYS) h[key].push(Object.hasOwn(c, key) ? c[key] : null);
     }
+  }
+  trim();
+}
+
+// Keep what the server keeps: the oldest samples go, and clients none of whose samples are left.
+function trim() {
+  const excess = history.t.length - kept;
+  if (excess > 0) for (const key of Object.keys(history)) history[key].splice(0, excess);
+  const oldest = history.t.length > 0 ? history.t[0] : -Infinity;
+  for (const [client, h] of clientHistory) {
+    let n = 0;
+    while (n < h.t.length && !(h.t[n] >= oldest)) n += 1;
+    if (n === h.t.length) clientHistory.delete(client);
+    else if (n > 0) for (const key of ["t", ...CLIENT_KEYS]) h[key].splice(0, n);
   }
 }
 
@@ -49,7 +72,7 @@ function drawThinking() {
 
 function drawClients() {
   const traces = [];
-  for (const [client, h] of Object.entries(clientHistory)) {
+  for (const [client, h] of clientHistory) {
     traces.push({ x: h.t, y: h.jitter_p99_ms, name: `${client} jitter p99 (ms)`, mode: "lines" });
     traces.push({ x: h.t, y: h.overruns, name: `${client} overruns`, mode: "lines", yaxis: "y2",
                   line: { dash: "dot" } });
@@ -107,8 +130,8 @@ function drawSurface(surface) {
 }
 
 function drawRejected(rejected) {
-  const reasons = Object.keys(rejected);
-  Plotly.react("chart-rejected", [{ type: "bar", x: reasons, y: reasons.map((r) => rejected[r]) }],
+  const entries = Object.entries(rejected);  // own properties only (reasons are the network's strings)
+  Plotly.react("chart-rejected", [{ type: "bar", x: entries.map(([r]) => r), y: entries.map(([, n]) => n) }],
     { title: { text: "frames rejected, by reason", font: { size: 14 } }, margin,
       yaxis: { title: { text: "frames" }, rangemode: "tozero" } }, plotConfig);
 }
@@ -131,20 +154,23 @@ function drawClientTable(clients) {
 
 let cameraShown = "";
 
-function drawCamera(cameras) {
-  const clients = Object.keys(cameras).sort();
-  if (clients.length === 0) return;
-  const client = clients[0];
-  const shown = `${client}:${cameras[client]}`;
+// The picture of the client whose picture arrived last (the view names it), else the first by name.
+function drawCamera(cameras, newest) {
+  const ticks = new Map(Object.entries(cameras));  // own properties only: client ids are the network's
+  if (ticks.size === 0) return;
+  const client = ticks.has(newest) ? newest : [...ticks.keys()].sort()[0];
+  const tick = ticks.get(client);
+  const shown = `${client}:${tick}`;
   if (shown === cameraShown) return;  // fetch a picture only when a new one has arrived
   cameraShown = shown;
   document.getElementById("camera-panel").hidden = false;
   document.getElementById("camera-client").textContent = client;
-  document.getElementById("camera-tick").textContent = cameras[client];
-  document.getElementById("camera").src = `/api/camera/${encodeURIComponent(client)}.png?tick=${cameras[client]}`;
+  document.getElementById("camera-tick").textContent = tick;
+  document.getElementById("camera").src = `/api/camera/${encodeURIComponent(client)}.png?tick=${encodeURIComponent(tick)}`;
 }
 
 function show(view) {
+  if (Number.isInteger(view.history) && view.history > 0) kept = view.history;
   take(view.samples);
   revision += 1;
   const f = view.figures;
@@ -165,7 +191,7 @@ function show(view) {
   drawSurface(view.surface);
   drawRejected(view.rejected);
   drawClientTable(view.clients);
-  drawCamera(view.cameras);
+  drawCamera(view.cameras, view.camera);
 }
 
 // One server-sent-events stream per page: the server pushes the view update_hz times a second.
@@ -173,7 +199,7 @@ function show(view) {
 // sends back the history it keeps.
 function connect() {
   for (const key of Object.keys(history)) history[key].length = 0;
-  for (const client of Object.keys(clientHistory)) delete clientHistory[client];
+  clientHistory.clear();
   seq = 0;
   const source = new EventSource("/api/stream");
   source.onmessage = (event) => {

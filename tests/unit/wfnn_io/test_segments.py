@@ -379,9 +379,12 @@ def test_a_second_writer_of_one_log_is_refused_until_the_first_closes(tmp_path):
     with pytest.raises(LogError, match="in use"):
         SegmentLog(tmp_path / "log", fsync="never")
     # Another process too (two clients given one --out, two servers one --data-dir).
-    probe = ("import sys; from wfnn_io.segments import SegmentLog, LogError\n"
-             "try:\n    SegmentLog(sys.argv[1], fsync='never')\nexcept LogError:\n    sys.exit(3)\n")  # fmt: skip
-    assert subprocess.run([sys.executable, "-c", probe, str(tmp_path / "log")], timeout=60).returncode == 3
+    probe = (
+        "import sys; from wfnn_io.segments import SegmentLog, LogError\n"
+        "try:\n    SegmentLog(sys.argv[1], fsync='never')\nexcept LogError:\n    sys.exit(3)\n"
+    )
+    second = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "log")], timeout=60)
+    assert second.returncode == 3
     first.close()
     again = SegmentLog(tmp_path / "log", fsync="never")  # the lock went with the first writer
     assert [bytes(p) for _, p in again.read()] == [b"one"]
