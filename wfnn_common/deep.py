@@ -28,6 +28,8 @@ from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+REFERENCE_REWARD = 10.0
+"""The reward magnitude the config's divergence_threshold is for; larger rewards scale it."""
 """Largest magnitude a training array may hold: the update trains in float32."""
 
 
@@ -57,6 +59,8 @@ class DeepWFNN(WFNN):
             theta = np.concatenate([params.flat[0], params.flat[0] + nudge])
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
+        self._reward_scale = 0.0
+        """The largest reward magnitude stored so far (what bounds the values: `_check`)."""
         self._trainer: Any = None
         # Load the compiled act now, not in a robot's first control tick (compiling it takes seconds).
         z = np.zeros(self.config.state_dim)
@@ -95,6 +99,25 @@ class DeepWFNN(WFNN):
             identity = np.zeros(x.shape[0]), np.ones(x.shape[0])
             _, _, wire_u, wire_q, best = deep_net.act_one(pack, dims, x, *identity, np.inf)
         return self._finish_one(wire_u[best], float(wire_q[best]), valid, explore, params)
+
+    def _check(
+        self, s: FloatArray, a: FloatArray, sn: FloatArray, r: FloatArray, term: BoolArray, ok: BoolArray
+    ) -> tuple[Experiences, BoolArray]:
+        """The thesis' learner's checks; and the divergence threshold follows the rewards' scale.
+
+        Unsquashed rewards bound the values by max |r| / (1 - gamma): the config's threshold
+        (1e4) is for rewards of at most REFERENCE_REWARD a step, and a task paying 1,000 a step
+        would look diverged at every act. The threshold is scaled by the largest reward stored
+        over REFERENCE_REWARD where that is above 1 (so tasks with small rewards are as before).
+        """
+        exp, ok = super()._check(s, a, sn, r, term, ok)
+        if ok.any():
+            scale = float(np.abs(r[ok]).max())
+            if scale > self._reward_scale:
+                self._reward_scale = scale
+                factor = max(1.0, scale / REFERENCE_REWARD)
+                self.monitor.threshold = self.config.divergence_threshold * factor
+        return exp, ok
 
     def experienced(self, n: int) -> None:
         """Count n experiences produced before this process (a robot's journal): warm-up included."""

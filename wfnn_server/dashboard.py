@@ -484,7 +484,7 @@ class _Handler(BaseHTTPRequestHandler):
     def _refuse(self) -> None:
         self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")
 
-    do_POST = do_PUT = do_DELETE = do_PATCH = _refuse  # noqa: N815 (the standard library's names)
+    do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse  # noqa: N815 (the standard library's names)
 
     def _send(
         self,

@@ -638,3 +638,15 @@ def test_thinking_prepared_early_learns_the_same_numbers():
             learner.learn(s, u, sn, -float(np.abs(s).sum()))
             learner.think(3)
     np.testing.assert_array_equal(learners[0].params.flat, learners[1].params.flat)
+
+
+def test_the_divergence_threshold_follows_the_rewards_scale_and_never_falls():
+    learner = DeepWFNN(config(gamma=0.99))
+    z = np.zeros(2)
+    learner.learn(z, np.zeros(1), z, -3.0)
+    assert learner.monitor.threshold == 1e4  # small rewards: the config's threshold
+    learner.learn(z, np.zeros(1), z, 2000.0)  # values up to 2e5 are sound here
+    assert learner.monitor.threshold == pytest.approx(1e4 * 2000 / 10)
+    learner.learn(z, np.zeros(1), z, np.nan)  # refused: counts for nothing
+    learner.learn(z, np.zeros(1), z, 5.0)
+    assert learner.monitor.threshold == pytest.approx(1e4 * 2000 / 10)

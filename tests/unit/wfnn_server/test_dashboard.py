@@ -91,7 +91,7 @@ def test_bad_requests_are_refused_and_nothing_can_be_changed(tmp_path):
             with pytest.raises(urllib.error.HTTPError) as refused:
                 _get(port, path)
             assert refused.value.code == code
-        for method in ("POST", "PUT", "DELETE"):
+        for method in ("POST", "PUT", "DELETE", "OPTIONS"):
             request = urllib.request.Request(f"http://127.0.0.1:{port}/api/view", data=b"{}", method=method)
             with pytest.raises(urllib.error.HTTPError) as refused:
                 urllib.request.urlopen(request, timeout=5)
