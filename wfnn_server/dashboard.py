@@ -24,7 +24,6 @@ import heapq
 import ipaddress
 import itertools
 import logging
-import math
 import socket
 import threading
 import time
@@ -108,10 +107,8 @@ class Dashboard:
         """Held while the grid is used (its compiled kernel writes scratch arrays it keeps, and the
         surface it answers may be those arrays) until the surface is encoded."""
         self._heard = _Recency()
-        self._states = _Recency()
-        self._cameras = _Recency()
-        """When each client's heartbeat, newest state and camera picture last changed (seen at
-        each status): the server's dicts keep the order clients first arrived in."""
+        """When each client's heartbeat last changed (seen at each status): the server's `clients`
+        keeps the order clients first arrived in. (Its states and pictures come newest last.)"""
         self._static: tuple[Any, dict[str, Any]] | None = None
         self.stopping = threading.Event()
         self.cpu_s = 0.0
@@ -149,8 +146,6 @@ class Dashboard:
         now = time.monotonic()
         view = self.view_of
         heard = self._heard.seen(view.clients, now)
-        self._states.seen(view.latest_state, now)
-        self._cameras.seen(view.camera_views, now)
         # Only what the page plots, of the most recently heard clients still heard.
         recent = [cid for cid in heard.newest(SAMPLED_CLIENTS) if now - heard.at(cid) <= RECENT_S]
         clients = {
@@ -237,12 +232,13 @@ class Dashboard:
             },
             "surface": None,
             "cameras": {cid: v.tick for cid, v in cameras.items()},
-            "camera": self._cameras.newest_of(cameras),
+            "camera": next(reversed(cameras), None),  # the server keeps the newest picture last
         }
         params = srv.published
-        # The newest state a client sent (a non-finite one is never learned from nor drawn).
+        # The newest state a client sent (the server keeps it last; a non-finite one is never
+        # learned from nor drawn).
         states = {cid: s for cid, s in srv.latest_state.items() if bool(np.isfinite(s).all())}
-        client = self._states.newest_of(states)
+        client = next(reversed(states), None)
         if cfg is not None and params is not None and client is not None:
             state = states[client]
             with self._grid_lock:  # the grid's compiled kernel writes scratch arrays it keeps
@@ -265,9 +261,9 @@ class Dashboard:
 
 
 class _Recency:
-    """When each client's entry of one of the server's dicts last changed, as the sampler saw.
+    """When each client's entry of the server's `clients` last changed, as the sampler saw.
 
-    The server replaces the values whole, never changing one in place, and its dicts keep the
+    The server replaces the values whole, never changing one in place, and that dict keeps the
     order clients first arrived in, not the order they were last heard in.
     """
 
@@ -295,20 +291,6 @@ class _Recency:
     def newest(self, n: int) -> list[str]:
         """The `n` clients whose value changed most recently, the newest first."""
         return [cid for cid, _ in heapq.nlargest(n, self._seen.items(), key=lambda item: item[1][1:])]
-
-    def newest_of(self, current: dict[str, Any]) -> str | None:
-        """The client of `current` whose value changed last.
-
-        One changed since the sampler last looked counts as newer than all; among those, the
-        last in `current`.
-        """
-        seen, best, best_key = self._seen, None, (-math.inf, -math.inf)
-        for cid, value in current.items():
-            was = seen.get(cid)
-            key = (was[1], was[2]) if was is not None and was[0] is value else (math.inf, math.inf)
-            if key >= best_key:
-                best, best_key = cid, key
-        return best
 
 
 WILDCARDS = ("", "0.0.0.0", "::")

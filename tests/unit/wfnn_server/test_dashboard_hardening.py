@@ -271,6 +271,11 @@ def test_samples_keep_only_the_plotted_figures_of_recently_heard_clients(running
     assert d.view()["history"] == 10
 
 
+def _newest_last(entries, client, value):
+    """As the server updates its view's states and pictures: the client heard from last comes last."""
+    return {**{c: v for c, v in entries.items() if c != client}, client: value}
+
+
 def test_the_surface_and_camera_are_the_newest_clients(running):
     import cv2
 
@@ -289,14 +294,14 @@ def test_the_surface_and_camera_are_the_newest_clients(running):
 
     d._grid = type("Grid", (), {"config": cfg, "__call__": staticmethod(grid)})()  # type: ignore[assignment]
     d._sample(_server_status())  # type: ignore[arg-type]
-    view.latest_state = {**view.latest_state, "z": np.full(cfg.state_dim, 0.5)}
-    view.camera_views = {**view.camera_views, "z": CameraView(client="z", tick=2, png=png)}
+    view.latest_state = _newest_last(view.latest_state, "z", np.full(cfg.state_dim, 0.5))
+    view.camera_views = _newest_last(view.camera_views, "z", CameraView(client="z", tick=2, png=png))
     d._cached = None
     v = d.view()
     assert v["surface"]["client"] == "z" and v["camera"] == "z"
     d._sample(_server_status())  # type: ignore[arg-type]
-    view.latest_state = {**view.latest_state, "a": np.full(cfg.state_dim, np.nan)}  # refused: never drawn
-    view.camera_views = {**view.camera_views, "a": CameraView(client="a", tick=3, png=png)}
+    view.latest_state = _newest_last(view.latest_state, "a", np.full(cfg.state_dim, np.nan))  # never drawn
+    view.camera_views = _newest_last(view.camera_views, "a", CameraView(client="a", tick=3, png=png))
     d._cached = None
     v = d.view()
     assert v["surface"]["client"] == "z" and v["camera"] == "a"

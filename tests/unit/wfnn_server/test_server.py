@@ -368,3 +368,17 @@ def test_a_refused_start_leaves_the_last_server_config_as_it_was(tmp_path):
     assert any("dashboard" in w for w in prepare(exposed))
     local = ServerConfig(controller="t", server_id="s1", data_dir=data, dashboard=DashboardConfig(port=0))
     assert not any("dashboard" in w for w in prepare(local))
+
+
+def test_the_views_states_come_newest_last(tmp_path):
+    # The dashboard draws the last one: the client heard from last.
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        for client, first in (("c1", 0), ("c2", 0), ("c1", 2)):
+            b = batch(cfg, first, 2, client=client)
+            send(hub, b, client=client)
+            assert listener.wait(
+                lambda c=client, b=b: np.array_equal(server.view.latest_state.get(c), b.next_state[-1])
+            )
+        assert list(server.view.latest_state) == ["c2", "c1"]
