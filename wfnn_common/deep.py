@@ -23,14 +23,12 @@ from numpy.typing import NDArray
 from wfnn_common import deep_net
 from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import DeepParams, DeepShapes
-from wfnn_common.learner import WFNN, ActResult, BoolArray, FloatArray
+from wfnn_common.learner import FLOAT32_MAX, WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 REFERENCE_REWARD = 10.0
 """The reward magnitude the config's divergence_threshold is for; larger rewards scale it."""
-"""Largest magnitude a training array may hold: the update trains in float32."""
 
 
 class DeepWFNN(WFNN):

@@ -31,9 +31,10 @@ from wfnn_common.wirefit import wirefit_q
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
-MAX_REWARD = float(np.finfo(np.float32).max)
-"""Largest reward magnitude learned: the deep learner trains in float32, where a larger one is
-infinite (and its weights would turn NaN)."""
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""Largest finite float32: the deep learner trains in float32, where anything larger is infinite."""
+MAX_REWARD = FLOAT32_MAX
+"""Largest reward magnitude learned (a larger one would turn the deep learner's weights NaN)."""
 
 
 class ActResult(NamedTuple):

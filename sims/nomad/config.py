@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from sims.nomad.model import N_BALLS
+from sims.nomad.model import MAX_BALLS, N_BALLS
 from sims.nomad.vision import COLS, ROWS, NomadVisionConfig
 from wfnn_common.config import check_fields
 
@@ -68,8 +68,8 @@ class NomadConfig:
         check_fields(self)
         if self.behaviour not in BEHAVIOURS:
             raise ValueError(f"behaviour must be one of {BEHAVIOURS}, got {self.behaviour!r}")
-        if not 1 <= self.balls <= 100:  # each is a body in the model (model.MAX_BALLS)
-            raise ValueError(f"balls must be in [1, 100], got {self.balls}")
+        if not 1 <= self.balls <= MAX_BALLS:  # checked here too: a run's config is made before its model
+            raise ValueError(f"balls must be in [1, {MAX_BALLS}], got {self.balls}")
         if not 0 < self.rate_hz <= 1000 or self.substeps < 3:
             raise ValueError(
                 f"rate_hz must be in (0, 1000] and substeps >= 3, got {self.rate_hz}, {self.substeps}"
