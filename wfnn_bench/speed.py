@@ -44,8 +44,7 @@ class SpeedBenchConfig:
         check_fields(self)
         if not 1 <= self.population <= 4096 or not self.batch_sizes:
             raise ValueError(f"population must be in [1, 4096] and batch sizes given, got {self.population}")
-        _config(self)  # the network's sizes, checked now by the learner config's own rules
-        for batch in self.batch_sizes:
+        for batch in self.batch_sizes:  # the network's sizes, checked now by the learner config's own rules
             _config(self, batch_size=batch)
 
 

@@ -293,7 +293,8 @@ class _Recency:
         return [cid for cid, _ in heapq.nlargest(n, self._seen.items(), key=lambda item: item[1][1:])]
 
 
-WILDCARDS = ("", "0.0.0.0", "::")
+WILDCARDS = ("0.0.0.0", "::")
+"""Hosts that bind every interface (an empty one is refused by `DashboardConfig`)."""
 
 
 def _host_name(host: str) -> str:
