@@ -144,8 +144,8 @@ def serve(
     console.print(f"[bold]wfnn-server[/] {escape(config.summary())}")
     if verbose:  # the whole config (also in the data directory's server_config.json)
         console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
-    if dashboard:  # port 0: the address is logged (--verbose) once bound
-        console.print(f"live dashboard (read-only): http://{dashboard_host}:{dashboard}/")
+    if config.dashboard is not None and config.dashboard.port:  # port 0: logged (--verbose) once bound
+        console.print(f"live dashboard (read-only): {config.dashboard.url}")
     if quiet:
         run(config)
         return

@@ -19,7 +19,8 @@ class DashboardConfig:
     port: int
     """TCP port (0: any free port; `Dashboard.port` says which)."""
     host: str = "127.0.0.1"
-    """Interface to bind; loopback unless a person asks for more."""
+    """Interface to bind; loopback unless a person asks for more. An IPv6 address may come in
+    brackets, as a URL writes it ([::1]); it is kept without them."""
     update_hz: float = 4.0
     """How often the page asks for new figures (and the most the view is recomputed)."""
     history: int = 2400
@@ -29,6 +30,8 @@ class DashboardConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if len(self.host) > 2 and self.host[0] == "[" and self.host[-1] == "]":  # as in a URL: [::1]
+            object.__setattr__(self, "host", self.host[1:-1])
         if not 0 <= self.port <= 65535:
             raise ValueError(f"dashboard port must be in 0..65535, got {self.port}")
         if not 0.1 <= self.update_hz <= 30.0:
@@ -41,6 +44,12 @@ class DashboardConfig:
             )
 
     @property
+    def url(self) -> str:
+        """The page's address (an IPv6 host in brackets, as URLs write it)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    @property
     def loopback(self) -> bool:
         """Whether only this machine can reach the dashboard."""
         import ipaddress
@@ -48,7 +57,7 @@ class DashboardConfig:
         if self.host == "localhost":
             return True
         try:
-            return ipaddress.ip_address(self.host.strip("[]")).is_loopback
+            return ipaddress.ip_address(self.host).is_loopback
         except ValueError:
             return False
 

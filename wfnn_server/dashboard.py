@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import base64
 import collections
+import dataclasses
 import heapq
 import ipaddress
 import itertools
@@ -119,7 +120,11 @@ class Dashboard:
         self.script = resources.files("wfnn_server").joinpath("static", "dashboard.js").read_bytes()
         self.plotly = _plotly_js()
         handler = type("Handler", (_Handler,), {"dashboard": self})
-        self._http = _Server((config.host, config.port), handler)
+        try:
+            self._http = _Server((config.host, config.port), handler)
+        except OSError as exc:  # say which of the server's sockets could not be had
+            raise OSError(exc.errno, f"dashboard cannot listen on {config.host} port {config.port}: "
+                          f"{exc.strerror or exc}") from None  # fmt: skip
         self.port = int(self._http.server_address[1])
         self.hosts = _allowed_hosts(config.host, self.port)
         """Host headers served (lower case): the page's own addresses, never another name (DNS rebinding)."""
@@ -129,13 +134,14 @@ class Dashboard:
     def start(self) -> Dashboard:
         """Serve in a background thread."""
         self._thread.start()
-        log.info("dashboard on http://%s:%d/ (read-only)", self.config.host, self.port)
+        log.info("dashboard on %s (read-only)", dataclasses.replace(self.config, port=self.port).url)
         return self
 
     def stop(self) -> None:
         """Stop serving (open streams end) and close the socket."""
         self.stopping.set()
-        self._http.shutdown()
+        if self._thread.ident is not None:  # shutdown waits for serve_forever, which never ran otherwise
+            self._http.shutdown()
         self._http.server_close()
         self._thread.join(timeout=5.0)
 
@@ -468,6 +474,17 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")
 
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse  # noqa: N815 (the standard library's names)
+
+    def do_HEAD(self) -> None:
+        """405 as for the other methods, with no body: a reply to HEAD never carries one."""
+        try:
+            self.send_response(HTTPStatus.METHOD_NOT_ALLOWED)
+            self.send_header("Allow", "GET")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            self.wfile.flush()
+        except (BrokenPipeError, ConnectionResetError, TimeoutError):  # the page went away
+            self.close_connection = True
 
     def _send(
         self,

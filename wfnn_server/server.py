@@ -163,6 +163,10 @@ class ThinkServer:
         self._recent: dict[str, float] = {}
         """Per client: when its heartbeat or an admitted batch last arrived; what MAX_LISTED picks from."""
         self._silent: set[str] = set()
+        """Clients logged as silent (heartbeat older than CLIENT_TIMEOUT_S), until heard again."""
+        self._heard_lock = threading.Lock()
+        """Held where `_heard` is replaced (ingest thread) and where `_silent` is updated from it
+        (learner thread), so that neither loses the other's change."""
         self.error: BaseException | None = None
         self.view = ViewModel(server=self.id, incarnation=self.incarnation, controller=config.controller)
         """What read-only views (the dashboard) may look at; replaced field by field, never in place."""
@@ -393,6 +397,10 @@ class ThinkServer:
     def start(self) -> ThinkServer:
         """Subscribe, declare presence and start the ingest and learner threads."""
         bus, keys = self.bus, self.keys
+        if self.config.dashboard is not None:  # bound first: a port in use stops the start before any ack
+            from wfnn_server.dashboard import Dashboard  # the web view loads only when asked for
+
+            self.dashboard = Dashboard(self.config.dashboard, self.view)
         bus.subscribe(keys.experiences(), lambda key, data: self._inbox.put(("exp", data)))
         bus.subscribe(keys.resend(self.id), lambda key, data: self._inbox.put(("exp", data)))
         bus.subscribe(keys.client_status(), lambda key, data: self._inbox.put(("status", data)))
@@ -404,10 +412,8 @@ class ThinkServer:
             thread = threading.Thread(target=guarded(target, self._failed), name=f"wfnn-{name}", daemon=True)
             thread.start()
             self._threads.append(thread)
-        if self.config.dashboard is not None:
-            from wfnn_server.dashboard import Dashboard  # the web view loads only when asked for
-
-            self.dashboard = Dashboard(self.config.dashboard, self.view).start()
+        if self.dashboard is not None:
+            self.dashboard.start()
         log.info(
             "server %s (incarnation %d) serving controller %s; %d experiences stored",
             self.id, self.incarnation, self.config.controller, self.store.count,
@@ -520,10 +526,11 @@ class ThinkServer:
         self._allowed(status.client)
         self.counters["ingest/client_status"] += 1
         self._recent = _noted(self._recent, status.client, 2 * MAX_LISTED)
-        heard = _noted(self._heard, status.client, MAX_HEARD)
-        if heard is not self._heard:  # clients forgotten: they leave the dashboard too
-            self._heard, self._silent = heard, self._silent & set(heard)
-            self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
+        with self._heard_lock:
+            heard = _noted(self._heard, status.client, MAX_HEARD)
+            if heard is not self._heard:  # clients forgotten: they leave the dashboard too
+                self._heard, self._silent = heard, self._silent & set(heard)
+                self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
         self.view.clients = {**self.view.clients, status.client: status}
         if self.learner_config is not None or self._pending_config is not None:
             return
@@ -689,6 +696,10 @@ class ThinkServer:
 
     def _check_clients(self) -> int:
         """Log clients whose heartbeat stopped or came back; -> how many are heard now."""
+        with self._heard_lock:
+            return self._check_clients_locked()
+
+    def _check_clients_locked(self) -> int:
         now = time.monotonic()
         heard = 0
         for client, seen in list(self._heard.items()):

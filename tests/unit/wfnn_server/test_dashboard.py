@@ -2,6 +2,7 @@
 
 import base64
 import json
+import socket
 import urllib.error
 import urllib.request
 
@@ -96,6 +97,10 @@ def test_bad_requests_are_refused_and_nothing_can_be_changed(tmp_path):
             with pytest.raises(urllib.error.HTTPError) as refused:
                 urllib.request.urlopen(request, timeout=5)
             assert refused.value.code == 405 and refused.value.headers["Allow"] == "GET"
+        with pytest.raises(urllib.error.HTTPError) as refused:  # HEAD too, and its reply has no body
+            head = urllib.request.Request(f"http://127.0.0.1:{port}/", method="HEAD")
+            urllib.request.urlopen(head, timeout=5)
+        assert refused.value.code == 405 and refused.value.headers["Content-Length"] == "0"
     with pytest.raises(urllib.error.URLError):  # stopped with the server
         _get(port, "/")
 
@@ -134,3 +139,22 @@ def test_a_clients_camera_pictures_are_shown_as_they_arrive(tmp_path):
         status, kind, body = _get(port, "/api/camera/c1.png")
         assert status == 200 and kind == "image/png"
         np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR), picture)
+
+
+def test_a_dashboard_port_in_use_stops_the_start_before_anything_is_heard(tmp_path):
+    hub = Hub()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        server = make_server(tmp_path, hub, small_config(), dashboard=DashboardConfig(port=port))
+        with pytest.raises(OSError, match=f"dashboard cannot listen on 127.0.0.1 port {port}"):
+            server.start()
+    assert not hub.subscribers and not hub.queryables and not hub.tokens  # no experience taken, none acked
+    server.stop()  # stopping a server whose start failed returns (the dashboard never served)
+
+
+def test_an_ipv6_dashboard_host_may_come_in_brackets():
+    assert DashboardConfig(port=8080, host="[::1]").host == "::1"
+    assert DashboardConfig(port=8080, host="::1").url == "http://[::1]:8080/"
+    assert DashboardConfig(port=8080, host="[::1]").loopback
