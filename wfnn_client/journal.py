@@ -108,16 +108,23 @@ class Journal:
 
         Returns the frames and the last experience they hold (-1 when there are none).
         """
-        i = bisect.bisect_left(self._last, seq)
+        j = bisect.bisect_left(self._last, seq)
         out: list[bytes] = []
         last = -1
-        for j in range(i, min(i + max_frames, len(self._where))):
+        while j < len(self._where) and len(out) < max_frames:
             frame = self.log.frame_at(self._where[j])
-            if frame is None:  # damaged since it was indexed: counted by the reader, skipped
-                log.error("journal record at %s is no longer readable", self._where[j])
+            if frame is None:
+                # Damaged since it was indexed (counted by the reader): no longer held, so that a
+                # re-send from it declares its experiences lost instead of waiting for them forever.
+                log.error("journal record at %s (experiences %d-%d) is no longer readable", self._where[j],
+                          self._first[j], self._last[j])  # fmt: skip
+                del self._first[j], self._last[j], self._where[j]
+                if out:  # the frames sent stop at the gap: the next re-send declares it
+                    break
                 continue
             out.append(frame)
             last = self._last[j]
+            j += 1
         return out, last
 
     def sync(self) -> None:

@@ -196,6 +196,8 @@ class ThinkServer:
         """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
+        self._loaded_through: dict[str, int] = {}
+        """Per client: the last experience the learner was given from the store when it was built."""
         # --learner-config or an earlier run's, else the config the logs say they were recorded for
         cfg = self._initial_config() or replay_config
         if cfg is not None:
@@ -332,6 +334,7 @@ class ThinkServer:
         for batch in self.store.batches():
             ok = self._learn_batch(learner, batch)
             loaded += len(batch)
+            self._loaded_through[batch.client] = max(self._loaded_through.get(batch.client, -1), batch.last_seq)
             # Experiences stored after the checkpoint have not had their thinks yet.
             after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
             budget += tpa * int(np.count_nonzero(ok & after))
@@ -574,10 +577,14 @@ class ThinkServer:
         last_status, last_thinks = now, 0
         while not self._stop.is_set():
             if self.learner is None and self._pending_config is not None:
-                pending, self._pending_config = self._pending_config, None
+                # Kept pending while the learner is built: the ingest thread goes on storing the
+                # experiences it fits (`_check_spec`), and the learner takes them from the store.
+                pending = self._pending_config
                 try:
                     self._start_learner(pending)
+                    self._pending_config = None
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
+                    self._pending_config = None
                     self.rejected["config"] += 1
                     self._unusable.add(pending.to_json())
                     log.error("the adopted learner config cannot make a learner (%s); waiting for another",
@@ -610,6 +617,10 @@ class ThinkServer:
         tpa = learner.config.thinks_per_action
         while self._to_learn:
             batch = self._to_learn.popleft()
+            if batch.last_seq <= self._loaded_through.get(batch.client, -1):
+                # Stored, and queued, while the learner was being built, which learned it (and owed
+                # its thinks) from the store: learning the queued copy too would learn it twice.
+                continue
             ok = self._learn_batch(learner, batch)
             self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
             self._queued_through[batch.client] = batch.last_seq

@@ -22,3 +22,28 @@ def test_journal_frames_from_a_sequence_number(tmp_path):
     journal.close()
     again = Journal(tmp_path / "j")
     assert again.client_id == "c1" and again.next_seq == 15 and again.frames_from(12, 5)[1] == 14
+
+
+def test_a_record_damaged_after_it_was_indexed_is_no_longer_held(tmp_path):
+    """Its experiences are then declared lost by the next re-send, rather than waited for forever."""
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    for first in (0, 5, 10, 15):
+        b = batch(cfg, first, 5)
+        journal.append(Codec("c1").encode(b), b.last_seq)
+    journal.sync()
+    where = journal._where[1]
+    segment = tmp_path / "j" / f"{where.segment:08d}.seg"
+    data = bytearray(segment.read_bytes())
+    data[where.offset + 40] ^= 0xFF  # inside the record of experiences 5-9
+    segment.write_bytes(bytes(data))
+    assert journal.holds(5)
+    frames, last = journal.frames_from(0, 10)
+    assert len(frames) == 1 and last == 4  # the frames stop at the gap
+    assert not journal.holds(5) and not journal.holds(9) and journal.holds(10)
+    frames, last = journal.frames_from(5, 10)  # from the gap: the readable batches after it
+    assert [Codec("c1").decode(f, ExperienceBatch)[1].first_seq for f in frames] == [10, 15] and last == 19
+    journal.close()

@@ -172,6 +172,34 @@ def test_adopts_the_first_clients_config(tmp_path):
         assert server.learner_config == LearnerConfig.from_json(cfg.to_json())
 
 
+def test_experiences_stored_while_the_learner_is_built_are_learned_once(tmp_path, monkeypatch):
+    import threading
+
+    import wfnn_server.server as server_module
+
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    listener = Listener(hub)
+    stored, real = threading.Event(), server_module.make_learner
+
+    def slow_make_learner(config, **kw):  # the learner is built while batches are stored and queued
+        stored.wait(10.0)
+        return real(config, **kw)
+
+    monkeypatch.setattr(server_module, "make_learner", slow_make_learner)
+    with make_server(tmp_path, hub, None) as server:
+        status = ClientStatus(client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
+                              weights_version=0, produced_through=49, acked={}, metrics={})  # fmt: skip
+        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        for first in range(0, 50, 10):
+            send(hub, batch(cfg, first, 10))
+        assert listener.wait(lambda: server.store.count == 50)
+        stored.set()
+        assert listener.wait(lambda: server.learner is not None and not server._to_learn)
+        assert int(server.learner.buffer.count[0]) == 50  # each stored experience in the replay once
+        assert listener.wait(lambda: server.budget == 0)
+        assert int(server.learner.thinks[0]) == 3 * 50  # and its thinks owed once
+
+
 def test_a_client_config_no_learner_can_be_made_from_is_refused_and_not_saved(tmp_path, monkeypatch):
     import wfnn_server.server as server_module
 
