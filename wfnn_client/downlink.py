@@ -170,9 +170,11 @@ class Downlink:
                 view = self.table.views[status.server] = ServerView(status.server)
                 log.info("server %s is alive (store %s, incarnation %d)", status.server, status.store,
                          status.incarnation)  # fmt: skip
-            self.table.announced(view, status.store, status.incarnation)
+            if not self.table.announced(view, status.store, status.incarnation, status.started_ns):
+                self.rejected["status_stale"] += 1  # an earlier start's status, replayed
+                return
             view.heard, view.gone = time.monotonic(), False
-            view.started_ns, view.spec_hash = status.started_ns, status.spec_hash
+            view.spec_hash = status.spec_hash
             new_config = view.learner_config != status.learner_config and bool(status.learner_config)
             view.metrics = status.metrics
             if self.id in status.stored_through:

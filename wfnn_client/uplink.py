@@ -157,7 +157,9 @@ class Uplink:
             return
         with self.table.lock:
             view = self.table.views.setdefault(ack.server, ServerView(ack.server))
-            self.table.announced(view, ack.store, ack.incarnation)
+            if not self.table.announced(view, ack.store, ack.incarnation):
+                self.rejected["ack_stale"] += 1  # an earlier start's ack, replayed
+                return
             view.acked = max(view.acked, ack.stored_through)
 
     def _resend(self) -> None:

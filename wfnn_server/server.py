@@ -334,7 +334,8 @@ class ThinkServer:
         for batch in self.store.batches():
             ok = self._learn_batch(learner, batch)
             loaded += len(batch)
-            self._loaded_through[batch.client] = max(self._loaded_through.get(batch.client, -1), batch.last_seq)
+            through = self._loaded_through.get(batch.client, -1)
+            self._loaded_through[batch.client] = max(through, batch.last_seq)
             # Experiences stored after the checkpoint have not had their thinks yet.
             after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
             budget += tpa * int(np.count_nonzero(ok & after))

@@ -355,3 +355,48 @@ def test_a_local_brain_counts_the_experiences_its_learner_refused():
         brain.learn(Experience(z, z, z, reward), None)
     figures = brain.metrics()
     assert figures["learn/experiences"] == 2.0 and figures["learn/rejected"] == 2.0
+
+
+def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path):
+    hub, cfg = Hub(), small_config()
+    key = b"k" * 32
+    key_file = tmp_path / "key"
+    key_file.write_bytes(key)
+    brain = remote(tmp_path, hub, cfg, key_file=key_file)
+    brain.start()
+    bus = hub.bus()
+    announce(bus, "s1", cfg, started_ns=1, key=key)
+    old_snapshot = forge(cfg, version=9, key=key)
+    old = Codec("s1", key).encode(
+        ServerStatus(server="s1", incarnation=1, store="store1", started_ns=1, spec_hash=cfg.spec_hash(),
+                     learner_config=cfg.to_json(), weights_version=0, stored_through={}, rejected={},
+                     metrics={})
+    )  # fmt: skip
+    announce(bus, "s1", cfg, started_ns=2, key=key, incarnation=2, token=False)  # s1 restarted
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=key), None)
+    assert wait(lambda: brain.current is not None and brain.current.incarnation == 2)
+    # MAC-valid frames of s1's first start, replayed (one at a time: the downlink keeps the newest)
+    for n in range(1, 4):
+        bus.put(KEYS.server_status("s1"), old, None)
+        assert wait(lambda n=n: brain.rejected["status_stale"] == n)
+        bus.put(KEYS.weights("s1"), old_snapshot, None)
+        assert wait(lambda n=n: brain.rejected["unannounced"] == n)
+    assert brain.current.incarnation == 2 and brain.servers["s1"].incarnation == 2
+    brain.stop()
+
+
+@pytest.mark.parametrize("restart", ["next_incarnation", "restored_backup"])
+def test_a_restarted_server_holding_less_than_it_acknowledged_is_sent_the_rest(tmp_path, restart):
+    """A store restored from a backup, or whose last records were damaged, holds less after a restart."""
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    bus = hub.bus()
+    announce(bus, "s1", cfg, started_ns=1, stored_through={brain.id: 99})
+    assert wait(lambda: "s1" in brain.servers and brain.servers["s1"].acked == 99)
+    # The restored backup counts its incarnations again: the same one, a later start.
+    incarnation = 2 if restart == "next_incarnation" else 1
+    held = {brain.id: 49}
+    announce(bus, "s1", cfg, started_ns=2, incarnation=incarnation, token=False, stored_through=held)
+    assert wait(lambda: brain.servers["s1"].acked == 49)  # what it holds now: the journal re-sends from 50
+    brain.stop()

@@ -187,8 +187,9 @@ def test_experiences_stored_while_the_learner_is_built_are_learned_once(tmp_path
 
     monkeypatch.setattr(server_module, "make_learner", slow_make_learner)
     with make_server(tmp_path, hub, None) as server:
-        status = ClientStatus(client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
-                              weights_version=0, produced_through=49, acked={}, metrics={})  # fmt: skip
+        status = ClientStatus(client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(),
+                              following="", weights_version=0, produced_through=49, acked={},
+                              metrics={})  # fmt: skip
         hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
         for first in range(0, 50, 10):
             send(hub, batch(cfg, first, 10))
