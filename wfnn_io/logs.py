@@ -217,12 +217,13 @@ class ExperienceLog:
         except LogFormatError as exc:
             set_aside(self.directory / LOG_JSON, str(exc))
             info = None
-        recorded = None
+        recorded, unusable = None, ""
         if info is not None and info.get("learner_config") is not None:
             try:
                 recorded = LearnerConfig.from_dict(info["learner_config"])
             except (ValueError, TypeError) as exc:
                 log.error("%s: the learner config it records is not usable (%s)", self.directory, exc)
+                unusable = f"its learner config is not usable ({exc})"
         if config is not None and recorded is not None and recorded.spec_hash() != config.spec_hash():
             raise LogFormatError(
                 f"{self.directory} records experiences of learner spec {recorded.spec_hash()}, not "
@@ -231,7 +232,11 @@ class ExperienceLog:
         identity = info.get("id") if info is not None else None
         self.id: str = identity if isinstance(identity, str) and identity else new_log_id()
         """The log's identity, made when it was created."""
+        if info is not None and identity != self.id:
+            unusable = unusable or f"its id is not a name ({identity!r})"
         if info is None or identity != self.id or (config is not None and recorded is None):
+            if unusable:  # rewritten below: what it held is kept beside it, never lost
+                set_aside(self.directory / LOG_JSON, unusable)
             write_log_json(self.directory, config or recorded, self.id)
         self.segments = SegmentLog(
             self.directory, fsync=fsync, fsync_interval_s=fsync_interval_s, segment_bytes=segment_bytes,

@@ -26,8 +26,10 @@ or `never` (the OS decides; survives a process crash, not a power cut).
 from __future__ import annotations
 
 import fcntl
+import itertools
 import logging
 import os
+import stat
 import struct
 import time
 from collections.abc import Iterator
@@ -101,11 +103,31 @@ def segment_name(n: int) -> str:
 
 
 def segment_numbers(directory: Path) -> list[int]:
-    """Segment numbers present in `directory`, in order (none if it does not exist)."""
+    """Segment numbers present in `directory`, in order (none if it does not exist).
+
+    Only names as `segment_name` writes them count: `1.seg` beside `00000001.seg` would
+    otherwise be read as the same segment twice.
+    """
     directory = Path(directory)
     if not directory.is_dir():
         return []
-    return sorted(int(p.stem) for p in directory.glob(f"*{SUFFIX}") if p.stem.isdigit())
+    stems = (p.stem for p in directory.glob(f"*{SUFFIX}"))
+    return sorted(int(s) for s in stems if s.isascii() and s.isdigit() and segment_name(int(s)) == s + SUFFIX)
+
+
+def _check_segment(path: Path, owner: bool) -> None:
+    """LogError unless `path` is a regular file; the owner's may not be a link either.
+
+    Opening a FIFO named as a segment would wait forever, and the owner truncates and appends:
+    through a link it would write a file outside the log.
+    """
+    try:
+        mode = (os.lstat if owner else os.stat)(path).st_mode
+    except FileNotFoundError:
+        return  # gone meanwhile (or a new segment): opening it says so, or makes it
+    if not stat.S_ISREG(mode):
+        kind = "a link" if stat.S_ISLNK(mode) else "not a regular file"
+        raise LogError(f"{path}: a segment of this log is {kind}; move it out of the log to go on")
 
 
 def _record_at(data: bytes | memoryview, pos: int) -> int:
@@ -164,6 +186,7 @@ def read_records(
     for n in numbers:
         if start is not None and n < start.segment:
             continue
+        _check_segment(directory / segment_name(n), owner=False)
         with open(directory / segment_name(n), "rb") as f:
             data = f.read()
         records, damage = scan(data, marker)
@@ -237,6 +260,8 @@ class SegmentLog:
         self._last_sync = time.monotonic()
         self._dirty = False
         numbers = segment_numbers(self.directory)
+        for n in numbers:
+            _check_segment(self.directory / segment_name(n), owner=True)
         self.recovery.segments = len(numbers)
         current = numbers[-1] if numbers else 0
         if numbers:
@@ -263,7 +288,13 @@ class SegmentLog:
         quarantine = self.directory / QUARANTINE
         quarantine.mkdir(exist_ok=True)
         kept = quarantine / f"{n:08d}-{valid_end:010d}.torn"
-        with open(kept, "wb") as f:
+        for k in itertools.count(1):  # a tail torn at the same place before stays: never overwritten
+            try:
+                fd = os.open(kept, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                break
+            except FileExistsError:
+                kept = quarantine / f"{n:08d}-{valid_end:010d}.{k}.torn"
+        with os.fdopen(fd, "wb") as f:
             f.write(data[valid_end:])
             f.flush()
             os.fsync(f.fileno())
@@ -322,6 +353,7 @@ class SegmentLog:
         self.sync()
         self._file.close()
         self._segment += 1
+        _check_segment(self.directory / segment_name(self._segment), owner=True)
         self._file = open(self.directory / segment_name(self._segment), "ab")
         self._size = 0
         if self.fsync != "never":  # the new file's directory entry must survive too

@@ -144,3 +144,19 @@ def test_inspect_prints_the_names_a_log_holds_verbatim(tmp_path):
     for source in HOSTILE_SOURCES[:4]:
         assert f"chosen by {source}" in result.output
     assert "[1]: 80 experiences" in result.output  # the title keeps the path's brackets
+
+
+@pytest.mark.parametrize("damage", [{"learner_config": {"state_low": "wrong"}}, {"id": 7}])
+def test_a_log_description_that_cannot_be_used_is_kept_beside_its_replacement(tmp_path, damage):
+    import json
+
+    from tests.fakes import small_config
+
+    logs.ExperienceLog(tmp_path / "log", small_config()).close()
+    path = tmp_path / "log" / "log.json"
+    held = json.dumps({**json.loads(path.read_text()), **damage})
+    path.write_text(held)
+    logs.ExperienceLog(tmp_path / "log", small_config()).close()
+    [kept] = (tmp_path / "log").glob("log.json.unreadable-*")
+    assert kept.read_text() == held  # what it held is not lost
+    assert isinstance(json.loads(path.read_text())["id"], str)

@@ -389,3 +389,48 @@ def test_a_second_writer_of_one_log_is_refused_until_the_first_closes(tmp_path):
     again = SegmentLog(tmp_path / "log", fsync="never")  # the lock went with the first writer
     assert [bytes(p) for _, p in again.read()] == [b"one"]
     again.close()
+
+
+def test_a_tail_torn_twice_at_the_same_place_keeps_both_in_quarantine(tmp_path):
+    with SegmentLog(tmp_path, fsync="always") as log:
+        log.append(b"kept")
+    tails = [b"\x05\x00\x00\x00first-torn", b"\x07\x00\x00\x00second"]
+    for tail in tails:  # each start's first append torn at the same offset
+        with open(seg_path(tmp_path, 0), "ab") as f:
+            f.write(tail)
+        with SegmentLog(tmp_path, fsync="always") as log:
+            assert [p for _, p in log.read()] == [b"kept"]
+    assert sorted(p.read_bytes() for p in quarantined(tmp_path)) == sorted(tails)
+
+
+def test_only_segment_names_as_the_log_writes_them_count(tmp_path):
+    with SegmentLog(tmp_path, segment_bytes=40) as log:
+        for p in payloads(3):
+            log.append(p)
+    (tmp_path / "1.seg").write_bytes(seg_path(tmp_path, 1).read_bytes())  # a copy under another name
+    (tmp_path / "\u00b2.seg").write_bytes(b"")  # a digit to str.isdigit, not to int()
+    assert segments.segment_numbers(tmp_path) == [0, 1, 2]
+    assert [p for _, p in segments.read_records(tmp_path)] == payloads(3)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory", "link"])
+def test_a_segment_that_is_not_a_regular_file_is_refused_in_one_line(tmp_path, kind):
+    import os
+
+    directory, outside = tmp_path / "log", tmp_path / "outside.txt"
+    with SegmentLog(directory) as log:
+        log.append(b"kept")
+    outside.write_bytes(b"not a segment")
+    odd = seg_path(directory, 1)
+    if kind == "fifo":  # opening it would wait forever for a writer
+        os.mkfifo(odd)
+    elif kind == "directory":
+        odd.mkdir()
+    else:  # the owner would truncate and append to the file it points to
+        odd.symlink_to(outside)
+    with pytest.raises(LogError, match=r"00000001\.seg: a segment of this log is"):
+        SegmentLog(directory)
+    assert outside.read_bytes() == b"not a segment"
+    if kind != "link":  # a reader follows a link to a regular file (read-only); nothing else
+        with pytest.raises(LogError, match="not a regular file"):
+            list(segments.read_records(directory))
