@@ -98,6 +98,10 @@ class Journal:
         """Journal one encoded batch whose last experience is `last_seq` (it continues the journal)."""
         self._index(self.next_seq, last_seq, self.log.append(frame))
 
+    def skip_to(self, seq: int) -> None:
+        """Number the next batch from `seq` (the numbers before it, not journaled, are not held)."""
+        self.next_seq = max(self.next_seq, seq)
+
     def holds(self, seq: int) -> bool:
         """Whether experience `seq` is in the journal (False in a gap that damage left)."""
         i = bisect.bisect_left(self._last, seq)

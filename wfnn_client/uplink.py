@@ -24,6 +24,7 @@ from wfnn_client.link import RemoteConfig, ServerTable, ServerView, drained
 from wfnn_io.bus import Bus, Channel
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
+    MAX_SEQ,
     Ack,
     ClientStatus,
     Codec,
@@ -71,13 +72,25 @@ class Uplink:
         # Shared with the downlink: the client counts its figures and rejections in one place.
         self.counters = counters
         self.rejected = rejected
-        self.produced_through = journal.next_seq - 1
+        self._first_seq = journal.next_seq
+        self._added = 0
+        """Experiences queued by `add` (the tick's thread is the only one to change it)."""
+        self._skipped = 0
+        """Numbers skipped because servers already hold them (`_skip_numbers`, this thread only)."""
+        self._numbering = False
+        """Whether batches may be numbered yet: after the first word from a server (or status_timeout_s)."""
+        self._started = time.monotonic()
         self._pending: collections.deque[_Pending] = collections.deque()
         self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._sent: collections.deque[tuple[float, int]] = collections.deque()
         self._overdue = -1
+
+    @property
+    def produced_through(self) -> int:
+        """The number the newest experience queued has, or will have when it is sent."""
+        return self._first_seq - 1 + self._skipped + self._added
 
     @property
     def queued(self) -> int:
@@ -95,7 +108,7 @@ class Uplink:
     def add(self, experience: Experience, acted: Acted | None) -> None:
         """Queue an experience (never blocks)."""
         self._pending.append(_Pending(*as_recorded(experience, acted)))
-        self.produced_through += 1
+        self._added += 1
         self._wake.set()
 
     def all_acked(self) -> bool:
@@ -116,14 +129,15 @@ class Uplink:
             stopping = self._stop.is_set()
             self._wake.wait(timeout=0.005)
             self._wake.clear()
-            while self._pending:
+            for data in drained(self._acks):
+                take(data, self._take_ack, self.rejected, "ack", "ack_")
+            self._check_numbering(stopping)
+            while self._pending and self._numbering:
                 oldest = self._pending[0].t
                 if not (stopping or cfg.lockstep or len(self._pending) >= cfg.batch_max
                         or time.monotonic() - oldest >= cfg.batch_period_s):  # fmt: skip
                     break
                 self._send_batch()
-            for data in drained(self._acks):
-                take(data, self._take_ack, self.rejected, "ack", "ack_")
             self._resend()
             if self.journal.due():
                 self.journal.sync()
@@ -133,6 +147,36 @@ class Uplink:
                 next_status = now + cfg.status_period_s
             if stopping and not self._pending:
                 return
+
+    def _check_numbering(self, stopping: bool) -> None:
+        """Number batches only past what any server holds of this client.
+
+        A journal whose newest records were lost (a power cut before its fsync, damage, or a
+        new journal given an old --client-id) would number new experiences as ones the servers
+        already stored, which they would drop as re-sends and acknowledge. So the first batch
+        waits for the first word from a server (its status or ack says what it holds of this
+        client), for at most status_timeout_s; and numbering always continues past the most any
+        server says it holds.
+        """
+        with self.table.lock:
+            heard = any(v.heard > 0 for v in self.table.views.values())
+            held = max((v.acked for v in self.table.views.values()), default=-1)
+        if self.journal.next_seq <= held < MAX_SEQ // 2:  # (beyond: no journal gets there; a forgery)
+            self._skip_numbers(held)
+        if not self._numbering and (
+            heard or stopping or time.monotonic() - self._started >= self.config.status_timeout_s
+        ):
+            self._numbering = True
+
+    def _skip_numbers(self, held: int) -> None:
+        """Continue numbering after `held`, which a server holds beyond this journal's numbers."""
+        skipped = held + 1 - self.journal.next_seq
+        log.error("servers hold experiences of client %s through %d, beyond this journal's %d (its newest "
+                  "records were lost, or another journal had this client id): numbering continues at %d",
+                  self.id, held, self.journal.next_seq - 1, held + 1)  # fmt: skip
+        self.journal.skip_to(held + 1)
+        self._skipped += skipped
+        self.counters["uplink/numbers_skipped"] += skipped
 
     def _send_batch(self) -> None:
         """Take up to batch_max queued experiences with one weights source; journal and publish."""

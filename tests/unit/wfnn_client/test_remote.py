@@ -400,3 +400,25 @@ def test_a_restarted_server_holding_less_than_it_acknowledged_is_sent_the_rest(t
     announce(bus, "s1", cfg, started_ns=2, incarnation=incarnation, token=False, stored_through=held)
     assert wait(lambda: brain.servers["s1"].acked == 49)  # what it holds now: the journal re-sends from 50
     brain.stop()
+
+
+def test_new_experiences_are_numbered_past_what_the_servers_hold(tmp_path):
+    """A journal that lost its newest records (or a new one with an old client id) never numbers
+    new experiences as ones a server stored already: it would drop them as re-sends, and ack them."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        first = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run1")
+        first.start()
+        for _ in range(50):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(first.all_acked)
+        first.stop()
+        again = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run2")
+        again.start()
+        for _ in range(40):  # queued at once, before any server was heard
+            again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
+        assert wait(lambda: again.all_acked() and server.store.count == 90)
+        assert again.produced_through == 89 and again.counters["uplink/numbers_skipped"] == 50
+        new = [b for b in server.store.batches() if b.client == "robot1" and b.first_seq >= 50]
+        assert sum(len(b) for b in new) == 40 and all((b.reward == -0.7).all() for b in new)
+        again.stop()
