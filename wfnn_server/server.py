@@ -146,6 +146,13 @@ class ThinkServer:
         self.codec = Codec(config.server_id, load_key(str(config.key_file) if config.key_file else None))
         self.data_dir = config.data_dir
         self.data_dir.mkdir(parents=True, exist_ok=True)
+        # The store first: its lock refuses a second server on this data directory before that
+        # one counts an incarnation or touches a file here.
+        self.store = ExperienceStore(
+            self.data_dir / "store", self.id, fsync=config.fsync,
+            fsync_interval_s=config.fsync_interval_s, segment_bytes=config.segment_bytes,
+        )  # fmt: skip
+        self._remove_unfinished_writes()
         self.incarnation = self._next_incarnation()
         self.started_ns = time.time_ns()
         self.rejected: Counter[str] = Counter()
@@ -173,10 +180,6 @@ class ThinkServer:
         self.dashboard: Dashboard | None = None
         """The live web view, while serving with `config.dashboard`."""
 
-        self.store = ExperienceStore(
-            self.data_dir / "store", self.id, fsync=config.fsync,
-            fsync_interval_s=config.fsync_interval_s, segment_bytes=config.segment_bytes,
-        )  # fmt: skip
         # Learner state (owned by the learner thread once running).
         self.learner: Learner | None = None
         self.learner_config: LearnerConfig | None = None
@@ -204,6 +207,19 @@ class ThinkServer:
             self._start_learner(cfg)
 
     # ------------------------------------------------------------------ start-up
+    def _remove_unfinished_writes(self) -> None:
+        """Delete what a crash mid-write left of this server's own files (`NAME<random>.tmp`).
+
+        An atomic write fills a temporary file beside its target and renames it; one that never
+        got renamed holds nothing the target does not (checkpoints are full-size: one per crash
+        would pile up). Only this server writes here: the store's lock says so.
+        """
+        names = (CHECKPOINT, PREVIOUS_CHECKPOINT, LEARNER_JSON, "incarnation", SERVER_JSON)
+        for path in self.data_dir.glob("*.tmp"):
+            if path.is_file() and any(path.name.startswith(name) for name in names):
+                path.unlink(missing_ok=True)
+                log.info("%s: left by a write a crash interrupted; deleted", path)
+
     def _next_incarnation(self) -> int:
         """One more than the last start's incarnation.
 

@@ -411,3 +411,24 @@ def test_the_views_states_come_newest_last(tmp_path):
                 lambda c=client, b=b: np.array_equal(server.view.latest_state.get(c), b.next_state[-1])
             )
         assert list(server.view.latest_state) == ["c2", "c1"]
+
+
+def test_what_a_crash_left_of_an_atomic_write_is_deleted_at_the_next_start(tmp_path):
+    data = tmp_path / "s1"
+    data.mkdir()
+    (data / "checkpoint.npzk3j2x9.tmp").write_bytes(b"\0" * 1000)  # a checkpoint write never renamed
+    (data / "notes.tmp").write_text("the user's")
+    with make_server(tmp_path, Hub(), small_config()):
+        pass
+    assert not (data / "checkpoint.npzk3j2x9.tmp").exists()
+    assert (data / "notes.tmp").read_text() == "the user's"
+
+
+def test_a_second_server_on_one_data_directory_is_refused_before_it_counts_a_start(tmp_path):
+    from wfnn_io.segments import LogError
+
+    hub, cfg = Hub(), small_config()
+    with make_server(tmp_path, hub, cfg) as first:
+        with pytest.raises(LogError, match="in use by another writer"):
+            make_server(tmp_path, hub, cfg)
+        assert (tmp_path / "s1" / "incarnation").read_text() == str(first.incarnation)
