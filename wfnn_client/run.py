@@ -47,6 +47,7 @@ from wfnn_io.persist import (
     write_json,
 )
 from wfnn_io.protocol import EXP_VETO_PROPOSED, load_key
+from wfnn_io.segments import check_free
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,8 @@ def prepare(config: ClientConfig) -> list[str]:
         writable(config.json_stats)  # now, not when the run is over
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
     warnings = [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
+    for journal in Path(config.out).glob("journal*"):  # a run already on this directory keeps its record
+        check_free(journal)
     # Written once the rest is known to hold: a refused start leaves the last run's record as it was.
     write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
     return warnings

@@ -208,6 +208,10 @@ LOCK = ".lock"
 """The file a log's owner holds an exclusive lock on (`flock`), so that a second writer is refused."""
 
 
+def _in_use(directory: Path) -> LogError:
+    return LogError(f"{directory}: in use by another writer (a run, server or merge has it open)")
+
+
 def _take_lock(directory: Path) -> int:
     """Lock `directory`'s LOCK file for this log's lifetime -> its descriptor; LogError if held."""
     fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
@@ -215,12 +219,30 @@ def _take_lock(directory: Path) -> int:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        raise LogError(
-            f"{directory}: in use by another writer (a run, server or merge has it open)"
-        ) from None
+        raise _in_use(directory) from None
     except OSError:  # a file system without locks: the one-writer rule is then the user's
         pass
     return fd
+
+
+def check_free(directory: Path) -> None:
+    """LogError if a writer holds the log in `directory` now (nothing is made or changed).
+
+    For a tool that writes beside a log before opening it (a run's config.json): a second run
+    on the same directory is refused before it overwrites the first one's record.
+    """
+    try:
+        fd = os.open(Path(directory) / LOCK, os.O_RDONLY)
+    except OSError:  # no log, or no lock file yet: nobody holds it
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise _in_use(directory) from None
+    except OSError:
+        pass
+    finally:
+        os.close(fd)  # closing drops the lock just taken
 
 
 class SegmentLog:

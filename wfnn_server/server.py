@@ -60,6 +60,7 @@ from wfnn_io.protocol import (
     load_key,
     take,
 )
+from wfnn_io.segments import check_free
 from wfnn_server.config import ServerConfig
 from wfnn_server.store import ExperienceStore
 from wfnn_server.view import ViewModel
@@ -834,6 +835,7 @@ def prepare(config: ServerConfig) -> list[str]:
         warnings.append(f"the dashboard on {config.dashboard.host} can be read by anyone who reaches it "
                         "(learner config, clients, camera pictures): no key protects it")  # fmt: skip
         log.warning(warnings[-1])
+    check_free(config.data_dir / "store")  # a server already on this data directory keeps its record
     # Written once the rest is known to hold: a refused start leaves the last run's record as it was.
     write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
     return warnings

@@ -117,3 +117,8 @@ def test_a_refused_client_start_leaves_the_last_runs_record_and_an_unwritable_js
     assert (tmp_path / "run" / "config.json").read_bytes() == before
     with pytest.raises(IsADirectoryError):
         prepare(ClientConfig(out=tmp_path / "run", json_stats=tmp_path))
+    from wfnn_io.segments import LogError, SegmentLog
+
+    with SegmentLog(tmp_path / "run" / "journal"), pytest.raises(LogError, match="in use"):  # a run on it
+        prepare(ClientConfig(out=tmp_path / "run", seed=8))
+    assert (tmp_path / "run" / "config.json").read_bytes() == before

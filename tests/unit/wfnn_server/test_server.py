@@ -389,6 +389,11 @@ def test_a_refused_start_leaves_the_last_server_config_as_it_was(tmp_path):
             ServerConfig(controller="other", server_id="s1", data_dir=data, key_file=tmp_path / "empty.key")
         )
     assert (data / SERVER_JSON).read_bytes() == before
+    from wfnn_io.segments import LogError, SegmentLog
+
+    with SegmentLog(data / "store"), pytest.raises(LogError, match="in use"):  # a server running on it
+        prepare(ServerConfig(controller="other", server_id="s1", data_dir=data))
+    assert (data / SERVER_JSON).read_bytes() == before
     with pytest.raises(ValueError, match="dashboard host"):
         DashboardConfig(port=0, host="")
     exposed = ServerConfig(
