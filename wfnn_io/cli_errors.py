@@ -42,16 +42,49 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
 
     def main() -> None:
         try:
-            app()
+            _invoke(app)
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
             sys.exit(130)
         except (OSError, ValueError) as exc:
             _report(exc, 2)
         except Exception as exc:
+            if _usage_error(exc):
+                return
             _report(exc, 1)
 
     return main
+
+
+def _invoke(app: Callable[[], Any]) -> None:
+    """Run `app`; a Typer app without its own error display, so that usage errors end in one line."""
+    import typer
+    import typer.main
+
+    if not isinstance(app, typer.Typer):
+        app()
+        return
+    code = typer.main.get_command(app).main(standalone_mode=False)
+    if type(code) is int and code:  # an explicit exit (typer.Exit) with a nonzero code
+        sys.exit(code)
+
+
+def _usage_error(exc: Exception) -> bool:
+    """A command-line usage error (an unknown option, an invalid value) ends in one line, exit 2.
+
+    Typer's own display draws a box of several lines around it; asked for no arguments, a tool
+    that shows its help does so.
+    """
+    import typer
+
+    if not isinstance(exc, typer.TyperException):
+        return False
+    if type(exc).__name__ == "NoArgsIsHelpError":
+        exc.show()  # type: ignore[attr-defined]
+    else:
+        message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+        print(f"error: {' '.join(message.split())} (--help lists the options)", file=sys.stderr)
+    sys.exit(int(getattr(exc, "exit_code", 2)))
 
 
 def _report(exc: BaseException, code: int) -> None:

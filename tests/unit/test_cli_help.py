@@ -41,3 +41,30 @@ def test_help_texts_come_through_rich_markup_whole(module: str) -> None:
     assert len(texts) > 3, "the walk found no options"
     eaten = [(where, text) for where, text in texts if Text.from_markup(text).plain != text]
     assert not eaten, f"rich markup drops part of these help texts: {eaten}"
+
+
+@pytest.mark.parametrize(
+    ("module", "argv"),
+    [
+        ("wfnn_client.cli", ["--sim", "nope"]),  # a value its own check refuses
+        ("wfnn_client.cli", ["--rate-hz", "abc"]),  # a value of the wrong type
+        ("wfnn_bench.cli", ["boat", "--mode", "foo"]),
+        ("wfnn_io.logs_cli", ["inspect"]),  # a missing argument
+        ("wfnn_server.cli", ["--no-such-option"]),
+    ],
+)
+def test_a_usage_error_ends_in_one_error_line(module, argv, monkeypatch, capsys):
+    main = importlib.import_module(module).main
+    monkeypatch.setattr("sys.argv", [module, *argv])
+    with pytest.raises(SystemExit) as ended:
+        main()
+    assert ended.value.code == 2
+    out, err = capsys.readouterr()
+    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+def test_help_still_shows_and_ends_well(monkeypatch, capsys):
+    main = importlib.import_module("wfnn_bench.cli").main
+    monkeypatch.setattr("sys.argv", ["wfnn-bench", "--help"])
+    main()  # no SystemExit: exit code 0
+    assert "Usage" in capsys.readouterr().out
