@@ -220,13 +220,14 @@ def speed(
     thinks: Annotated[int, typer.Option(min=1000)] = 200_000,
     population: Annotated[int, typer.Option(min=1)] = 64,
     json_path: JsonOpt = None,
+    plot_path: PlotOpt = None,
     verbose: bool = False,
 ) -> None:
     """Act latency, incremental / minibatch / population think rates (16-32-45 network)."""
-    _logging(verbose, json_path)
+    _logging(verbose, json_path, plot_path)
     cfg = speed_bench.SpeedBenchConfig(act_calls=act_calls, thinks=thinks, population=population)
     _measure(speed_bench, cfg, "speed", speed_bench.steps(cfg),
-             "speed (16 states, 4 actions, 9 wires, 32 hidden)", json_path, None)  # fmt: skip
+             "speed (16 states, 4 actions, 9 wires, 32 hidden)", json_path, plot_path)  # fmt: skip
 
 
 @app.command()

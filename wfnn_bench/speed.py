@@ -12,6 +12,7 @@ from __future__ import annotations
 import gc
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -168,3 +169,35 @@ def rows(result: dict[str, Any], cfg: SpeedBenchConfig) -> list[tuple[str, Any]]
         for b, v in result["minibatch_updates_per_s_by_batch"].items()
     ]
     return rows
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Act latency (p50 and p99, both networks) beside the think rates (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    networks = [("thesis", ""), ("deep default", "_deep")]
+    x = np.arange(len(networks))
+    for k, (quantile, paused) in enumerate([("p50", ""), ("p99", ""), ("p99", "_gc_paused")]):
+        values = [result[f"act_{quantile}_us{suffix}{paused}"] for _, suffix in networks]
+        label = f"{quantile}" + (" (gc paused)" if paused else "")
+        a.bar(x + (k - 1) * 0.27, values, width=0.27, label=label)
+    a.set_xticks(x, [name for name, _ in networks])
+    a.set_ylabel("greedy act (us, one core, numpy/numba)")
+    a.axhline(50.0, color="grey", ls=":", lw=0.8, label="50 us")
+    a.set_title("act latency")
+    a.legend(fontsize=8)
+    rates = {"incremental": result["incremental_thinks_per_s"],
+             **{f"minibatch {n}": v for n, v in result["minibatch_updates_per_s_by_batch"].items()},
+             f"population {result['population']}": result["population_thinks_per_s"]}  # fmt: skip
+    b.bar(range(len(rates)), list(rates.values()), color="tab:green")
+    b.set_xticks(range(len(rates)), list(rates), rotation=20, fontsize=8)
+    b.set_yscale("log")
+    b.set_ylabel("experience updates per second")
+    b.set_title("thinking (the thesis' network)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -118,8 +118,11 @@ def test_bench_cartpole_and_speed(tmp_path):
             "4",
             "--json",
             j2,
+            "--plot",
+            tmp_path / "speed.png",
         ]
     )
+    assert (tmp_path / "speed.png").stat().st_size > 0
     speed = json.loads(j2.read_text())
     for key in (
         "act_p50_us",
