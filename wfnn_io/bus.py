@@ -92,6 +92,35 @@ class Bus(Protocol):
         ...
 
 
+class OfflineBus:
+    """A `Bus` that joins no network: what is published goes nowhere and nothing arrives.
+
+    For a server learning from logs alone (`--replay-only` naming no endpoint): it needs no port,
+    so it neither takes one another server uses nor opens one to anybody.
+    """
+
+    def put(self, key: str, payload: bytes, channel: Channel) -> None:
+        """Nothing is sent."""
+
+    def subscribe(self, key: str, callback: Callback, max_bytes: int | None = None) -> None:
+        """Nothing will arrive."""
+
+    def queryable(self, key: str, answer: Callable[[], bytes | None]) -> None:
+        """Nobody will ask."""
+
+    def query(self, key: str, timeout_s: float, callback: Callback, max_bytes: int | None = None) -> None:
+        """Nobody will answer."""
+
+    def declare_token(self, key: str) -> None:
+        """Nobody will see it."""
+
+    def watch_presence(self, key: str, callback: PresenceCallback) -> None:
+        """Nobody is present."""
+
+    def close(self) -> None:
+        """Nothing to leave."""
+
+
 def guarded(target: Callable[[], object], on_error: Callable[[BaseException], object]) -> Callable[[], None]:
     """`target` for a thread that handles what the bus hands over: whatever ends it goes to `on_error`.
 

@@ -19,7 +19,7 @@ from wfnn_io.cli_errors import guarded
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
-from wfnn_server.server import run
+from wfnn_server.server import ThinkServer, run
 
 app = typer.Typer(help="Think server: stores robots' experiences, replays them, publishes weights.")
 console = Console(stderr=True)
@@ -138,19 +138,30 @@ def serve(
         publish_period_s=publish_period,
         checkpoint_period_s=checkpoint_period, think=think, fsync=fsync,  # type: ignore[arg-type]
         replay=tuple(replay_only or ()), replay_only=bool(replay_only),
+        # Logs alone need no network: without an endpoint named, none is joined (no port taken).
+        offline=bool(replay_only) and listen is None and not connect and zenoh_config is None,
         dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
                    if dashboard is not None else None),
     )  # fmt: skip
     console.print(f"[bold]wfnn-server[/] {escape(config.summary())}")
     if verbose:  # the whole config (also in the data directory's server_config.json)
         console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
-    if config.dashboard is not None and config.dashboard.port:  # port 0: logged (--verbose) once bound
-        console.print(f"live dashboard (read-only): {config.dashboard.url}")
+
+    def started(server: ThinkServer) -> None:  # the dashboard's address once it is bound (port 0 too)
+        if server.dashboard is not None and config.dashboard is not None:
+            bound = dataclasses.replace(config.dashboard, port=server.dashboard.port)
+            console.print(f"live dashboard (read-only): {bound.url}")
+
     if quiet:
-        run(config)
-        return
-    with Status("starting", console=console) as line:
-        run(config, lambda status: line.update(status_line(status)))
+        figures = run(config, on_started=started)
+    else:
+        with Status("starting", console=console) as line:
+            figures = run(config, lambda status: line.update(status_line(status)), started)
+    if config.replay_only:
+        console.print(
+            f"replay-only: {figures['imported']} experiences imported, {figures['experiences']} stored, "
+            f"{figures['thinks']} thinks; weights in {config.data_dir / 'checkpoint.npz'}"
+        )
 
 
 main = guarded(app)

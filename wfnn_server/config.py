@@ -123,6 +123,8 @@ class ServerConfig:
     """Serve no robot: learn from the store (with `replay`) until every stored experience has had
     its thinks, then checkpoint (`DATA_DIR/checkpoint.npz`, a weights file) and stop. Starting the
     server again on the same data directory without it continues online from there."""
+    offline: bool = False
+    """Join no network (a replay-only run that names no endpoint: it needs no port)."""
     dashboard: DashboardConfig | None = None
     """Serve a live, read-only web view of this server (`wfnn_server.dashboard`); None: off."""
     recovery_thinks_max: int = 2_000_000
@@ -138,6 +140,8 @@ class ServerConfig:
                    else "learner config from the data directory or the first client")  # fmt: skip
         replay = f"; replay-only {len(self.replay)} logs" if self.replay_only else ""
         keyed = ", key" if self.key_file else ""
+        if self.offline:
+            net = "no network"
         return (f"{self.server_id} (controller {self.controller}, {self.net.mode}{keyed}) "
                 f"{net or 'no endpoints'}; data directory {self.data_dir}; {learner}{replay}")  # fmt: skip
 
@@ -169,5 +173,7 @@ class ServerConfig:
         if self.think not in ("budget", "continuous"):
             raise ValueError(f"think must be budget or continuous, got {self.think!r}")
         self.overrides  # noqa: B018  # checks seed, bc_weight and alpha by the learner config's rules
+        if self.offline and not self.replay_only:
+            raise ValueError("offline: only a replay-only server joins no network")
         if self.replay_only and self.think != "budget":
             raise ValueError("replay_only learns the stored experiences' think budget: think must be budget")

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
-from wfnn_io.bus import Bus, Channel, guarded
+from wfnn_io.bus import Bus, Channel, OfflineBus, guarded
 from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_io.persist import (
     PersistError,
@@ -841,12 +841,13 @@ def prepare(config: ServerConfig) -> list[str]:
     return warnings
 
 
-def run(config: ServerConfig, on_status: Any = None) -> None:
-    """Serve until SIGTERM/SIGINT (checkpointing on the way out).
+def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> dict[str, Any]:
+    """Serve until SIGTERM/SIGINT (checkpointing on the way out); -> the final figures.
 
-    `on_status(status)` is called with each `ServerStatus` published (for a status line). The
-    signals are caught from the start: one that arrives while the server is still starting
-    stops it cleanly as soon as it has started.
+    `on_status(status)` is called with each `ServerStatus` published (for a status line), and
+    `on_started(server)` once it serves (its dashboard, if any, is bound by then). The signals
+    are caught from the start: one that arrives while the server is still starting stops it
+    cleanly as soon as it has started. The figures: experiences stored and imported, thinks.
     """
     import signal
 
@@ -861,7 +862,7 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         prepare(config)
-        bus = ZenohBus(config.net)
+        bus: Bus = OfflineBus() if config.offline else ZenohBus(config.net)
         try:
             server = ThinkServer(config, bus)
         except BaseException:
@@ -874,6 +875,8 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
                     "(give --learner-config, or logs whose log.json records one)"
                 )
             server.start()
+            if on_started is not None:
+                on_started(server)
             shown = None
             while (
                 not stop.wait(0.2) and not server.wait(0) and not (config.replay_only and server.replayed())
@@ -889,3 +892,6 @@ def run(config: ServerConfig, on_status: Any = None) -> None:
             signal.signal(s, handler)
     if server.error is not None:
         raise RuntimeError("think server failed") from server.error
+    learner = server.learner
+    return {"experiences": server.store.count, "imported": server.imported,
+            "thinks": int(learner.thinks[0]) if learner is not None else 0}  # fmt: skip

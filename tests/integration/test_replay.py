@@ -25,9 +25,10 @@ def _record(out, sim="boat", episodes="2"):
     return json.loads((out / "metrics.json").read_text())
 
 
-def _replay(data_dir, *logs_dirs, options=()):
-    args = [BIN / "wfnn-server", "--id", "srv", "--controller", "it", "--listen", endpoint(free_port()),
-            "--data-dir", data_dir, "--quiet", *options]  # fmt: skip
+def _replay(data_dir, *logs_dirs, options=(), listen=True):
+    net = ["--listen", endpoint(free_port())] if listen else []  # without: no network is joined
+    args = [BIN / "wfnn-server", "--id", "srv", "--controller", "it", *net, "--data-dir", data_dir, "--quiet",
+            *options]  # fmt: skip
     for d in logs_dirs:
         args += ["--replay-only", d]
     return _run(*args)
@@ -45,7 +46,10 @@ def test_replay_only_learns_every_recorded_experience_once_and_refuses_a_foreign
     assert meta["thinks"] == config.thinks_per_action * 400 and config.thinks_per_action == 3
     # The store is an experience log too; replaying the same record again adds nothing.
     assert logs.summarise(tmp_path / "d" / "store").experiences == 400
-    assert _replay(tmp_path / "d", tmp_path / "rec" / "journal").returncode == 0
+    proc = _replay(tmp_path / "d", tmp_path / "rec" / "journal", listen=False)  # offline: no port taken
+    said = " ".join((proc.stdout + proc.stderr).split())
+    assert proc.returncode == 0 and "no network" in said, said
+    assert "replay-only: 0 experiences imported, 400 stored, 1200 thinks" in said
     _, _, again = load_weights(tmp_path / "d" / "checkpoint.npz")
     assert again["thinks"] == meta["thinks"] and logs.summarise(tmp_path / "d" / "store").experiences == 400
     # A record of another task (learner spec) is refused with a clear error; nothing is stored.
