@@ -43,6 +43,13 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     log.info("wrote %s", path)
 
 
+def finite_median(values: Any) -> float:
+    """The median of the finite values; NaN where there are none (no controller got there), quietly."""
+    a = np.asarray(values, dtype=np.float64).ravel()
+    a = a[np.isfinite(a)]
+    return float(np.median(a)) if a.size else float("nan")
+
+
 def fmt2(value: float | None) -> str:
     """A figure for a table: two decimals, or "-" where there is none (None, NaN)."""
     return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"

@@ -40,7 +40,7 @@ from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcod
 from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
-from wfnn_bench.common import Progress, fmt2, machine_info, no_progress, tick_learner
+from wfnn_bench.common import Progress, finite_median, fmt2, machine_info, no_progress, tick_learner
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
@@ -492,7 +492,7 @@ def render_check(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     return {
         "available": True,
         "servo_final_error_px": float(np.median(servo["final_error_px"])),
-        "servo_time_to_goal_s": float(np.nanmedian(servo["time_to_goal_s"])),
+        "servo_time_to_goal_s": finite_median(servo["time_to_goal_s"]),
         # Cells both call carpet (< 0.5), or both not, on the same states.
         "carpet_agreement": float(np.mean(agree)),
         "carpet_mean_abs_difference": float(np.mean(difference)),
@@ -536,7 +536,7 @@ def run(cfg: NomadBenchConfig, progress: Progress = no_progress) -> dict[str, An
     servo_figures = {
         "servo": servo,
         "servo_final_error_px": float(np.median(last["final_error_px"])),
-        "servo_time_to_goal_s": float(np.nanmedian(last["time_to_goal_s"])),
+        "servo_time_to_goal_s": finite_median(last["time_to_goal_s"]),
         "servo_experiences": float(np.median(last["experiences"])),
         "proportional": {k: v for k, v in reference.items() if k != "traces"},
     }
@@ -692,12 +692,12 @@ def rows(result: dict[str, Any], cfg: NomadBenchConfig) -> list[tuple[str, Any]]
     rows: list[tuple[str, Any]] = []
     for e in result["servo"]["evaluations"]:
         label = f"servo after {e['episode']} episodes ({np.median(e['experiences']):.0f} experiences)"
-        to_goal = fmt2(float(np.nanmedian(e["time_to_goal_s"])))
+        to_goal = fmt2(finite_median(e["time_to_goal_s"]))
         reached = float(np.median(e["reached_fraction"]))
         rows.append((f"{label}: final error px / time to goal s / reached",
                      f"{np.median(e['final_error_px']):.1f} / {to_goal} / {reached:.2f}"))  # fmt: skip
     ref = result["proportional"]
-    ref_goal = fmt2(float(np.nanmedian(ref["time_to_goal_s"])))
+    ref_goal = fmt2(finite_median(ref["time_to_goal_s"]))
     rows += [
         ("proportional controller: final error px / time to goal s",
          f"{float(np.median(ref['final_error_px'])):.1f} / {ref_goal}"),
@@ -721,7 +721,7 @@ def _rows_after_servoing(result: dict[str, Any]) -> list[tuple[str, Any]]:
                        ("servo_every_second_target", "every second target pursued")):  # fmt: skip
         f = result[key]
         for e in f["evaluations"]:
-            to_goal = fmt2(float(np.nanmedian(e["time_to_goal_s"])))
+            to_goal = fmt2(finite_median(e["time_to_goal_s"]))
             rows.append((f"{label}, {e['minutes']:.0f} min ({np.median(e['experiences']):.0f} experiences): "
                          "final error px / time to goal s",
                          f"{np.median(e['final_error_px']):.1f} / {to_goal}"))  # fmt: skip

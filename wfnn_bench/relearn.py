@@ -82,7 +82,7 @@ class RelearnBenchConfig:
 def steps(cfg: RelearnBenchConfig) -> int:
     """Progress units: episodes learned and evaluations."""
     evals = cfg.episodes // cfg.eval_every
-    return 2 * (cfg.episodes + evals) + 3 * evals
+    return 2 * (cfg.episodes + evals) + 3 * (cfg.max_relearn_chunks or evals)
 
 
 def greedy_error(learner: WFNN, cfg: RelearnBenchConfig) -> np.ndarray:
@@ -145,6 +145,7 @@ def _store_only(
         thinks.append(learner.thinks - thinks_at_reset)
         progress(1)
         if (np.array(errors) <= goal).any(axis=0).all():
+            progress(chunks - len(errors))  # the chunks not needed count as done
             break
     return {"untrained": untrained, "errors": errors, "thinks": thinks, "wall": wall,
             "hit": _first_reached(np.array(errors), goal)}  # fmt: skip

@@ -153,6 +153,14 @@ class ThinkServer:
             self.data_dir / "store", self.id, fsync=config.fsync,
             fsync_interval_s=config.fsync_interval_s, segment_bytes=config.segment_bytes,
         )  # fmt: skip
+        try:
+            self._set_up(config)
+        except BaseException:  # a start refused (bad logs or config): the store closed, unlocked
+            self.store.close()
+            raise
+
+    def _set_up(self, config: ServerConfig) -> None:
+        """The rest of `__init__`, once the store (and its lock) is this server's."""
         self._remove_unfinished_writes()
         self.incarnation = self._next_incarnation()
         self.started_ns = time.time_ns()
@@ -259,12 +267,14 @@ class ThinkServer:
                 text = path.read_text()
             except OSError as exc:
                 raise ConfigError(f"learner config {path}: {exc.strerror or exc}") from exc
+            except UnicodeDecodeError:
+                raise ConfigError(f"learner config {path}: not text (a JSON file is UTF-8)") from None
             return LearnerConfig.from_json(text, f"learner config {path}")
         path = self.data_dir / LEARNER_JSON
         if path.exists():
             try:
                 return LearnerConfig.from_json(path.read_text(), str(path))
-            except (OSError, ConfigError) as exc:
+            except (OSError, ConfigError, UnicodeDecodeError) as exc:  # not text: as unreadable
                 set_aside(path, f"unreadable ({exc})")
         for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
             try:

@@ -437,3 +437,21 @@ def test_a_second_server_on_one_data_directory_is_refused_before_it_counts_a_sta
         with pytest.raises(LogError, match="in use by another writer"):
             make_server(tmp_path, hub, cfg)
         assert (tmp_path / "s1" / "incarnation").read_text() == str(first.incarnation)
+
+
+def test_a_learner_config_that_is_not_text_is_refused_naming_it_or_set_aside(tmp_path):
+    from wfnn_common.config import ConfigError
+
+    binary = tmp_path / "binary.json"
+    binary.write_bytes(b"\xff\xfe\x00{")
+    with pytest.raises(ConfigError, match=r"binary\.json: not text"):
+        ThinkServer(ServerConfig(controller="t", server_id="s1", data_dir=tmp_path / "a",
+                                 learner_config=binary), Hub().bus())  # fmt: skip
+    with ThinkServer(ServerConfig(controller="t", server_id="s1", data_dir=tmp_path / "a"), Hub().bus()):
+        pass  # the refused start left the store unlocked
+    # The data directory's own copy gone bad: set aside, and the server starts (and adopts again).
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "learner_config.json").write_bytes(b"\xff\xfe\x00{")
+    with ThinkServer(ServerConfig(controller="t", server_id="s1", data_dir=tmp_path / "b"), Hub().bus()) as s:
+        assert s.learner_config is None
+    assert list((tmp_path / "b").glob("learner_config.json.unreadable-*"))
