@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -44,13 +45,18 @@ def _names(text: str) -> tuple[str, ...]:
     return tuple(v.strip() for v in text.split(",") if v.strip())
 
 
+def _shown(value: Any, spec: str) -> str:
+    """A figure as `spec` formats it, or "-" where there is none (no ticks to time: --rate-hz 0)."""
+    return "-" if value is None or not math.isfinite(value) else format(value, spec)
+
+
 def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
     return (
-        f"score {f['client/score']:.3f} | jitter p99 {f['client/tick_jitter_ms_p99']:.2f} ms | "
+        f"score {f['client/score']:.3f} | jitter p99 {_shown(f['client/tick_jitter_ms_p99'], '.2f')} ms | "
         f"overruns {f['client/overruns']:.0f} | safe {f['client/safe_actions']:.0f} | "
-        f"thinks/s {thinks if thinks is not None else float('nan'):,.0f} | "
+        f"thinks/s {_shown(thinks, ',.0f')} | "
         f"r {f['client/reward_mean']:+.3f} | Q {f['client/q_mean']:+.3f} | "
         f"v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"
     )
@@ -266,7 +272,8 @@ def client(
         f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences"
         f"{f' ({refused} refused as not finite or out of range)' if refused else ''}, following "
         f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
-        f"jitter p99 {metrics['client/tick_jitter_ms_p99']:.3f} ms, overruns {metrics['client/overruns']:.0f}"
+        f"jitter p99 {_shown(metrics['client/tick_jitter_ms_p99'], '.3f')} ms, "
+        f"overruns {metrics['client/overruns']:.0f}"
     )
     saved = "weights, metrics.json and learning_curve.png"
     if metrics.get("camera_frames"):
