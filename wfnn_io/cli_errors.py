@@ -8,6 +8,7 @@ use, a malformed endpoint or config (OSError, ValueError and their kinds) ends t
 
 from __future__ import annotations
 
+import os
 import sys
 import traceback
 from collections.abc import Callable
@@ -28,6 +29,9 @@ def describe(exc: BaseException) -> str:
 
 
 def _one(exc: BaseException) -> str:
+    if isinstance(exc, FileExistsError) and exc.filename is not None and os.path.isfile(exc.filename):
+        # A file where a directory had to be made (an output path through a file): say so.
+        return f"{exc.filename}: a file is in the way (a directory is needed there)"
     if isinstance(exc, OSError) and exc.strerror:
         where = f"{exc.filename}: " if exc.filename is not None else ""
         return f"{where}{exc.strerror}"

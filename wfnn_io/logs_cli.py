@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from wfnn_io import logs
-from wfnn_io.cli_errors import guarded
+from wfnn_io.cli_errors import describe, guarded
 from wfnn_io.protocol import load_key
 
 app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.")
@@ -27,7 +27,7 @@ def _key(path: Path | None) -> bytes | None:
 
 
 def _fail(exc: Exception) -> typer.Exit:
-    console.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
+    console.print(f"[red]error:[/] {escape(describe(exc))}", soft_wrap=True)
     return typer.Exit(1)
 
 

@@ -68,3 +68,14 @@ def test_help_still_shows_and_ends_well(monkeypatch, capsys):
     monkeypatch.setattr("sys.argv", ["wfnn-bench", "--help"])
     main()  # no SystemExit: exit code 0
     assert "Usage" in capsys.readouterr().out
+
+
+def test_an_output_path_through_a_file_is_said_so_in_one_line(tmp_path, monkeypatch, capsys):
+    (tmp_path / "afile").write_text("x")
+    main = importlib.import_module("wfnn_bench.cli").main
+    monkeypatch.setattr("sys.argv", ["wfnn-bench", "speed", "--json", str(tmp_path / "afile" / "x.json")])
+    with pytest.raises(SystemExit) as ended:
+        main()
+    assert ended.value.code == 2
+    said = f"error: {tmp_path / 'afile'}: a file is in the way (a directory is needed there)\n"
+    assert capsys.readouterr().err == said
