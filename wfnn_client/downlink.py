@@ -247,6 +247,8 @@ class Downlink:
             view = self.table.views.get(snap.server)
             if view is None or (snap.store, snap.incarnation) != (view.store, view.incarnation):
                 return "unannounced"  # not what that server's own status says it is
+            if snap.published_ns < view.started_ns:  # before the start announced (its clock both)
+                return "unannounced"  # an earlier start's, of a store restored with its incarnation
             latest = view.latest
         if latest is not None and snap.version <= latest.version:
             return "stale"

@@ -55,7 +55,8 @@ class Journal:
                 owner = owner or batch.client
                 if batch.first_seq != self.next_seq:
                     missing = (self.next_seq, batch.first_seq - 1)
-                    log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d missing)",
+                    log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d missing: "
+                              "damaged, or numbers skipped past what servers held)",
                               pos, batch.first_seq, self.next_seq, *missing)  # fmt: skip
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)

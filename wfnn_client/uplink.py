@@ -78,8 +78,10 @@ class Uplink:
         self._skipped = 0
         """Numbers skipped because servers already hold them (`_skip_numbers`, this thread only)."""
         self._numbering = False
-        """Whether batches may be numbered yet: after the first word from a server (or status_timeout_s)."""
+        """Whether batches may be numbered yet (`_check_numbering`)."""
         self._started = time.monotonic()
+        """When `run` started (the wait for the servers' first word counts from there)."""
+        self._first_heard: float | None = None
         self._pending: collections.deque[_Pending] = collections.deque()
         self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._wake = threading.Event()
@@ -125,6 +127,7 @@ class Uplink:
         """The uplink thread: batch, journal and send; take acks; re-send; publish the status."""
         cfg = self.config
         next_status = 0.0
+        self._started = time.monotonic()
         while True:
             stopping = self._stop.is_set()
             self._wake.wait(timeout=0.005)
@@ -154,19 +157,28 @@ class Uplink:
         A journal whose newest records were lost (a power cut before its fsync, damage, or a
         new journal given an old --client-id) would number new experiences as ones the servers
         already stored, which they would drop as re-sends and acknowledge. So the first batch
-        waits for the first word from a server (its status or ack says what it holds of this
-        client), for at most status_timeout_s; and numbering always continues past the most any
-        server says it holds.
+        waits until the servers have had their say (a status or ack says what a server holds of
+        this client): two status periods after the first word from any, so that the others'
+        statuses arrive too, and at most status_timeout_s; and numbering always continues past
+        the most any server says it holds. (A server heard only later, holding more, gets what
+        was numbered meanwhile as lost: it is counted as `uplink/numbers_skipped`.)
         """
+        now = time.monotonic()
         with self.table.lock:
-            heard = any(v.heard > 0 for v in self.table.views.values())
+            heard = any(v.heard > 0 or v.acked >= 0 for v in self.table.views.values())
             held = max((v.acked for v in self.table.views.values()), default=-1)
-        if self.journal.next_seq <= held < MAX_SEQ // 2:  # (beyond: no journal gets there; a forgery)
+        if self.journal.next_seq <= held < MAX_SEQ // 2:  # beyond: no journal gets there (a forgery)
             self._skip_numbers(held)
-        if not self._numbering and (
-            heard or stopping or time.monotonic() - self._started >= self.config.status_timeout_s
-        ):
-            self._numbering = True
+        if self._numbering:
+            return
+        if heard and self._first_heard is None:
+            self._first_heard = now
+        cfg = self.config
+        self._numbering = (
+            stopping
+            or now - self._started >= cfg.status_timeout_s
+            or (self._first_heard is not None and now - self._first_heard >= 2 * cfg.status_period_s)
+        )
 
     def _skip_numbers(self, held: int) -> None:
         """Continue numbering after `held`, which a server holds beyond this journal's numbers."""
@@ -240,7 +252,8 @@ class Uplink:
         _, batch = self.codec.decode(frame, ExperienceBatch)
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
-        log.error("experiences %d-%d are lost from the journal (damaged); server %s is told so",
+        log.error("experiences %d-%d are not in the journal (damaged, or numbers skipped past what servers "
+                  "held); server %s is told they are lost",
                   acked + 1, batch.first_seq - 1, server)  # fmt: skip
         self.counters["uplink/declared_lost"] += batch.first_seq - acked - 1
         return self.codec.encode(dataclasses.replace(batch, flags=flags))

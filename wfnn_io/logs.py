@@ -63,7 +63,7 @@ from wfnn_io.protocol import (
     ProtocolError,
     decode,
 )
-from wfnn_io.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, read_records
+from wfnn_io.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, check_free, read_records
 
 log = logging.getLogger(__name__)
 
@@ -212,6 +212,7 @@ class ExperienceLog:
     ) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
+        check_free(self.directory)  # a log in use: refused before its log.json is set aside or rewritten
         try:
             info = read_log_json(self.directory)
         except LogFormatError as exc:

@@ -357,8 +357,15 @@ class ThinkServer:
         checkpointed: dict[str, int] = meta.get("stored_through", {})
         budget = int(meta.get("budget", 0))
         tpa = cfg.thinks_per_action
-        loaded = 0
+        loaded = other_spec = 0
+        done_through = dict(self.store.stored_through)  # before the load: what it surely holds
+        spec = cfg.spec_hash()
         for batch in self.store.batches():
+            if batch.spec_hash != spec:
+                # Stored under a config adopted before that made no learner (another task):
+                # kept, as acknowledged, but not for this learner.
+                other_spec += len(batch)
+                continue
             ok = self._learn_batch(learner, batch)
             loaded += len(batch)
             through = self._loaded_through.get(batch.client, -1)
@@ -367,7 +374,7 @@ class ThinkServer:
             after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
             budget += tpa * int(np.count_nonzero(ok & after))
         self.schedule = ThinkSchedule(learned_through=dict(meta.get("learned_through", {})))
-        self.schedule.resume(int(learner.thinks[0]), budget, self.store.stored_through)
+        self.schedule.resume(int(learner.thinks[0]), budget, done_through)
         self.learner, self.learner_config, self.spec_hash = learner, cfg, cfg.spec_hash()
         self._config_json = cfg.to_json()
         self.view.learner_config, self.view.weights_version = cfg, self.version
@@ -375,6 +382,9 @@ class ThinkServer:
             "learner %s (spec %s, seed %d); %d stored experiences loaded, %d thinks owed",
             cfg.short_repr(), self.spec_hash, cfg.seed, loaded, self.budget,
         )  # fmt: skip
+        if other_spec:
+            self.counters["store/other_spec"] = other_spec
+            log.warning("%d stored experiences are of another learner spec: kept, not learned", other_spec)
 
     def _resume(self, cfg: LearnerConfig) -> tuple[Learner, dict[str, Any]]:
         """The learner of the newest readable checkpoint that fits `cfg` (or fresh) and its meta.
@@ -524,7 +534,7 @@ class ThinkServer:
             self.counters["ingest/non_finite"] += int(np.count_nonzero(admitted.new.flags & EXP_NON_FINITE))
         if admitted.lost:
             self.counters["ingest/declared_lost"] += admitted.lost
-            log.warning("client %s declares experiences %d-%d lost (its journal was damaged)", batch.client,
+            log.warning("client %s declares experiences %d-%d lost (its journal lacks them)", batch.client,
                         admitted.new.first_seq - admitted.lost, admitted.new.first_seq - 1)  # fmt: skip
         self.store.append(admitted.new, admitted.lost)
         self._to_learn.append(admitted.new)
@@ -605,14 +615,10 @@ class ThinkServer:
         last_status, last_thinks = now, 0
         while not self._stop.is_set():
             if self.learner is None and self._pending_config is not None:
-                # Kept pending while the learner is built: the ingest thread goes on storing the
-                # experiences it fits (`_check_spec`), and the learner takes them from the store.
-                pending = self._pending_config
+                pending, self._pending_config = self._pending_config, None
                 try:
                     self._start_learner(pending)
-                    self._pending_config = None
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
-                    self._pending_config = None
                     self.rejected["config"] += 1
                     self._unusable.add(pending.to_json())
                     log.error("the adopted learner config cannot make a learner (%s); waiting for another",
@@ -646,8 +652,11 @@ class ThinkServer:
         while self._to_learn:
             batch = self._to_learn.popleft()
             if batch.last_seq <= self._loaded_through.get(batch.client, -1):
-                # Stored, and queued, while the learner was being built, which learned it (and owed
-                # its thinks) from the store: learning the queued copy too would learn it twice.
+                # Stored and queued before the learner was built, which learned it from the store
+                # (its thinks in the budget then): learning the queued copy would learn it twice.
+                self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
+                self._queued_through[batch.client] = max(self._queued_through.get(batch.client, -1),
+                                                         batch.last_seq)  # fmt: skip
                 continue
             ok = self._learn_batch(learner, batch)
             self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)

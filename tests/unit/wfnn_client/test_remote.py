@@ -113,12 +113,12 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
 
 
 def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
-          store="store1"):  # fmt: skip
+          store="store1", published_ns=None):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1]
     snap = WeightSnapshot(
         server=server, incarnation=incarnation, store=store, version=version,
         spec_hash=spec or cfg.spec_hash(),
-        published_ns=time.time_ns(), thinks=0, diverged=diverged, learned_through={},
+        published_ns=published_ns or time.time_ns(), thinks=0, diverged=diverged, learned_through={},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
     return Codec(server, key).encode(snap)
@@ -413,7 +413,9 @@ def test_new_experiences_are_numbered_past_what_the_servers_hold(tmp_path):
             first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
         assert wait(first.all_acked)
         first.stop()
-        again = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run2")
+        again = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run2",
+                       status_timeout_s=0.5)  # fmt: skip
+        time.sleep(0.7)  # built long before it starts (a learner compiling): the wait counts from the start
         again.start()
         for _ in range(40):  # queued at once, before any server was heard
             again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
@@ -422,3 +424,22 @@ def test_new_experiences_are_numbered_past_what_the_servers_hold(tmp_path):
         new = [b for b in server.store.batches() if b.client == "robot1" and b.first_seq >= 50]
         assert sum(len(b) for b in new) == 40 and all((b.reward == -0.7).all() for b in new)
         again.stop()
+
+
+def test_a_snapshot_of_a_restored_stores_earlier_start_is_refused(tmp_path):
+    """A data directory restored from a backup counts its incarnations again: an earlier start's
+    snapshot has the same store and incarnation, but was published before the start announced."""
+    hub, cfg = Hub(), small_config()
+    key = b"k" * 32
+    (tmp_path / "key").write_bytes(key)
+    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
+    brain.start()
+    bus = hub.bus()
+    earlier = forge(cfg, version=9, key=key, published_ns=time.time_ns())  # recorded from the first start
+    time.sleep(0.01)
+    announce(bus, "s1", cfg, started_ns=time.time_ns(), key=key)  # the restored start
+    bus.put(KEYS.weights("s1"), earlier, None)
+    assert wait(lambda: brain.rejected["unannounced"] == 1)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=key), None)  # its own
+    assert wait(lambda: brain.current is not None and brain.current.version == 1)
+    brain.stop()

@@ -172,20 +172,17 @@ def test_adopts_the_first_clients_config(tmp_path):
         assert server.learner_config == LearnerConfig.from_json(cfg.to_json())
 
 
-def test_experiences_stored_while_the_learner_is_built_are_learned_once(tmp_path, monkeypatch):
+def test_experiences_stored_before_the_learner_is_built_are_learned_once(tmp_path, monkeypatch):
     import threading
 
     import wfnn_server.server as server_module
 
     hub, cfg = Hub(), small_config(thinks_per_action=3)
     listener = Listener(hub)
-    stored, real = threading.Event(), server_module.make_learner
-
-    def slow_make_learner(config, **kw):  # the learner is built while batches are stored and queued
-        stored.wait(10.0)
-        return real(config, **kw)
-
-    monkeypatch.setattr(server_module, "make_learner", slow_make_learner)
+    stored = threading.Event()
+    # The learner thread starts late: the config is adopted and batches stored and queued before
+    # it builds the learner, which loads them from the store.
+    monkeypatch.setattr(server_module, "lower_priority", lambda nice: stored.wait(10.0))
     with make_server(tmp_path, hub, None) as server:
         status = ClientStatus(client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(),
                               following="", weights_version=0, produced_through=49, acked={},
@@ -199,6 +196,44 @@ def test_experiences_stored_while_the_learner_is_built_are_learned_once(tmp_path
         assert int(server.learner.buffer.count[0]) == 50  # each stored experience in the replay once
         assert listener.wait(lambda: server.budget == 0)
         assert int(server.learner.thinks[0]) == 3 * 50  # and its thinks owed once
+        assert listener.wait(lambda: server.learned_through.get("c1") == 49)  # and reported learned
+        server.checkpoint()
+    with make_server(tmp_path, hub, None) as again:  # and not owed again after a restart
+        assert again.budget == 0
+
+
+def test_experiences_of_a_config_that_made_no_learner_do_not_stop_the_next(tmp_path, monkeypatch):
+    import threading
+
+    import wfnn_server.server as server_module
+
+    hub, first, other = Hub(), small_config(seed=5), small_config(seed=6, n_wires=5)
+    listener = Listener(hub)
+    real = server_module.make_learner
+
+    def make_learner(config, **kw):  # the first config passes its checks but fails to build
+        if config.seed == 5:
+            raise RuntimeError("CUDA out of memory")
+        return real(config, **kw)
+
+    monkeypatch.setattr(server_module, "make_learner", make_learner)
+    stored = threading.Event()
+    monkeypatch.setattr(server_module, "lower_priority", lambda nice: stored.wait(10.0))
+    with make_server(tmp_path, hub, None) as server:
+        announced = ClientStatus(client="c1", spec_hash=first.spec_hash(), learner_config=first.to_json(),
+                                 following="", weights_version=0, produced_through=9, acked={},
+                                 metrics={})  # fmt: skip
+        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(announced), None)
+        send(hub, batch(first, 0, 10))  # adopted: its experiences are stored before the build fails
+        assert listener.wait(lambda: server.store.count == 10)
+        stored.set()
+        assert listener.wait(lambda: server.rejected["config"] == 1 and server._pending_config is None)
+        status = ClientStatus(client="c2", spec_hash=other.spec_hash(), learner_config=other.to_json(),
+                              following="", weights_version=0, produced_through=-1, acked={},
+                              metrics={})  # fmt: skip
+        hub.bus().put(KEYS.client_status("c2"), Codec("c2").encode(status), None)
+        assert listener.wait(lambda: server.learner is not None), (server.rejected, server.counters)
+        assert server.counters["store/other_spec"] == 10
 
 
 def test_a_client_config_no_learner_can_be_made_from_is_refused_and_not_saved(tmp_path, monkeypatch):
