@@ -443,3 +443,35 @@ def test_a_snapshot_of_a_restored_stores_earlier_start_is_refused(tmp_path):
     bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=key), None)  # its own
     assert wait(lambda: brain.current is not None and brain.current.version == 1)
     brain.stop()
+
+
+def test_a_server_restored_from_a_backup_is_sent_what_it_lost(tmp_path):
+    """Its data directory restored (the same store, less than it acknowledged, its incarnations
+    counted again): the client re-sends from what it now holds, and the stream goes on."""
+    import shutil
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+
+    def feed(brain, n):
+        for _ in range(n):
+            brain.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+
+    server = make_server(tmp_path, hub, cfg).start()
+    brain = remote(tmp_path, hub, cfg, batch_max=10)
+    brain.start()
+    feed(brain, 50)
+    assert wait(brain.all_acked)
+    server.stop()
+    shutil.copytree(tmp_path / "s1", tmp_path / "backup")
+    server = make_server(tmp_path, hub, cfg).start()
+    feed(brain, 50)
+    assert wait(lambda: brain.all_acked() and server.store.count == 100)
+    server.stop()
+    shutil.rmtree(tmp_path / "s1")
+    shutil.copytree(tmp_path / "backup", tmp_path / "s1")  # the disk lost, the backup restored
+    with make_server(tmp_path, hub, cfg) as restored:
+        assert restored.store.count == 50
+        feed(brain, 20)
+        assert wait(lambda: restored.store.stored_through.get(brain.id) == 119 and brain.all_acked())
+        assert restored.store.count == 120 and brain.counters["uplink/resent_frames"] > 0
+    brain.stop()
