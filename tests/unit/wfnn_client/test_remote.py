@@ -24,6 +24,18 @@ def remote(tmp_path, hub, cfg, **kw):
     return RemoteBrain(WFNN(cfg), RemoteConfig(**options), hub.bus())
 
 
+KEY = b"k" * 32
+"""The shared key of the keyed tests (`keyed`)."""
+
+
+def keyed(tmp_path, hub, cfg):
+    """A started client whose frames carry HMAC tags under KEY, and a bus to reach it -> (brain, bus)."""
+    (tmp_path / "key").write_bytes(KEY)
+    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
+    brain.start()
+    return brain, hub.bus()
+
+
 def drive(brain, steps, seed=0, lockstep=True):
     """Act-learn(-sync) on the positioning task; returns the rewards."""
     task = PositioningVec(1)
@@ -126,34 +138,29 @@ def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1
 
 def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     hub, cfg = Hub(), small_config()
-    key = b"k" * 32
-    key_file = tmp_path / "key"
-    key_file.write_bytes(key)
-    brain = remote(tmp_path, hub, cfg, key_file=key_file)
-    brain.start()
-    bus = hub.bus()
-    announce(bus, "s1", cfg, started_ns=1, key=key)  # its heartbeat
+    brain, bus = keyed(tmp_path, hub, cfg)
+    announce(bus, "s1", cfg, started_ns=1, key=KEY)  # its heartbeat
     n = WFNN(cfg).params.flat.shape[1]
     bad = {
         "auth": forge(cfg),  # no key
-        "spec": forge(cfg, spec="0123456789abcdef", key=key),
-        "shape": forge(cfg, params=np.zeros((1, n + 1)), key=key),
-        "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=key),
-        "misrouted": Codec("s2", key).encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
-        "unannounced": forge(cfg, incarnation=7, key=key),  # not what s1's status says it is
+        "spec": forge(cfg, spec="0123456789abcdef", key=KEY),
+        "shape": forge(cfg, params=np.zeros((1, n + 1)), key=KEY),
+        "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=KEY),
+        "misrouted": Codec("s2", KEY).encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
+        "unannounced": forge(cfg, incarnation=7, key=KEY),  # not what s1's status says it is
     }
     for reason, frame in bad.items():  # one at a time: the downlink keeps only the newest per server
         bus.put(KEYS.weights("s1"), frame, None)
         assert wait(lambda r=reason: brain.rejected[r] == 1), reason
     assert brain.current is None
-    bus.put(KEYS.weights("s1"), forge(cfg, version=5, key=key), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=5, key=KEY), None)
     assert wait(lambda: brain.current is not None and brain.current.version == 5)
-    bus.put(KEYS.weights("s1"), forge(cfg, version=4, params=np.zeros((1, n)), key=key), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=4, params=np.zeros((1, n)), key=KEY), None)
     assert wait(lambda: brain.rejected["stale"] == 1)
     assert brain.current.version == 5
     # A restarted server (next incarnation, as its status says) starts its versions again.
-    announce(bus, "s1", cfg, started_ns=2, key=key, incarnation=2, token=False)
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=key), None)
+    announce(bus, "s1", cfg, started_ns=2, key=KEY, incarnation=2, token=False)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY), None)
     assert wait(lambda: brain.current.incarnation == 2)
     brain.stop()
 
@@ -359,21 +366,16 @@ def test_a_local_brain_counts_the_experiences_its_learner_refused():
 
 def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path):
     hub, cfg = Hub(), small_config()
-    key = b"k" * 32
-    key_file = tmp_path / "key"
-    key_file.write_bytes(key)
-    brain = remote(tmp_path, hub, cfg, key_file=key_file)
-    brain.start()
-    bus = hub.bus()
-    announce(bus, "s1", cfg, started_ns=1, key=key)
-    old_snapshot = forge(cfg, version=9, key=key)
-    old = Codec("s1", key).encode(
+    brain, bus = keyed(tmp_path, hub, cfg)
+    announce(bus, "s1", cfg, started_ns=1, key=KEY)
+    old_snapshot = forge(cfg, version=9, key=KEY)
+    old = Codec("s1", KEY).encode(
         ServerStatus(server="s1", incarnation=1, store="store1", started_ns=1, spec_hash=cfg.spec_hash(),
                      learner_config=cfg.to_json(), weights_version=0, stored_through={}, rejected={},
                      metrics={})
     )  # fmt: skip
-    announce(bus, "s1", cfg, started_ns=2, key=key, incarnation=2, token=False)  # s1 restarted
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=key), None)
+    announce(bus, "s1", cfg, started_ns=2, key=KEY, incarnation=2, token=False)  # s1 restarted
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY), None)
     assert wait(lambda: brain.current is not None and brain.current.incarnation == 2)
     # MAC-valid frames of s1's first start, replayed (one at a time: the downlink keeps the newest)
     for n in range(1, 4):
@@ -430,17 +432,13 @@ def test_a_snapshot_of_a_restored_stores_earlier_start_is_refused(tmp_path):
     """A data directory restored from a backup counts its incarnations again: an earlier start's
     snapshot has the same store and incarnation, but was published before the start announced."""
     hub, cfg = Hub(), small_config()
-    key = b"k" * 32
-    (tmp_path / "key").write_bytes(key)
-    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
-    brain.start()
-    bus = hub.bus()
-    earlier = forge(cfg, version=9, key=key, published_ns=time.time_ns())  # recorded from the first start
+    brain, bus = keyed(tmp_path, hub, cfg)
+    earlier = forge(cfg, version=9, key=KEY, published_ns=time.time_ns())  # recorded from the first start
     time.sleep(0.01)
-    announce(bus, "s1", cfg, started_ns=time.time_ns(), key=key)  # the restored start
+    announce(bus, "s1", cfg, started_ns=time.time_ns(), key=KEY)  # the restored start
     bus.put(KEYS.weights("s1"), earlier, None)
     assert wait(lambda: brain.rejected["unannounced"] == 1)
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=key), None)  # its own
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=KEY), None)  # its own
     assert wait(lambda: brain.current is not None and brain.current.version == 1)
     brain.stop()
 

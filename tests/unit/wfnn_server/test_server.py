@@ -69,6 +69,15 @@ def make_server(tmp_path, hub, cfg=None, server_id="s1", **kw):
     return ThinkServer(ServerConfig(**options), hub.bus())
 
 
+def announce(hub, cfg, client="c1", produced_through=-1):
+    """A client's status heartbeat, announcing its learner config (as a running client sends it)."""
+    status = ClientStatus(
+        client=client, spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
+        weights_version=0, produced_through=produced_through, acked={}, metrics={},
+    )  # fmt: skip
+    hub.bus().put(KEYS.client_status(client), Codec(client).encode(status), None)
+
+
 def send(hub, b, client="c1", key=None):
     hub.bus().put(KEYS.experiences(client), Codec(client, key).encode(b), None)
 
@@ -151,11 +160,7 @@ def test_adopts_the_first_clients_config(tmp_path):
     with make_server(tmp_path, hub, None, seed=11, bc_weight=0.25, alpha=0.05) as server:
         send(hub, batch(cfg, 0, 4))
         assert listener.wait(lambda: server.rejected["no_config"] == 1)
-        status = ClientStatus(
-            client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
-            weights_version=0, produced_through=3, acked={}, metrics={},
-        )  # fmt: skip
-        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        announce(hub, cfg, produced_through=3)
         assert listener.wait(lambda: server.learner is not None)
         assert server.learner_config.seed == 11 and server.learner_config.thinks_per_action == 3
         assert (server.learner_config.bc_weight, server.learner_config.alpha) == (0.25, 0.05)
@@ -184,10 +189,7 @@ def test_experiences_stored_before_the_learner_is_built_are_learned_once(tmp_pat
     # it builds the learner, which loads them from the store.
     monkeypatch.setattr(server_module, "lower_priority", lambda nice: stored.wait(10.0))
     with make_server(tmp_path, hub, None) as server:
-        status = ClientStatus(client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(),
-                              following="", weights_version=0, produced_through=49, acked={},
-                              metrics={})  # fmt: skip
-        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        announce(hub, cfg, produced_through=49)
         for first in range(0, 50, 10):
             send(hub, batch(cfg, first, 10))
         assert listener.wait(lambda: server.store.count == 50)
@@ -220,18 +222,12 @@ def test_experiences_of_a_config_that_made_no_learner_do_not_stop_the_next(tmp_p
     stored = threading.Event()
     monkeypatch.setattr(server_module, "lower_priority", lambda nice: stored.wait(10.0))
     with make_server(tmp_path, hub, None) as server:
-        announced = ClientStatus(client="c1", spec_hash=first.spec_hash(), learner_config=first.to_json(),
-                                 following="", weights_version=0, produced_through=9, acked={},
-                                 metrics={})  # fmt: skip
-        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(announced), None)
+        announce(hub, first, produced_through=9)
         send(hub, batch(first, 0, 10))  # adopted: its experiences are stored before the build fails
         assert listener.wait(lambda: server.store.count == 10)
         stored.set()
         assert listener.wait(lambda: server.rejected["config"] == 1 and server._pending_config is None)
-        status = ClientStatus(client="c2", spec_hash=other.spec_hash(), learner_config=other.to_json(),
-                              following="", weights_version=0, produced_through=-1, acked={},
-                              metrics={})  # fmt: skip
-        hub.bus().put(KEYS.client_status("c2"), Codec("c2").encode(status), None)
+        announce(hub, other, client="c2")
         assert listener.wait(lambda: server.learner is not None), (server.rejected, server.counters)
         assert server.counters["store/other_spec"] == 10
 
@@ -250,20 +246,15 @@ def test_a_client_config_no_learner_can_be_made_from_is_refused_and_not_saved(tm
 
     monkeypatch.setattr(server_module, "make_learner", make_learner)
 
-    def announce(c):
-        status = ClientStatus(client="c1", spec_hash=c.spec_hash(), learner_config=c.to_json(), following="",
-                              weights_version=0, produced_through=-1, acked={}, metrics={})  # fmt: skip
-        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
-
     with make_server(tmp_path, hub, None) as server:
         for _ in range(200):  # announced again and again, as a client does: refused, and the server stays up
-            announce(cfg)
+            announce(hub, cfg)
             if listener.wait(lambda: server.rejected["config"] >= 3, timeout=0.05):
                 break
         assert server.rejected["config"] >= 3
         assert server.learner is None and server.error is None
         assert not (tmp_path / "s1" / "learner_config.json").exists()  # a restart does not adopt it again
-        announce(good)
+        announce(hub, good)
         assert listener.wait(lambda: server.learner is not None), (server.rejected, server.counters)
         assert server.learner_config.seed == 6
 
@@ -345,15 +336,11 @@ def test_silent_clients_are_reported(tmp_path, monkeypatch):
     monkeypatch.setattr(server_module, "CLIENT_TIMEOUT_S", 0.3)
     hub, cfg = Hub(), small_config()
     listener = Listener(hub)
-    status = ClientStatus(
-        client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
-        weights_version=0, produced_through=-1, acked={}, metrics={},
-    )  # fmt: skip
     with make_server(tmp_path, hub, cfg):
-        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        announce(hub, cfg)
         assert listener.wait(lambda: any(s.metrics.get("clients/heard") == 1 for s in listener.statuses))
         assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 1)
-        hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        announce(hub, cfg)
         assert listener.wait(lambda: listener.statuses[-1].metrics.get("clients/silent") == 0)
 
 
