@@ -79,7 +79,7 @@ class Uplink:
         """Numbers skipped because servers already hold them (`_skip_numbers`, this thread only)."""
         self._numbering = False
         """Whether batches may be numbered yet (`_check_numbering`)."""
-        self._started = time.monotonic()
+        self._started = 0.0
         """When `run` started (the wait for the servers' first word counts from there)."""
         self._first_heard: float | None = None
         self._pending: collections.deque[_Pending] = collections.deque()

@@ -148,9 +148,8 @@ def serve(
         console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
 
     def started(server: ThinkServer) -> None:  # the dashboard's address once it is bound (port 0 too)
-        if server.dashboard is not None and config.dashboard is not None:
-            bound = dataclasses.replace(config.dashboard, port=server.dashboard.port)
-            console.print(f"live dashboard (read-only): {bound.url}")
+        if server.dashboard is not None:
+            console.print(f"live dashboard (read-only): {server.dashboard.url}")
 
     if quiet:
         figures = run(config, on_started=started)

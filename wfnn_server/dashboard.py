@@ -134,8 +134,13 @@ class Dashboard:
     def start(self) -> Dashboard:
         """Serve in a background thread."""
         self._thread.start()
-        log.info("dashboard on %s (read-only)", dataclasses.replace(self.config, port=self.port).url)
+        log.info("dashboard on %s (read-only)", self.url)
         return self
+
+    @property
+    def url(self) -> str:
+        """The page's address, with the port it was given."""
+        return dataclasses.replace(self.config, port=self.port).url
 
     def stop(self) -> None:
         """Stop serving (open streams end) and close the socket."""

@@ -655,13 +655,11 @@ class ThinkServer:
                 # Stored and queued before the learner was built, which learned it from the store
                 # (its thinks in the budget then): learning the queued copy would learn it twice.
                 self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
-                self._queued_through[batch.client] = max(self._queued_through.get(batch.client, -1),
-                                                         batch.last_seq)  # fmt: skip
-                continue
-            ok = self._learn_batch(learner, batch)
-            self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
+            else:
+                ok = self._learn_batch(learner, batch)
+                self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
+                self._observe(learner, batch)
             self._queued_through[batch.client] = batch.last_seq
-            self._observe(learner, batch)
 
     def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness.
@@ -744,21 +742,18 @@ class ThinkServer:
 
     def _check_clients(self) -> int:
         """Log clients whose heartbeat stopped or came back; -> how many are heard now."""
-        with self._heard_lock:
-            return self._check_clients_locked()
-
-    def _check_clients_locked(self) -> int:
         now = time.monotonic()
         heard = 0
-        for client, seen in list(self._heard.items()):
-            if now - seen <= CLIENT_TIMEOUT_S:
-                heard += 1
-                if client in self._silent:
-                    self._silent.discard(client)
-                    log.info("client %s is heard again", client)
-            elif client not in self._silent:
-                self._silent.add(client)
-                log.warning("client %s silent for %.1f s", client, now - seen)
+        with self._heard_lock:
+            for client, seen in list(self._heard.items()):
+                if now - seen <= CLIENT_TIMEOUT_S:
+                    heard += 1
+                    if client in self._silent:
+                        self._silent.discard(client)
+                        log.info("client %s is heard again", client)
+                elif client not in self._silent:
+                    self._silent.add(client)
+                    log.warning("client %s silent for %.1f s", client, now - seen)
         return heard
 
     def _publish_status(self, thinks_per_s: float) -> None:
