@@ -11,7 +11,9 @@
    one clock), from every tick and every snapshot.
 3. Outage: the same loop; the server is SIGKILLed mid-run and restarted a few seconds later.
    Reported: tick jitter while no server was reachable, and, counted by sequence numbers, how
-   many experiences the client produced that are missing from the restarted server's store.
+   many experiences the client produced that are missing from the restarted server's store; of
+   those, how many its journal still holds (sent again at its next start) and how many are lost
+   (in neither).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from wfnn_client.run import run as run_client
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_io.bus import NetConfig, ZenohBus
+from wfnn_io.logs import read_batches
 from wfnn_server.spawn import ServerProcess, free_port
 from wfnn_server.store import ExperienceStore
 
@@ -227,6 +230,7 @@ def outage(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[st
     stored = store.stored_through.get(client_id, -1) + 1
     store.close()
     produced = int(metrics["uplink/produced_through"]) + 1
+    journaled = journal_holds(work / "client3" / "journal", stored, produced)
     return {
         "down_s": cfg.outage_down_s,
         "outage_ticks": int(metrics["client/outage_ticks"]),
@@ -236,8 +240,20 @@ def outage(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[st
         "experiences_produced": produced,
         "experiences_stored": stored,
         "experiences_missing": produced - stored,
+        "experiences_missing_in_journal": journaled,
+        "experiences_missing_lost": produced - stored - journaled,
         "outages": metrics["outages"],
     }
+
+
+def journal_holds(journal: Path, start: int, stop: int) -> int:
+    """How many of experiences start..stop-1 a client's journal holds (read-only)."""
+    held = np.zeros(max(stop - start, 0), dtype=bool)
+    for batch in read_batches(journal):
+        lo, hi = max(batch.first_seq, start), min(batch.last_seq + 1, stop)
+        if lo < hi:
+            held[lo - start : hi - start] = True
+    return int(held.sum())
 
 
 def run(cfg: TransportBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:
@@ -262,6 +278,7 @@ def run(cfg: TransportBenchConfig, progress: Progress = no_progress) -> dict[str
         "tick_jitter_p99_ms": phase2["tick_jitter_p99_ms"],
         "outage_tick_jitter_p99_ms": phase3["tick_jitter_p99_ms_during_outage"] if phase3 else None,
         "outage_experiences_missing": phase3["experiences_missing"] if phase3 else None,
+        "outage_experiences_lost": phase3["experiences_missing_lost"] if phase3 else None,
         "throughput": phase1,
         "throughput_tcp": tcp,
         "realtime": phase2,
@@ -314,6 +331,12 @@ def plot(result: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def _in_journal_and_lost(outage: dict[str, Any] | None) -> str:
+    if outage is None:
+        return "-"
+    return f"{outage['experiences_missing_in_journal']} / {outage['experiences_missing_lost']}"
+
+
 def rows(result: dict[str, Any], cfg: TransportBenchConfig) -> list[tuple[str, Any]]:
     """The figures of `wfnn-bench transport`'s table: (name, value) rows."""
     rows: list[tuple[str, Any]] = [
@@ -336,6 +359,7 @@ def rows(result: dict[str, Any], cfg: TransportBenchConfig) -> list[tuple[str, A
         ("server thinks/s while ticking", rt["server_thinks_per_s"]),
         ("outage: tick jitter p99 ms (server dead)", result["outage_tick_jitter_p99_ms"]),
         ("outage: experiences missing after restart", result["outage_experiences_missing"]),
+        ("outage: of them in the journal / lost", _in_journal_and_lost(result["outage"])),
         ("wall_s", result["wall_s"]),
     ]
     rows += [(f"goal {k} {g['goal']}", "met" if g["met"] else "NOT met") for k, g in result["goals"].items()]
