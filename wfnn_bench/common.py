@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from wfnn_common.config import ExplorationConfig, LearnerConfig, with_options
 from wfnn_common.learners import Learner, make_learner
@@ -48,6 +49,15 @@ def finite_median(values: Any) -> float:
     a = np.asarray(values, dtype=np.float64).ravel()
     a = a[np.isfinite(a)]
     return float(np.median(a)) if a.size else float("nan")
+
+
+def nan_mean(values: Any, axis: int) -> NDArray[np.float64]:
+    """np.nanmean along `axis`, NaN where a slice holds only NaN, without numpy's warning there."""
+    a = np.asarray(values, dtype=np.float64)
+    present = ~np.isnan(a)
+    counts = present.sum(axis=axis)
+    sums = np.where(present, a, 0.0).sum(axis=axis)
+    return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
 
 
 def fmt2(value: float | None) -> str:

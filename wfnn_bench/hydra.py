@@ -30,7 +30,7 @@ import numpy as np
 
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
-from wfnn_bench.common import Progress, fmt2, machine_info, no_progress, tick_learner
+from wfnn_bench.common import Progress, finite_median, fmt2, machine_info, nan_mean, no_progress, tick_learner
 from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learners import make_population
@@ -177,7 +177,7 @@ def evaluate(
             traces[k].append(arrays[k])
         px = arrays["pixel"]
         found = ~np.isnan(px)
-        errors.append(np.sqrt(np.nanmean(np.where(found, px, np.nan) ** 2, axis=1)))
+        errors.append(np.sqrt(nan_mean(np.where(found, px, np.nan) ** 2, axis=1)))
         lost.append(1.0 - found.mean(axis=1))
         lags.append(
             np.array([lag_s(arrays["bearing"][i], arrays["joint"][i], hydra.rate_hz) for i in range(n)])
@@ -185,9 +185,9 @@ def evaluate(
         rough.append(np.abs(np.diff(arrays["action"], axis=1)).mean(axis=1))
         progress(1)
     return {
-        "rms_error_px": np.nanmean(errors, axis=0),
+        "rms_error_px": nan_mean(errors, axis=0),
         "lost_fraction": np.mean(lost, axis=0),
-        "lag_s": np.nanmean(lags, axis=0),
+        "lag_s": nan_mean(lags, axis=0),
         "action_roughness": np.mean(rough, axis=0),
         "trace": {k: v[0][0].tolist() for k, v in traces.items()},
     }
@@ -382,7 +382,7 @@ def run(cfg: HydraBenchConfig, progress: Progress = no_progress) -> dict[str, An
             ev = evaluate(learner, hydra_eval, cfg.eval_episodes, cfg.seed + 1000, progress)
             traces[f"{trained}_on_{evaluated}"] = ev.pop("trace")
             table[trained][evaluated] = {
-                **{k: float(np.nanmedian(v)) for k, v in ev.items()},
+                **{k: finite_median(v) for k, v in ev.items()},
                 "per_controller": {k: v for k, v in ev.items()},
             }
     dof4 = four_dof(cfg, progress)

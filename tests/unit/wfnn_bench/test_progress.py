@@ -30,3 +30,20 @@ def test_a_task_without_a_total_counts_up():
     with LineProgress(lines.append, every_s=0.0, clock=lambda: 0.0) as bar:
         bar.advance(bar.add_task("faults"), 2)
     assert lines == ["faults: 0, 0 s elapsed", "faults: 2, 0 s elapsed", "faults: 2, 0 s elapsed"]
+
+
+def test_nan_mean_and_finite_median_are_quiet_where_a_slice_holds_no_figure():
+    """No controller found the target: the figure is NaN, without numpy's warnings in the output."""
+    import warnings
+
+    import numpy as np
+
+    from wfnn_bench.common import finite_median, nan_mean
+
+    a = np.array([[np.nan, np.nan], [1.0, 3.0], [np.nan, 4.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = nan_mean(a, axis=1)
+        assert np.isnan(got[0]) and got[1] == 2.0 and got[2] == 4.0
+        assert np.array_equal(nan_mean(a, axis=0), np.array([1.0, 3.5]))
+        assert np.isnan(finite_median([np.nan, np.nan])) and finite_median([np.nan, 2.0, 4.0]) == 3.0
