@@ -80,6 +80,20 @@ class Ranges:
     action_high: tuple[float, ...]
     symmetries: tuple[Symmetry, ...] = ()
     """The behaviour's declared symmetries (`wfnn_common.symmetry`), if any."""
+    valid_margin: float | None = None
+    """How far outside the state ranges (in range widths) its states may still be learned; None: the
+    learner's default. A Gymnasium task whose ranges were measured declares a wide one."""
+    max_reward: float | None = 0.0
+    """Its largest reward: 0 for the thesis' tasks, None where unknown (a Gymnasium task's)."""
+
+    @classmethod
+    def of(cls, task: Any) -> Ranges:
+        """A task's declared ranges, margin, largest reward and symmetries (what it leaves out: defaults)."""
+        return cls(
+            tuple(task.state_low), tuple(task.state_high), tuple(task.action_low), tuple(task.action_high),
+            tuple(getattr(task, "symmetries", ())), getattr(task, "valid_margin", None),
+            getattr(task, "max_reward", 0.0),
+        )  # fmt: skip
 
 
 class Behaviours(Protocol):

@@ -32,11 +32,13 @@ from numpy.typing import NDArray
 
 from sims.gym import GymVec, make_env
 from wfnn_bench.common import Progress, machine_info, no_progress
-from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
+from wfnn_common.config import LEARNERS, MAX_SEED, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_learner
 
 FloatArray = NDArray[np.float64]
 ALGORITHMS = ("wfnn", "sac", "td3")
+SB3_MAX_SEED = (1 << 32) - 1
+"""SB3 seeds numpy's legacy generator, which takes seeds below 2^32."""
 EVAL_LIMIT = 1000
 """Steps of an evaluation episode of a task without a time limit (as `GymVec` learns it)."""
 
@@ -76,8 +78,23 @@ class VsSb3Config:
             raise ValueError(f"unknown algorithms {sorted(unknown)}; choose from {ALGORITHMS}")
         if not self.learners or set(self.learners) - set(LEARNERS):
             raise ValueError(f"learners must be some of {LEARNERS}, got {self.learners}")
-        if self.deep_options and not isinstance(parse_json(self.deep_options, "deep options"), dict):
-            raise ValueError("deep options must be a JSON object of learner config fields")
+        if self.seeds < 1 or not 0 <= self.seed <= self.seed + self.seeds - 1 <= MAX_SEED:
+            raise ValueError(
+                f"seeds {self.seed} to {self.seed + self.seeds - 1}: they must lie in [0, {MAX_SEED}]"
+            )
+        if {"sac", "td3"} & set(self.algorithms) and self.seed + self.seeds - 1 > SB3_MAX_SEED:
+            raise ValueError(f"SB3 takes seeds up to {SB3_MAX_SEED}, the last one here is "
+                             f"{self.seed + self.seeds - 1}")  # fmt: skip
+        if self.deep_options:
+            options = parse_json(self.deep_options, "deep options")
+            if not isinstance(options, dict):
+                raise ValueError("deep options must be a JSON object of learner config fields")
+            if "learner" in options:
+                raise ValueError(
+                    "deep options set the deep learner's fields; choose learners with --learners"
+                )
+            if "wfnn" not in self.algorithms or "deep" not in self.learners:
+                raise ValueError("deep options given, but the deep learner does not run (--learners deep)")
 
 
 def sb3_problem() -> str | None:
@@ -230,12 +247,30 @@ def _runs(cfg: VsSb3Config) -> list[str]:
     return [name for a in cfg.algorithms for name in (cfg.learners if a == "wfnn" else (a,))]
 
 
+def check_tasks(cfg: VsSb3Config) -> None:
+    """Every task, and each WFNN learner's config over it, checked before the first run.
+
+    So a typo, or a task too large for a learner, does not wait an hour. A fault names its task.
+    """
+    for env_id in cfg.tasks:
+        make_env(env_id).close()
+    learners = [a for a in _runs(cfg) if a in LEARNERS]
+    for env_id in cfg.tasks if learners else ():
+        task = GymVec(env_id, seed=cfg.seed)
+        try:
+            for learner in learners:
+                learner_config(task, learner, cfg.seed, cfg)
+        except ValueError as exc:
+            raise ValueError(f"{env_id}: {exc}") from exc
+        finally:
+            task.close()
+
+
 def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
     """Every task x algorithm x seed -> a JSON-ready dict."""
     import sims.boat  # noqa: F401  # registers wfnn/Boat-v0
 
-    for env_id in cfg.tasks:  # every task checked before the first run: a typo does not wait an hour
-        make_env(env_id).close()
+    check_tasks(cfg)
     t0 = time.perf_counter()
     problem = sb3_problem()
     if problem is None or "deep" in cfg.learners:

@@ -12,7 +12,7 @@ from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.controllers import PolicyShare
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS, SimOptions
-from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerOverrides, check_fields
+from wfnn_common.config import LEARNERS, MAX_SEED, ExplorationConfig, LearnerOverrides, check_fields
 from wfnn_io.bus import NetConfig
 
 MAX_RATE_HZ = 1000.0
@@ -114,6 +114,8 @@ class ClientConfig:
             )
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed must be in [0, {MAX_SEED}], got {self.seed}")
         if self.rate_hz is not None and not 0 <= self.rate_hz <= MAX_RATE_HZ:
             raise ValueError(
                 f"rate_hz must be in [0, {MAX_RATE_HZ:g}] (0: as fast as possible), got {self.rate_hz}"

@@ -157,6 +157,10 @@ def _named(base: str, behaviour: str, sep: str = "_") -> str:
     return f"{base}{sep}{behaviour}" if behaviour else base
 
 
+def _ranges(config: LearnerConfig) -> tuple[tuple[float, ...], ...]:
+    return config.state_low, config.state_high, config.action_low, config.action_high
+
+
 def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
     """A behaviour's learner (from saved weights where given) and brain."""
     lcfg = learner_config(ranges, config)
@@ -166,8 +170,9 @@ def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
         saved_cfg, params, _ = load_weights(path)
         if saved_cfg.spec_hash() != lcfg.spec_hash():
             kind = saved_cfg.learner
+            same_task = _ranges(saved_cfg) == _ranges(lcfg)
             hint = (f" (they are the {kind} learner's, this run's is {lcfg.learner}: --learner {kind})"
-                    if kind != lcfg.learner else "")  # fmt: skip
+                    if kind != lcfg.learner and same_task else "")  # fmt: skip
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
                              f"this task needs {lcfg.spec_hash()}{hint}")  # fmt: skip
         learner = make_learner(lcfg, params=params)

@@ -94,9 +94,7 @@ class OneBehaviour:
 
     def ranges(self, name: str) -> Ranges:
         """The task's declared ranges."""
-        t = self.task
-        return Ranges(tuple(t.state_low), tuple(t.state_high), tuple(t.action_low), tuple(t.action_high),
-                      tuple(getattr(t, "symmetries", ())))  # fmt: skip
+        return Ranges.of(self.task)
 
     def driving(self) -> NDArray[np.int64]:
         """Always the one behaviour."""

@@ -114,7 +114,9 @@ class NomadForage:
     def ranges(self, name: str) -> Ranges:
         """The behaviour's declared state ranges; both command (T, R)."""
         low, high = self.task.state_bounds(self._behaviour(name))
-        return Ranges(low, high, self.task.action_low, self.task.action_high)
+        t = self.task
+        return Ranges(low, high, t.action_low, t.action_high, valid_margin=getattr(t, "valid_margin", None),
+                      max_reward=getattr(t, "max_reward", 0.0))  # fmt: skip
 
     def driving(self) -> NDArray[np.int64]:
         """0 (servo) where pursuit dominates, else 1 (wander) [n]."""

@@ -63,6 +63,13 @@ def test_client_truncated_weights_file(tmp_path):
     proc = client("--learner", "deep", "--thinks", "1", "--out", tmp_path / "d")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     refused(client("--weights", tmp_path / "d" / "weights.npz", "--out", tmp_path / "c"), "--learner deep")
+    # The other learner's weights for another task: switching learner would not help, so no hint.
+    proc = run(BIN / "wfnn-client", "--sim", "cartpole", "--episodes", "1", "--rate-hz", "0",
+               "--learner", "deep", "--thinks", "1", "--out", tmp_path / "e")  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    other = client("--weights", tmp_path / "e" / "weights.npz", "--out", tmp_path / "f")
+    refused(other, "weights.npz", "spec")
+    assert "--learner" not in other.stdout + other.stderr
 
 
 def test_client_bad_endpoint(tmp_path):

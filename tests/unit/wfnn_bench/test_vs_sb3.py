@@ -74,3 +74,32 @@ def test_every_task_is_checked_before_the_first_run():
     with pytest.raises(ValueError, match="CartPole-v1: the action space"):
         run(cfg, heard.append)
     assert heard == []  # Pendulum never started
+
+
+def test_a_learner_config_that_cannot_be_built_stops_the_run_before_it_starts():
+    """Deep options or a task too large for a learner are found before the first run, naming the task."""
+    from wfnn_bench.vs_sb3 import run
+
+    cfg = VsSb3Config(tasks=("Pendulum-v1",), steps=(25,), algorithms=("wfnn",), learners=("thesis", "deep"),
+                      seeds=1, deep_options='{"n_wires": 0}')  # fmt: skip
+    heard: list[int] = []
+    with pytest.raises(ValueError, match="Pendulum-v1: n_wires"):
+        run(cfg, heard.append)
+    assert heard == []  # the thesis' learner never started
+
+
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        ({"seed": -5}, "seeds -5 to -3"),
+        ({"seed": (1 << 62) - 2}, "must lie in"),
+        ({"seed": 1 << 32, "algorithms": ("wfnn", "sac")}, "SB3 takes seeds up to"),
+        ({"deep_options": '{"learner": "thesis"}', "learners": ("deep",)}, "--learners"),
+        ({"deep_options": '{"n_wires": 4}', "learners": ("thesis",)}, "does not run"),
+        ({"deep_options": '{"n_wires": 4}', "learners": ("deep",), "algorithms": ("sac",)}, "does not run"),
+    ],
+)
+def test_bad_vs_sb3_configs_are_refused(kw, message):
+    with pytest.raises(ValueError, match=message):
+        VsSb3Config(**kw)
+    assert VsSb3Config(seed=1 << 32, algorithms=("wfnn",)).seed == 1 << 32  # WFNN alone takes more

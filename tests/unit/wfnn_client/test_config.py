@@ -122,3 +122,31 @@ def test_a_refused_client_start_leaves_the_last_runs_record_and_an_unwritable_js
     with SegmentLog(tmp_path / "run" / "journal"), pytest.raises(LogError, match="in use"):  # a run on it
         prepare(ClientConfig(out=tmp_path / "run", seed=8))
     assert (tmp_path / "run" / "config.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_gymnasium_task_gets_the_same_learner_config_through_the_client_as_alone(learner):
+    """`wfnn-client --env` keeps what the task declares beyond its ranges: the margin its measured
+    ranges need and its unknown largest reward (the thesis' learner's divergence threshold)."""
+    from sims.gym import GymVec
+    from wfnn_client.run import learner_config
+    from wfnn_client.sims import OneBehaviour
+    from wfnn_common.config import LearnerConfig
+
+    task = GymVec("InvertedPendulum-v5", seed=0)  # unbounded observations: ranges measured
+    try:
+        client = ClientConfig(sim="gym", env="InvertedPendulum-v5", learner=learner)
+        got = learner_config(OneBehaviour(task, None).ranges(""), client)
+        alone = LearnerConfig.for_task(task, learner=learner, seed=ClientConfig().seed)
+    finally:
+        task.close()
+    assert got.valid_margin == task.valid_margin > 1.0
+    if learner == "thesis":
+        assert got.divergence_threshold == alone.divergence_threshold > LearnerConfig.divergence_threshold
+    assert got == alone
+
+
+@pytest.mark.parametrize("seed", [-3, 1 << 62])
+def test_a_seed_out_of_range_is_refused_before_the_run(seed):
+    with pytest.raises(ValueError, match="seed must be in"):
+        ClientConfig(seed=seed)
