@@ -28,7 +28,9 @@ from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
 REFERENCE_REWARD = 10.0
-"""The reward magnitude the config's divergence_threshold is for; larger rewards scale it."""
+REFERENCE_GAMMA = 0.99
+"""The reward magnitude and discount the config's divergence_threshold is for: values bounded by
+REFERENCE_REWARD / (1 - REFERENCE_GAMMA); a larger bound scales it."""
 
 
 class DeepWFNN(WFNN):
@@ -53,7 +55,7 @@ class DeepWFNN(WFNN):
             theta = self._fresh_theta()
             params = DeepParams(theta[None, : self.shapes.n_params].copy(), self.shapes)
         else:  # critic 2 starts near critic 1, apart enough that the twins do not stay equal
-            nudge = 0.01 * deep_net.init_critic(self.shapes, self._weights_rng)
+            nudge = 0.01 * deep_net.init_critic(self.shapes, self._weights_rng, self.config.init_scale)
             theta = np.concatenate([params.flat[0], params.flat[0] + nudge])
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
@@ -66,7 +68,8 @@ class DeepWFNN(WFNN):
         deep_net.act_one(pack, dims, z, z, z + 1.0, 1.0)
 
     def _fresh_theta(self) -> FloatArray:
-        return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng) for _ in range(2)])
+        scale = self.config.init_scale
+        return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng, scale) for _ in range(2)])
 
     def _train(self) -> Any:
         """The torch trainer, made on first use."""
@@ -101,19 +104,21 @@ class DeepWFNN(WFNN):
     def _check(
         self, s: FloatArray, a: FloatArray, sn: FloatArray, r: FloatArray, term: BoolArray, ok: BoolArray
     ) -> tuple[Experiences, BoolArray]:
-        """The thesis' learner's checks; and the divergence threshold follows the rewards' scale.
+        """The thesis' learner's checks; and the divergence threshold follows the values' bound.
 
         Unsquashed rewards bound the values by max |r| / (1 - gamma): the config's threshold
-        (1e4) is for rewards of at most REFERENCE_REWARD a step, and a task paying 1,000 a step
-        would look diverged at every act. The threshold is scaled by the largest reward stored
-        over REFERENCE_REWARD where that is above 1 (so tasks with small rewards are as before).
+        (1e4) is for rewards of at most REFERENCE_REWARD a step at gamma REFERENCE_GAMMA, and a
+        task paying 1,000 a step, or a discount nearer 1, would look diverged at every act. The
+        threshold is scaled by the bound over the reference's where that is above 1 (so tasks with
+        small rewards at the usual discounts are as before).
         """
         exp, ok = super()._check(s, a, sn, r, term, ok)
         if ok.any():
             scale = float(np.abs(r[ok]).max())
             if scale > self._reward_scale:
                 self._reward_scale = scale
-                factor = max(1.0, scale / REFERENCE_REWARD)
+                horizon = (1.0 - REFERENCE_GAMMA) / (1.0 - self.config.gamma)  # 1 at the reference
+                factor = max(1.0, scale / REFERENCE_REWARD * horizon)
                 self.monitor.threshold = self.config.divergence_threshold * factor
         return exp, ok
 

@@ -110,12 +110,10 @@ class DeepShapes:
         return fan
 
 
-def init_critic(shapes: DeepShapes, rng: np.random.Generator) -> FloatArray:
-    """Fresh weights of one critic [n_params]: uniform in +-1/sqrt(fan-in) per block."""
+def init_critic(shapes: DeepShapes, rng: np.random.Generator, scale: float = 1.0) -> FloatArray:
+    """Fresh weights of one critic [n_params]: uniform in +-scale/sqrt(fan-in) per block."""
     fan = shapes.fan_ins()
-    parts = [
-        rng.uniform(-1.0, 1.0, int(np.prod(shape))) / np.sqrt(fan[name]) for name, shape in shapes.blocks()
-    ]
+    parts = [rng.uniform(-scale, scale, int(np.prod(s))) / np.sqrt(fan[name]) for name, s in shapes.blocks()]
     return np.concatenate(parts)
 
 

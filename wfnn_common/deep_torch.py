@@ -46,7 +46,8 @@ Losses = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 """What `loss` gives: (loss, critic 1's Q(x, u) [B], targets y [B])."""
 
 SEPARATION_EPS = 0.1
-"""Distance added in the separation term, so that coinciding wires give a bounded push."""
+"""Distance added in the separation term, so that wires close together get a bounded push (wires
+that coincide exactly have no direction apart: their pair adds nothing to the gradient)."""
 
 
 class Critics:
@@ -120,7 +121,10 @@ def separation(wire_u: torch.Tensor) -> torch.Tensor:
     n = wire_u.shape[-2]
     if n < 2:
         return wire_u.new_zeros(())
-    dist = torch.cdist(wire_u, wire_u)  # [..., N, N]; the diagonal (0) is left out below
+    # [..., N, N]; the diagonal (0) is left out below. Computed from the differences: above 25
+    # points cdist by default takes |a|^2 + |b|^2 - 2 a.b, which in float32 cancels to 0 for
+    # wires 1e-4 apart, and the push between them with it.
+    dist = torch.cdist(wire_u, wire_u, compute_mode="donot_use_mm_for_euclid_dist")
     inverse = 1.0 / (dist + SEPARATION_EPS)
     diagonal = n / SEPARATION_EPS
     return (inverse.sum(dim=(-1, -2)) - diagonal).mean() / (n * (n - 1))

@@ -15,6 +15,7 @@ from wfnn_common import deep_net
 from wfnn_common.config import ConfigError, DeepConfig, LearnerConfig, with_options
 from wfnn_common.deep import DeepWFNN
 from wfnn_common.deep_torch import (
+    SEPARATION_EPS,
     Critics,
     best_wire,
     compiled_loss,
@@ -650,3 +651,36 @@ def test_the_divergence_threshold_follows_the_rewards_scale_and_never_falls():
     learner.learn(z, np.zeros(1), z, np.nan)  # refused: counts for nothing
     learner.learn(z, np.zeros(1), z, 5.0)
     assert learner.monitor.threshold == pytest.approx(1e4 * 2000 / 10)
+
+
+def test_the_divergence_threshold_follows_the_discount_too():
+    """Rewards of 10 at gamma 0.9995 bound the values by 20,000: a sound value of 15,000 is no divergence."""
+    learner = DeepWFNN(config(gamma=0.9995))
+    z = np.zeros(2)
+    learner.learn(z, np.zeros(1), z, 10.0)
+    assert learner.monitor.threshold == pytest.approx(1e4 * 20)
+    assert learner.monitor.threshold > 15_000
+    low = DeepWFNN(config(gamma=0.9))  # a shorter horizon: the config's threshold still (never below it)
+    low.learn(z, np.zeros(1), z, 10.0)
+    assert low.monitor.threshold == 1e4
+
+
+@pytest.mark.parametrize("n", [8, 26, 40])
+def test_separation_pushes_close_wires_apart_whatever_their_number(n):
+    """Two wires 2e-4 apart among n: their distance and the push between them are exact, in float32."""
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-1.0, 1.0, (1, n, 2))
+    u[0, 1] = u[0, 0] + [2e-4, 0.0]
+    wires = torch.tensor(u, dtype=torch.float32, requires_grad=True)
+    separation(wires).backward()
+    exact = torch.tensor(u, dtype=torch.float64, requires_grad=True)
+    diff = exact.unsqueeze(-2) - exact.unsqueeze(-3)
+    dist = (diff**2).sum(-1).add(torch.eye(n, dtype=torch.float64)).sqrt() - torch.eye(n, dtype=torch.float64)
+    ((1.0 / (dist + SEPARATION_EPS)).sum() - n / SEPARATION_EPS).div(n * (n - 1)).backward()
+    np.testing.assert_allclose(wires.grad.numpy()[0, :2], exact.grad.numpy()[0, :2], rtol=1e-2, atol=1e-4)
+
+
+def test_init_scale_scales_the_deep_learners_initial_weights():
+    one, small = DeepWFNN(config(seed=3)), DeepWFNN(config(seed=3, init_scale=0.01))
+    np.testing.assert_allclose(small.params.flat, 0.01 * one.params.flat, rtol=1e-12)
+    assert np.array_equal(DeepWFNN(config(seed=3, init_scale=1.0)).params.flat, one.params.flat)
