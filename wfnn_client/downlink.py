@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_client.link import RemoteConfig, ServerTable, ServerView, Weights, drained
+from wfnn_client.link import MAX_SERVERS, RemoteConfig, ServerTable, ServerView, Weights, drained
 from wfnn_common.config import LearnerConfig, parse_json
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_common.learners import n_params, weights_from_flat
@@ -94,6 +94,8 @@ class Downlink:
         """Per server whose snapshots drove the robot: the learner config it learned with (JSON),
         which is not this client's where the server adopted another's or overrides fields."""
         self._config_warned: set[tuple[str, str]] = set()
+        self._spec_warned: set[str] = set()
+        """Servers whose weights of another spec were logged (both sets bounded: ids are forgeable)."""
         self._lost_at: float | None = None
         self._applied_at: float | None = None
         """time.monotonic() when weights were last applied (None before the first)."""
@@ -165,15 +167,18 @@ class Downlink:
             self.rejected["status_misrouted"] += 1
             return
         with self.table.lock:
-            view = self.table.views.get(status.server)
+            new = status.server not in self.table.views
+            view = self.table.view(status.server)
             if view is None:
-                view = self.table.views[status.server] = ServerView(status.server)
+                self.rejected["status_servers_full"] += 1  # MAX_SERVERS alive already
+                return
+            if new:
                 log.info("server %s is alive (store %s, incarnation %d)", status.server, status.store,
                          status.incarnation)  # fmt: skip
             if not self.table.announced(view, status.store, status.incarnation, status.started_ns):
                 self.rejected["status_stale"] += 1  # an earlier start's status, replayed
                 return
-            view.heard, view.gone = time.monotonic(), False
+            view.heard, view.gone, view.alive = time.monotonic(), False, True  # as `_refresh` would say
             view.spec_hash = status.spec_hash
             new_config = view.learner_config != status.learner_config and bool(status.learner_config)
             view.metrics = status.metrics
@@ -188,7 +193,8 @@ class Downlink:
                 self.rejected["status_config"] += 1
             else:
                 view.learner_config = status.learner_config
-                if differ and (status.server, status.learner_config) not in self._config_warned:
+                warned = (status.server, status.learner_config) in self._config_warned
+                if differ and not warned and len(self._config_warned) < MAX_SERVERS:
                     self._config_warned.add((status.server, status.learner_config))
                     log.warning("server %s learns with a config that is not this client's (%s): its "
                                 "own applies, and metrics.json records it",
@@ -222,7 +228,10 @@ class Downlink:
             time.monotonic(),
         )  # fmt: skip
         with self.table.lock:
-            view = self.table.views.setdefault(snap.server, ServerView(snap.server))
+            view = self.table.view(snap.server)
+            if view is None:
+                self.rejected["snapshot_servers_full"] += 1
+                return
             view.latest = weights
             if weights.diverged:  # it has reset: the weights this client suspected are gone
                 view.suspect_until = 0.0
@@ -234,8 +243,8 @@ class Downlink:
         if sender != snap.server:
             return "misrouted"
         if snap.spec_hash != self.spec_hash:
-            if self.counters["downlink/spec_warned_" + snap.server] == 0:
-                self.counters["downlink/spec_warned_" + snap.server] = 1
+            if snap.server not in self._spec_warned and len(self._spec_warned) < MAX_SERVERS:
+                self._spec_warned.add(snap.server)  # once per server, and not for every forged id
                 log.error("server %s publishes weights for spec %s; this client is spec %s: ignored",
                           snap.server, snap.spec_hash, self.spec_hash)  # fmt: skip
             return "spec"

@@ -126,6 +126,10 @@ class ServerView:
     last_resend: float = 0.0
 
 
+MAX_SERVERS = 32
+"""Servers a client keeps a view of at once (`ServerTable.view`)."""
+
+
 class ServerTable:
     """What this client knows of each server: one table, under one lock, for both halves of the link.
 
@@ -140,6 +144,28 @@ class ServerTable:
         self.lock = threading.Lock()
         self.views: dict[str, ServerView] = {}
         """Per server id; its views are read and changed under `lock`."""
+
+    def view(self, server: str) -> ServerView | None:
+        """Its view, made at the first word from it (caller holds the lock); None while the table is full.
+
+        At most MAX_SERVERS views: a new server takes the place of the one heard least recently
+        among those not alive, and is not taken while every one is alive. Without a key anyone can
+        announce servers, and each view costs memory and, alive, re-sends from the journal.
+        """
+        view = self.views.get(server)
+        if view is not None:
+            return view
+        if len(self.views) >= MAX_SERVERS:
+            idle = [v for v in self.views.values() if not v.alive]
+            if not idle:
+                return None
+            oldest = min(idle, key=lambda v: v.heard)
+            del self.views[oldest.server]
+            log.info(
+                "server %s forgotten: %d servers known, and %s is new", oldest.server, MAX_SERVERS, server
+            )
+        view = self.views[server] = ServerView(server)
+        return view
 
     def any_alive(self) -> bool:
         """Whether some server is alive now."""

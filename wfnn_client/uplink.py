@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
-from wfnn_client.link import RemoteConfig, ServerTable, ServerView, drained
+from wfnn_client.link import RemoteConfig, ServerTable, drained
 from wfnn_io.bus import Bus, Channel
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
@@ -212,7 +212,10 @@ class Uplink:
             self.rejected["ack_misrouted"] += 1
             return
         with self.table.lock:
-            view = self.table.views.setdefault(ack.server, ServerView(ack.server))
+            view = self.table.view(ack.server)
+            if view is None:
+                self.rejected["ack_servers_full"] += 1
+                return
             if not self.table.announced(view, ack.store, ack.incarnation):
                 self.rejected["ack_stale"] += 1  # an earlier start's ack, replayed
                 return

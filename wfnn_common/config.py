@@ -203,12 +203,17 @@ MAX_WIRES = 1024
 MAX_THINKS = 1_000_000
 MAX_BATCH = 1 << 20
 MAX_REPLAY_BYTES = 8 << 30
-MAX_DEEP_PARAMS = 4_000_000
-"""A deep critic's weights travel in one snapshot (float64, at most 32 MiB with the rest)."""
-MAX_DEEP_WORK = 1 << 24
-"""Largest batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_hidden + n_wires +
-action_dim)) of a deep learner's update: the numbers each minibatch row keeps for the backward
-pass, in the trunk and in the value head (4 bytes each, for both critics, with gradients)."""
+MAX_PARAMS = 4_000_000
+"""Parameters of the network `act` uses, either learner's: they travel in one snapshot (float64,
+at most 32 MiB with the rest)."""
+MAX_WORK = 1 << 24
+"""Largest batch_size x (numbers each minibatch row keeps through an update): for the deep
+learner state_dim + sum(deep.hidden) + n_wires x (value_hidden + n_wires + action_dim), in the
+trunk and in the value head (4 bytes each, for both critics, with gradients); for the thesis'
+learner's minibatch update state_dim + 2 n_hidden + n_wires x (5 action_dim + 8), its layers,
+their errors and the interpolation's terms."""
+MIN_HALF_RANGE = 1e-12
+"""Narrowest half-width of a state or action range: scaling divides by it."""
 MAX_SEED = (1 << 62) - 1
 """Largest seed: numpy and torch take it, and benchmarks add a seed number to it."""
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
@@ -312,6 +317,11 @@ class LearnerConfig:
             for i, (a, b) in enumerate(zip(lo, hi, strict=True)):
                 if not (math.isfinite(a) and math.isfinite(b) and b > a):
                     raise ConfigError(f"{name} range {i} must be finite with high > low, got [{a}, {b}]")
+                if not (
+                    math.isfinite(0.5 * (b - a))
+                    and 0.5 * (b - a) >= MIN_HALF_RANGE * max(1.0, abs(a), abs(b))
+                ):
+                    raise ConfigError(f"{name} range {i} [{a}, {b}] is too narrow or too wide to scale")
         if len(s_lo) > MAX_STATE_DIM or len(a_lo) > MAX_ACTION_DIM:
             raise ConfigError(f"at most {MAX_STATE_DIM} state and {MAX_ACTION_DIM} action variables, "
                               f"got {len(s_lo)} and {len(a_lo)}")  # fmt: skip
@@ -332,7 +342,8 @@ class LearnerConfig:
                 self.replay_capacity * row_bytes <= MAX_REPLAY_BYTES,
                 f"replay_capacity x experience size must be <= {MAX_REPLAY_BYTES >> 30} GiB",
             ),
-            (self.valid_margin >= 0.0, "valid_margin must be >= 0"),
+            (0.0 <= self.valid_margin <= 1e12, "valid_margin must be in [0, 1e12]"),
+            (math.isfinite(self.divergence_threshold), "divergence_threshold must be finite"),
             (self.divergence_patience >= 0, "divergence_patience must be >= 0"),
             (0.0 < self.init_scale <= 100.0, "init_scale must be in (0, 100]"),
             (0 <= self.seed <= MAX_SEED, f"seed must be in [0, {MAX_SEED}]"),
@@ -343,20 +354,31 @@ class LearnerConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"{message} (config: {self.short_repr()})")
+        if self.learner == "thesis":
+            n_out = self.n_wires * (len(a_lo) + 1)
+            size = self.n_hidden * (len(s_lo) + 1) + n_out * (self.n_hidden + 1)  # `network.Shapes.n_params`
+            if size > MAX_PARAMS:
+                raise ConfigError(f"the thesis' learner's network would have {size:,} parameters, more than "
+                                  f"{MAX_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
+            row = len(s_lo) + 2 * self.n_hidden + self.n_wires * (5 * len(a_lo) + 8)
+            if self.update == "minibatch" and self.batch_size * row > MAX_WORK:
+                raise ConfigError(f"batch_size x (state_dim + 2 n_hidden + n_wires x (5 action_dim + 8)) = "
+                                  f"{self.batch_size * row:,} is more than {MAX_WORK:,} for the minibatch "
+                                  f"update ({self.short_repr()})")  # fmt: skip
         if self.learner == "deep":
             d, widths = self.deep, (len(s_lo), *self.deep.hidden)
             # Exactly `deep_net.DeepShapes.n_params`: the trunk, the wire head, the value head.
             size = sum(a * b + b for a, b in itertools.pairwise(widths))
             size += (widths[-1] + 1) * self.n_wires * len(a_lo)
             size += d.value_hidden * (widths[-1] + len(a_lo) + 2) + 1
-            if size > MAX_DEEP_PARAMS:
+            if size > MAX_PARAMS:
                 raise ConfigError(f"the deep learner's critic would have {size:,} parameters, more than "
-                                  f"{MAX_DEEP_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
+                                  f"{MAX_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
             row = sum(widths) + self.n_wires * (d.value_hidden + self.n_wires + len(a_lo))
-            if self.batch_size * row > MAX_DEEP_WORK:
+            if self.batch_size * row > MAX_WORK:
                 raise ConfigError(f"batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_hidden + "
                                   f"n_wires + action_dim)) = {self.batch_size * row:,} is more than "
-                                  f"{MAX_DEEP_WORK:,} ({self.short_repr()})")  # fmt: skip
+                                  f"{MAX_WORK:,} ({self.short_repr()})")  # fmt: skip
         for symmetry in self.symmetries:
             try:
                 symmetry.check_dims(self.state_dim, self.action_dim)

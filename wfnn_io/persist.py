@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -141,12 +142,41 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     atomic_write_text(Path(path), json.dumps(to_jsonable(data), indent=1))
 
 
-def _open(path: Path, expected_format: str) -> dict[str, Any]:
+MAX_INFLATION_BYTES = 64 << 20
+"""How much larger than stored a member of an archive may unpack: this project writes its arrays
+uncompressed, and a small file whose members inflate to gigabytes is not one of its files."""
+MAX_MEMBERS = 64
+"""Most members an archive read here may have."""
+
+
+def _members(path: Path, wanted: Callable[[str], bool]) -> list[str]:
+    """The array names of the archive's members that `wanted` takes, checked before any is unpacked."""
+    with zipfile.ZipFile(path) as archive:
+        infos = archive.infolist()
+    if len(infos) > MAX_MEMBERS:
+        raise PersistError(f"{path}: {len(infos)} members, more than {MAX_MEMBERS}")
+    names = []
+    for info in infos:
+        if info.file_size > info.compress_size + MAX_INFLATION_BYTES:
+            raise PersistError(f"{path}: member {info.filename[:60]!r} would unpack from "
+                               f"{info.compress_size:,} to {info.file_size:,} bytes (this project "
+                               "stores its arrays uncompressed)")  # fmt: skip
+        name = info.filename.removesuffix(".npy")
+        if wanted(name):
+            names.append(name)
+    return names
+
+
+def _open(path: Path, expected_format: str, wanted: Callable[[str], bool]) -> dict[str, Any]:
+    """The arrays of an archive of `expected_format` that `wanted` takes (the rest are never unpacked)."""
     if not Path(path).exists():
         raise PersistError(f"{path}: no such file")
     try:
+        names = _members(Path(path), lambda name: name in ("format", "format_version") or wanted(name))
         with np.load(Path(path), allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
+            arrays = {k: data[k] for k in names}
+    except PersistError:
+        raise
     except Exception as exc:  # a truncated or damaged archive fails in zipfile, zlib or numpy alike
         detail = str(exc).split(". ")[0][:120]
         raise PersistError(f"{path}: not a readable .npz file ({type(exc).__name__}: {detail})") from None
@@ -188,6 +218,7 @@ def save_weights(
 
 
 TRAINING_PREFIX = "train/"
+WEIGHTS_MEMBERS = ("config", "spec_hash", "meta", "params")
 
 
 def load_weights(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any]]:
@@ -198,7 +229,9 @@ def load_weights(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any]]:
 
 def load_checkpoint(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any], dict[str, NDArray[Any]]]:
     """Inverse of `save_weights` -> (config, params, meta, training state)."""
-    arrays = _open(path, WEIGHTS_FORMAT)
+    arrays = _open(
+        path, WEIGHTS_FORMAT, lambda name: name in WEIGHTS_MEMBERS or name.startswith(TRAINING_PREFIX)
+    )
     try:
         config = LearnerConfig.from_json(str(arrays["config"]), f"{path}: its config")
         meta = json.loads(str(arrays["meta"]))
@@ -239,7 +272,14 @@ def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> Non
 
 def load_experiences(path: Path, config: LearnerConfig | None = None) -> Experiences:
     """Inverse of `save_experiences`; with `config`, refuses experiences of another spec."""
-    arrays = _open(path, EXPERIENCE_FORMAT)
+    arrays = _open(
+        path, EXPERIENCE_FORMAT, lambda name: name in ("config", "spec_hash", *Experiences._fields)
+    )
+    missing = [name for name in ("spec_hash", *Experiences._fields) if name not in arrays]
+    if missing:
+        raise PersistError(f"{path}: no {', '.join(missing)}")
+    if any(np.ndim(arrays[name]) == 0 for name in Experiences._fields):
+        raise PersistError(f"{path}: an experience array is a single number, not one per experience")
     if config is not None and str(arrays["spec_hash"]) != config.spec_hash():
         raise PersistError(
             f"{path}: experiences were recorded for spec {arrays['spec_hash']}, "

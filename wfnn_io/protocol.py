@@ -443,9 +443,20 @@ def _check_scalar(name: str, kind: str, value: Any) -> Any:
     raise AssertionError(kind)
 
 
+MAX_MAP_ENTRIES = 1024
+"""Most entries of a map field (figures, per-client numbers): a status lists a few dozen figures
+and at most a few hundred clients, and a receiver keeps the newest of each sender's."""
+MAX_KEY_CHARS = 256
+"""Longest key of a map field."""
+
+
 def _check_dict(name: str, kind: str, value: Any) -> dict[str, Any]:
     if type(value) is not dict:
         raise MalformedBody(f"{name}: expected a map, found {type(value).__name__}")
+    if len(value) > MAX_MAP_ENTRIES:
+        raise MalformedBody(f"{name}: {len(value)} entries, more than {MAX_MAP_ENTRIES}")
+    if any(type(k) is str and len(k) > MAX_KEY_CHARS for k in value):
+        raise MalformedBody(f"{name}: a key longer than {MAX_KEY_CHARS} characters")
     return {
         _check_scalar(f"{name} key", "str", k): _check_scalar(f"{name}[{k!r}]", kind, v)
         for k, v in value.items()

@@ -41,6 +41,7 @@ import orjson
 from wfnn_common.surface import SurfaceGrid
 from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig
+from wfnn_server.view import CLIENT_SERIES
 
 if TYPE_CHECKING:
     from wfnn_server.view import ViewModel
@@ -61,13 +62,6 @@ FIGURES = ("think/thinks_per_s", "store/experiences", "learn/divergence_resets",
            "learn/q_chosen_mean")  # fmt: skip
 """Server figures shown as numbers (the view sends only what the page shows)."""
 
-CLIENT_SERIES = {
-    "reward": "client/reward_mean",
-    "q": "client/q_mean",
-    "jitter_p99_ms": "client/tick_jitter_ms_p99",
-    "overruns": "client/overruns",
-}
-"""Plotted client figures: name on the page -> ClientStatus metric."""
 
 SAMPLED_CLIENTS = 16
 """Clients whose figures a sample keeps: the most recently heard (a sample per status, kept

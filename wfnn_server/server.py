@@ -63,7 +63,7 @@ from wfnn_io.protocol import (
 from wfnn_io.segments import check_free
 from wfnn_server.config import ServerConfig
 from wfnn_server.store import ExperienceStore
-from wfnn_server.view import ViewModel
+from wfnn_server.view import ViewModel, kept
 
 if TYPE_CHECKING:
     from wfnn_server.dashboard import Dashboard
@@ -75,6 +75,8 @@ log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.npz"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 """The checkpoint before the newest: a server that cannot read the newest falls back to it."""
+THINK_CALL_S = 0.1
+"""About the longest one think call runs (`_think`), well inside the status period."""
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 MAX_LISTED = 256
@@ -197,6 +199,8 @@ class ThinkServer:
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
         self._unusable: set[str] = set()
+        self._seconds_per_think: float | None = None
+        """How long one think took lately (None until measured): sizes each think call."""
         """Adopted configs (as JSON) that no learner could be made from (not adopted again)."""
         self.version = 0
         self.schedule = ThinkSchedule()
@@ -572,7 +576,7 @@ class ThinkServer:
             if heard is not self._heard:  # clients forgotten: they leave the dashboard too
                 self._heard, self._silent = heard, self._silent & set(heard)
                 self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
-        self.view.clients = {**self.view.clients, status.client: status}
+        self.view.clients = {**self.view.clients, status.client: kept(status)}
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:
@@ -694,11 +698,25 @@ class ThinkServer:
             break
 
     def _think(self, learner: Learner) -> bool:
-        n = self.schedule.next_thinks(self.config.think_batch, int(learner.thinks[0]),
-                                      stored=learner.buffer.count[0] > 0,
+        """Think at most think_batch times, and for about THINK_CALL_S at most.
+
+        The learner thread also publishes the status heartbeat and snapshots, and sees the stop
+        signal, between calls: a network whose update takes 0.5 s would otherwise go silent for
+        think_batch of them, and clients would leave it as dead. The first call thinks once.
+        """
+        batch = self.config.think_batch
+        if self._seconds_per_think is None:
+            batch = 1
+        elif self._seconds_per_think > 0.0:
+            batch = max(1, min(batch, int(THINK_CALL_S / self._seconds_per_think)))
+        n = self.schedule.next_thinks(batch, int(learner.thinks[0]), stored=learner.buffer.count[0] > 0,
                                       continuous=self.config.think == "continuous")  # fmt: skip
         if n:
+            t0 = time.monotonic()
             learner.think(n)
+            took = (time.monotonic() - t0) / n
+            lately = self._seconds_per_think
+            self._seconds_per_think = took if lately is None else 0.8 * lately + 0.2 * took
         return n > 0
 
     def _advance_learned(self, learner: Learner) -> bool:

@@ -7,6 +7,7 @@ update and never needs the server object itself.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -16,6 +17,24 @@ from numpy.typing import NDArray
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learners import Weights
 from wfnn_io.protocol import CameraView, ClientStatus, ServerStatus
+
+CLIENT_SERIES = {
+    "reward": "client/reward_mean",
+    "q": "client/q_mean",
+    "jitter_p99_ms": "client/tick_jitter_ms_p99",
+    "overruns": "client/overruns",
+}
+"""The client figures views show: name on the page -> ClientStatus metric."""
+
+
+def kept(status: ClientStatus) -> ClientStatus:
+    """What views keep of a client's status: its figures they show, not its config or other metrics.
+
+    A server keeps one per heard client (thousands, under forged ids without a key): whole, each
+    could hold a megabyte of metrics and a config.
+    """
+    metrics = {k: status.metrics[k] for k in CLIENT_SERIES.values() if k in status.metrics}
+    return dataclasses.replace(status, learner_config="", acked={}, metrics=metrics)
 
 
 @dataclass
@@ -35,7 +54,7 @@ class ViewModel:
     last_status: ServerStatus | None = None
     """The newest status the server published (learner thread)."""
     clients: dict[str, ClientStatus] = field(default_factory=dict)
-    """Per client: its latest status heartbeat (ingest thread)."""
+    """Per client: what views keep (`kept`) of its latest status heartbeat (ingest thread)."""
     camera_views: dict[str, CameraView] = field(default_factory=dict)
     """Per client: what its cameras saw last, when it sends pictures (ingest thread); newest last,
     for the 16 most recent heard clients."""

@@ -473,3 +473,22 @@ def test_a_server_restored_from_a_backup_is_sent_what_it_lost(tmp_path):
         assert wait(lambda: restored.store.stored_through.get(brain.id) == 119 and brain.all_acked())
         assert restored.store.count == 120 and brain.counters["uplink/resent_frames"] > 0
     brain.stop()
+
+
+def test_the_servers_a_client_knows_are_bounded_and_idle_ones_make_room(tmp_path):
+    """Statuses of many server ids (forged, without a key) neither grow the table nor displace live ones."""
+    from wfnn_client.link import MAX_SERVERS
+
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg, status_timeout_s=0.5)
+    brain.start()
+    bus = hub.bus()
+    for i in range(MAX_SERVERS + 8):
+        announce(bus, f"f{i}", cfg, started_ns=1, token=False)
+    assert wait(lambda: brain.metrics().get("downlink/rejected_status_servers_full", 0) >= 8)
+    assert len(brain.table.views) == MAX_SERVERS
+    assert wait(lambda: not brain.table.any_alive(), timeout=3.0)  # silent now: their places are free
+    announce(bus, "s1", cfg, started_ns=1, token=False)
+    assert wait(lambda: "s1" in brain.table.views)
+    assert len(brain.table.views) == MAX_SERVERS
+    brain.stop()

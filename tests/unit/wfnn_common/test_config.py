@@ -35,6 +35,14 @@ def test_thesis_defaults():
         ({"state_low": (1.0, 0.0, 0.0)}, "state range"),
         ({"action_high": (1.0,)}, "action_low/high"),
         ({"derivatives": "sloppy"}, "derivatives"),
+        # Ranges scaling divides by: a half-width that underflows, or a width beyond float64.
+        ({"state_low": (0.0, 0.0), "state_high": (5e-324, 1.0)}, "too narrow or too wide"),
+        ({"action_low": (-1e308,), "action_high": (1e308,)}, "too narrow or too wide"),
+        ({"divergence_threshold": float("nan")}, "divergence_threshold"),
+        ({"valid_margin": 1e300}, "valid_margin"),
+        # The thesis' network travels in one snapshot too, and its minibatch update is bounded.
+        ({"n_hidden": 4096, "n_wires": 1024}, "parameters"),
+        ({"update": "minibatch", "batch_size": 1 << 20, "n_wires": 1024}, "minibatch update"),
     ],
 )
 def test_invalid_values_are_refused_with_a_clear_message(kw, message):
@@ -89,3 +97,10 @@ def test_bad_overrides_are_refused_when_made(kw):
     with pytest.raises(ValueError) as info:
         LearnerOverrides(**kw)
     assert "config:" not in str(info.value)  # the check's own probe config is not the user's
+
+
+def test_the_bounds_leave_room_for_every_task_here():
+    """The thesis' learner at its largest sizes that still fit, and narrow but real ranges, are taken."""
+    small_config(n_hidden=4096, n_wires=64)  # 4096 x 3 + 128 x 4097 parameters
+    small_config(update="minibatch", batch_size=4096, n_wires=64)
+    small_config(state_low=(0.0, -1e-9), state_high=(1e-7, 1e-9))

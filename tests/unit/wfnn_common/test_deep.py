@@ -522,11 +522,11 @@ def test_a_deep_config_too_large_for_memory_is_refused(monkeypatch):
         with_options(cfg, {"deep": {"hidden": [4096] * 3}})
     # The bound counts exactly the parameters the network has.
     for hidden in ((7,), (32, 5, 9)):
-        monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", 10**9)
+        monkeypatch.setattr(config_module, "MAX_PARAMS", 10**9)
         size = deep_net.DeepShapes.of(with_options(cfg, {"deep": {"hidden": list(hidden)}})).n_params
-        monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", size)
+        monkeypatch.setattr(config_module, "MAX_PARAMS", size)
         with_options(cfg, {"deep": {"hidden": list(hidden)}})
-        monkeypatch.setattr(config_module, "MAX_DEEP_PARAMS", size - 1)
+        monkeypatch.setattr(config_module, "MAX_PARAMS", size - 1)
         with pytest.raises(ConfigError, match="parameters"):
             with_options(cfg, {"deep": {"hidden": list(hidden)}})
 

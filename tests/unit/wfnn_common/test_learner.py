@@ -178,6 +178,26 @@ def test_weights_whose_params_or_format_version_are_damaged_are_refused_naming_t
             load_weights(tmp_path / "bad.npz")
 
 
+def test_an_archive_whose_members_would_unpack_to_far_more_than_they_hold_is_refused_unread(tmp_path):
+    """A 100 KB file that inflates to 80 MiB (or gigabytes) is no file this project wrote; a small
+    member it does not know is left unread."""
+    import zipfile
+
+    from wfnn_io.persist import MAX_INFLATION_BYTES
+
+    cfg = small_config()
+    learner = WFNN(cfg)
+    save_weights(tmp_path / "w.npz", cfg, learner.params)
+    with zipfile.ZipFile(tmp_path / "w.npz", "a") as archive:
+        archive.writestr("notes.npy", b"not an array")  # never unpacked: it is not one of the format's
+    assert np.array_equal(load_weights(tmp_path / "w.npz")[1].flat, learner.params.flat)
+    with zipfile.ZipFile(tmp_path / "w.npz", "a", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("train/bomb.npy", bytes(MAX_INFLATION_BYTES + (16 << 20)))
+    assert (tmp_path / "w.npz").stat().st_size < 1 << 20
+    with pytest.raises(PersistError, match="would unpack"):
+        load_weights(tmp_path / "w.npz")
+
+
 @pytest.mark.slow
 def test_learns_a_one_step_task_to_the_best_action():
     """Terminal experiences, reward -(u - 0.5 x)^2: the best wire must move to u = 0.5 x."""

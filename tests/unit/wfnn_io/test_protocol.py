@@ -703,3 +703,19 @@ def test_take_counts_what_a_frame_provokes_and_raises_only_a_local_fault():
 
     with pytest.raises(OSError):
         take(good, disk_full, rejected, "ack")
+
+
+def test_maps_of_too_many_entries_or_long_keys_are_refused():
+    """A status's figures are a few dozen; a receiver keeps each sender's newest, so they are bounded."""
+    from wfnn_io.protocol import MAX_KEY_CHARS, MAX_MAP_ENTRIES, ClientStatus
+
+    def status(metrics):
+        return ClientStatus(client="c1", spec_hash="h", learner_config="", following="", weights_version=0,
+                            produced_through=-1, acked={}, metrics=metrics)  # fmt: skip
+
+    codec = Codec("c1")
+    ok = status({f"m{i}": float(i) for i in range(MAX_MAP_ENTRIES)})
+    assert codec.decode(codec.encode(ok), ClientStatus)[1].metrics == ok.metrics
+    for bad in ({f"m{i}": 0.0 for i in range(MAX_MAP_ENTRIES + 1)}, {"k" * (MAX_KEY_CHARS + 1): 0.0}):
+        with pytest.raises(ProtocolError, match="metrics"):
+            codec.decode(codec.encode(status(bad)), ClientStatus)

@@ -1,4 +1,5 @@
 import json
+import time
 
 import numpy as np
 import pytest
@@ -69,11 +70,11 @@ def make_server(tmp_path, hub, cfg=None, server_id="s1", **kw):
     return ThinkServer(ServerConfig(**options), hub.bus())
 
 
-def announce(hub, cfg, client="c1", produced_through=-1):
+def announce(hub, cfg, client="c1", produced_through=-1, metrics=None):
     """A client's status heartbeat, announcing its learner config (as a running client sends it)."""
     status = ClientStatus(
         client=client, spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
-        weights_version=0, produced_through=produced_through, acked={}, metrics={},
+        weights_version=0, produced_through=produced_through, acked={}, metrics=metrics or {},
     )  # fmt: skip
     hub.bus().put(KEYS.client_status(client), Codec(client).encode(status), None)
 
@@ -477,3 +478,42 @@ def test_a_learner_config_that_is_not_text_is_refused_naming_it_or_set_aside(tmp
     with ThinkServer(ServerConfig(controller="t", server_id="s1", data_dir=tmp_path / "b"), Hub().bus()) as s:
         assert s.learner_config is None
     assert list((tmp_path / "b").glob("learner_config.json.unreadable-*"))
+
+
+def test_the_server_keeps_of_each_clients_status_only_what_its_views_show(tmp_path):
+    """Thousands of heard clients (forged ids, without a key), a megabyte of figures each, would not fit."""
+    from wfnn_server.view import CLIENT_SERIES
+
+    hub, cfg = Hub(), small_config()
+    with make_server(tmp_path, hub, cfg) as server:
+        figures = {f"junk/{i}": float(i) for i in range(1000)} | {"client/reward_mean": -0.5}
+        announce(hub, cfg, metrics=figures)
+        assert wait_for(lambda: "c1" in server.view.clients)
+        kept = server.view.clients["c1"]
+        assert kept.metrics == {"client/reward_mean": -0.5} and set(kept.metrics) <= set(
+            CLIENT_SERIES.values()
+        )
+        assert kept.learner_config == "" and kept.acked == {}
+        assert server.learner_config == cfg  # what the status said was used before it was trimmed
+
+
+def test_a_slow_learner_keeps_the_heartbeat_going(tmp_path):
+    """Thinks of 50 ms, 50 a call: the status still goes out about every status period, not every 2.5 s."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1000)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, think="continuous", think_batch=50, status_period_s=0.05) as server:
+        assert listener.wait(lambda: server.learner is not None)
+        learner = server.learner
+        real = learner.think
+
+        def slow(n=None):
+            time.sleep(0.05 * (n or 1))
+            return real(n)
+
+        learner.think = slow
+        send(hub, batch(cfg, 0, 5))
+        assert listener.wait(lambda: listener.acked() == 4)
+        time.sleep(0.3)  # thinking now
+        before = len(listener.statuses)
+        time.sleep(1.5)
+        assert len(listener.statuses) - before >= 6
