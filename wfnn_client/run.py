@@ -105,8 +105,9 @@ StatusCallback = Callable[[dict[str, Any]], None]
 def prepare(config: ClientConfig) -> list[str]:
     """Check what a run needs before it starts; -> warnings to show.
 
-    Makes the run directory and writes the whole config there (`config.json`), reads the key
-    file, and refuses a non-loopback endpoint without a key unless `insecure`.
+    Makes the run directory, reads the key file, and refuses a non-loopback endpoint without a
+    key unless `insecure`. The whole config is written there (`config.json`) by `run`, once the
+    learners and the weights they start from are known to fit the task.
     """
     make_directory(config.out, "--out names a run directory")
     if config.json_stats is not None:
@@ -115,8 +116,6 @@ def prepare(config: ClientConfig) -> list[str]:
     warnings = [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
     for journal in Path(config.out).glob("journal*"):  # a run already on this directory keeps its record
         check_free(journal)
-    # Written once the rest is known to hold: a refused start leaves the last run's record as it was.
-    write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
     return warnings
 
 
@@ -126,8 +125,8 @@ def run(
     """Run the simulated robot; returns the metrics also written to `out/metrics.json`.
 
     `on_status(fields)` is called about twice a second and after every episode. The run
-    directory is made first, with the whole config in `config.json`, so that an unusable one
-    stops the run before anything starts (`prepare`; `prepared`: the caller has done it).
+    directory is checked and made first (`prepare`; `prepared`: the caller has done it), and
+    the whole config is written there (`config.json`) once nothing else can refuse the start.
     """
     if not prepared:
         prepare(config)
@@ -161,8 +160,8 @@ def _ranges(config: LearnerConfig) -> tuple[tuple[float, ...], ...]:
     return config.state_low, config.state_high, config.action_low, config.action_high
 
 
-def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
-    """A behaviour's learner (from saved weights where given) and brain."""
+def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerConfig, Learner]:
+    """A behaviour's learner config and learner (from saved weights where given); nothing written."""
     lcfg = learner_config(ranges, config)
     learner = make_learner(lcfg)
     if config.weights is not None:
@@ -176,7 +175,7 @@ def _skill(config: ClientConfig, name: str, ranges: Ranges) -> Skill:
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
                              f"this task needs {lcfg.spec_hash()}{hint}")  # fmt: skip
         learner = make_learner(lcfg, params=params)
-    return Skill(name, lcfg, learner, make_brain(config, learner, name))
+    return lcfg, learner
 
 
 def _run(
@@ -192,20 +191,23 @@ def _run(
     first = behaviours.ranges(behaviours.names[0])
     safety = SafetyLayer(config.safety, first.action_low, first.action_high, period,
                          spec.veto(task) if spec.veto else None)  # fmt: skip
-    frames = FrameWriter(Path(config.out) / "cameras") if config.camera_every else None
     episode_steps = spec.episode_steps(task) if callable(spec.episode_steps) else spec.episode_steps
     tick_count = 0
     skills: list[Skill] = []
     controllers: Controllers | None = None
     try:
-        for name in behaviours.names:
-            skills.append(_skill(config, name, behaviours.ranges(name)))
+        learners = [(name, *_learner(config, name, behaviours.ranges(name))) for name in behaviours.names]
         if config.behaviour_policy:
             handcoded = spec.handcoded(task) if spec.handcoded is not None else None
             controllers = Controllers(
-                config.behaviour_policy, skills[0].lcfg.spec_hash(), np.array(first.action_low),
+                config.behaviour_policy, learners[0][1].spec_hash(), np.array(first.action_low),
                 np.array(first.action_high), handcoded, np.random.default_rng(config.seed + 7),
             )  # fmt: skip
+        # Written once the rest is known to hold: a refused start leaves the last run's record as it
+        # was (its config and its journal, which the brains below open).
+        write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
+        for name, lcfg, learner in learners:
+            skills.append(Skill(name, lcfg, learner, make_brain(config, learner, name)))
     except BaseException as exc:
         for made in skills:
             made.brain.stop()
@@ -213,6 +215,7 @@ def _run(
             raise SetupError(str(exc)) from exc
         raise
     brains = _Brains(skills)
+    frames = FrameWriter(Path(config.out) / "cameras") if config.camera_every else None
     if frames is not None:  # C/S: the pictures also go to the servers' dashboards
         frames.on_png = getattr(skills[0].brain, "publish_view", None)
     for sk in skills:

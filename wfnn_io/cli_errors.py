@@ -24,7 +24,8 @@ def describe(exc: BaseException) -> str:
         seen.add(id(current))
         parts.append(_one(current))
         current = current.__cause__ or (None if current.__suppress_context__ else current.__context__)
-    text = ": ".join(p for i, p in enumerate(parts) if p and p not in parts[:i])
+    # A cause its error already quotes ("unreadable (X)" caused by X) is not said twice.
+    text = ": ".join(p for i, p in enumerate(parts) if p and not any(p in q for q in parts[:i]))
     return " ".join(text.split())
 
 

@@ -38,6 +38,7 @@ import logging
 import os
 import re
 import secrets
+import shutil
 import time
 from collections import Counter
 from collections.abc import Iterable, Iterator
@@ -367,10 +368,16 @@ def write_log(
     config: LearnerConfig | None,
     sender: str = "wfnn-logs",
 ) -> int:
-    """Write batches as a new log (refuses a directory that already holds one); -> experiences."""
+    """Write batches as a new log (refuses a directory that already holds one); -> experiences.
+
+    A write that fails (a source that cannot be read, say) removes what it wrote, so that the
+    directory is as it was and the same command can be run again.
+    """
     directory = Path(directory)
     if is_log(directory):
         raise LogFormatError(f"{directory} already holds a log; write to a new directory")
+    existed = directory.exists()
+    there = set(directory.iterdir()) if directory.is_dir() else set()
     codec = Codec(sender)
     out = ExperienceLog(directory, config, fsync="never")
     written = 0
@@ -378,9 +385,28 @@ def write_log(
         for batch in batches:
             out.append(codec.encode(batch))
             written += len(batch)
-    finally:
+    except BaseException:
         out.close()
+        if not existed:
+            shutil.rmtree(directory, ignore_errors=True)
+        else:
+            for made in set(directory.iterdir()) - there:
+                if made.is_dir() and not made.is_symlink():
+                    shutil.rmtree(made, ignore_errors=True)
+                else:
+                    made.unlink(missing_ok=True)
+        raise
+    out.close()
     return written
+
+
+def check_outside(out: Path, sources: Iterable[Path]) -> None:
+    """Refuse an output path in (or equal to) a log being read: reading data never changes it."""
+    target = Path(out).resolve()
+    for source in sources:
+        src = Path(source).resolve()
+        if target == src or src in target.parents:
+            raise LogFormatError(f"{out} is inside the log {source} being read; write somewhere else")
 
 
 def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
@@ -439,6 +465,7 @@ def merged(
 
 def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
+    check_outside(out, sources)
     return write_log(out, merged(sources, key), common_config(sources))
 
 
@@ -454,7 +481,8 @@ def split(
         raise ValueError(f"split by client, behaviour or count, not {by!r}")
     if by == "count" and every < 1:
         raise ValueError("split by count needs every >= 1")
-    config = log_config(source)
+    check_outside(out, [source])
+    config = common_config([source])  # an unreadable description: a warning, as for the other commands
     groups: dict[str, list[ExperienceBatch]] = {}
     names: dict[str, str] = {}
     done = 0
@@ -511,6 +539,9 @@ def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
 
 def export(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Write logs' experiences as one `.npz` of plain arrays (`to_arrays`); -> experiences."""
+    check_outside(out, sources)
+    if Path(out).is_dir():
+        raise IsADirectoryError(21, "is a directory (export writes one .npz file)", str(out))
     arrays = to_arrays(sources, key)
     config = common_config(sources)
     atomic_savez(out, {"format": np.str_(EXPORT_FORMAT), "format_version": np.int64(1),

@@ -72,6 +72,25 @@ def test_client_truncated_weights_file(tmp_path):
     assert "--learner" not in other.stdout + other.stderr
 
 
+def test_a_refused_start_leaves_the_last_runs_record_as_it_was(tmp_path):
+    """Weights that do not fit (another task's, or a damaged file) refuse the start before it writes."""
+    proc = client("--thinks", "1", "--out", tmp_path / "run")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    (tmp_path / "bad.npz").write_bytes(b"not weights")
+
+    def record():
+        files = sorted((tmp_path / "run").rglob("*"))
+        return [
+            (p, p.stat().st_size, p.stat().st_mtime_ns, p.read_bytes() if p.is_file() else b"") for p in files
+        ]
+
+    before = record()
+    refused(client("--weights", tmp_path / "bad.npz", "--out", tmp_path / "run"), "bad.npz")
+    mix = f"wfnn=0.5,weights:{tmp_path / 'bad.npz'}=0.5"
+    refused(client("--behaviour-policy", mix, "--out", tmp_path / "run"), "bad.npz")
+    assert record() == before
+
+
 def test_client_bad_endpoint(tmp_path):
     refused(client("--server", "localhost-7447", "--out", tmp_path / "r"), "endpoint")
     refused(client("--server", "tcp/127.0.0.1:99999", "--out", tmp_path / "r"), "port")

@@ -110,6 +110,8 @@ def test_a_refused_client_start_leaves_the_last_runs_record_and_an_unwritable_js
     from wfnn_client.run import prepare
 
     prepare(ClientConfig(out=tmp_path / "run"))
+    assert not (tmp_path / "run" / "config.json").exists()  # written by `run`, once the start holds
+    (tmp_path / "run" / "config.json").write_text('{"client": {"seed": 0}}')  # the last run's
     before = (tmp_path / "run" / "config.json").read_bytes()
     (tmp_path / "empty.key").write_bytes(b"")
     with pytest.raises(ValueError):

@@ -160,3 +160,44 @@ def test_a_log_description_that_cannot_be_used_is_kept_beside_its_replacement(tm
     [kept] = (tmp_path / "log").glob("log.json.unreadable-*")
     assert kept.read_text() == held  # what it held is not lost
     assert isinstance(json.loads(path.read_text())["id"], str)
+
+
+def _snapshot(directory):
+    return sorted((p, p.stat().st_size, p.read_bytes() if p.is_file() else b"") for p in directory.rglob("*"))
+
+
+def test_no_output_is_written_inside_a_log_being_read(tmp_path):
+    """Reading data never changes it, even when the output path names a place inside the input."""
+    record(tmp_path / "log")
+    before = _snapshot(tmp_path / "log")
+    segment = next((tmp_path / "log").glob("*.seg"))
+    with pytest.raises(logs.LogFormatError, match="inside the log"):
+        logs.export([tmp_path / "log"], segment)
+    with pytest.raises(logs.LogFormatError, match="inside the log"):
+        logs.export([tmp_path / "log"], tmp_path / "log" / "log.json")
+    with pytest.raises(logs.LogFormatError, match="inside the log"):
+        logs.merge([tmp_path / "log"], tmp_path / "log" / "sub")
+    with pytest.raises(logs.LogFormatError, match="inside the log"):
+        logs.split(tmp_path / "log", tmp_path / "log")
+    assert _snapshot(tmp_path / "log") == before
+
+
+def test_a_merge_that_fails_leaves_no_log_behind_and_can_be_run_again(tmp_path):
+    record(tmp_path / "log")
+    (tmp_path / "notalog").mkdir()
+    with pytest.raises(logs.LogFormatError):
+        logs.merge([tmp_path / "log", tmp_path / "notalog"], tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "notes.txt").write_text("mine")
+    with pytest.raises(logs.LogFormatError):
+        logs.merge([tmp_path / "log", tmp_path / "notalog"], tmp_path / "kept")
+    assert [p.name for p in (tmp_path / "kept").iterdir()] == ["notes.txt"]
+    assert logs.merge([tmp_path / "log"], tmp_path / "out") == 300
+
+
+def test_split_reads_a_log_whose_description_is_unreadable_as_the_others_do(tmp_path, caplog):
+    record(tmp_path / "log")
+    (tmp_path / "log" / "log.json").write_text("{not json")
+    assert logs.split(tmp_path / "log", tmp_path / "parts") == {"robot1": 300}
+    assert any("unreadable" in r.getMessage() for r in caplog.records)

@@ -1,0 +1,23 @@
+"""One-line errors of the tools (`wfnn_io.cli_errors`)."""
+
+from wfnn_io.cli_errors import describe
+
+
+def _chained(outer: str, inner: Exception) -> Exception:
+    try:
+        try:
+            raise inner
+        except Exception as exc:
+            raise ValueError(outer) from exc
+    except ValueError as exc:
+        return exc
+
+
+def test_a_cause_is_named_once_even_when_its_error_quotes_it():
+    inner = ValueError("Expecting value: line 1 column 2")
+    assert describe(_chained("log.json: unreadable (Expecting value: line 1 column 2)", inner)) == (
+        "log.json: unreadable (Expecting value: line 1 column 2)"
+    )
+    assert describe(_chained("cannot load w.npz", ValueError("not a zip"))) == "cannot load w.npz: not a zip"
+    missing = FileNotFoundError(2, "No such file or directory", "x.npz")
+    assert describe(_chained("weights", missing)) == "weights: x.npz: No such file or directory"
