@@ -51,6 +51,9 @@ class DeepWFNN(WFNN):
         given weights)."""
         if params is not None and not isinstance(params, DeepParams):
             raise ValueError("a deep learner's params must be DeepParams")
+        if params is not None and not (np.abs(params.flat) <= FLOAT32_MAX).all():
+            # It trains in float32: larger weights would be infinite there (NaN fails the test too).
+            raise ValueError("a deep learner's weights must be finite and within float32's range")
         if params is None:
             theta = self._fresh_theta()
             params = DeepParams(theta[None, : self.shapes.n_params].copy(), self.shapes)

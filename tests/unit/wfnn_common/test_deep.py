@@ -684,3 +684,11 @@ def test_init_scale_scales_the_deep_learners_initial_weights():
     one, small = DeepWFNN(config(seed=3)), DeepWFNN(config(seed=3, init_scale=0.01))
     np.testing.assert_allclose(small.params.flat, 0.01 * one.params.flat, rtol=1e-12)
     assert np.array_equal(DeepWFNN(config(seed=3, init_scale=1.0)).params.flat, one.params.flat)
+
+
+def test_weights_beyond_float32s_range_are_refused_as_the_training_state_is():
+    cfg = config()
+    flat = DeepWFNN(cfg).params.flat.copy()
+    flat[0, 3] = 1e300
+    with pytest.raises(ValueError, match="float32"):
+        DeepWFNN(cfg, params=weights_from_flat(cfg, flat))
