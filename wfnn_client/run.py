@@ -203,11 +203,10 @@ def _run(
                 config.behaviour_policy, learners[0][1].spec_hash(), np.array(first.action_low),
                 np.array(first.action_high), handcoded, np.random.default_rng(config.seed + 7),
             )  # fmt: skip
-        # Written once the rest is known to hold: a refused start leaves the last run's record as it
-        # was (its config and its journal, which the brains below open).
-        write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
-        for name, lcfg, learner in learners:
+        for name, lcfg, learner in learners:  # each opens its journal, which checks its spec
             skills.append(Skill(name, lcfg, learner, make_brain(config, learner, name)))
+        # Written once the rest is known to hold: a refused start leaves the last run's config as it was.
+        write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
     except BaseException as exc:
         for made in skills:
             made.brain.stop()

@@ -119,6 +119,10 @@ def write_log_json(directory: Path, config: LearnerConfig | None, log_id: str | 
     atomic_write_text(directory / LOG_JSON, json.dumps(info, indent=1))
 
 
+SERVER_CONFIG_JSON = "learner_config.json"
+"""A server's learner config, beside its store (a log)."""
+
+
 def log_config(directory: Path) -> LearnerConfig | None:
     """The learner config a log was recorded for, or None when nothing says.
 
@@ -129,7 +133,7 @@ def log_config(directory: Path) -> LearnerConfig | None:
     try:
         if data is not None and data.get("learner_config") is not None:
             return LearnerConfig.from_dict(data["learner_config"])
-        server = directory.parent / "learner_config.json"
+        server = directory.parent / SERVER_CONFIG_JSON
         if server.exists():
             return LearnerConfig.from_dict(json.loads(server.read_text()))
     except (OSError, ValueError, TypeError, RecursionError) as exc:
@@ -374,7 +378,7 @@ def write_log(
     directory is as it was and the same command can be run again.
     """
     directory = Path(directory)
-    if is_log(directory):
+    if is_log(directory) or (directory / LOG_JSON).exists():
         raise LogFormatError(f"{directory} already holds a log; write to a new directory")
     existed = directory.exists()
     there = set(directory.iterdir()) if directory.is_dir() else set()
@@ -401,11 +405,14 @@ def write_log(
 
 
 def check_outside(out: Path, sources: Iterable[Path]) -> None:
-    """Refuse an output path in (or equal to) a log being read: reading data never changes it."""
+    """Refuse an output path in (or equal to) a log being read, or at its server's config beside it.
+
+    Reading data never changes it: `log_config` reads that config too.
+    """
     target = Path(out).resolve()
     for source in sources:
         src = Path(source).resolve()
-        if target == src or src in target.parents:
+        if target in (src, src.parent / SERVER_CONFIG_JSON) or src in target.parents:
             raise LogFormatError(f"{out} is inside the log {source} being read; write somewhere else")
 
 
@@ -497,6 +504,9 @@ def split(
             names[label] = _directory_name(label, set(names.values()))
         groups.setdefault(names[label], []).append(batch)
         done += len(batch)
+    for name in groups:  # all checked before any is written, so that a refusal writes nothing
+        if is_log(Path(out) / name) or (Path(out) / name / LOG_JSON).exists():
+            raise LogFormatError(f"{Path(out) / name} already holds a log; split into a new directory")
     return {name: write_log(Path(out) / name, batches, config) for name, batches in groups.items()}
 
 

@@ -199,9 +199,9 @@ class ThinkServer:
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
         self._unusable: set[str] = set()
+        """Adopted configs (as JSON) that no learner could be made from (not adopted again)."""
         self._seconds_per_think: float | None = None
         """How long one think took lately (None until measured): sizes each think call."""
-        """Adopted configs (as JSON) that no learner could be made from (not adopted again)."""
         self.version = 0
         self.schedule = ThinkSchedule()
         """Thinks owed, how far they have reached (`learned_through`) and relearning after a reset."""

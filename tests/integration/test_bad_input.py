@@ -89,6 +89,11 @@ def test_a_refused_start_leaves_the_last_runs_record_as_it_was(tmp_path):
     mix = f"wfnn=0.5,weights:{tmp_path / 'bad.npz'}=0.5"
     refused(client("--behaviour-policy", mix, "--out", tmp_path / "run"), "bad.npz")
     assert record() == before
+    # Another task on the same run directory: its journal refuses the start, and the record stays.
+    other = run(BIN / "wfnn-client", "--sim", "cartpole", "--episodes", "1", "--rate-hz", "0",
+                "--thinks", "1", "--out", tmp_path / "run")  # fmt: skip
+    refused(other, "journal")
+    assert record() == before
 
 
 def test_client_bad_endpoint(tmp_path):

@@ -180,6 +180,11 @@ def test_no_output_is_written_inside_a_log_being_read(tmp_path):
     with pytest.raises(logs.LogFormatError, match="inside the log"):
         logs.split(tmp_path / "log", tmp_path / "log")
     assert _snapshot(tmp_path / "log") == before
+    (tmp_path / "data").mkdir()  # a server's data directory: its store, its config beside it
+    (tmp_path / "log").rename(tmp_path / "data" / "store")
+    with pytest.raises(logs.LogFormatError, match="inside the log"):
+        logs.export([tmp_path / "data" / "store"], tmp_path / "data" / "learner_config.json")
+    assert not (tmp_path / "data" / "learner_config.json").exists()
 
 
 def test_a_merge_that_fails_leaves_no_log_behind_and_can_be_run_again(tmp_path):
@@ -194,6 +199,12 @@ def test_a_merge_that_fails_leaves_no_log_behind_and_can_be_run_again(tmp_path):
         logs.merge([tmp_path / "log", tmp_path / "notalog"], tmp_path / "kept")
     assert [p.name for p in (tmp_path / "kept").iterdir()] == ["notes.txt"]
     assert logs.merge([tmp_path / "log"], tmp_path / "out") == 300
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "log.json").write_text("my own notes")  # not this project's: left alone
+    with pytest.raises(logs.LogFormatError, match="already holds"):
+        logs.merge([tmp_path / "log"], tmp_path / "mine")
+    assert (tmp_path / "mine" / "log.json").read_text() == "my own notes"
+    assert [p.name for p in (tmp_path / "mine").iterdir()] == ["log.json"]
 
 
 def test_split_reads_a_log_whose_description_is_unreadable_as_the_others_do(tmp_path, caplog):
@@ -201,3 +212,14 @@ def test_split_reads_a_log_whose_description_is_unreadable_as_the_others_do(tmp_
     (tmp_path / "log" / "log.json").write_text("{not json")
     assert logs.split(tmp_path / "log", tmp_path / "parts") == {"robot1": 300}
     assert any("unreadable" in r.getMessage() for r in caplog.records)
+
+
+def test_a_split_that_would_write_over_a_log_writes_nothing(tmp_path):
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
+    logs.split(tmp_path / "a", tmp_path / "parts")  # parts/robot1
+    before = _snapshot(tmp_path / "parts")
+    with pytest.raises(logs.LogFormatError, match="already holds a log"):
+        logs.split(tmp_path / "both", tmp_path / "parts")  # robot1 and robot2: robot1 is taken
+    assert _snapshot(tmp_path / "parts") == before and not (tmp_path / "parts" / "robot2").exists()
