@@ -77,6 +77,8 @@ class RemoteBrain:
         self.downlink = Downlink(learner.config, config, bus, self.codec, self.table, self.counters,
                                  self.rejected, initial)  # fmt: skip
         learner.experienced(self.journal.next_seq)  # a robot restarting is not starting to learn
+        self._thinks_seen = 0
+        """The most thinks of any weights acted on (`act`)."""
         self.staleness_s: list[float] = []
         self._loop_metrics: dict[str, float] = {}
         self._threads: list[threading.Thread] = []
@@ -188,6 +190,11 @@ class RemoteBrain:
         weights = self.downlink.current
         if weights is None:
             return None
+        if weights.thinks > self._thinks_seen:
+            # Weights that have had N thinks have learned from about N / thinks_per_action
+            # experiences, of any robot: a robot new to them is past that much of its warm-up.
+            self._thinks_seen = weights.thinks
+            self.learner.experienced(weights.thinks // max(1, self.learner.config.thinks_per_action))
         result = self.learner.act(state, explore, params=weights.params)
         self.staleness_s.append((time.time_ns() - weights.published_ns) / 1e9)
         if len(self.staleness_s) > 100_000:

@@ -125,12 +125,12 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
 
 
 def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
-          store="store1", published_ns=None):  # fmt: skip
-    n = WFNN(cfg).params.flat.shape[1]
+          store="store1", published_ns=None, thinks=0):  # fmt: skip
+    n = WFNN(cfg).params.flat.shape[1] if params is None else params.shape[1]
     snap = WeightSnapshot(
         server=server, incarnation=incarnation, store=store, version=version,
         spec_hash=spec or cfg.spec_hash(),
-        published_ns=published_ns or time.time_ns(), thinks=0, diverged=diverged, learned_through={},
+        published_ns=published_ns or time.time_ns(), thinks=thinks, diverged=diverged, learned_through={},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
     return Codec(server, key).encode(snap)
@@ -492,3 +492,30 @@ def test_the_servers_a_client_knows_are_bounded_and_idle_ones_make_room(tmp_path
     assert wait(lambda: "s1" in brain.table.views)
     assert len(brain.table.views) == MAX_SERVERS
     brain.stop()
+
+
+@pytest.mark.parametrize("thinks, warming_up", [(0, True), (5000, False)])
+def test_a_deep_client_new_to_trained_weights_acts_on_them_past_its_warm_up(tmp_path, thinks, warming_up):
+    """Weights that learned from 5,000 experiences (of other robots) are acted on, with exploration
+    noise, by a robot that has taken no action yet; fresh ones (0 thinks) still get random actions."""
+    from wfnn_common.config import DeepConfig, ExplorationConfig
+    from wfnn_common.learners import make_learner
+
+    hub = Hub()
+    noise = ExplorationConfig(kind="gaussian", sigma=0.1)
+    deep = DeepConfig(hidden=(8, 8), value_hidden=4, warmup=1000)
+    cfg = small_config(learner="deep", deep=deep, thinks_per_action=1, exploration=noise)
+    trained = make_learner(cfg)
+    brain = RemoteBrain(
+        make_learner(cfg), RemoteConfig(controller="t", journal_dir=tmp_path / "j"), hub.bus()
+    )
+    brain.start()
+    bus = hub.bus()
+    announce(bus, "s1", cfg, started_ns=1, token=False)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, params=trained.params.flat, thinks=thinks), None)
+    assert wait(lambda: brain.current is not None)
+    x = np.zeros(cfg.state_dim)
+    greedy = trained.act(x, explore=False).action
+    off = np.mean([np.abs(brain.act(x).result.action - greedy).mean() for _ in range(300)])
+    brain.stop()
+    assert (off > 0.3) == warming_up, off  # uniform in [-1, 1]: 0.5 off on average; sigma 0.1: 0.08
