@@ -27,7 +27,7 @@ import jinja2
 import numpy as np
 import typer
 
-from wfnn_common.config import check_fields
+from wfnn_common.config import check_fields, settings
 from wfnn_io.cli_errors import guarded
 from wfnn_io.logs import is_log
 from wfnn_io.persist import atomic_write_bytes, atomic_write_text
@@ -199,9 +199,8 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
     for journal in sorted(directory.glob("journal*")):
         sections.append(_journal_section(journal))
     learner = metrics.get("config", {}).get("learner")
-    if learner:
-        sections.append(Section("Learner config", [(k, _fmt(v)) for k, v in learner.items()
-                                                   if not isinstance(v, dict | list)], [], []))  # fmt: skip
+    if isinstance(learner, dict) and learner:
+        sections.append(Section("Learner config", [(k, _fmt(v)) for k, v in settings(learner)], [], []))
     cameras = sorted((directory / "cameras").glob("*.png")) if (directory / "cameras").is_dir() else []
     if cameras:
         chosen = [cameras[0], cameras[-1]] if len(cameras) > 1 else cameras

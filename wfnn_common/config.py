@@ -521,6 +521,28 @@ class LearnerConfig:
         )
 
 
+THESIS_ONLY_FIELDS = ("n_hidden", "alpha", "derivatives", "update", "minibatch_dtype")
+"""LearnerConfig fields the deep learner does not use (it has its own under `deep`)."""
+
+
+def settings(config: dict[str, Any]) -> list[tuple[str, Any]]:
+    """The settings a config (as a dict, `LearnerConfig.to_dict`) learns with, for people to read.
+
+    Only the fields its learner uses, nested ones by dotted name (`deep.hidden`,
+    `exploration.sigma`); the ranges and symmetries (lists) are left out.
+    """
+    deep = config.get("learner") == "deep"
+    out: list[tuple[str, Any]] = []
+    for name, value in config.items():
+        if (deep and name in THESIS_ONLY_FIELDS) or (not deep and name == "deep"):
+            continue
+        if isinstance(value, dict):
+            out += [(f"{name}.{k}", v) for k, v in value.items()]
+        elif not isinstance(value, list | tuple):
+            out.append((name, value))
+    return out
+
+
 def with_options(config: LearnerConfig, options: dict[str, Any]) -> LearnerConfig:
     """`config` with the fields in `options` replaced.
 

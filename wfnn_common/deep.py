@@ -122,7 +122,8 @@ class DeepWFNN(WFNN):
                 self._reward_scale = scale
                 horizon = (1.0 - REFERENCE_GAMMA) / (1.0 - self.config.gamma)  # 1 at the reference
                 factor = max(1.0, scale / REFERENCE_REWARD * horizon)
-                self.monitor.threshold = self.config.divergence_threshold * factor
+                base = self.config.divergence_threshold  # a threshold at or below 0 is the user's, as set
+                self.monitor.threshold = base * factor if base > 0.0 else base
         return exp, ok
 
     def experienced(self, n: int) -> None:

@@ -361,13 +361,20 @@ class WFNN:
         r = np.asarray(reward, dtype=np.float64).reshape(n)
         term = np.asarray(terminal, dtype=np.bool_).reshape(n)
         exp, ok = self._check(s, a, sn, r, term, np.ones(n, dtype=np.bool_))
-        blocks = [Experiences._make(field[ok] for field in exp)]
+        images, kept = [exp], [ok]
         for symmetry in cfg.symmetries:  # the mirrored experiences of those stored
             mirrored, mirrored_ok = self._check(*symmetry(s, a, sn, r), term, ok.copy())
-            blocks.append(Experiences._make(field[mirrored_ok] for field in mirrored))
-        for kept in blocks:
-            for i in range(self.population):
-                self.buffer.extend(i, kept)
+            images.append(mirrored)
+            kept.append(mirrored_ok)
+        # Stored in the order `learn` stores them, each experience followed by its images: the
+        # deep learner's n-step returns find an experience's successor within 1 + len(symmetries).
+        order = np.stack(kept, axis=1).reshape(-1)  # [N x (1 + len(symmetries))], experience-major
+        block = Experiences._make(
+            np.stack(fields, axis=1).reshape(-1, *fields[0].shape[1:])[order]
+            for fields in zip(*images, strict=True)
+        )
+        for i in range(self.population):
+            self.buffer.extend(i, block)
         self.rejected += int(n - ok.sum())
         return ok
 

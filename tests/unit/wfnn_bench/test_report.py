@@ -80,3 +80,16 @@ def test_a_damaged_run_metrics_file_is_named_in_one_line_and_left_as_it_was(tmp_
     assert result.exit_code == 2 and reason in result.output and "metrics.json" in result.output
     assert result.output.count("\n") == 1 and not (tmp_path / "run" / "report.html").exists()
     assert (tmp_path / "run" / "metrics.json").read_bytes() == metrics
+
+
+def test_a_deep_runs_report_shows_the_deep_learners_settings_not_the_thesis_ones():
+    from tests.fakes import small_config
+    from wfnn_common.config import settings
+
+    deep = dict(settings(json.loads(small_config(learner="deep").to_json())))  # as metrics.json has it
+    assert deep["deep.hidden"] == [8, 8] and "deep.lr" in deep and "deep.warmup" in deep
+    assert not {"n_hidden", "alpha", "derivatives", "update"} & set(deep)
+    assert "exploration.kind" in deep and "state_low" not in deep
+    thesis = dict(settings(small_config().to_dict()))
+    assert "state_low" not in thesis
+    assert thesis["n_hidden"] == 6 and not [k for k in thesis if k.startswith("deep")]

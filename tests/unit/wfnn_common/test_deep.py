@@ -559,12 +559,16 @@ def test_n_step_returns_step_over_mirrored_copies():
     batch = learner._n_step(np.arange(6))
     np.testing.assert_allclose(batch["reward"], [1 + 1 + 1, 1 + 1 + 1, 2 + 2, 2 + 2, 4, 4])
     np.testing.assert_allclose(batch["next_state"][:, 0], [0.4, -0.4, 0.4, -0.4, 0.4, -0.4])
-    # learn_many stores the block of real ones, then the block of mirrored ones: the same chains.
+    # learn_many stores them in the same order, in batches as a server gets them: the same chains,
+    # across the batches too.
     block = DeepWFNN(config(gamma=0.5, deep={"n_step": 3}, symmetries=(mirror,)))
     s = np.array([[0.1, 0], [0.2, 0], [0.3, 0]])
     sn = np.array([[0.2, 0], [0.3, 0], [0.4, 0]])
-    block.learn_many(s, np.zeros((3, 1)), sn, np.array([1.0, 2.0, 4.0]), np.zeros(3, dtype=bool))
-    np.testing.assert_allclose(block._n_step(np.arange(6))["reward"], [3, 4, 4, 3, 4, 4])
+    r = np.array([1.0, 2.0, 4.0])
+    block.learn_many(s[:2], np.zeros((2, 1)), sn[:2], r[:2], np.zeros(2, dtype=bool))
+    block.learn_many(s[2:], np.zeros((1, 1)), sn[2:], r[2:], np.zeros(1, dtype=bool))
+    np.testing.assert_allclose(block._n_step(np.arange(6))["reward"], batch["reward"])
+    np.testing.assert_allclose(block._n_step(np.arange(6))["next_state"], batch["next_state"])
 
 
 def test_damaged_or_partial_training_state():
@@ -663,6 +667,9 @@ def test_the_divergence_threshold_follows_the_discount_too():
     low = DeepWFNN(config(gamma=0.9))  # a shorter horizon: the config's threshold still (never below it)
     low.learn(z, np.zeros(1), z, 10.0)
     assert low.monitor.threshold == 1e4
+    negative = DeepWFNN(config(gamma=0.999, divergence_threshold=-5.0))  # scaling would make it stricter
+    negative.learn(z, np.zeros(1), z, -20.0)
+    assert negative.monitor.threshold == -5.0
 
 
 @pytest.mark.parametrize("n", [8, 26, 40])

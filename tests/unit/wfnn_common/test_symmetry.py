@@ -49,12 +49,12 @@ def test_the_learner_also_learns_the_transformed_experiences():
     ok = learner.learn_many(s, a, sn, r, np.zeros(5, dtype=np.bool_))
     assert ok.tolist() == [True, True, False, True, True]
     assert learner.buffer.count[0] == 8
-    stored = learner.buffer.contents(0)
-    np.testing.assert_allclose(stored.state[:4], s[ok])
-    np.testing.assert_allclose(stored.state[4:], SWAP.states(s[ok]))
-    np.testing.assert_allclose(stored.action[4:], SWAP.actions(a[ok]))
-    np.testing.assert_allclose(stored.next_state[4:], SWAP.states(sn[ok]))
-    np.testing.assert_allclose(stored.reward[4:], stored.reward[:4])
+    stored = learner.buffer.contents(0)  # each experience followed by its image, as `learn` stores them
+    np.testing.assert_allclose(stored.state[0::2], s[ok])
+    np.testing.assert_allclose(stored.state[1::2], SWAP.states(s[ok]))
+    np.testing.assert_allclose(stored.action[1::2], SWAP.actions(a[ok]))
+    np.testing.assert_allclose(stored.next_state[1::2], SWAP.states(sn[ok]))
+    np.testing.assert_allclose(stored.reward[1::2], stored.reward[0::2])
     # One experience at a time (learn) stores the pair too; without symmetries only the real one.
     one = WFNN(cfg)
     one.learn(s[0], a[0], sn[0], r[0])
