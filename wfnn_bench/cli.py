@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -39,7 +41,7 @@ from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
 from wfnn_io.cli_errors import guarded
-from wfnn_io.persist import writable
+from wfnn_io.persist import to_jsonable, writable
 
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
@@ -50,16 +52,38 @@ JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the full res
 PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write the figure as PNG here.")]
 
 
-def _logging(verbose: bool, *outputs: Path | None) -> None:
-    """Set up logging, and check before any work that each output file can be written."""
+def _logging(verbose: bool, json_path: Path | None, plot_path: Path | None) -> None:
+    """Set up logging, and check before any work that each output file can be written.
+
+    The figure is a PNG: another suffix (matplotlib would write JPEG or PDF, or fail after the run)
+    is refused now.
+    """
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )
-    for path in outputs:
+    if plot_path is not None and plot_path.suffix.lower() != ".png":
+        raise ValueError(f"--plot {plot_path}: the figure is a PNG; name a .png file")
+    for path in (json_path, plot_path):
         if path is not None:
             writable(path)
+
+
+def _started(name: str, cfg: Any) -> None:
+    """The one line at start: the benchmark and the options that differ from its defaults.
+
+    With --verbose the whole config follows (the JSON holds it too).
+    """
+    fields = dataclasses.asdict(cfg)
+    try:
+        defaults = dataclasses.asdict(type(cfg)())
+    except TypeError:  # a config with required fields: all of them are news
+        defaults = {}
+    changed = [f"{k}={v}" for k, v in fields.items() if k not in defaults or defaults[k] != v]
+    console.print(f"[bold]wfnn-bench {escape(name)}[/] {escape(', '.join(changed) or 'defaults')}",
+                  soft_wrap=True, highlight=False)  # fmt: skip
+    logging.getLogger(__name__).info("config: %s", json.dumps(to_jsonable(fields)))
 
 
 class LineProgress:
@@ -131,15 +155,16 @@ def _measure(bench: ModuleType, cfg: Any, description: str, total: int, title: s
     table's figures, `plot(result, path)` (where it has one) draws them; keys listed in its
     `NOT_IN_JSON` (pictures) go to the PNG only.
     """
+    _started(bench.__name__.rsplit(".", 1)[-1].replace("_", "-"), cfg)
     with _progress() as bar:
         task = bar.add_task(description, total=total)
         result = bench.run(cfg, lambda k: bar.advance(task, k))
     _table(title, bench.rows(result, cfg))
+    if json_path:  # first: a figure that fails to draw must not lose the figures
+        write_json(json_path, {k: v for k, v in result.items() if k not in getattr(bench, "NOT_IN_JSON", ())})
     plot = getattr(bench, "plot", None)
     if plot_path and plot is not None:
         plot(result, plot_path)
-    if json_path:
-        write_json(json_path, {k: v for k, v in result.items() if k not in getattr(bench, "NOT_IN_JSON", ())})
     return result
 
 
@@ -198,8 +223,8 @@ def cartpole(
     steps: Annotated[int, typer.Option(min=1, help="Control steps per run.")] = 30_000,
     thinks: Annotated[int, typer.Option(min=0)] = 100,
     max_attempt_steps: Annotated[int, typer.Option(min=1)] = 10_000,
-    gamma: float = 0.8,
-    advantage_k: float = 0.2,
+    gamma: Annotated[float, typer.Option(min=0.0, max=0.9999, help="Discount factor.")] = 0.8,
+    advantage_k: Annotated[float, typer.Option(min=0.01, max=1.0, help="Advantage learning k.")] = 0.2,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -240,7 +265,7 @@ def hydra(
     four_dof_controllers: Annotated[int, typer.Option(min=1)] = 2,
     four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
     advantage_k: Annotated[
-        float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning; the thesis' 0.2).")
+        float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning; the thesis' 0.2).")
     ] = 1.0,
     velocity_weight: Annotated[
         float, typer.Option(min=0.0, help="1-DOF image velocity penalty (3.75: Fig 7.6's raw units).")
@@ -278,7 +303,9 @@ def nomad(
         int, typer.Option(min=1, help="Evaluate foraging servoing every N min.")
     ] = 5,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
-    advantage_k: Annotated[float, typer.Option(min=0.0, help="Advantage learning k (1 = Q-learning).")] = 0.2,
+    advantage_k: Annotated[
+        float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning).")
+    ] = 0.2,
     watch_phantoms: Annotated[
         int, typer.Option(min=0, help="Passive watching: phantom-goal copies per watched experience.")
     ] = 4,
@@ -536,6 +563,7 @@ def faults(
         partition_s=partition_s, router_down_s=router_down_s, rate_limit_s=rate_limit_s, warmup_s=warmup_s,
         after_s=after_s, seed=seed,
     )  # fmt: skip
+    _started("faults", cfg)
     with _progress() as bar:
         task = bar.add_task("faults (cases)", total=len(cfg.cases))
         result = faults_bench.run(cfg, lambda k: bar.advance(task, k), keep=keep)

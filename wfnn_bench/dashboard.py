@@ -173,6 +173,7 @@ def run(cfg: DashboardBenchConfig, progress: Progress = no_progress) -> dict[str
     per_exp_on = float(np.median([r["server_cpu_ms_per_experience"] for r in on]))
     added = float(np.median(attributed))
     return {
+        "benchmark": "dashboard",
         "config": asdict(cfg),
         "machine": machine_info(),
         "runs": runs,

@@ -225,6 +225,7 @@ def run(cfg: RelearnBenchConfig, progress: Progress = no_progress) -> dict[str, 
         })  # fmt: skip
     fractions = [c["relearn_fraction"] for c in per if c["relearn_fraction"] is not None]
     return {
+        "benchmark": "relearn",
         "config": asdict(cfg),
         "machine": machine_info(),
         "controllers": per,

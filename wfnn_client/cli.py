@@ -26,7 +26,7 @@ from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import guarded
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
@@ -250,17 +250,27 @@ def client(
         safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                             max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
     )  # fmt: skip
-    console.print(f"[bold]wfnn-client[/] {escape(config.summary())}")
+    console.print(f"[bold]wfnn-client[/] {escape(config.summary())}", soft_wrap=True)
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))
     prepare(config)
-    with Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        TextColumn("{task.fields[line]}"), console=console,
-    ) as bar:  # fmt: skip
-        task = bar.add_task(f"{sim} episodes", total=episodes, line="")
-        metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
-                      prepared=True)  # fmt: skip
+    if not console.is_terminal:  # a log file or a pipe: a line now and then, not a bar it never sees
+        every = Every(STATUS_LINE_EVERY_S)
+
+        def line(f: dict[str, Any]) -> None:
+            done = f["episode"] >= episodes
+            every(lambda: console.out(f"{sim} episodes: {f['episode']}/{episodes}, {status_line(f)}",
+                                      highlight=False), now=done)  # fmt: skip
+
+        metrics = run(config, line, prepared=True)
+    else:
+        with Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+            TextColumn("{task.fields[line]}"), console=console,
+        ) as bar:  # fmt: skip
+            task = bar.add_task(f"{sim} episodes", total=episodes, line="")
+            metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
+                          prepared=True)  # fmt: skip
     scores = metrics["scores"]
     trend = (
         f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f}"
@@ -273,12 +283,13 @@ def client(
         f"{f' ({refused} refused as not finite or out of range)' if refused else ''}, following "
         f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
         f"jitter p99 {_shown(metrics['client/tick_jitter_ms_p99'], '.3f')} ms, "
-        f"overruns {metrics['client/overruns']:.0f}"
+        f"overruns {metrics['client/overruns']:.0f}",
+        soft_wrap=True,
     )
     saved = "weights, metrics.json and learning_curve.png"
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
-    console.print(f"saved {saved} in {escape(str(out))}/")
+    console.print(f"saved {saved} in {escape(str(out))}/", soft_wrap=True)
 
 
 main = guarded(app)

@@ -164,11 +164,11 @@ class DeepConfig:
             (self.device == "cpu" or self.device == "cuda" or
              (self.device.startswith("cuda:") and self.device[5:].isascii() and self.device[5:].isdigit()
               and len(self.device) <= 8),
-             "deep.device must be cpu, cuda or cuda:N"),
+             f"deep.device must be cpu, cuda or cuda:N, got {self.device[:40]!r}"),
         ]  # fmt: skip
         for ok, message in checks:
             if not ok:
-                raise ConfigError(f"{message}, got {self}")
+                raise ConfigError(f"{message} (deep config: {self})")
 
     @classmethod
     def from_dict(cls, data: Any) -> DeepConfig:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 import traceback
 from collections.abc import Callable
 from typing import Any
@@ -98,3 +99,26 @@ def _report(exc: BaseException, code: int) -> None:
     hint = "" if "--verbose" in sys.argv or code == 2 else " (--verbose shows where)"
     print(f"error: {describe(exc)}{hint}", file=sys.stderr)
     sys.exit(code)
+
+
+STATUS_LINE_EVERY_S = 30.0
+"""How often a tool whose output is not a terminal (a log file, a pipe) writes its status line."""
+
+
+class Every:
+    """Do something at most once every `period_s` seconds (the first time at once).
+
+    For status lines written to a file: a progress bar redraws one line in place, which a file
+    receives only when the work ends.
+    """
+
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s, self.clock = period_s, clock
+        self._last: float | None = None
+
+    def __call__(self, action: Callable[[], object], now: bool = False) -> None:
+        """Run `action` if `period_s` has passed since the last time (or `now`)."""
+        t = self.clock()
+        if now or self._last is None or t - self._last >= self.period_s:
+            self._last = t
+            action()

@@ -17,8 +17,10 @@ from wfnn_io import logs
 from wfnn_io.cli_errors import describe, guarded
 from wfnn_io.protocol import load_key
 
-app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.")
+app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.",
+                  no_args_is_help=True)  # fmt: skip
 console = Console()
+errors = Console(stderr=True)
 KeyOpt = Annotated[Path | None, typer.Option(help="Shared key file, where the frames carry HMAC tags.")]
 
 
@@ -27,8 +29,9 @@ def _key(path: Path | None) -> bytes | None:
 
 
 def _fail(exc: Exception) -> typer.Exit:
-    console.print(f"[red]error:[/] {escape(describe(exc))}", soft_wrap=True)
-    return typer.Exit(1)
+    """Bad input (an unreadable log, a wrong option value): one line on stderr, exit 2, as every tool."""
+    errors.print(f"[red]error:[/] {escape(describe(exc))}", soft_wrap=True)
+    return typer.Exit(2)
 
 
 @app.callback()

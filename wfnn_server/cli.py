@@ -15,7 +15,7 @@ from rich.markup import escape
 from rich.status import Status
 
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import guarded
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
@@ -143,7 +143,7 @@ def serve(
         dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
                    if dashboard is not None else None),
     )  # fmt: skip
-    console.print(f"[bold]wfnn-server[/] {escape(config.summary())}")
+    console.print(f"[bold]wfnn-server[/] {escape(config.summary())}", soft_wrap=True)
     if verbose:  # the whole config (also in the data directory's server_config.json)
         console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
 
@@ -153,13 +153,18 @@ def serve(
 
     if quiet:
         figures = run(config, on_started=started)
+    elif not console.is_terminal:  # a log file or a pipe: a line now and then, not a spinner it never sees
+        every = Every(STATUS_LINE_EVERY_S)
+        figures = run(config, lambda status: every(lambda: console.out(status_line(status), highlight=False)),
+                      started)  # fmt: skip
     else:
         with Status("starting", console=console) as line:
             figures = run(config, lambda status: line.update(status_line(status)), started)
     if config.replay_only:
         console.print(
             f"replay-only: {figures['imported']} experiences imported, {figures['experiences']} stored, "
-            f"{figures['thinks']} thinks; weights in {config.data_dir / 'checkpoint.npz'}"
+            f"{figures['thinks']} thinks; weights in {config.data_dir / 'checkpoint.npz'}",
+            soft_wrap=True,
         )
 
 

@@ -139,7 +139,9 @@ def test_client_start_is_one_short_line_and_the_config_goes_to_the_run_directory
     proc = client("--thinks", "1", "--out", tmp_path / "r")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     first = proc.stdout.splitlines()[0]
-    assert first.startswith("wfnn-client boat") and len(proc.stdout.split("run directory")[0]) < 200
+    assert first.startswith("wfnn-client boat") and "run directory" in first  # one line, even in a file
+    assert len(proc.stdout.split("run directory")[0]) < 200
+    assert "boat episodes: 1/1, " in proc.stdout  # progress as lines where the output is no terminal
     assert "NomadConfig" not in proc.stdout and "hydra=" not in proc.stdout
     import json
 
@@ -217,6 +219,18 @@ def test_bench_json_on_a_read_only_path_fails_before_running(tmp_path):
                    "--json", root / "boat.json")  # fmt: skip
         refused(proc, "read-only")
         assert "median" not in proc.stdout  # nothing ran
+
+
+def test_bench_plot_must_be_a_png_and_the_run_starts_with_one_line_of_its_options(tmp_path):
+    tiny = ("cartpole", "--runs", "1", "--steps", "1", "--thinks", "0", "--max-attempt-steps", "1",
+            "--json", tmp_path / "c.json")  # fmt: skip
+    proc = run(BIN / "wfnn-bench", *tiny, "--plot", tmp_path / "c.txt")
+    refused(proc, "--plot", ".png")
+    assert "cart-pole" not in proc.stdout and not list(tmp_path.iterdir())  # refused before the run
+    proc = run(BIN / "wfnn-bench", *tiny, "--plot", tmp_path / "c.png")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.splitlines()[0] == "wfnn-bench cartpole runs=1, steps=1, thinks=0, max_attempt_steps=1"
+    assert (tmp_path / "c.json").exists() and (tmp_path / "c.png").exists()
 
 
 def test_router_refuses_a_mistyped_endpoint_and_a_port_in_use():

@@ -80,8 +80,10 @@ def test_wfnn_logs_inspects_merges_and_exports_records(tmp_path):
     assert proc.returncode == 0 and "600 experiences" in proc.stdout
     proc = _run(BIN / "wfnn-logs", "export", tmp_path / "all", "--out", tmp_path / "all.npz")
     assert proc.returncode == 0 and (tmp_path / "all.npz").exists()
-    proc = _run(BIN / "wfnn-logs", "inspect", tmp_path / "missing")
-    assert proc.returncode == 1 and "no experience log" in proc.stdout
+    proc = _run(
+        BIN / "wfnn-logs", "inspect", "--json", tmp_path / "missing"
+    )  # the error never goes in the JSON
+    assert proc.returncode == 2 and "no experience log" in proc.stderr and proc.stdout == ""
 
 
 def test_replay_only_with_the_deep_learner_and_its_overrides(tmp_path):
