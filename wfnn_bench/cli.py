@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -173,8 +174,15 @@ def _table(title: str, rows: list[tuple[str, Any]]) -> None:
     table.add_column("figure")
     table.add_column("value", justify="right")
     for name, value in rows:
-        table.add_row(escape(name), f"{value:.4g}" if isinstance(value, float) else escape(str(value)))
+        table.add_row(escape(name), _cell(value))
     console.print(table)
+
+
+def _cell(value: Any) -> str:
+    """A figure as the table shows it: "-" where there is none (None or NaN), as elsewhere."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
 
 
 @app.command()

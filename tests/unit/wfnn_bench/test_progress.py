@@ -47,3 +47,9 @@ def test_nan_mean_and_finite_median_are_quiet_where_a_slice_holds_no_figure():
         assert np.isnan(got[0]) and got[1] == 2.0 and got[2] == 4.0
         assert np.array_equal(nan_mean(a, axis=0), np.array([1.0, 3.5]))
         assert np.isnan(finite_median([np.nan, np.nan])) and finite_median([np.nan, 2.0, 4.0]) == 3.0
+
+
+def test_a_table_cell_without_a_figure_is_a_dash():
+    from wfnn_bench.cli import _cell
+
+    assert [_cell(v) for v in (None, float("nan"), 1.23456, 3, "a/b")] == ["-", "-", "1.235", "3", "a/b"]
