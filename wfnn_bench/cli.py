@@ -12,6 +12,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
@@ -180,9 +181,9 @@ def _table(title: str, rows: list[tuple[str, Any]]) -> None:
 
 def _cell(value: Any) -> str:
     """A figure as the table shows it: "-" where there is none (None or NaN), as elsewhere."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
+    if value is None or (isinstance(value, float | np.floating) and math.isnan(value)):
         return "-"
-    return f"{value:.4g}" if isinstance(value, float) else escape(str(value))
+    return f"{value:.4g}" if isinstance(value, float | np.floating) else escape(str(value))
 
 
 @app.command()
@@ -579,7 +580,7 @@ def faults(
     for name in faults_bench.TABLE_HEADER:
         table.add_column(name, justify="left" if name == "case" else "right")
     for row in faults_bench.table_rows(result):
-        table.add_row(*(escape(str(cell)) for cell in row))
+        table.add_row(*(_cell(cell) for cell in row))
     console.print(table)
     missed = [f"{case}: {name}" for case, goals in result["goals"].items()
               for name, g in goals.items() if not g["met"]]  # fmt: skip

@@ -226,7 +226,6 @@ class Downlink:
             snap.incarnation, snap.store, snap.version, snap.published_ns, snap.diverged,
             snap.learned_through,
             time.monotonic(),
-            snap.thinks,
         )  # fmt: skip
         with self.table.lock:
             view = self.table.view(snap.server)

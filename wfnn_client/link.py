@@ -88,8 +88,6 @@ class Weights:
     learned_through: dict[str, int]
     received: float
     """time.monotonic() at arrival."""
-    thinks: int = 0
-    """The thinks these weights have had (the server's count)."""
 
     @property
     def source(self) -> str:

@@ -77,8 +77,8 @@ class RemoteBrain:
         self.downlink = Downlink(learner.config, config, bus, self.codec, self.table, self.counters,
                                  self.rejected, initial)  # fmt: skip
         learner.experienced(self.journal.next_seq)  # a robot restarting is not starting to learn
-        self._thinks_seen = 0
-        """The most thinks of any weights acted on (`act`)."""
+        self._version_seen, self._source_seen = -1, ""
+        """The weights `act` last counted the experiences of."""
         self.staleness_s: list[float] = []
         self._loop_metrics: dict[str, float] = {}
         self._threads: list[threading.Thread] = []
@@ -190,11 +190,11 @@ class RemoteBrain:
         weights = self.downlink.current
         if weights is None:
             return None
-        if weights.thinks > self._thinks_seen:
-            # Weights that have had N thinks have learned from about N / thinks_per_action
-            # experiences, of any robot: a robot new to them is past that much of its warm-up.
-            self._thinks_seen = weights.thinks
-            self.learner.experienced(weights.thinks // max(1, self.learner.config.thinks_per_action))
+        if weights.version != self._version_seen or weights.source != self._source_seen:
+            # Weights that have learned from N experiences (all their thinks done, of any robot:
+            # the snapshot's learned_through) leave a robot new to them past that much of its warm-up.
+            self._version_seen, self._source_seen = weights.version, weights.source
+            self.learner.experienced(sum(seq + 1 for seq in weights.learned_through.values()))
         result = self.learner.act(state, explore, params=weights.params)
         self.staleness_s.append((time.time_ns() - weights.published_ns) / 1e9)
         if len(self.staleness_s) > 100_000:

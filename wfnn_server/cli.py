@@ -155,8 +155,11 @@ def serve(
         figures = run(config, on_started=started)
     elif not console.is_terminal:  # a log file or a pipe: a line now and then, not a spinner it never sees
         every = Every(STATUS_LINE_EVERY_S)
-        figures = run(config, lambda status: every(lambda: console.out(status_line(status), highlight=False)),
-                      started)  # fmt: skip
+
+        def in_a_file(status: ServerStatus) -> None:
+            every(lambda: console.print(status_line(status), soft_wrap=True, highlight=False))
+
+        figures = run(config, in_a_file, started)
     else:
         with Status("starting", console=console) as line:
             figures = run(config, lambda status: line.update(status_line(status)), started)

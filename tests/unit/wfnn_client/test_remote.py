@@ -125,12 +125,13 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
 
 
 def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
-          store="store1", published_ns=None, thinks=0):  # fmt: skip
+          store="store1", published_ns=None, learned_through=None):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1] if params is None else params.shape[1]
     snap = WeightSnapshot(
         server=server, incarnation=incarnation, store=store, version=version,
         spec_hash=spec or cfg.spec_hash(),
-        published_ns=published_ns or time.time_ns(), thinks=thinks, diverged=diverged, learned_through={},
+        published_ns=published_ns or time.time_ns(), thinks=0, diverged=diverged,
+        learned_through=learned_through or {},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
     return Codec(server, key).encode(snap)
@@ -494,10 +495,10 @@ def test_the_servers_a_client_knows_are_bounded_and_idle_ones_make_room(tmp_path
     brain.stop()
 
 
-@pytest.mark.parametrize("thinks, warming_up", [(0, True), (5000, False)])
-def test_a_deep_client_new_to_trained_weights_acts_on_them_past_its_warm_up(tmp_path, thinks, warming_up):
+@pytest.mark.parametrize("learned, warming_up", [({}, True), ({"r1": 2999, "r2": 1999}, False)])
+def test_a_deep_client_new_to_trained_weights_acts_on_them_past_its_warm_up(tmp_path, learned, warming_up):
     """Weights that learned from 5,000 experiences (of other robots) are acted on, with exploration
-    noise, by a robot that has taken no action yet; fresh ones (0 thinks) still get random actions."""
+    noise, by a robot that has taken no action yet; fresh ones (none learned) get random actions."""
     from wfnn_common.config import DeepConfig, ExplorationConfig
     from wfnn_common.learners import make_learner
 
@@ -512,7 +513,9 @@ def test_a_deep_client_new_to_trained_weights_acts_on_them_past_its_warm_up(tmp_
     brain.start()
     bus = hub.bus()
     announce(bus, "s1", cfg, started_ns=1, token=False)
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, params=trained.params.flat, thinks=thinks), None)
+    bus.put(
+        KEYS.weights("s1"), forge(cfg, version=1, params=trained.params.flat, learned_through=learned), None
+    )
     assert wait(lambda: brain.current is not None)
     x = np.zeros(cfg.state_dim)
     greedy = trained.act(x, explore=False).action
