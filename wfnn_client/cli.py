@@ -50,6 +50,27 @@ def _shown(value: Any, spec: str) -> str:
     return "-" if value is None or not math.isfinite(value) else format(value, spec)
 
 
+def _run_showing_progress(config: ClientConfig, sim: str, episodes: int) -> dict[str, Any]:
+    """`prepare`, then `run` with a progress bar, or status lines where the output is no terminal."""
+    prepare(config)
+    if not console.is_terminal:  # a log file or a pipe: a line now and then, not a bar it never sees
+        every = Every(STATUS_LINE_EVERY_S)
+
+        def line(f: dict[str, Any]) -> None:
+            done = f["episode"] >= episodes
+            every(lambda: console.out(f"{sim} episodes: {f['episode']}/{episodes}, {status_line(f)}",
+                                      highlight=False), now=done)  # fmt: skip
+
+        return run(config, line, prepared=True)
+    with Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("{task.fields[line]}"), console=console,
+    ) as bar:  # fmt: skip
+        task = bar.add_task(f"{sim} episodes", total=episodes, line="")
+        return run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
+                   prepared=True)  # fmt: skip
+
+
 def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
@@ -253,24 +274,13 @@ def client(
     console.print(f"[bold]wfnn-client[/] {escape(config.summary())}", soft_wrap=True)
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))
-    prepare(config)
-    if not console.is_terminal:  # a log file or a pipe: a line now and then, not a bar it never sees
-        every = Every(STATUS_LINE_EVERY_S)
-
-        def line(f: dict[str, Any]) -> None:
-            done = f["episode"] >= episodes
-            every(lambda: console.out(f"{sim} episodes: {f['episode']}/{episodes}, {status_line(f)}",
-                                      highlight=False), now=done)  # fmt: skip
-
-        metrics = run(config, line, prepared=True)
-    else:
-        with Progress(
-            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TextColumn("{task.fields[line]}"), console=console,
-        ) as bar:  # fmt: skip
-            task = bar.add_task(f"{sim} episodes", total=episodes, line="")
-            metrics = run(config, lambda f: bar.update(task, completed=f["episode"], line=status_line(f)),
-                          prepared=True)  # fmt: skip
+    fresh = not Path(out).exists()
+    try:
+        metrics = _run_showing_progress(config, sim, episodes)
+    except BaseException:
+        if fresh and Path(out).is_dir() and not any(Path(out).iterdir()):
+            Path(out).rmdir()  # a refused start leaves no empty run directory of its own making
+        raise
     scores = metrics["scores"]
     trend = (
         f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f}"

@@ -59,6 +59,7 @@ def test_client_truncated_weights_file(tmp_path):
     weights = (tmp_path / "a" / "weights.npz").read_bytes()
     (tmp_path / "w.npz").write_bytes(weights[: len(weights) // 2])
     refused(client("--weights", tmp_path / "w.npz", "--out", tmp_path / "b"), "w.npz", "npz")
+    assert not (tmp_path / "b").exists()  # the refused start made no run directory it leaves behind
     # Weights of the other learner: the error says which learner they are for.
     proc = client("--learner", "deep", "--thinks", "1", "--out", tmp_path / "d")
     assert proc.returncode == 0, proc.stdout + proc.stderr
