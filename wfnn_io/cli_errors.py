@@ -4,6 +4,9 @@ Each tool's entry point is `guarded(app)`: a file that cannot be read or written
 use, a malformed endpoint or config (OSError, ValueError and their kinds) ends the run with
 `error: <what>` and exit code 2; anything else with exit code 1 and the same one line.
 `--verbose` adds the traceback for whoever debugs it.
+
+What else the tools share about their console lives here too: how often a status line is
+written where the output is no terminal (`Every`).
 """
 
 from __future__ import annotations

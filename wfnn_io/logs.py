@@ -378,8 +378,7 @@ def write_log(
     directory is as it was and the same command can be run again.
     """
     directory = Path(directory)
-    if is_log(directory) or (directory / LOG_JSON).exists():
-        raise LogFormatError(f"{directory} already holds a log; write to a new directory")
+    _check_new(directory)
     existed = directory.exists()
     there = set(directory.iterdir()) if directory.is_dir() else set()
     codec = Codec(sender)
@@ -402,6 +401,12 @@ def write_log(
         raise
     out.close()
     return written
+
+
+def _check_new(directory: Path) -> None:
+    """Refuse to write a log where one is (its segments, or only its description)."""
+    if is_log(directory) or (directory / LOG_JSON).exists():
+        raise LogFormatError(f"{directory} already holds a log; write to a new directory")
 
 
 def check_outside(out: Path, sources: Iterable[Path]) -> None:
@@ -505,8 +510,7 @@ def split(
         groups.setdefault(names[label], []).append(batch)
         done += len(batch)
     for name in groups:  # all checked before any is written, so that a refusal writes nothing
-        if is_log(Path(out) / name) or (Path(out) / name / LOG_JSON).exists():
-            raise LogFormatError(f"{Path(out) / name} already holds a log; split into a new directory")
+        _check_new(Path(out) / name)
     return {name: write_log(Path(out) / name, batches, config) for name, batches in groups.items()}
 
 
