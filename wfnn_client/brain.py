@@ -15,6 +15,9 @@
 
 from __future__ import annotations
 
+import logging
+import queue
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -30,6 +33,8 @@ from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import Learner
 from wfnn_io.protocol import EXP_EXPLORED, Codec, ExperienceBatch
+
+log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
@@ -90,12 +95,16 @@ class Recorder:
 
     `add` only buffers; a batch is encoded and appended every `batch_max` experiences or when
     the weights that chose the actions change source, and the rest at `close`. Appends are
-    left to the OS (they survive the process dying, not a power cut) and synced at `close`.
+    left to the OS (they survive the process dying, not a power cut) and synced at `close`. With
+    `background`, batches are encoded and appended by a writer thread, so that a slow disk does
+    not hold up the control tick that calls `add`; a failed write is raised by `check` and
+    `close`.
     """
 
     def __init__(
-        self, directory: Path, config: LearnerConfig, client_id: str | None = None, batch_max: int = 256
-    ) -> None:
+        self, directory: Path, config: LearnerConfig, client_id: str | None = None, batch_max: int = 256,
+        background: bool = False,
+    ) -> None:  # fmt: skip
         self.journal = Journal(directory, client_id, fsync="never", learner_config=config)
         self.codec = Codec(self.journal.client_id)
         self.spec_hash = config.spec_hash()
@@ -104,6 +113,14 @@ class Recorder:
         self._versions: list[int] = []
         self._source = ""
         self.recorded = 0
+        self.error: BaseException | None = None
+        """What stopped the writer thread, if anything."""
+        self._queue: queue.SimpleQueue[tuple[str, list[Experience], list[int]] | None] | None = None
+        self._writer: threading.Thread | None = None
+        if background:
+            self._queue = queue.SimpleQueue()
+            self._writer = threading.Thread(target=self._write_all, name="wfnn-record", daemon=True)
+            self._writer.start()
 
     def add(self, experience: Experience, source: str, version: int) -> None:
         """Record one experience (physical units), chosen by weights `version` of `source`."""
@@ -116,20 +133,48 @@ class Recorder:
             self.flush()
 
     def flush(self) -> None:
-        """Append the buffered experiences as one batch."""
+        """Append the buffered experiences as one batch (with `background`, hand them to the writer)."""
         if not self._experiences:
             return
-        batch = experience_batch(self.journal.client_id, self.spec_hash, self.journal.next_seq, self._source,
-                                 self._experiences, self._versions)  # fmt: skip
+        batch = (self._source, self._experiences, self._versions)
+        self._experiences, self._versions = [], []
+        if self._queue is None:
+            self._write(*batch)
+        elif self.error is None:
+            self._queue.put(batch)
+
+    def _write(self, source: str, experiences: list[Experience], versions: list[int]) -> None:
+        batch = experience_batch(self.journal.client_id, self.spec_hash, self.journal.next_seq, source,
+                                 experiences, versions)  # fmt: skip
         self.journal.append(self.codec.encode(batch), batch.last_seq)
         self.recorded += len(batch)
-        self._experiences.clear()
-        self._versions.clear()
+
+    def _write_all(self) -> None:
+        """The writer thread: batches in order until `close` says there are no more."""
+        assert self._queue is not None
+        while (item := self._queue.get()) is not None:
+            if self.error is None:
+                try:
+                    self._write(*item)
+                except BaseException as exc:  # kept for `check` and `close`; later batches are dropped
+                    self.error = exc
+                    log.error("the experience record cannot be written: %s", exc)
+
+    def check(self) -> None:
+        """Raise the writer thread's error, if any."""
+        if self.error is not None:
+            raise RuntimeError("writing the experience record failed") from self.error
 
     def close(self) -> None:
-        """Flush, sync and close."""
-        self.flush()
-        self.journal.close()
+        """Flush, sync and close (raises the writer's error, once the journal is closed)."""
+        try:
+            self.flush()
+            if self._queue is not None and self._writer is not None:
+                self._queue.put(None)
+                self._writer.join()
+        finally:
+            self.journal.close()
+        self.check()
 
 
 class Brain(Protocol):
@@ -212,11 +257,13 @@ class LocalBrain:
             self.mt.start()
 
     def stop(self) -> None:
-        """Stop the think thread; close the record."""
-        if self.mt is not None:
-            self.mt.stop()
-        if self.recorder is not None:
-            self.recorder.close()
+        """Stop the think thread; close the record (also when the think thread failed)."""
+        try:
+            if self.mt is not None:
+                self.mt.stop()
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()
 
     def act(self, state: FloatArray, explore: bool = True) -> Acted | None:
         """Best wire of the newest snapshot (lock-step: of the learner itself)."""
@@ -261,6 +308,8 @@ class LocalBrain:
         """Nobody to tell in-process."""
 
     def check(self) -> None:
-        """Raise the think thread's error, if any."""
+        """Raise the think thread's or the record's error, if any."""
         if self.mt is not None and self.mt.error is not None:
             raise RuntimeError("think thread failed") from self.mt.error
+        if self.recorder is not None:
+            self.recorder.check()

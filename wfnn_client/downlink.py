@@ -183,7 +183,18 @@ class Downlink:
             new_config = view.learner_config != status.learner_config and bool(status.learner_config)
             view.metrics = status.metrics
             if self.id in status.stored_through:
-                view.acked = max(view.acked, status.stored_through[self.id])
+                # What this start's own status says, not the most anything ever said: one forged
+                # ack of a huge number would otherwise stop re-sends to this server for good.
+                view.acked = status.stored_through[self.id]
+            latest = view.latest
+            if (latest is not None and latest.version > status.weights_version
+                    and time.monotonic() - latest.received >= self.config.status_timeout_s):  # fmt: skip
+                # A version its server's statuses have not reached status_timeout_s later: not
+                # its own (a forged number would make every real snapshot look stale for good).
+                view.latest = None
+                self.rejected["unconfirmed"] += 1
+                log.warning("server %s: weights version %d is not one its statuses announce (%d): "
+                            "dropped", status.server, latest.version, status.weights_version)  # fmt: skip
             ask = not view.asked and view.latest is None and status.spec_hash == self.spec_hash
             view.asked = view.asked or ask
         if new_config:  # a config not seen from this server before: checked, and compared with ours once
@@ -254,10 +265,13 @@ class Downlink:
             return "non_finite"
         with self.table.lock:
             view = self.table.views.get(snap.server)
-            if view is None or (snap.store, snap.incarnation) != (view.store, view.incarnation):
-                return "unannounced"  # not what that server's own status says it is
-            if snap.published_ns < view.started_ns:  # before the start announced (its clock both)
-                return "unannounced"  # an earlier start's, of a store restored with its incarnation
+            if view is None or (snap.store, snap.incarnation, snap.started_ns) != (
+                view.store,
+                view.incarnation,
+                view.started_ns,
+            ):  # not the start that server's own status announces (an earlier one's, replayed, or
+                # of a store restored from a backup that counts its incarnations again)
+                return "unannounced"
             latest = view.latest
         if latest is not None and snap.version <= latest.version:
             return "stale"

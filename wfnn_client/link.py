@@ -172,34 +172,34 @@ class ServerTable:
         with self.lock:
             return any(v.alive for v in self.views.values())
 
-    def announced(
-        self, view: ServerView, store: str, incarnation: int, started_ns: int | None = None
-    ) -> bool:
-        """A server says which store and incarnation it is (caller holds the lock); -> whether to take it.
+    def announced(self, view: ServerView, store: str, incarnation: int, started_ns: int) -> bool:
+        """A server says which store, incarnation and start it is (caller holds the lock); take it?
 
         Another store than before (a server restarted with a new data directory, or the first
         word from it) holds what it says it holds, whatever was acknowledged before: the
         acknowledged point restarts, so the journal re-sends it everything it lacks. Another
-        start of the same store (a higher incarnation, or in a status a later `started_ns`: a
-        data directory restored from a backup counts its incarnations again) holds what it now
-        says too, which may be less than before. Another store or start also restarts the order
-        of its snapshots: weights of one that is no longer announced are not followed.
+        start of the same store (another incarnation or `started_ns`: a data directory restored
+        from a backup counts its incarnations again, and a server's clock may be set back) holds
+        what it now says too, which may be less than before. Another store or start also restarts
+        the order of its snapshots: weights of one that is no longer announced are not followed.
 
-        A message of an earlier start of the store announced now, while that server is alive,
-        is refused (False): a recorded frame replayed, which a MAC does not tell from a fresh one.
+        A message of an earlier start of the store announced now is refused (False): a recorded
+        frame replayed, which a MAC does not tell from a fresh one. While that server is alive, a
+        lower incarnation or an earlier start of the same incarnation is earlier; once it is
+        silent, only a start earlier by both (a lower or equal incarnation that started before),
+        so that a restored backup (a lower incarnation started later) and a start after the
+        server's clock was set back (a higher incarnation started "before") are still taken.
         """
         if store == view.store:
-            earlier = incarnation < view.incarnation or (
-                incarnation == view.incarnation and started_ns is not None and started_ns < view.started_ns
-            )
-            if earlier and view.alive:
+            if view.alive:
+                earlier = incarnation < view.incarnation or (
+                    incarnation == view.incarnation and started_ns < view.started_ns
+                )
+            else:
+                earlier = incarnation <= view.incarnation and started_ns < view.started_ns
+            if earlier:
                 return False
-            restarted = incarnation != view.incarnation or (
-                started_ns is not None and view.started_ns != 0 and started_ns != view.started_ns
-            )
-            if not restarted:
-                if started_ns is not None:
-                    view.started_ns = started_ns
+            if (incarnation, started_ns) == (view.incarnation, view.started_ns):
                 return True
             log.info("server %s restarted (incarnation %d): re-sending what it lacks", view.server,
                      incarnation)  # fmt: skip
@@ -207,9 +207,7 @@ class ServerTable:
             log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,
                         store, view.store)  # fmt: skip
         view.acked, view.window_end, view.last_resend = -1, -1, 0.0
-        view.store, view.incarnation = store, incarnation
-        if started_ns is not None:
-            view.started_ns = started_ns
+        view.store, view.incarnation, view.started_ns = store, incarnation, started_ns
         view.latest, view.asked = None, False
         return True
 

@@ -244,8 +244,8 @@ class RemoteBrain:
                 f"downlink/oversized_{k.rsplit('/', 1)[-1]}": float(v)
                 for k, v in dict(getattr(self.bus, "oversized", {})).items()
             },
-            **{f"downlink/rejected_{k}": float(v) for k, v in self.rejected.items()},
-            **{k: float(v) for k, v in self.counters.items()},
+            **{f"downlink/rejected_{k}": float(v) for k, v in dict(self.rejected).items()},
+            **{k: float(v) for k, v in dict(self.counters).items()},
         }
         with self.table.lock:
             acked = [v.acked for v in self.table.views.values() if v.alive]

@@ -78,7 +78,9 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> B
     if config.local:
         from wfnn_client.brain import Recorder
 
-        record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id)
+        # Off the tick, in lock-step too: a slow disk must not hold up the control loop.
+        record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id,
+                          background=True)  # fmt: skip
         return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)
     from wfnn_client.remote import RemoteBrain, RemoteConfig, largest_message
     from wfnn_io.bus import ZenohBus

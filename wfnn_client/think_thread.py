@@ -87,6 +87,8 @@ class ActLearnThinkMT:
             if self._thread.is_alive():  # still in a long think: leave the queue to it
                 return
             self._thread = None
+        if self.error is not None:  # the learner failed: what is queued stays unlearned (the record keeps it)
+            return
         while self._queue:
             stored = self.learner.learn(*self._queue.popleft())
             self.schedule.owe(self.learner.config.thinks_per_action * int(np.sum(stored)))

@@ -87,7 +87,9 @@ class Uplink:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._sent: collections.deque[tuple[float, int]] = collections.deque()
-        self._overdue = -1
+        self._overdue = journal.next_seq - 1
+        """Experiences through this number are due for re-sending to servers that lack them: at
+        first everything an earlier run journaled (it may never have been acknowledged)."""
 
     @property
     def produced_through(self) -> int:
@@ -211,12 +213,17 @@ class Uplink:
         if ack.client != self.id or sender != ack.server:
             self.rejected["ack_misrouted"] += 1
             return
+        if ack.stored_through > self.produced_through:
+            # Acks answer what this client sent: beyond it is forged (a server holding more than
+            # this journal, after its tail was lost, says so in its status: `_check_numbering`).
+            self.rejected["ack_beyond"] += 1
+            return
         with self.table.lock:
             view = self.table.view(ack.server)
             if view is None:
                 self.rejected["ack_servers_full"] += 1
                 return
-            if not self.table.announced(view, ack.store, ack.incarnation):
+            if not self.table.announced(view, ack.store, ack.incarnation, ack.started_ns):
                 self.rejected["ack_stale"] += 1  # an earlier start's ack, replayed
                 return
             view.acked = max(view.acked, ack.stored_through)

@@ -39,9 +39,10 @@ from numpy.typing import NDArray
 log = logging.getLogger(__name__)
 
 MAGIC = b"WFNN"
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 """Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`; version 3 the
-server's effective learner config to `ServerStatus`."""
+server's effective learner config to `ServerStatus`; version 4 the start (`started_ns`) to `Ack`
+and `WeightSnapshot`."""
 FLAG_MAC = 0x01
 HEADER = struct.Struct("<4sBBBB16sQI")
 """magic, version, type, flags, reserved, sender, seq, body_len."""
@@ -151,7 +152,7 @@ class MsgType(IntEnum):
 
 
 SINCE: dict[MsgType, int] = {
-    MsgType.EXPERIENCES: 1, MsgType.ACK: 2, MsgType.WEIGHTS: 2, MsgType.SERVER_STATUS: 3,
+    MsgType.EXPERIENCES: 1, MsgType.ACK: 4, MsgType.WEIGHTS: 4, MsgType.SERVER_STATUS: 3,
     MsgType.CLIENT_STATUS: 1, MsgType.CAMERA_VIEW: 1,
 }  # fmt: skip
 """The oldest protocol version whose body of each type this build reads (logs written by
@@ -286,6 +287,9 @@ class Ack:
     store: str
     """The identity of the server's store (made when the store was created): a server restarted
     with a new, empty store is another store, whatever its id and incarnation."""
+    started_ns: int
+    """The server's start (`ServerStatus.started_ns`): a client takes acks only of the start the
+    server's status announces (a store restored from a backup counts its incarnations again)."""
     stored_through: int
     """-1: nothing stored yet."""
 
@@ -297,10 +301,12 @@ class WeightSnapshot:
     TYPE: ClassVar[MsgType] = MsgType.WEIGHTS
     server: str
     incarnation: int
-    """Increases at every start of the server; a client takes snapshots only of the store and
-    incarnation the server's status announces, and orders them by version."""
+    """Increases at every start of the server; a client takes snapshots only of the store,
+    incarnation and start the server's status announces, and orders them by version."""
     store: str
     """The identity of the server's store (see `Ack.store`)."""
+    started_ns: int
+    """The server's start (see `Ack.started_ns`)."""
     version: int
     spec_hash: str
     published_ns: int

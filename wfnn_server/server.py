@@ -554,8 +554,8 @@ class ThinkServer:
             or batch.state.shape[1] != cfg.state_dim
             or (batch.action.shape[1] != cfg.action_dim)
         ):
-            if batch.client not in self._spec_warned:
-                self._spec_warned.add(batch.client)
+            if batch.client not in self._spec_warned and len(self._spec_warned) < MAX_LISTED:
+                self._spec_warned.add(batch.client)  # once per client, and not for every forged id
                 log.error(
                     "client %s sends experiences for spec %s (S=%d, A=%d); this server's learner is "
                     "spec %s (S=%d, A=%d): refused",
@@ -606,7 +606,7 @@ class ThinkServer:
 
     def _ack(self, client: str, through: int) -> None:
         ack = Ack(client=client, server=self.id, incarnation=self.incarnation, store=self.store.id,
-                  stored_through=through)  # fmt: skip
+                  started_ns=self.started_ns, stored_through=through)  # fmt: skip
         self.bus.put(self.keys.ack(client, self.id), self.codec.encode(ack), Channel.CONTROL)
 
     # ------------------------------------------------------------------ learner thread
@@ -740,8 +740,8 @@ class ThinkServer:
             return
         self.version += 1
         snapshot = WeightSnapshot(
-            server=self.id, incarnation=self.incarnation, store=self.store.id, version=self.version,
-            spec_hash=self.spec_hash,
+            server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
+            version=self.version, spec_hash=self.spec_hash,
             published_ns=time.time_ns(), thinks=int(learner.thinks[0]),
             diverged=self.schedule.recovering(int(learner.thinks[0])),
             learned_through=self._listed(self.learned_through), params=learner.params.flat[:1],
@@ -789,7 +789,7 @@ class ThinkServer:
             "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,
             "clients/heard": float(self._check_clients()),
             "clients/silent": float(len(self._silent)),
-            **{k: float(v) for k, v in self.counters.items()},
+            **{k: float(v) for k, v in dict(self.counters).items()},
         }
         if self._q_chosen:
             q = np.asarray(self._q_chosen)

@@ -123,7 +123,8 @@ def test_snapshots_without_the_key_are_never_applied(tmp_path):
             while time.monotonic() < deadline:
                 version += 1
                 snap = WeightSnapshot(
-                    server="srv", incarnation=10**6, store="fake", version=version, spec_hash="",
+                    server="srv", incarnation=10**6, store="fake", started_ns=1, version=version,
+                    spec_hash="",
                     published_ns=time.time_ns(), thinks=0, diverged=False, learned_through={},
                     params=np.full((1, n_params), 0.25),
                 )  # fmt: skip

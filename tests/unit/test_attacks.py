@@ -20,7 +20,7 @@ from tests.unit.wfnn_server.test_server import KEYS, Listener, batch, make_serve
 from wfnn_client.brain import Experience
 from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
 from wfnn_io.bus import NetConfig, check_exposure, endpoints
-from wfnn_io.protocol import EXP_NON_FINITE, ClientStatus, Codec
+from wfnn_io.protocol import EXP_NON_FINITE, Ack, ClientStatus, Codec
 
 
 def feed(brain, n, seed=0):
@@ -200,6 +200,56 @@ def test_forged_snapshots_of_a_huge_incarnation_do_not_capture_the_robot(tmp_pat
             acted = brain.act(np.zeros(3))
             assert acted.source == f"s1:{server.incarnation}" and brain.current.store == server.store.id
             assert not np.allclose(brain.current.params.flat, 0.5)
+        finally:
+            brain.stop()
+
+
+def test_one_forged_snapshot_of_a_huge_version_stops_driving_the_robot(tmp_path):
+    """The genuine start (store, incarnation and start are public in its status), a version its
+    statuses never reach: dropped status_timeout_s after it arrived, and genuine weights return."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg, status_timeout_s=0.5)
+        brain.start()
+        try:
+            assert wait(lambda: brain.following == "s1" and brain.current is not None)
+            forged = forge(cfg, version=2**63, incarnation=server.incarnation, store=server.store.id,
+                           started_ns=server.started_ns)  # fmt: skip
+            hub.bus().put(KEYS.weights("s1"), forged, None)  # one frame, then the forger stops
+            assert wait(lambda: brain.current.version == 2**63)
+            assert wait(lambda: brain.current.version < 2**63, timeout=3.0)
+            assert brain.rejected["unconfirmed"] >= 1 and not np.allclose(brain.current.params.flat, 0.5)
+        finally:
+            brain.stop()
+
+
+def test_one_forged_ack_of_a_huge_number_does_not_stop_resends(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            feed(brain, 20)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
+            forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
+                         started_ns=server.started_ns, stored_through=2**63)  # fmt: skip
+            hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
+            assert wait(lambda: brain.rejected["ack_beyond"] == 1)
+            lost = {"n": 1}
+
+            def tap(key, payload):  # one live batch lost on the way
+                if "/exp/live/" in key and lost["n"]:
+                    lost["n"] -= 1
+                    return None
+                return payload
+
+            hub.tap = tap
+            feed(brain, 1, seed=1)
+            assert wait(lambda: lost["n"] == 0)
+            hub.tap = None
+            feed(brain, 40, seed=2)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
+            assert brain.all_acked()
         finally:
             brain.stop()
 

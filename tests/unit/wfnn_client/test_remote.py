@@ -28,10 +28,10 @@ KEY = b"k" * 32
 """The shared key of the keyed tests (`keyed`)."""
 
 
-def keyed(tmp_path, hub, cfg):
+def keyed(tmp_path, hub, cfg, **kw):
     """A started client whose frames carry HMAC tags under KEY, and a bus to reach it -> (brain, bus)."""
     (tmp_path / "key").write_bytes(KEY)
-    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
+    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key", **kw)
     brain.start()
     return brain, hub.bus()
 
@@ -125,10 +125,10 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
 
 
 def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
-          store="store1", published_ns=None, learned_through=None):  # fmt: skip
+          store="store1", published_ns=None, learned_through=None, started_ns=1):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1] if params is None else params.shape[1]
     snap = WeightSnapshot(
-        server=server, incarnation=incarnation, store=store, version=version,
+        server=server, incarnation=incarnation, store=store, started_ns=started_ns, version=version,
         spec_hash=spec or cfg.spec_hash(),
         published_ns=published_ns or time.time_ns(), thinks=0, diverged=diverged,
         learned_through=learned_through or {},
@@ -161,7 +161,7 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     assert brain.current.version == 5
     # A restarted server (next incarnation, as its status says) starts its versions again.
     announce(bus, "s1", cfg, started_ns=2, key=KEY, incarnation=2, token=False)
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY, started_ns=2), None)
     assert wait(lambda: brain.current.incarnation == 2)
     brain.stop()
 
@@ -196,7 +196,7 @@ def test_with_no_healthy_server_the_weights_relearned_after_a_reset_drive_the_ro
     assert brain.act(np.zeros(3)) is not None
     # A healthy server is preferred to a relearning one, even a younger one.
     announce(bus, "s2", cfg, started_ns=2)
-    bus.put(KEYS.weights("s2"), forge(cfg, server="s2", version=7), None)
+    bus.put(KEYS.weights("s2"), forge(cfg, server="s2", version=7, started_ns=2), None)
     assert wait(lambda: brain.connected and brain.following == "s2" and brain.current.server == "s2")
     bus.put(KEYS.weights("s1"), forge(cfg, version=3, diverged=True), None)
     time.sleep(0.2)
@@ -342,7 +342,7 @@ def test_a_store_announced_during_a_resend_keeps_its_restarted_window(tmp_path):
 
     def announced_meanwhile(first, count):
         with uplink.table.lock:
-            uplink.table.announced(view, "new", 1)
+            uplink.table.announced(view, "new", 1, 1)
         return frames_from(first, count)
 
     uplink.journal.frames_from = announced_meanwhile
@@ -376,7 +376,7 @@ def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path
                      metrics={})
     )  # fmt: skip
     announce(bus, "s1", cfg, started_ns=2, key=KEY, incarnation=2, token=False)  # s1 restarted
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY, started_ns=2), None)
     assert wait(lambda: brain.current is not None and brain.current.incarnation == 2)
     # MAC-valid frames of s1's first start, replayed (one at a time: the downlink keeps the newest)
     for n in range(1, 4):
@@ -431,16 +431,50 @@ def test_new_experiences_are_numbered_past_what_the_servers_hold(tmp_path):
 
 def test_a_snapshot_of_a_restored_stores_earlier_start_is_refused(tmp_path):
     """A data directory restored from a backup counts its incarnations again: an earlier start's
-    snapshot has the same store and incarnation, but was published before the start announced."""
+    snapshot has the same store and incarnation, but not the start announced."""
     hub, cfg = Hub(), small_config()
     brain, bus = keyed(tmp_path, hub, cfg)
-    earlier = forge(cfg, version=9, key=KEY, published_ns=time.time_ns())  # recorded from the first start
-    time.sleep(0.01)
-    announce(bus, "s1", cfg, started_ns=time.time_ns(), key=KEY)  # the restored start
+    earlier = forge(cfg, version=9, key=KEY, started_ns=100)  # recorded from the first start
+    announce(bus, "s1", cfg, started_ns=200, key=KEY)  # the restored start
     bus.put(KEYS.weights("s1"), earlier, None)
     assert wait(lambda: brain.rejected["unannounced"] == 1)
-    bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=KEY), None)  # its own
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=KEY, started_ns=200), None)  # its own
     assert wait(lambda: brain.current is not None and brain.current.version == 1)
+    brain.stop()
+
+
+def test_a_server_whose_clock_was_set_back_is_still_followed(tmp_path):
+    """Its snapshots are published "before" its start by its own clock: they are still its start's."""
+    hub, cfg = Hub(), small_config()
+    brain, bus = keyed(tmp_path, hub, cfg)
+    start = time.time_ns()
+    announce(bus, "s1", cfg, started_ns=start, key=KEY)
+    for version in (1, 2):
+        set_back = start - 3_600 * 10**9 + version  # an hour back, as NTP or an RTC might set it
+        frame = forge(cfg, version=version, key=KEY, started_ns=start, published_ns=set_back)
+        bus.put(KEYS.weights("s1"), frame, None)
+        assert wait(lambda v=version: brain.current is not None and brain.current.version == v)
+    assert brain.connected and not brain.rejected
+    brain.stop()
+
+
+def test_an_earlier_start_replayed_after_the_server_fell_silent_is_refused(tmp_path):
+    """Known at incarnation 2, then silent: its incarnation 1 (started before) is not taken back."""
+    hub, cfg = Hub(), small_config()
+    brain, bus = keyed(tmp_path, hub, cfg, status_timeout_s=0.3)
+    announce(bus, "s1", cfg, started_ns=2, key=KEY, incarnation=2)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY, started_ns=2), None)
+    assert wait(lambda: brain.current is not None and brain.current.incarnation == 2)
+    assert wait(lambda: not brain.table.views["s1"].alive)
+    announce(bus, "s1", cfg, started_ns=1, key=KEY, incarnation=1, token=False)  # recorded, replayed
+    assert wait(lambda: brain.rejected["status_stale"] == 1)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=9, incarnation=1, key=KEY, started_ns=1), None)
+    assert wait(lambda: brain.rejected["unannounced"] == 1)
+    assert brain.current.incarnation == 2 and brain.table.views["s1"].incarnation == 2
+    # A store restored from a backup (a lower incarnation that started later) is taken.
+    announce(bus, "s1", cfg, started_ns=3, key=KEY, incarnation=1, token=False)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=1, key=KEY, started_ns=3), None)
+    assert wait(lambda: brain.current.incarnation == 1 and brain.current.version == 1)
     brain.stop()
 
 
@@ -522,3 +556,23 @@ def test_a_deep_client_new_to_trained_weights_acts_on_them_past_its_warm_up(tmp_
     off = np.mean([np.abs(brain.act(x).result.action - greedy).mean() for _ in range(300)])
     brain.stop()
     assert (off > 0.3) == warming_up, off  # uniform in [-1, 1]: 0.5 off on average; sigma 0.1: 0.08
+
+
+def test_a_restarted_client_resends_what_its_last_run_journaled_unacknowledged(tmp_path):
+    """Before it produces anything new (an idle robot, or a lock-step run's first sync)."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        hub.tap = lambda key, data: None if "/exp/" in key or "/ack/" in key else data  # nothing gets through
+        first = remote(tmp_path, hub, cfg)
+        first.start()
+        for _ in range(30):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(lambda: first.uplink.queued == 0 and first.produced_through == 29)
+        first.stop()
+        assert server.store.count == 0
+        hub.tap = None
+        again = remote(tmp_path, hub, cfg, lockstep=True)
+        again.start()
+        assert again.sync(5.0)  # every journaled experience re-sent and thought about
+        assert server.store.count == 30 and again.all_acked()
+        again.stop()

@@ -67,3 +67,66 @@ def test_mt_stop_keeps_the_experiences_the_think_thread_had_not_taken_yet():
     mt.stop()
     assert mt.queued == 0 and learner.buffer.count[0] == 40
     assert mt.budget == 40 * 5 and learner.thinks[0] == 0  # stored, not yet replayed
+
+
+def test_a_local_brain_whose_learner_fails_keeps_its_record_and_says_why(tmp_path):
+    """The think thread's error is what `check` raises; stopping keeps every experience recorded."""
+    from wfnn_client.brain import Experience, LocalBrain, Recorder
+    from wfnn_io.logs import read_batches
+
+    cfg = small_config()
+    learner = WFNN(cfg)
+    learned = {"n": 0}
+    real_learn = learner.learn
+
+    def failing_learn(*args, **kw):
+        learned["n"] += 1
+        if learned["n"] > 20:
+            raise FloatingPointError("learn failed")
+        return real_learn(*args, **kw)
+
+    learner.learn = failing_learn
+    brain = LocalBrain(learner, recorder=Recorder(tmp_path / "journal", cfg, batch_max=16, background=True))
+    brain.start()
+    z = np.zeros(3)
+    for _ in range(40):
+        brain.learn(Experience(z, np.zeros(2), z, -0.1), None)
+        time.sleep(0.002)
+    deadline = time.monotonic() + 10
+    while brain.mt.error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    try:
+        brain.check()
+        raise AssertionError("check did not raise")
+    except RuntimeError as exc:
+        assert "think thread failed" in str(exc) and isinstance(exc.__cause__, FloatingPointError)
+    brain.stop()  # does not learn what is queued through the failed learner; closes the record
+    assert sum(len(b) for b in read_batches(tmp_path / "journal")) == 40
+
+
+def test_a_background_record_writes_off_the_calling_thread_in_order(tmp_path):
+    from wfnn_client.brain import Experience, Recorder
+    from wfnn_io.logs import read_batches
+    from wfnn_io.segments import SegmentLog
+
+    writers = set()
+    append = SegmentLog.append
+
+    def slow_append(self, record):
+        writers.add(threading.current_thread().name)
+        time.sleep(0.05)  # a slow disk
+        return append(self, record)
+
+    SegmentLog.append = slow_append
+    try:
+        recorder = Recorder(tmp_path / "journal", small_config(), batch_max=4, background=True)
+        t0 = time.perf_counter()
+        for i in range(40):
+            recorder.add(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -float(i)), "local", i)
+        assert time.perf_counter() - t0 < 0.2  # ten appends of 50 ms each did not wait here
+        recorder.close()
+    finally:
+        SegmentLog.append = append
+    assert writers == {"wfnn-record"}
+    rewards = np.concatenate([b.reward for b in read_batches(tmp_path / "journal")])
+    np.testing.assert_array_equal(rewards, -np.arange(40.0))

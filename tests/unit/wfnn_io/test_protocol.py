@@ -66,7 +66,14 @@ def make_batch(n=5, s=3, a=2, first_seq=0, client="robot1", seed=0):
 
 
 def make_ack(stored_through=41):
-    return Ack(client="robot1", server="srv1", incarnation=3, store="9f2c4e", stored_through=stored_through)
+    return Ack(
+        client="robot1",
+        server="srv1",
+        incarnation=3,
+        store="9f2c4e",
+        started_ns=1_700_000_000_000_000_000,
+        stored_through=stored_through,
+    )
 
 
 def make_weights():
@@ -74,6 +81,7 @@ def make_weights():
         server="srv1",
         incarnation=2,
         store="9f2c4e",
+        started_ns=1_699_999_999_000_000_000,
         version=17,
         spec_hash="abc123",
         published_ns=1_700_000_000_123_456_789,
@@ -372,7 +380,7 @@ def test_wrong_magic_is_bad_magic():
 
 def test_wrong_version_is_version_mismatch():
     body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
-    for version in (0, 1, PROTOCOL_VERSION + 1, 255):  # version 1 acks had no store
+    for version in (0, 1, 2, 3, PROTOCOL_VERSION + 1, 255):  # version 1 acks had no store, 3 no start
         with pytest.raises(VersionMismatch) as info:
             decode(raw_frame(body, MsgType.ACK, version=version))
         assert info.value.reason == "version"
