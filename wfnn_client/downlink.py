@@ -26,7 +26,17 @@ from wfnn_common.config import LearnerConfig, parse_json
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_common.learners import n_params, weights_from_flat
 from wfnn_io.bus import Bus
-from wfnn_io.protocol import Codec, Keys, MsgType, ServerStatus, WeightSnapshot, max_frame, take
+from wfnn_io.protocol import (
+    Codec,
+    Keys,
+    MsgType,
+    ProtocolError,
+    ServerStatus,
+    WeightSnapshot,
+    check_frame,
+    max_frame,
+    take,
+)
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +130,16 @@ class Downlink:
         self._wake.set()
 
     def _on_snapshot(self, key: str, data: bytes) -> None:
-        self._snapshots[Keys.last(key)] = data
+        server = Keys.last(key)
+        try:  # one frame per server waits to be decoded: junk must not push out a genuine snapshot
+            sender = check_frame(data, self.codec.key, WeightSnapshot)
+        except ProtocolError as exc:
+            self.rejected[exc.reason] += 1
+            return
+        if sender != server:
+            self.rejected["misrouted"] += 1
+            return
+        self._snapshots[server] = data
         self._wake.set()
 
     def suspect(self, server: str) -> None:

@@ -17,6 +17,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
@@ -31,7 +32,9 @@ from wfnn_io.protocol import (
     ExperienceBatch,
     Keys,
     MsgType,
+    decode,
     max_frame,
+    tag_verifies,
     take,
 )
 
@@ -245,6 +248,7 @@ class Uplink:
             frames, last = self.journal.frames_from(acked + 1, cfg.resend_window)
             if not frames:
                 continue
+            frames = [self._tagged(frame) for frame in frames]
             if not self.journal.holds(acked + 1):  # damage took them: say so, or it waits forever
                 frames[0] = self._declare_loss(frames[0], view.server, acked)
             for frame in frames:
@@ -257,9 +261,22 @@ class Uplink:
             log.info("re-sent %d batches from experience %d to server %s", len(frames), acked + 1,
                      view.server)  # fmt: skip
 
+    def _tagged(self, frame: bytes) -> bytes:
+        """A journaled frame as this client sends now: tagged with its key.
+
+        A journal written without a key, or with another, would have its re-sends refused for good.
+        """
+        key = self.codec.key
+        if key is None or tag_verifies(frame, key):
+            return frame
+        self.counters["uplink/retagged_frames"] += 1
+        return self.codec.encode(decode(frame, expect=ExperienceBatch).message)
+
     def _declare_loss(self, frame: bytes, server: str, acked: int) -> bytes:
         """The journaled batch `frame`, re-encoded to declare the experiences after `acked` before it lost."""
-        _, batch = self.codec.decode(frame, ExperienceBatch)
+        batch = cast(
+            ExperienceBatch, decode(frame, expect=ExperienceBatch).message
+        )  # our own disk: no tag check
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
         log.error("experiences %d-%d are not in the journal (damaged, or numbers skipped past what servers "

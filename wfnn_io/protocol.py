@@ -595,7 +595,35 @@ def decode(
         raise MalformedBody(f"{type(exc).__name__}: {exc}") from exc
 
 
+def check_frame(
+    frame: bytes | bytearray | memoryview, key: bytes | None = None, expect: type[Message] | None = None
+) -> str:
+    """Check a frame's header, length, CRC and (with `key`) HMAC tag without unpacking its body.
+
+    Returns the sender id; raises only `ProtocolError` subclasses. For a receiver that keeps one
+    frame per key until it is decoded: an unchecked frame must not push out a checked one.
+    """
+    try:
+        return _check(bytes(frame), key, expect, "required")[0]
+    except ProtocolError:
+        raise
+    except Exception as exc:
+        raise MalformedBody(f"{type(exc).__name__}: {exc}") from exc
+
+
 def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacPolicy) -> Frame:
+    sender, seq, msg_type, body_len = _check(frame, key, expect, mac)
+    body = msgpack.unpackb(
+        memoryview(frame)[HEADER.size : HEADER.size + body_len], raw=False, strict_map_key=True,
+        use_list=True,
+    )  # fmt: skip
+    return Frame(sender, seq, from_body(msg_type, body))
+
+
+def _check(
+    frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacPolicy
+) -> tuple[str, int, MsgType, int]:
+    """-> (sender, seq, type, body length) of a frame whose header, CRC and tag check out."""
     if len(frame) < MIN_FRAME:
         raise Truncated(f"frame of {len(frame)} bytes is shorter than the minimum {MIN_FRAME}")
     magic, version, type_code, flags, _, sender_raw, seq, body_len = HEADER.unpack_from(frame)
@@ -635,11 +663,15 @@ def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacP
     sender = sender_raw.rstrip(b"\0").decode("ascii")
     if not _ID_PATTERN.fullmatch(sender):
         raise MalformedBody(f"bad sender id {sender_raw!r}")
-    body = msgpack.unpackb(
-        memoryview(frame)[HEADER.size : HEADER.size + body_len], raw=False, strict_map_key=True,
-        use_list=True,
-    )  # fmt: skip
-    return Frame(sender, seq, from_body(msg_type, body))
+    return sender, seq, msg_type, body_len
+
+
+def tag_verifies(frame: bytes, key: bytes) -> bool:
+    """Whether a frame (one this host wrote: its CRC is not checked) carries a tag `key` verifies."""
+    if len(frame) < MIN_FRAME + MAC_SIZE or not frame[6] & FLAG_MAC:
+        return False
+    end = len(frame) - CRC_SIZE - MAC_SIZE
+    return hmac.compare_digest(frame[end : end + MAC_SIZE], _mac(key, memoryview(frame)[:end]))
 
 
 def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str], what: str,

@@ -378,3 +378,51 @@ def test_experience_numbers_past_an_int64_are_refused():
         make_batch(n=5, first_seq=MAX_SEQ - 3).validate()
     frame = Codec("robot1").encode(make_batch(n=5, first_seq=MAX_SEQ - 4))
     assert decode(frame).message.last_seq == MAX_SEQ
+
+
+def test_junk_on_the_weights_key_never_pushes_out_a_genuine_snapshot(tmp_path):
+    """The client keeps one frame per server until it decodes it: only a frame that checks out."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg)
+        rogue = hub.bus()
+        real_put = server.bus.put
+
+        def put_then_junk(key, data, channel):  # every snapshot chased at once by 4 junk bytes
+            real_put(key, data, channel)
+            if "/weights/" in key:
+                rogue.put(key, b"junk", None)
+
+        server.bus.put = put_then_junk
+        brain.start()
+        try:
+            assert wait(lambda: brain.current is not None and brain.current.version >= 5, timeout=5.0)
+            assert brain.rejected["truncated"] >= 3
+        finally:
+            brain.stop()
+
+
+def test_a_journal_written_without_a_key_is_resent_tagged_once_the_client_has_one(tmp_path):
+    """Also where its numbers have a gap that must be declared lost (a decode with the key)."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    (tmp_path / "key").write_bytes(b"k" * 32)
+    first = remote(tmp_path, hub, cfg, status_timeout_s=0.3)
+    first.start()
+    bus = hub.bus()
+    announce(
+        bus, "old", cfg, started_ns=1, stored_through={first.id: 4}, token=False
+    )  # the journal starts at 5
+    feed(first, 20)
+    assert wait(lambda: first.journal.next_seq == 25)
+    first.stop()
+    keyed_hub = Hub()
+    with make_server(tmp_path, keyed_hub, cfg, key_file=tmp_path / "key") as server:
+        brain = remote(tmp_path, keyed_hub, cfg, key_file=tmp_path / "key")
+        brain.start()
+        try:
+            feed(brain, 10, seed=3)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 34, timeout=10.0)
+            assert not server.rejected.get("auth") and brain.counters["uplink/retagged_frames"] > 0
+            assert brain.error is None
+        finally:
+            brain.stop()
