@@ -30,7 +30,7 @@ import typer
 from wfnn_common.config import check_fields, settings
 from wfnn_io.cli_errors import guarded
 from wfnn_io.logs import is_log
-from wfnn_io.persist import atomic_write_bytes, atomic_write_text
+from wfnn_io.persist import atomic_write_bytes, atomic_write_text, read_regular_text
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,7 @@ RUN_FIGURES: tuple[tuple[str, str | tuple[str, ...]], ...] = (
 
 def _read_json(path: Path) -> Any:
     try:
-        return json.loads(path.read_text())
+        return json.loads(read_regular_text(path))
     except (OSError, ValueError, RecursionError) as exc:
         raise ReportError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from exc
 

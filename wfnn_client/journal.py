@@ -18,7 +18,7 @@ from pathlib import Path
 
 from wfnn_common.config import LearnerConfig
 from wfnn_io.logs import ExperienceLog, set_aside
-from wfnn_io.persist import atomic_write_text
+from wfnn_io.persist import atomic_write_text, read_regular_text
 from wfnn_io.protocol import check_id
 from wfnn_io.segments import FsyncPolicy, Position
 
@@ -75,7 +75,7 @@ class Journal:
         stored = ""
         if meta.exists():
             try:
-                stored = check_id(json.loads(meta.read_text())["client"], "client id")
+                stored = check_id(json.loads(read_regular_text(meta))["client"], "client id")
             except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
                 set_aside(meta, f"unreadable ({exc})")
         stored = stored or owner

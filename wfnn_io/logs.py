@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.persist import atomic_savez, atomic_write_text
+from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
@@ -62,6 +62,7 @@ from wfnn_io.protocol import (
     Codec,
     ExperienceBatch,
     ProtocolError,
+    check_id,
     decode,
 )
 from wfnn_io.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, check_free, read_records
@@ -93,13 +94,24 @@ def new_log_id() -> str:
     return secrets.token_hex(8)
 
 
+def _is_log_id(identity: object) -> bool:
+    """Whether a `log.json` id can name a store on the wire (acks and statuses carry it)."""
+    if not isinstance(identity, str):
+        return False
+    try:
+        check_id(identity, "log id")
+    except ValueError:
+        return False
+    return True
+
+
 def read_log_json(directory: Path) -> dict[str, Any] | None:
     """A log's `log.json` (None when there is none); LogFormatError when it cannot be read."""
     info = Path(directory) / LOG_JSON
     if not info.exists():
         return None
     try:
-        data = json.loads(info.read_text())
+        data = json.loads(read_regular_text(info))
     except (OSError, ValueError, RecursionError) as exc:
         raise LogFormatError(f"{info}: unreadable ({exc})") from exc
     if (
@@ -135,7 +147,7 @@ def log_config(directory: Path) -> LearnerConfig | None:
             return LearnerConfig.from_dict(data["learner_config"])
         server = directory.parent / SERVER_CONFIG_JSON
         if server.exists():
-            return LearnerConfig.from_dict(json.loads(server.read_text()))
+            return LearnerConfig.from_dict(json.loads(read_regular_text(server)))
     except (OSError, ValueError, TypeError, RecursionError) as exc:
         raise LogFormatError(f"{directory}: its learner config cannot be read ({exc})") from exc
     return None
@@ -236,7 +248,7 @@ class ExperienceLog:
                 f"{config.spec_hash()} (another task or ranges): use another run directory"
             )
         identity = info.get("id") if info is not None else None
-        self.id: str = identity if isinstance(identity, str) and identity else new_log_id()
+        self.id: str = identity if isinstance(identity, str) and _is_log_id(identity) else new_log_id()
         """The log's identity, made when it was created."""
         if info is not None and identity != self.id:
             unusable = unusable or f"its id is not a name ({identity!r})"

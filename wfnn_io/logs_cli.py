@@ -15,6 +15,7 @@ from rich.table import Table
 
 from wfnn_io import logs
 from wfnn_io.cli_errors import describe, guarded
+from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import load_key
 
 app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.",
@@ -54,7 +55,7 @@ def inspect(
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
     if json_out:
-        print(json.dumps(summary.to_dict(), indent=1))
+        print(json.dumps(to_jsonable(summary.to_dict()), indent=1, allow_nan=False))  # strict JSON: no NaN
         return
     title = f"{escape(str(log_dir))}: {summary.experiences:,} experiences in {summary.batches:,} batches"
     table = Table(title=title)

@@ -7,8 +7,10 @@ format or a newer version is refused with `PersistError`.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import stat
 import tempfile
 import zipfile
 from collections.abc import Callable
@@ -29,6 +31,38 @@ FORMAT_VERSION = 1
 
 class PersistError(ValueError):
     """A file is not a wfnn file of the expected kind and version, or does not fit."""
+
+
+MAX_TEXT_BYTES = 64 << 20
+"""The largest sidecar (a JSON description, a config, a key) `read_regular_text` reads."""
+
+
+def read_regular_bytes(path: Path | str, limit: int = MAX_TEXT_BYTES) -> bytes:
+    """A small file's content, refusing what is not a regular file.
+
+    Opened without waiting (a FIFO put where a JSON file should be would block the reader for
+    good) and checked before it is read; OSError for anything that is not a regular file of at
+    most `limit` bytes.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise OSError(errno.EINVAL, "not a regular file", str(path))
+        if info.st_size > limit:
+            raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(limit + 1)
+    finally:
+        os.close(fd)
+    if len(data) > limit:
+        raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
+    return data
+
+
+def read_regular_text(path: Path | str, limit: int = MAX_TEXT_BYTES) -> str:
+    """`read_regular_bytes` as UTF-8 text (UnicodeDecodeError for bytes that are not)."""
+    return read_regular_bytes(path, limit).decode("utf-8")
 
 
 def _read_umask() -> int:

@@ -724,10 +724,11 @@ def load_key(path: str | None) -> bytes | None:
     """Read a shared key file (at least 16 bytes after stripping whitespace); None for no path."""
     if not path:
         return None
-    from pathlib import Path
+
+    from wfnn_io.persist import read_regular_bytes  # persist imports the learners: only here
 
     try:
-        key = Path(path).read_bytes().strip()
+        key = read_regular_bytes(path).strip()
     except OSError as exc:
         raise ValueError(f"key file {path} cannot be read: {exc.strerror or exc}") from None
     if len(key) < 16:

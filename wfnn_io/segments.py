@@ -291,6 +291,8 @@ class SegmentLog:
         self._segment = current
         self._file = open(self.directory / segment_name(current), "ab")
         self._size = self._file.tell()
+        if not numbers and self.fsync != "never":  # a new segment's directory entry must survive too
+            sync_dir(self.directory)
 
     # ------------------------------------------------------------------ opening
     def segment_numbers(self) -> list[int]:
@@ -308,7 +310,9 @@ class SegmentLog:
             return
         cut = len(data) - valid_end
         quarantine = self.directory / QUARANTINE
-        quarantine.mkdir(exist_ok=True)
+        if not quarantine.is_dir():
+            quarantine.mkdir()
+            sync_dir(self.directory)  # durable before the segment is cut: its tail lives in there
         kept = quarantine / f"{n:08d}-{valid_end:010d}.torn"
         for k in itertools.count(1):  # a tail torn at the same place before stays: never overwritten
             try:

@@ -40,6 +40,8 @@ from wfnn_io.persist import (
     load_checkpoint,
     load_weights,
     make_directory,
+    read_regular_bytes,
+    read_regular_text,
     save_weights,
     write_json,
 )
@@ -114,6 +116,10 @@ def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
     return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
 
 
+class _OtherSpec(PersistError):
+    """A readable checkpoint of another learner spec than the server's."""
+
+
 def _noted(heard: dict[str, float], client: str, most: int) -> dict[str, float]:
     """`heard` with `client` heard now; beyond `most` clients, a new dict of the newer half.
 
@@ -165,6 +171,7 @@ class ThinkServer:
         """The rest of `__init__`, once the store (and its lock) is this server's."""
         self._remove_unfinished_writes()
         self.incarnation = self._next_incarnation()
+        """This start's number: counted in the file `incarnation` once the start is known to hold."""
         self.started_ns = time.time_ns()
         self.rejected: Counter[str] = Counter()
         """Frames rejected, by reason (protocol errors, spec, no_config, sender)."""
@@ -218,6 +225,8 @@ class ThinkServer:
         cfg = self._initial_config() or replay_config
         if cfg is not None:
             self._start_learner(cfg)
+        # Last: a start refused above (a bad config or log) leaves the count as it was.
+        atomic_write_text(self.data_dir / "incarnation", str(self.incarnation))
 
     # ------------------------------------------------------------------ start-up
     def _remove_unfinished_writes(self) -> None:
@@ -234,7 +243,7 @@ class ThinkServer:
                 log.info("%s: left by a write a crash interrupted; deleted", path)
 
     def _next_incarnation(self) -> int:
-        """One more than the last start's incarnation.
+        """One more than the last start's incarnation (written by `_set_up` once the start holds).
 
         From the file `incarnation`, or where that is unreadable, from the checkpoints' record of it.
         """
@@ -242,7 +251,7 @@ class ThinkServer:
         previous = 0
         if path.exists():
             try:
-                previous = int(path.read_text(errors="replace").strip())
+                previous = int(read_regular_bytes(path).decode(errors="replace").strip())
                 if not _is_count(previous) or previous == MAX_SEQ:
                     raise ValueError(f"not a count below {MAX_SEQ}: {previous}")
             except (OSError, ValueError) as exc:
@@ -255,7 +264,6 @@ class ThinkServer:
                         continue
                     if _is_count(recorded) and recorded < MAX_SEQ:  # a damaged record counts for nothing
                         previous = max(previous, recorded)
-        atomic_write_text(path, str(previous + 1))
         return previous + 1
 
     def _initial_config(self) -> LearnerConfig | None:
@@ -268,16 +276,18 @@ class ThinkServer:
         if self.config.learner_config is not None:
             path = self.config.learner_config
             try:
-                text = path.read_text()
+                text = read_regular_text(path)
             except OSError as exc:
                 raise ConfigError(f"learner config {path}: {exc.strerror or exc}") from exc
             except UnicodeDecodeError:
                 raise ConfigError(f"learner config {path}: not text (a JSON file is UTF-8)") from None
-            return LearnerConfig.from_json(text, f"learner config {path}")
+            given = LearnerConfig.from_json(text, f"learner config {path}")
+            self._check_data_dir_spec(given)
+            return given
         path = self.data_dir / LEARNER_JSON
         if path.exists():
             try:
-                return LearnerConfig.from_json(path.read_text(), str(path))
+                return LearnerConfig.from_json(read_regular_text(path), str(path))
             except (OSError, ConfigError, UnicodeDecodeError) as exc:  # not text: as unreadable
                 set_aside(path, f"unreadable ({exc})")
         for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
@@ -347,6 +357,27 @@ class ThinkServer:
         learner = self.learner
         return learner is not None and not self._to_learn and self.schedule.settled(int(learner.thinks[0]))
 
+    def _check_data_dir_spec(self, given: LearnerConfig) -> None:
+        """Refuse a --learner-config of another spec than the learner this data directory holds.
+
+        Its checkpoints would not fit (they would be set aside, the training lost to this server)
+        and its stored experiences would not be learned: a mistaken flag, refused like a client's
+        run directory of another task.
+        """
+        path = self.data_dir / LEARNER_JSON
+        if not path.exists():
+            return
+        try:
+            held = LearnerConfig.from_json(read_regular_text(path), str(path))
+        except (OSError, ConfigError, UnicodeDecodeError):
+            return  # unreadable: set aside when it is read for use, as before
+        if held.spec_hash() != given.spec_hash():
+            raise ConfigError(
+                f"data directory {self.data_dir} holds a learner of spec {held.spec_hash()} "
+                f"({LEARNER_JSON}); --learner-config is spec {given.spec_hash()} (another task, ranges "
+                "or network): use another --data-dir, or start without --learner-config"
+            )
+
     def _start_learner(self, adopted: LearnerConfig) -> None:
         """Build the learner, resume the checkpoint if it fits, and load the stored experiences.
 
@@ -403,7 +434,7 @@ class ThinkServer:
             try:
                 ck_cfg, params, meta, training = load_checkpoint(path)
                 if ck_cfg.spec_hash() != cfg.spec_hash():
-                    raise PersistError(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
+                    raise _OtherSpec(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
                 learner = make_learner(cfg, params=params)
                 learner.load_training_state(training)
                 for key in ("thinks", "resets", "version", "budget"):
@@ -420,7 +451,8 @@ class ThinkServer:
             except (PersistError, OSError, KeyError, ValueError, TypeError, ArithmeticError) as exc:
                 log.error("checkpoint %s cannot be used (%s)", path, exc)
                 # Renamed, so that the next checkpoint's rotation never writes over it.
-                set_aside(path, "unreadable; the previous checkpoint, else fresh weights, are used")
+                why = "of another learner spec" if isinstance(exc, _OtherSpec) else "unreadable"
+                set_aside(path, f"{why}; the previous checkpoint, else fresh weights, are used")
                 continue
             log.info("resumed %s: version %d, %d thinks", name, self.version, int(learner.thinks[0]))
             return learner, meta
@@ -855,8 +887,9 @@ SERVER_JSON = "server_config.json"
 def prepare(config: ServerConfig) -> list[str]:
     """Check what serving needs before the network is joined; -> warnings to show.
 
-    Makes the data directory and writes the whole server config there (`server_config.json`),
-    reads the key file, and refuses a non-loopback endpoint without a key unless `insecure`.
+    Makes the data directory, reads the key file, and refuses a non-loopback endpoint without a
+    key unless `insecure`. The whole server config is written there (`server_config.json`) by
+    `record`, once the server is built: a refused start leaves the last run's record as it was.
     """
     from wfnn_io.bus import check_exposure
 
@@ -868,9 +901,12 @@ def prepare(config: ServerConfig) -> list[str]:
                         "(learner config, clients, camera pictures): no key protects it")  # fmt: skip
         log.warning(warnings[-1])
     check_free(config.data_dir / "store")  # a server already on this data directory keeps its record
-    # Written once the rest is known to hold: a refused start leaves the last run's record as it was.
-    write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
     return warnings
+
+
+def record(config: ServerConfig) -> None:
+    """Write the whole server config into its data directory (`server_config.json`)."""
+    write_json(config.data_dir / SERVER_JSON, dataclasses.asdict(config))
 
 
 def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> dict[str, Any]:
@@ -906,6 +942,7 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
                     "replay-only: no learner config "
                     "(give --learner-config, or logs whose log.json records one)"
                 )
+            record(config)
             server.start()
             if on_started is not None:
                 on_started(server)

@@ -336,3 +336,45 @@ def test_a_checkpoints_damaged_incarnation_record_counts_for_nothing(tmp_path):
     again = make_server(tmp_path, hub, cfg)  # the previous checkpoint's record of it is sound
     assert again.incarnation == first.incarnation + 1
     again.store.close()
+
+
+@pytest.mark.parametrize("identity", ["\ud800", "x" * 70_000, "a/b", ""])
+def test_a_store_whose_log_id_cannot_name_it_on_the_wire_gets_a_new_one(tmp_path, identity):
+    """Acks and statuses carry the store's id: one that cannot travel would end the server's threads."""
+    import json
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg):
+        pass
+    info_path = tmp_path / "s1" / "store" / logs.LOG_JSON
+    info = json.loads(info_path.read_text())
+    info["id"] = identity
+    info_path.write_text(json.dumps(info))
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        assert server.store.id != identity
+        send(hub, batch(cfg, 0, 5))
+        assert listener.wait(lambda: listener.acked() == 4) and server.error is None
+    assert list((tmp_path / "s1" / "store").glob(f"{logs.LOG_JSON}.unreadable-*"))  # kept beside it
+
+
+def test_a_fifo_where_a_sidecar_should_be_is_refused_without_waiting(tmp_path):
+    import os
+    import threading
+
+    cfg = small_config()
+    journal(tmp_path / "j", cfg)
+    (tmp_path / "j" / logs.LOG_JSON).unlink()
+    os.mkfifo(tmp_path / "j" / logs.LOG_JSON)
+    outcome = []
+
+    def read():
+        outcome.append(logs.summarise(tmp_path / "j"))
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(10.0)
+    assert not reader.is_alive()
+    assert (
+        outcome[0].experiences == BATCHES * PER_BATCH and "not a regular file" in outcome[0].description_error
+    )

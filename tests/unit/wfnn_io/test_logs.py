@@ -223,3 +223,21 @@ def test_a_split_that_would_write_over_a_log_writes_nothing(tmp_path):
     with pytest.raises(logs.LogFormatError, match="already holds a log"):
         logs.split(tmp_path / "both", tmp_path / "parts")  # robot1 and robot2: robot1 is taken
     assert _snapshot(tmp_path / "parts") == before and not (tmp_path / "parts" / "robot2").exists()
+
+
+def test_inspect_json_of_a_log_with_no_readable_experience_is_strict_json(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from wfnn_io.logs_cli import app
+
+    Recorder(tmp_path / "empty", LearnerConfig.for_task(BoatVec)).close()
+    result = CliRunner().invoke(app, ["inspect", "--json", str(tmp_path / "empty")])
+    assert result.exit_code == 0, result.output
+
+    def refuse(value):
+        raise ValueError(f"not JSON: {value}")
+
+    summary = json.loads(result.output, parse_constant=refuse)
+    assert summary["experiences"] == 0 and summary["reward_mean"] is None

@@ -434,3 +434,22 @@ def test_a_segment_that_is_not_a_regular_file_is_refused_in_one_line(tmp_path, k
     if kind != "link":  # a reader follows a link to a regular file (read-only); nothing else
         with pytest.raises(LogError, match="not a regular file"):
             list(segments.read_records(directory))
+
+
+def test_new_directory_entries_are_made_durable_before_they_are_relied_on(tmp_path, monkeypatch):
+    """The first segment's entry (what a store acknowledges from) and quarantine's (before a cut)."""
+    synced = []
+    real = segments.sync_dir
+    monkeypatch.setattr(segments, "sync_dir", lambda d: (synced.append(d), real(d)))
+    log = SegmentLog(tmp_path / "log", fsync="always")
+    assert synced == [tmp_path / "log"]
+    log.append(b"x" * 100)
+    log.close()
+    with open(tmp_path / "log" / segments.segment_name(0), "ab") as f:
+        f.write(b"torn")
+    synced.clear()
+    SegmentLog(tmp_path / "log", fsync="always").close()
+    assert synced[0] == tmp_path / "log" and tmp_path / "log" / segments.QUARANTINE in synced
+    synced.clear()
+    SegmentLog(tmp_path / "never", fsync="never").close()
+    assert synced == []

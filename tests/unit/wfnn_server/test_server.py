@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tests.fakes import Hub, small_config, wait_for
-from wfnn_common.config import LEARNERS, LearnerConfig
+from wfnn_common.config import LEARNERS, ConfigError, LearnerConfig
 from wfnn_io.protocol import (
     Ack,
     ClientStatus,
@@ -401,10 +401,12 @@ def test_only_learnable_rows_feed_the_figures_and_the_state_the_dashboard_draws(
 
 def test_a_refused_start_leaves_the_last_server_config_as_it_was(tmp_path):
     from wfnn_server.config import DashboardConfig, ServerConfig
-    from wfnn_server.server import SERVER_JSON, prepare
+    from wfnn_server.server import SERVER_JSON, prepare, record
 
     data = tmp_path / "s1"
     prepare(ServerConfig(controller="t", server_id="s1", data_dir=data))
+    assert not (data / SERVER_JSON).exists()  # written by `record`, once the server is built
+    record(ServerConfig(controller="t", server_id="s1", data_dir=data))
     before = (data / SERVER_JSON).read_bytes()
     (tmp_path / "empty.key").write_bytes(b"")
     with pytest.raises(ValueError):
@@ -463,7 +465,6 @@ def test_a_second_server_on_one_data_directory_is_refused_before_it_counts_a_sta
 
 
 def test_a_learner_config_that_is_not_text_is_refused_naming_it_or_set_aside(tmp_path):
-    from wfnn_common.config import ConfigError
 
     binary = tmp_path / "binary.json"
     binary.write_bytes(b"\xff\xfe\x00{")
@@ -517,3 +518,20 @@ def test_a_slow_learner_keeps_the_heartbeat_going(tmp_path):
         before = len(listener.statuses)
         time.sleep(1.5)
         assert len(listener.statuses) - before >= 6
+
+
+def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tmp_path):
+    """A mistaken --learner-config neither sets the checkpoints aside nor replaces the saved config."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 10))
+        assert Listener(hub).wait(lambda: server.replayed())
+    data = tmp_path / "s1"
+    before = {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()}
+    assert "checkpoint.npz" in before
+    other = small_config(state_dim=4)
+    with pytest.raises(ConfigError, match="holds a learner of spec"):
+        make_server(tmp_path, hub, other).start()
+    assert {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()} == before  # incarnation too
+    with make_server(tmp_path, hub, cfg) as again:  # the right one resumes the training
+        assert again.learner is not None and int(again.learner.thinks[0]) == int(server.learner.thinks[0])
