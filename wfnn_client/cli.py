@@ -19,7 +19,7 @@ from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.vision import NomadVisionConfig
-from wfnn_client.config import ClientConfig
+from wfnn_client.config import MAX_RATE_HZ, ClientConfig
 from wfnn_client.controllers import LEARNER, parse_mix
 from wfnn_client.run import jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
@@ -228,6 +228,11 @@ def client(
             raise typer.BadParameter(str(exc), param_hint="--env") from exc
         own_rate = control_rate(made)  # a Gymnasium task's own time step sets its real-time tick
         made.close()
+    if rate_hz is None and not lockstep and own_rate > MAX_RATE_HZ:
+        raise typer.BadParameter(
+            f"the task's own rate is {own_rate:g} Hz, above real time's limit of {MAX_RATE_HZ:g} Hz: give "
+            "--rate-hz 0 (as fast as possible) or a lower rate", param_hint="--rate-hz",
+        )  # fmt: skip
     rate = rate_hz if rate_hz is not None else (0.0 if lockstep else own_rate)
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
@@ -242,16 +247,17 @@ def client(
     # A config that does not hold (a ValueError), or a run directory, key or endpoint that cannot be
     # used ends in one `error:` line and exit 2 (`main`, `wfnn_io.cli_errors`).
     # A simulated robot is simulated at its tick rate (as fast as possible: at its own rate).
+    # (Only the robot run is given the rate: another sim's limits must not refuse it.)
     simulated = {"rate_hz": rate} if rate > 0 else {}
     hydra = HydraConfig(
         joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
-        vision=VisionConfig(source=vision), **simulated,  # type: ignore[arg-type]
+        vision=VisionConfig(source=vision), **(simulated if sim == "hydra" else {}),  # type: ignore[arg-type]
     )  # fmt: skip
     foraging = behaviour == "forage"
     nomad = NomadConfig(
         behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
         camera_yaw_deg=camera_yaw, balls=balls,
-        vision=NomadVisionConfig(source=vision), **simulated,  # type: ignore[arg-type]
+        vision=NomadVisionConfig(source=vision), **(simulated if sim == "nomad" else {}),  # type: ignore[arg-type]
     )  # fmt: skip
     forage = ForageConfig(pursue="every_second" if every_second_target else "every") if foraging else None
     config = ClientConfig(

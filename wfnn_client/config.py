@@ -16,6 +16,8 @@ from wfnn_common.config import LEARNERS, MAX_SEED, ExplorationConfig, LearnerOve
 from wfnn_io.bus import NetConfig
 
 MAX_RATE_HZ = 1000.0
+MIN_RATE_HZ = 1e-3
+"""The slowest real-time tick (one every 1,000 s): below it a tick's wait overflows the clock."""
 """Fastest control tick a client keeps (a robot's is tens of hertz; a tick above this is a mistake)."""
 
 
@@ -116,9 +118,10 @@ class ClientConfig:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed must be in [0, {MAX_SEED}], got {self.seed}")
-        if self.rate_hz is not None and not 0 <= self.rate_hz <= MAX_RATE_HZ:
+        if self.rate_hz is not None and not (self.rate_hz == 0 or MIN_RATE_HZ <= self.rate_hz <= MAX_RATE_HZ):
             raise ValueError(
-                f"rate_hz must be in [0, {MAX_RATE_HZ:g}] (0: as fast as possible), got {self.rate_hz}"
+                f"rate_hz must be 0 (as fast as possible) or in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}], "
+                f"got {self.rate_hz}"
             )
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError(f"duration_s must be > 0 where given, got {self.duration_s}")

@@ -78,10 +78,19 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> B
     if config.local:
         from wfnn_client.brain import Recorder
 
+        # Before the journal is opened: a learner that cannot think here (a device torch does not
+        # see) is refused without leaving a journal of its spec behind in the run directory.
+        learner.prepare_thinking()
         # Off the tick, in lock-step too: a slow disk must not hold up the control loop.
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id,
                           background=True)  # fmt: skip
-        return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record)
+        try:
+            return LocalBrain(
+                learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record
+            )
+        except BaseException:
+            record.close()
+            raise
     from wfnn_client.remote import RemoteBrain, RemoteConfig, largest_message
     from wfnn_io.bus import ZenohBus
 
@@ -225,7 +234,7 @@ def _run(
     scores: list[float] = []
     rewards: deque[float] = deque(maxlen=RECENT)
     values: deque[float] = deque(maxlen=RECENT)
-    learned = lockstep_timeouts = 0
+    learned = lockstep_timeouts = metric_not_finite = 0
     driven = np.zeros(len(skills), dtype=np.int64)
     """Ticks each behaviour drove."""
     outages: list[dict[str, float]] = []
@@ -305,7 +314,11 @@ def _run(
                     lockstep_timeouts += 1
                     log.warning("lock-step: no snapshot covering experience %d in %.0f s",
                                 learned, config.lockstep_timeout_s)  # fmt: skip
-                total += float(spec.metric(task)[0])
+                measured = float(spec.metric(task)[0])
+                if np.isfinite(measured):
+                    total += measured
+                else:  # a task's NaN reward would make the whole episode's score NaN: counted apart
+                    metric_not_finite += 1
                 rewards.append(float(transitions[skills[d].name].reward[0]))
                 if acted is not None and policy == LEARNER:
                     values.append(float(acted.result.value))
@@ -363,6 +376,7 @@ def _run(
         "last10_median": float(np.median(scores[-10:])),
         "experiences_learned": learned,
         "lockstep_timeouts": lockstep_timeouts,
+        "metric_not_finite": metric_not_finite,
         "wall_s": wall,
         "ticks": len(ticks.latency_s),
         "safety": dict(safety.counts),

@@ -90,7 +90,12 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    except OSError as exc:  # named by the file asked for, not the temporary one beside it
+        raise _about(exc, path) from exc
     try:
         # mkstemp makes the file 0600; the new file gets the mode the old one had, or the mode
         # open() would give it, so that a lab's shared results stay readable to the group.
@@ -106,10 +111,20 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
         if keep_previous is not None and path.exists():
             os.replace(path, keep_previous)
         os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise _about(exc, path) from exc
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     sync_dir(path.parent)
+
+
+def _about(exc: OSError, path: Path) -> OSError:
+    """`exc` naming `path` (what the user asked to write) where it names a temporary file."""
+    if exc.filename is not None and str(exc.filename) != str(path) and exc.strerror:
+        return type(exc)(exc.errno, exc.strerror, str(path))
+    return exc
 
 
 def sync_dir(directory: Path) -> None:
@@ -150,8 +165,11 @@ def writable(path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.is_dir():
         raise IsADirectoryError(21, "is a directory, not a file", str(path))
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
-        pass
+    try:
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as exc:
+        raise _about(exc, path) from exc
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -164,3 +164,20 @@ def test_this_projects_own_tasks_declare_rewards_of_at_most_zero_through_gymnasi
     boat = GymVec("wfnn/Boat-v0")
     assert boat.max_reward == 0.0 and LearnerConfig.for_task(boat).divergence_threshold == 0.5
     boat.close()
+
+
+class _NanReward(_Spaces):
+    def step(self, action):
+        self.t += 1
+        return self._obs(), float("nan") if self.t % 10 == 0 else -1.0, False, False, {}
+
+
+def test_a_tasks_non_finite_rewards_are_counted_apart_from_the_episodes_score(tmp_path):
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+
+    gym.register("WfnnTestNanReward-v0", entry_point=_NanReward, max_episode_steps=50)
+    config = ClientConfig(sim="gym", env="WfnnTestNanReward-v0", rate_hz=0, episodes=2, out=tmp_path / "r")
+    metrics = run(config)
+    assert metrics["scores"] == [-1.0 * 45 / 50, -1.0 * 45 / 50]  # the 45 finite rewards over 50 steps
+    assert metrics["metric_not_finite"] == 10

@@ -1,5 +1,6 @@
 import pytest
 
+from sims.hydra import HydraConfig
 from wfnn_client.config import ClientConfig
 from wfnn_io.bus import NetConfig
 
@@ -22,6 +23,7 @@ def test_local_and_remote_configs():
         ({"sim": "boat", "camera_every": 10}, "no cameras"),
         ({"sim": "hydra", "camera_every": -1}, "camera_every"),
         ({"rate_hz": 1e18}, "rate_hz"),
+        ({"rate_hz": 1e-300}, "rate_hz"),  # a tick's wait would overflow the clock
         ({"duration_s": 0.0}, "duration_s"),
         ({"boat_dt": 1e18}, "dt must be"),
         ({"boat_dt": 0.0}, "dt must be"),
@@ -84,6 +86,13 @@ def test_the_command_line_simulates_a_robot_at_its_tick_rate(tmp_path, monkeypat
     assert seen[0].rate_hz == seen[0].hydra.rate_hz == 30
     CliRunner().invoke(cli.app, ["--sim", "nomad", "--rate-hz", "0", "--out", str(tmp_path)])
     assert seen[1].nomad.rate_hz == 10  # as fast as possible: simulated at its own rate
+    result = CliRunner().invoke(cli.app, ["--env", "Pendulum-v1", "--rate-hz", "900", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert seen[2].rate_hz == 900 and seen[2].hydra.rate_hz == HydraConfig().rate_hz
+    # A Gymnasium task's rate is checked as the client's, not by a robot's limits (HyDrA's substeps).
+    args = ["--env", "Pendulum-v1", "--rate-hz", "5000", "--out", str(tmp_path)]
+    result = CliRunner().invoke(cli.app, args)
+    assert result.exit_code != 0 and "rate_hz must be 0 (as fast as possible)" in str(result.exception)
 
 
 def test_sim_configs_refuse_what_no_run_could_use():

@@ -105,3 +105,18 @@ def test_a_deep_learners_saved_weights_drive_as_a_behaviour_policy(tmp_path):
     # The thesis' learner's spec is another: its controllers refuse the deep weights.
     with pytest.raises(ValueError, match="learner spec"):
         _controllers(f"weights:{tmp_path / 'deep.npz'}")
+
+
+def test_a_learner_that_cannot_think_here_is_refused_before_its_journal_is_made(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("torch sees a CUDA device here: the refusal needs a machine without one")
+    options = '{"deep": {"device": "cuda"}}'
+    with pytest.raises(SetupError, match="no such CUDA device"):
+        run(ClientConfig(sim="cartpole", rate_hz=0, episodes=1, learner="deep", learner_options=options,
+                         out=tmp_path / "c"))  # fmt: skip
+    assert not list((tmp_path / "c").glob("journal*"))
+    run(
+        ClientConfig(sim="cartpole", rate_hz=0, episodes=1, duration_s=0.2, out=tmp_path / "c")
+    )  # the run dir is usable

@@ -21,3 +21,19 @@ def test_a_cause_is_named_once_even_when_its_error_quotes_it():
     assert describe(_chained("cannot load w.npz", ValueError("not a zip"))) == "cannot load w.npz: not a zip"
     missing = FileNotFoundError(2, "No such file or directory", "x.npz")
     assert describe(_chained("weights", missing)) == "weights: x.npz: No such file or directory"
+
+
+def test_a_write_that_fails_names_the_file_asked_for_not_a_temporary_one(tmp_path):
+    from pathlib import Path
+
+    import pytest
+
+    from wfnn_io.persist import atomic_write_text, writable
+
+    (tmp_path / "dir").mkdir()
+    for write in (atomic_write_text, lambda p, _: writable(p)):
+        for target in (tmp_path / "dir", Path("/proc/wfnn-test.json")):  # /proc takes no new file
+            with pytest.raises(OSError) as info:
+                write(target, "x")
+            assert describe(info.value).startswith(f"{target}: "), describe(info.value)
+    assert [p.name for p in tmp_path.iterdir()] == ["dir"]  # nothing left beside it
