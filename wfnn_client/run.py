@@ -197,7 +197,7 @@ def _run(
     several = spec.behaviours(task, config.sim_options) if spec.behaviours else None
     behaviours: Behaviours = several or OneBehaviour(task, reward_of)
     period = 1.0 / config.tick_hz if config.tick_hz > 0 else 0.0
-    ticks = TickStats()
+    ticks = TickStats(keep_all=config.timing_trace)
     ticker = Ticker(period, ticks)
     first = behaviours.ranges(behaviours.names[0])
     safety = SafetyLayer(config.safety, first.action_low, first.action_high, period,
@@ -239,7 +239,7 @@ def _run(
     """Ticks each behaviour drove."""
     outages: list[dict[str, float]] = []
     """Windows without a healthy weights source after the first one (unix times)."""
-    outage_late: list[float] = []
+    outage_late = TickStats()  # lateness of the ticks during outages, in bounded memory
     startup_ticks = 0
     """Ticks before the first weights arrived."""
     produced: list[int] = []
@@ -285,7 +285,7 @@ def _run(
                 elif driver.following == "":
                     startup_ticks += 1
                 else:
-                    outage_late.append(late)
+                    outage_late.add_lateness(late, 0.0)
                     if not outages or "end_unix" in outages[-1]:
                         outages.append({"start_unix": time.time()})
                 t0 = time.perf_counter()
@@ -297,7 +297,7 @@ def _run(
                     acted = controllers.act(policy, xs[d])
                 proposed = acted.result.action if acted is not None else None
                 decision = safety.decide(proposed, xs[d], ticker.late_now() if period else 0.0)
-                ticks.latency_s.append(time.perf_counter() - t0)
+                ticks.add_latency(time.perf_counter() - t0)
                 vetoed = decision.proposed is not None
                 proposal = decision.proposed if decision.proposed is not None else decision.executed
                 decided = Decided(decision.executed[None], proposal[None], np.array([vetoed]))
@@ -378,15 +378,15 @@ def _run(
         "lockstep_timeouts": lockstep_timeouts,
         "metric_not_finite": metric_not_finite,
         "wall_s": wall,
-        "ticks": len(ticks.latency_s),
+        "ticks": ticks.count,
         "safety": dict(safety.counts),
         "following": brains.following,
         "failovers": [f for sk in skills for f in getattr(sk.brain, "failovers", [])],
         "outages": outages,
         "client/tick_jitter_ms_p99_outage": (
-            float(np.percentile(outage_late, 99) * 1e3) if outage_late else None
+            outage_late.summary()["tick_jitter_ms_p99"] if outage_late.ticks else None
         ),
-        "client/outage_ticks": len(outage_late),
+        "client/outage_ticks": outage_late.ticks,
         "client/startup_ticks": startup_ticks,
         "config": config_record,
         "camera_frames": camera_frames,

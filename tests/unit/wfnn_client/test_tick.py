@@ -31,3 +31,27 @@ def test_an_overrun_skips_the_missed_ticks_and_keeps_the_phase():
     assert abs(phase - round(phase)) < 1e-6 and ticker.late_now() < 0.01
     with pytest.raises(ValueError):
         Ticker(-1.0)
+
+
+def test_a_long_runs_timing_is_kept_in_bounded_memory_and_its_percentiles_hold():
+    from wfnn_client.tick import RECENT_KEPT, SAMPLE_KEPT, TickStats
+
+    stats = TickStats()
+    n = 4 * SAMPLE_KEPT
+    rng = np.random.default_rng(0)
+    values = rng.exponential(1e-3, n)
+    for v in values:
+        stats.add_latency(float(v))
+        stats.add_lateness(float(v), 0.0)
+    assert stats.count == n and not stats.due_unix
+    assert len(stats._latency.sample) == SAMPLE_KEPT and len(stats._latency.recent) == RECENT_KEPT
+    whole, recent = stats.summary(), stats.summary(last=1000)
+    for q in (50, 99):  # a uniform sample of 65,536 of 262,144: within half a percentile
+        lo, hi = np.percentile(values, [q - 0.5, q + 0.5]) * 1e3
+        assert lo <= whole[f"act_latency_ms_p{q}"] <= hi
+    assert whole["tick_jitter_ms_max"] == values.max() * 1e3
+    assert recent["act_latency_ms_p50"] == np.percentile(values[-1000:], 50) * 1e3
+    traced = TickStats(keep_all=True)
+    for v in values[:100]:
+        traced.add_lateness(float(v), 1.0)
+    assert traced.lateness_s == list(values[:100]) and traced.due_unix == [1.0] * 100
