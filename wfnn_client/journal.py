@@ -19,12 +19,14 @@ from pathlib import Path
 from wfnn_common.config import LearnerConfig
 from wfnn_io.logs import ExperienceLog, set_aside
 from wfnn_io.persist import atomic_write_text, read_regular_text
-from wfnn_io.protocol import check_id
+from wfnn_io.protocol import MAX_SEQ, check_id
 from wfnn_io.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
 
 CLIENT_JSON = "client.json"
+RESERVE_BLOCK = 1024
+"""Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
 
 
 class Journal:
@@ -61,9 +63,19 @@ class Journal:
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
+            self.reserved_through = self._reserved(directory)
+            """Numbers through this may have been published (`reserve`); -1: none beyond the journal."""
         except BaseException:
             self.log.close()
             raise
+        if self.reserved_through >= self.next_seq:
+            # The last run ended without closing its journal: numbers it reserved may have been
+            # published, and the journal's newest records lost (a power cut before their fsync).
+            # Servers may hold them: new experiences must not reuse them.
+            log.warning("journal %s was not closed by its last run: numbering continues after the "
+                        "numbers it reserved, at %d (experiences %d-%d are not in the journal)", directory,
+                        self.reserved_through + 1, self.next_seq, self.reserved_through)  # fmt: skip
+            self.skip_to(self.reserved_through + 1)
         if self.next_seq:
             log.info("journal %s: client %s continues at experience %d", directory, self.client_id,
                      self.next_seq)  # fmt: skip
@@ -88,6 +100,31 @@ class Journal:
         if not meta.exists():
             atomic_write_text(meta, json.dumps({"client": client_id}))
         return client_id
+
+    @staticmethod
+    def _reserved(directory: Path) -> int:
+        """`client.json`'s reservation (-1 where it holds none)."""
+        try:
+            reserved = json.loads(read_regular_text(directory / CLIENT_JSON)).get("reserved_through", -1)
+        except (OSError, ValueError, AttributeError, RecursionError):
+            return -1
+        return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_SEQ // 2 else -1
+
+    def _write_meta(self, reserved_through: int) -> None:
+        meta = {"client": self.client_id, "reserved_through": reserved_through}
+        atomic_write_text(self.log.directory / CLIENT_JSON, json.dumps(meta))
+        self.reserved_through = reserved_through
+
+    def reserve(self, through: int) -> None:
+        """Make durable, before experience `through` is published, that numbers up to it are used.
+
+        The journal is synced only now and then (its fsync policy), so a power cut can lose
+        records that servers already hold; a restart then continues past the reservation instead
+        of numbering new experiences as ones the servers would drop as re-sends. Numbers are
+        reserved RESERVE_BLOCK ahead (one write per block) and released by `close`.
+        """
+        if through > self.reserved_through:
+            self._write_meta(through + RESERVE_BLOCK)
 
     def _index(self, first_seq: int, last_seq: int, pos: Position) -> None:
         self._first.append(first_seq)
@@ -141,5 +178,7 @@ class Journal:
         return self.log.due()
 
     def close(self) -> None:
-        """Sync and close."""
+        """Sync and close; release the numbers reserved beyond the journal."""
         self.log.close()
+        if self.reserved_through >= self.next_seq:
+            self._write_meta(self.next_seq - 1)

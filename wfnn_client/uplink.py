@@ -206,6 +206,7 @@ class Uplink:
         batch = experience_batch(self.id, self.spec_hash, self.journal.next_seq, first.source,
                                  [p.experience for p in items], [p.version for p in items])  # fmt: skip
         frame = self.codec.encode(batch)
+        self.journal.reserve(batch.last_seq)  # durable before it is published (a server may keep it)
         self.journal.append(frame, batch.last_seq)
         self.bus.put(self.keys.experiences(self.id), frame, Channel.DATA)
         self._sent.append((time.monotonic(), batch.last_seq))

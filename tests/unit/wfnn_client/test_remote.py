@@ -1,3 +1,4 @@
+import json
 import time
 
 import numpy as np
@@ -576,3 +577,39 @@ def test_a_restarted_client_resends_what_its_last_run_journaled_unacknowledged(t
         assert again.sync(5.0)  # every journaled experience re-sent and thought about
         assert server.store.count == 30 and again.all_acked()
         again.stop()
+
+
+def test_a_journal_that_lost_its_tail_in_a_crash_never_reuses_numbers_its_servers_hold(tmp_path):
+    """Even when no server is heard at the restart: the numbers reserved before publishing are skipped."""
+    import shutil
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        first = remote(tmp_path, hub, cfg, batch_max=10)
+        first.start()
+        for _ in range(100):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(first.all_acked) and server.store.stored_through[first.id] == 99
+        # A power cut now: the journal as on disk, its newest records never synced.
+        shutil.copytree(tmp_path / "journal", tmp_path / "crashed")
+        first.stop()
+        seg = tmp_path / "crashed" / "00000000.seg"
+        seg.write_bytes(seg.read_bytes()[: seg.stat().st_size * 6 // 10])
+        hub.tap = lambda key, data: None  # and the server is out of reach at the restart
+        again = remote(
+            tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", batch_max=10, status_timeout_s=0.3
+        )
+        assert again.journal.next_seq > 99  # past what was reserved, not inside what the server holds
+        again.start()
+        for _ in range(50):
+            again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
+        time.sleep(0.5)  # numbered while nothing is heard
+        hub.tap = None
+        assert wait(again.all_acked, timeout=10.0)
+        new = sum(int((b.reward == -0.7).sum()) for b in server.store.batches() if b.client == first.id)
+        assert new == 50
+        again.stop()
+    assert (
+        json.loads((tmp_path / "crashed" / "client.json").read_text())["reserved_through"]
+        == again.produced_through
+    )
