@@ -25,7 +25,7 @@ from wfnn_client.link import MAX_SERVERS, RemoteConfig, ServerTable, ServerView,
 from wfnn_common.config import LearnerConfig, parse_json
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_common.learners import n_params, weights_from_flat
-from wfnn_io.bus import Bus
+from wfnn_io.bus import Bus, Inbox
 from wfnn_io.protocol import (
     Codec,
     Keys,
@@ -39,6 +39,9 @@ from wfnn_io.protocol import (
 )
 
 log = logging.getLogger(__name__)
+
+STATUS_INBOX_BYTES = 16 << 20
+"""Server statuses received and not yet handled, at most (each is at most a few hundred KB)."""
 
 
 def max_snapshot_bytes(config: LearnerConfig) -> int:
@@ -79,7 +82,7 @@ class Downlink:
         # Shared with the uplink: the client counts its figures and rejections in one place.
         self.counters = counters
         self.rejected = rejected
-        self._statuses: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._statuses: Inbox[bytes] = Inbox(STATUS_INBOX_BYTES)
         self._presence: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
         self._snapshots: dict[str, bytes] = {}
         """Newest unprocessed snapshot frame per server (a ring of one)."""
@@ -122,7 +125,8 @@ class Downlink:
         bus.watch_presence(keys.server_alive(), self._on_presence)
 
     def _on_status(self, key: str, data: bytes) -> None:
-        self._statuses.put(data)
+        if not self._statuses.put(data, len(data)):
+            self.rejected["status_inbox_full"] += 1
         self._wake.set()
 
     def _on_presence(self, key: str, alive: bool) -> None:
@@ -161,7 +165,7 @@ class Downlink:
             self._wake.wait(timeout=0.02)
             self._wake.clear()
             self._take_presence()
-            for frame in drained(self._statuses):
+            for frame in self._statuses.drained():
                 take(frame, self._take_status, self.rejected, "server status", "status_")
             self._refresh()
             for server in list(self._snapshots):

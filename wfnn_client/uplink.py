@@ -11,7 +11,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import queue
 import threading
 import time
 from collections import Counter
@@ -21,8 +20,8 @@ from typing import cast
 
 from wfnn_client.brain import Acted, Experience, as_recorded, experience_batch
 from wfnn_client.journal import Journal
-from wfnn_client.link import RemoteConfig, ServerTable, drained
-from wfnn_io.bus import Bus, Channel
+from wfnn_client.link import RemoteConfig, ServerTable
+from wfnn_io.bus import Bus, Channel, Inbox
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     MAX_SEQ,
@@ -39,6 +38,9 @@ from wfnn_io.protocol import (
 )
 
 log = logging.getLogger(__name__)
+
+ACK_INBOX_BYTES = 4 << 20
+"""Acks received and not yet handled, at most (each is under 200 bytes)."""
 
 
 @dataclass
@@ -86,7 +88,7 @@ class Uplink:
         """When `run` started (the wait for the servers' first word counts from there)."""
         self._first_heard: float | None = None
         self._pending: collections.deque[_Pending] = collections.deque()
-        self._acks: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._acks: Inbox[bytes] = Inbox(ACK_INBOX_BYTES)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._sent: collections.deque[tuple[float, int]] = collections.deque()
@@ -109,7 +111,8 @@ class Uplink:
         self.bus.subscribe(self.keys.ack(self.id), self._on_ack, max_frame(MsgType.ACK))
 
     def _on_ack(self, key: str, data: bytes) -> None:
-        self._acks.put(data)
+        if not self._acks.put(data, len(data)):
+            self.rejected["ack_inbox_full"] += 1  # a later ack, or a status, says as much
         self._wake.set()
 
     def add(self, experience: Experience, acted: Acted | None) -> None:
@@ -137,7 +140,7 @@ class Uplink:
             stopping = self._stop.is_set()
             self._wake.wait(timeout=0.005)
             self._wake.clear()
-            for data in drained(self._acks):
+            for data in self._acks.drained():
                 take(data, self._take_ack, self.rejected, "ack", "ack_")
             self._check_numbering(stopping)
             while self._pending and self._numbering:

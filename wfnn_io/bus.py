@@ -26,18 +26,68 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
+import queue
 import re
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any, Literal, Protocol
+from typing import Any, Generic, Literal, Protocol, TypeVar
 
 from wfnn_common.config import check_fields
 from wfnn_io.protocol import MAX_FRAME
 
 log = logging.getLogger(__name__)
+
+
+T = TypeVar("T")
+
+INBOX_BYTES = 256 << 20
+"""Bytes of received frames a receiver holds before it handles them (`Inbox`)."""
+
+
+class Inbox(Generic[T]):
+    """Received frames waiting for their thread, bounded in bytes.
+
+    A bus callback only hands frames over; a flood faster than the handling thread (large frames
+    whose checks fail late, say) would otherwise grow memory without bound. What arrives beyond
+    `max_bytes` is dropped and counted: an experience frame dropped is re-sent from the journal,
+    a status is superseded by the next one.
+    """
+
+    def __init__(self, max_bytes: int = INBOX_BYTES) -> None:
+        self.max_bytes = max_bytes
+        self.dropped = 0
+        self._queue: queue.SimpleQueue[tuple[T, int]] = queue.SimpleQueue()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def put(self, item: T, size: int) -> bool:
+        """Queue `item` of `size` bytes; False (counted in `dropped`) when the inbox is full."""
+        with self._lock:
+            if self._bytes + size > self.max_bytes:
+                self.dropped += 1
+                return False
+            self._bytes += size
+        self._queue.put((item, size))
+        return True
+
+    def get(self, timeout: float | None = None) -> T:
+        """The oldest item; raises queue.Empty after `timeout`."""
+        item, size = self._queue.get_nowait() if timeout == 0 else self._queue.get(timeout=timeout)
+        with self._lock:
+            self._bytes -= size
+        return item
+
+    def drained(self) -> Iterator[T]:
+        """What the inbox holds, taken one by one without waiting, until it is empty."""
+        while True:
+            try:
+                yield self.get(timeout=0)
+            except queue.Empty:
+                return
+
 
 Callback = Callable[[str, bytes], None]
 """callback(key, payload)."""

@@ -23,6 +23,7 @@ import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,7 +33,7 @@ from numpy.typing import NDArray
 from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
-from wfnn_io.bus import Bus, Channel, OfflineBus, guarded
+from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
 from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_io.persist import (
     PersistError,
@@ -178,7 +179,8 @@ class ThinkServer:
         self.counters: Counter[str] = Counter()
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._inbox: Inbox[tuple[str, bytes]] = Inbox()
+        """Frames received, waiting for the ingest thread (bounded in bytes: a flood is dropped)."""
         self._to_learn: collections.deque[ExperienceBatch] = collections.deque()
         self._threads: list[threading.Thread] = []
         self._latest_frame: bytes | None = None
@@ -478,11 +480,18 @@ class ThinkServer:
             from wfnn_server.dashboard import Dashboard  # the web view loads only when asked for
 
             self.dashboard = Dashboard(self.config.dashboard, self.view)
-        bus.subscribe(keys.experiences(), lambda key, data: self._inbox.put(("exp", data)))
-        bus.subscribe(keys.resend(self.id), lambda key, data: self._inbox.put(("exp", data)))
-        bus.subscribe(keys.client_status(), lambda key, data: self._inbox.put(("status", data)))
+
+        def receive(kind: str) -> Callable[[str, bytes], None]:
+            def put(key: str, data: bytes) -> None:
+                self._inbox.put((kind, data), len(data))  # beyond its bound: dropped, counted
+
+            return put
+
+        bus.subscribe(keys.experiences(), receive("exp"))
+        bus.subscribe(keys.resend(self.id), receive("exp"))
+        bus.subscribe(keys.client_status(), receive("status"))
         if self.config.dashboard is not None:  # pictures only for people watching
-            bus.subscribe(keys.camera_view(), lambda key, data: self._inbox.put(("camera", data)))
+            bus.subscribe(keys.camera_view(), receive("camera"))
         bus.queryable(keys.weights(self.id), lambda: self._latest_frame)
         bus.declare_token(keys.server_alive(self.id))
         for name, target in (("ingest", self._ingest_loop), ("learner", self._learner_loop)):
@@ -821,6 +830,7 @@ class ThinkServer:
             "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,
             "clients/heard": float(self._check_clients()),
             "clients/silent": float(len(self._silent)),
+            "ingest/inbox_dropped": float(self._inbox.dropped),
             **{k: float(v) for k, v in dict(self.counters).items()},
         }
         if self._q_chosen:

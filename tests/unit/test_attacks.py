@@ -249,7 +249,7 @@ def test_one_forged_ack_of_a_huge_number_does_not_stop_resends(tmp_path):
             hub.tap = None
             feed(brain, 40, seed=2)
             assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
-            assert brain.all_acked()
+            assert wait(brain.all_acked)
         finally:
             brain.stop()
 
@@ -424,5 +424,28 @@ def test_a_journal_written_without_a_key_is_resent_tagged_once_the_client_has_on
             assert wait(lambda: server.store.stored_through.get(brain.id) == 34, timeout=10.0)
             assert not server.rejected.get("auth") and brain.counters["uplink/retagged_frames"] > 0
             assert brain.error is None
+        finally:
+            brain.stop()
+
+
+def test_a_flood_faster_than_the_server_handles_is_held_in_bounded_memory_and_resent(tmp_path):
+    """Frames beyond the inbox's bytes are dropped and counted; experiences then come from the journal."""
+    from wfnn_io.bus import Inbox
+
+    inbox: Inbox[bytes] = Inbox(max_bytes=1000)
+    assert all(inbox.put(b"x" * 100, 100) for _ in range(10)) and not inbox.put(b"y", 1)
+    assert inbox.dropped == 1 and inbox.get(timeout=0) == b"x" * 100 and inbox.put(b"z" * 100, 100)
+    assert len(list(inbox.drained())) == 10 and inbox.put(b"w" * 1000, 1000)
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        server._inbox.max_bytes = 1  # as full as a flood leaves it: every frame is dropped
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            feed(brain, 30)
+            assert wait(lambda: server._inbox.dropped >= 2)
+            assert server.store.count == 0 and not brain.all_acked()
+            server._inbox.max_bytes = 1 << 20  # the flood is over
+            assert wait(lambda: brain.all_acked() and server.store.count == 30, timeout=10.0)
         finally:
             brain.stop()

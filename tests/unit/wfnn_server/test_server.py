@@ -525,7 +525,7 @@ def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tm
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
         send(hub, batch(cfg, 0, 10))
-        assert Listener(hub).wait(lambda: server.replayed())
+        assert Listener(hub).wait(lambda: server.store.count == 10 and server.replayed())
     data = tmp_path / "s1"
     before = {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()}
     assert "checkpoint.npz" in before
