@@ -166,9 +166,13 @@ RUN_FIGURES: tuple[tuple[str, str | tuple[str, ...]], ...] = (
 )  # fmt: skip
 
 
+METRICS_LIMIT = 4 << 30
+"""The largest metrics.json read (a day's timing trace at 50 Hz is about 350 MB)."""
+
+
 def _read_json(path: Path) -> Any:
     try:
-        return json.loads(read_regular_text(path))
+        return json.loads(read_regular_text(path, METRICS_LIMIT))
     except (OSError, ValueError, RecursionError) as exc:
         raise ReportError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from exc
 

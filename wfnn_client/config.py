@@ -16,9 +16,9 @@ from wfnn_common.config import LEARNERS, MAX_SEED, ExplorationConfig, LearnerOve
 from wfnn_io.bus import NetConfig
 
 MAX_RATE_HZ = 1000.0
+"""Fastest control tick a client keeps (a robot's is tens of hertz; a tick above this is a mistake)."""
 MIN_RATE_HZ = 1e-3
 """The slowest real-time tick (one every 1,000 s): below it a tick's wait overflows the clock."""
-"""Fastest control tick a client keeps (a robot's is tens of hertz; a tick above this is a mistake)."""
 
 
 @dataclass(frozen=True, kw_only=True)

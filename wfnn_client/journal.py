@@ -25,7 +25,7 @@ from wfnn_io.segments import FsyncPolicy, Position
 log = logging.getLogger(__name__)
 
 CLIENT_JSON = "client.json"
-RESERVE_BLOCK = 1024
+RESERVE_BLOCK = 256
 """Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
 
 
@@ -58,7 +58,8 @@ class Journal:
                 if batch.first_seq != self.next_seq:
                     missing = (self.next_seq, batch.first_seq - 1)
                     log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d missing: "
-                              "damaged, or numbers skipped past what servers held)",
+                              "damaged, or numbers skipped past what servers held or an earlier run "
+                              "reserved)",
                               pos, batch.first_seq, self.next_seq, *missing)  # fmt: skip
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
@@ -68,13 +69,17 @@ class Journal:
         except BaseException:
             self.log.close()
             raise
+        self.skipped_at_open = 0
+        """Numbers skipped at this open because an earlier run reserved them (`reserve`)."""
         if self.reserved_through >= self.next_seq:
-            # The last run ended without closing its journal: numbers it reserved may have been
-            # published, and the journal's newest records lost (a power cut before their fsync).
-            # Servers may hold them: new experiences must not reuse them.
-            log.warning("journal %s was not closed by its last run: numbering continues after the "
-                        "numbers it reserved, at %d (experiences %d-%d are not in the journal)", directory,
-                        self.reserved_through + 1, self.next_seq, self.reserved_through)  # fmt: skip
+            # Numbers an earlier run reserved may have been published, and the journal's newest
+            # records lost (a power cut before their fsync): new experiences must not reuse them.
+            self.skipped_at_open = self.reserved_through + 1 - self.next_seq
+            if not self._closed_cleanly(directory):
+                log.warning("journal %s was not closed by its last run: numbering continues after the "
+                            "numbers it reserved, at %d (%d-%d, published or not, are not in the "
+                            "journal)", directory, self.reserved_through + 1, self.next_seq,
+                            self.reserved_through)  # fmt: skip
             self.skip_to(self.reserved_through + 1)
         if self.next_seq:
             log.info("journal %s: client %s continues at experience %d", directory, self.client_id,
@@ -110,8 +115,16 @@ class Journal:
             return -1
         return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_SEQ // 2 else -1
 
-    def _write_meta(self, reserved_through: int) -> None:
-        meta = {"client": self.client_id, "reserved_through": reserved_through}
+    @staticmethod
+    def _closed_cleanly(directory: Path) -> bool:
+        """Whether `client.json` says its journal's last run closed it."""
+        try:
+            return json.loads(read_regular_text(directory / CLIENT_JSON)).get("closed") is True
+        except (OSError, ValueError, AttributeError, RecursionError):
+            return False
+
+    def _write_meta(self, reserved_through: int, closed: bool) -> None:
+        meta = {"client": self.client_id, "reserved_through": reserved_through, "closed": closed}
         atomic_write_text(self.log.directory / CLIENT_JSON, json.dumps(meta))
         self.reserved_through = reserved_through
 
@@ -124,7 +137,7 @@ class Journal:
         reserved RESERVE_BLOCK ahead (one write per block) and released by `close`.
         """
         if through > self.reserved_through:
-            self._write_meta(through + RESERVE_BLOCK)
+            self._write_meta(through + RESERVE_BLOCK, closed=False)
 
     def _index(self, first_seq: int, last_seq: int, pos: Position) -> None:
         self._first.append(first_seq)
@@ -180,5 +193,5 @@ class Journal:
     def close(self) -> None:
         """Sync and close; release the numbers reserved beyond the journal."""
         self.log.close()
-        if self.reserved_through >= self.next_seq:
-            self._write_meta(self.next_seq - 1)
+        if self.reserved_through >= 0:  # numbering goes on after next_seq - 1, as servers were told
+            self._write_meta(self.next_seq - 1, closed=True)

@@ -219,8 +219,10 @@ def _run(
         # Written once the rest is known to hold: a refused start leaves the last run's config as it was.
         write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
     except BaseException as exc:
-        for made in skills:
-            made.brain.stop()
+        try:
+            _Brains(skills).stop()
+        except BaseException:  # the refusal is what to report
+            log.exception("stopping the brains made before the refusal failed")
         if isinstance(exc, ValueError):  # options that do not fit this task or run directory
             raise SetupError(str(exc)) from exc
         raise
@@ -437,8 +439,15 @@ class _Brains:
             sk.brain.start()
 
     def stop(self) -> None:
+        """Stop every brain (each keeps its record), then raise the first error any raised."""
+        first: BaseException | None = None
         for sk in self.skills:
-            sk.brain.stop()
+            try:
+                sk.brain.stop()
+            except BaseException as exc:  # the others' records must still be closed
+                first = first or exc
+        if first is not None:
+            raise first
 
     def sync(self, timeout_s: float) -> bool:
         return all(sk.brain.sync(timeout_s) for sk in self.skills)

@@ -82,6 +82,7 @@ class Uplink:
         """Experiences queued by `add` (the tick's thread is the only one to change it)."""
         self._skipped = 0
         """Numbers skipped because servers already hold them (`_skip_numbers`, this thread only)."""
+        counters["uplink/numbers_reserved_skipped"] = journal.skipped_at_open
         self._numbering = False
         """Whether batches may be numbered yet (`_check_numbering`)."""
         self._started = 0.0
@@ -284,7 +285,7 @@ class Uplink:
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
         log.error("experiences %d-%d are not in the journal (damaged, or numbers skipped past what servers "
-                  "held); server %s is told they are lost",
+                  "held or an earlier run reserved); server %s is told they are lost",
                   acked + 1, batch.first_seq - 1, server)  # fmt: skip
         self.counters["uplink/declared_lost"] += batch.first_seq - acked - 1
         return self.codec.encode(dataclasses.replace(batch, flags=flags))

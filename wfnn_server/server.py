@@ -172,7 +172,8 @@ class ThinkServer:
         """The rest of `__init__`, once the store (and its lock) is this server's."""
         self._remove_unfinished_writes()
         self.incarnation = self._next_incarnation()
-        """This start's number: counted in the file `incarnation` once the start is known to hold."""
+        """This start's number: counted in the file `incarnation` by `start` (a start refused
+        before it serves leaves the count as it was)."""
         self.started_ns = time.time_ns()
         self.rejected: Counter[str] = Counter()
         """Frames rejected, by reason (protocol errors, spec, no_config, sender)."""
@@ -225,10 +226,12 @@ class ThinkServer:
         """Per client: the last experience the learner was given from the store when it was built."""
         # --learner-config or an earlier run's, else the config the logs say they were recorded for
         cfg = self._initial_config() or replay_config
+        if config.replay_only and cfg is None:
+            raise LogFormatError(
+                "replay-only: no learner config (give --learner-config, or logs whose log.json records one)"
+            )
         if cfg is not None:
             self._start_learner(cfg)
-        # Last: a start refused above (a bad config or log) leaves the count as it was.
-        atomic_write_text(self.data_dir / "incarnation", str(self.incarnation))
 
     # ------------------------------------------------------------------ start-up
     def _remove_unfinished_writes(self) -> None:
@@ -245,7 +248,7 @@ class ThinkServer:
                 log.info("%s: left by a write a crash interrupted; deleted", path)
 
     def _next_incarnation(self) -> int:
-        """One more than the last start's incarnation (written by `_set_up` once the start holds).
+        """One more than the last start's incarnation (written by `start`).
 
         From the file `incarnation`, or where that is unreadable, from the checkpoints' record of it.
         """
@@ -480,6 +483,8 @@ class ThinkServer:
             from wfnn_server.dashboard import Dashboard  # the web view loads only when asked for
 
             self.dashboard = Dashboard(self.config.dashboard, self.view)
+        # Counted now that the start holds (a dashboard port in use has been refused by now).
+        atomic_write_text(self.data_dir / "incarnation", str(self.incarnation))
 
         def receive(kind: str) -> Callable[[str, bytes], None]:
             def put(key: str, data: bytes) -> None:
@@ -899,7 +904,7 @@ def prepare(config: ServerConfig) -> list[str]:
 
     Makes the data directory, reads the key file, and refuses a non-loopback endpoint without a
     key unless `insecure`. The whole server config is written there (`server_config.json`) by
-    `record`, once the server is built: a refused start leaves the last run's record as it was.
+    `record`, once the server serves: a refused start leaves the last run's record as it was.
     """
     from wfnn_io.bus import check_exposure
 
@@ -947,13 +952,8 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
             bus.close()  # an open session would hold the process at exit
             raise
         try:
-            if config.replay_only and server.learner is None:
-                raise LogFormatError(
-                    "replay-only: no learner config "
-                    "(give --learner-config, or logs whose log.json records one)"
-                )
-            record(config)
             server.start()
+            record(config)  # once it serves: a refused start leaves the last run's record as it was
             if on_started is not None:
                 on_started(server)
             shown = None

@@ -449,3 +449,33 @@ def test_a_flood_faster_than_the_server_handles_is_held_in_bounded_memory_and_re
             assert wait(lambda: brain.all_acked() and server.store.count == 30, timeout=10.0)
         finally:
             brain.stop()
+
+
+def test_an_ack_within_what_was_produced_does_not_hold_back_resends_past_the_next_status(tmp_path):
+    """A status of the server's start says what it holds: a forged ack that says more is corrected."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            feed(brain, 20)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
+            lost = {"n": 1}
+
+            def tap(key, payload):  # one live batch lost on the way
+                if "/exp/live/" in key and lost["n"]:
+                    lost["n"] -= 1
+                    return None
+                return payload
+
+            hub.tap = tap
+            feed(brain, 1, seed=1)
+            assert wait(lambda: lost["n"] == 0)
+            hub.tap = None
+            forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
+                         started_ns=server.started_ns, stored_through=brain.produced_through)  # fmt: skip
+            hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
+            feed(brain, 40, seed=2)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
+        finally:
+            brain.stop()

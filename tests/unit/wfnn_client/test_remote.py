@@ -609,7 +609,21 @@ def test_a_journal_that_lost_its_tail_in_a_crash_never_reuses_numbers_its_server
         new = sum(int((b.reward == -0.7).sum()) for b in server.store.batches() if b.client == first.id)
         assert new == 50
         again.stop()
-    assert (
-        json.loads((tmp_path / "crashed" / "client.json").read_text())["reserved_through"]
-        == again.produced_through
-    )
+    meta = json.loads((tmp_path / "crashed" / "client.json").read_text())
+    assert meta["reserved_through"] == again.produced_through and meta["closed"] is True
+    assert again.counters["uplink/numbers_reserved_skipped"] > 0
+
+
+def test_a_journal_closed_cleanly_continues_where_it_was_and_says_nothing(tmp_path, caplog):
+    from wfnn_client.journal import Journal
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", learner_config=cfg)
+    journal.reserve(9)  # as the uplink does before publishing 0-9
+    journal.skip_to(10)  # (what it published is not needed here)
+    journal.close()
+    for _ in range(2):
+        again = Journal(tmp_path / "j", "c1", learner_config=cfg)
+        assert again.next_seq == 10 and again.skipped_at_open == 10
+        again.close()
+    assert "was not closed" not in caplog.text

@@ -535,3 +535,21 @@ def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tm
     assert {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()} == before  # incarnation too
     with make_server(tmp_path, hub, cfg) as again:  # the right one resumes the training
         assert again.learner is not None and int(again.learner.thinks[0]) == int(server.learner.thinks[0])
+
+
+def test_a_start_refused_at_its_dashboard_port_leaves_the_count_of_starts_as_it_was(tmp_path):
+    import socket
+
+    from wfnn_server.config import DashboardConfig
+
+    hub, cfg = Hub(), small_config()
+    with make_server(tmp_path, hub, cfg) as first:
+        pass
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        server = make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=taken.getsockname()[1]))
+        with pytest.raises(OSError):
+            server.start()
+        server.stop()
+    assert (tmp_path / "s1" / "incarnation").read_text() == str(first.incarnation)
