@@ -17,14 +17,13 @@ import secrets
 from pathlib import Path
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.logs import ExperienceLog, set_aside
+from wfnn_io.logs import CLIENT_JSON, ExperienceLog, journal_controller, set_aside
 from wfnn_io.persist import atomic_write_text, read_regular_text
 from wfnn_io.protocol import MAX_SEQ, check_id
 from wfnn_io.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
 
-CLIENT_JSON = "client.json"
 RESERVE_BLOCK = 256
 """Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
 
@@ -41,8 +40,12 @@ class Journal:
         fsync_interval_s: float = 0.05,
         segment_bytes: int = 8 << 20,
         learner_config: LearnerConfig | None = None,
+        controller: str | None = None,
     ) -> None:
         directory = Path(directory)
+        self.controller = controller
+        """The controller its frames are tagged for (recorded, so that a reader with the key checks
+        them with that controller's key: `wfnn_io.logs.read_entries`)."""
         self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
                                  segment_bytes=segment_bytes)  # fmt: skip
         self._first: list[int] = []
@@ -64,6 +67,8 @@ class Journal:
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
+            if controller is not None and journal_controller(directory) != controller:
+                self._write_meta(self._reserved(directory), closed=self._closed_cleanly(directory))
             self.reserved_through = self._reserved(directory)
             """Numbers through this may have been published (`reserve`); -1: none beyond the journal."""
         except BaseException:
@@ -124,7 +129,10 @@ class Journal:
             return False
 
     def _write_meta(self, reserved_through: int, closed: bool) -> None:
-        meta = {"client": self.client_id, "reserved_through": reserved_through, "closed": closed}
+        meta: dict[str, object] = {"client": self.client_id, "reserved_through": reserved_through,
+                                   "closed": closed}  # fmt: skip
+        if self.controller is not None:
+            meta["controller"] = self.controller
         atomic_write_text(self.log.directory / CLIENT_JSON, json.dumps(meta))
         self.reserved_through = reserved_through
 

@@ -64,9 +64,10 @@ class RemoteBrain:
         self.bus = bus
         self.keys = Keys(config.controller)
         self.journal = Journal(config.journal_dir, config.client_id, fsync=config.journal_fsync,
-                               learner_config=learner.config)  # fmt: skip
+                               learner_config=learner.config, controller=config.controller)  # fmt: skip
         self.id = self.journal.client_id
-        self.codec = Codec(self.id, load_key(str(config.key_file) if config.key_file else None))
+        key = load_key(str(config.key_file) if config.key_file else None)
+        self.codec = Codec(self.id, key, config.controller)
         self.spec_hash = learner.config.spec_hash()
         self._config_json = learner.config.to_json()
         self.table = ServerTable()

@@ -63,6 +63,7 @@ from wfnn_io.protocol import (
     ExperienceBatch,
     ProtocolError,
     check_id,
+    controller_key,
     decode,
 )
 from wfnn_io.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, check_free, read_records
@@ -181,15 +182,36 @@ class ReadCounts:
         return self.report.damage
 
 
+CLIENT_JSON = "client.json"
+"""A client's journal's own record beside its segments (its client id, reserved numbers, and the
+controller its frames are tagged for)."""
+
+
+def journal_controller(directory: Path) -> str | None:
+    """The controller a client's journal records that its frames are tagged for (None: none)."""
+    try:
+        controller = json.loads(read_regular_text(Path(directory) / CLIENT_JSON)).get("controller")
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return None
+    try:
+        return check_id(controller, "controller name") if controller is not None else None
+    except ValueError:
+        return None
+
+
 def read_entries(
     directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
 ) -> Iterator[tuple[Position, bytes, ExperienceBatch]]:
     """Every experience batch in a log, oldest first: (where, frame, batch).
 
     Read-only. Damaged records are skipped (resynchronising on the next frame), frames that
-    are not valid batches are refused; both are counted in `counts`.
+    are not valid batches are refused; both are counted in `counts`. With `key`, tags are
+    checked with the key of the controller a client's journal records (else the key itself).
     """
     counts = counts if counts is not None else ReadCounts()
+    controller = journal_controller(directory) if key else None
+    if key and controller is not None:
+        key = controller_key(key, controller)
     for position, frame in read_records(directory, None, counts.report, marker=MAGIC):
         try:
             _, _, batch = decode(frame, key, expect=ExperienceBatch, mac="if_present")

@@ -697,17 +697,29 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
                       type(exc).__name__, exc, exc_info=exc)  # fmt: skip
 
 
+def controller_key(key: bytes, controller: str) -> bytes:
+    """The key frames of one controller are tagged with, derived from the shared key.
+
+    A tag made under one controller does not verify under another that shares the key file: a
+    frame recorded on one controller's keys and replayed on another's is refused.
+    """
+    return hmac.new(key, b"wfnn controller\0" + check_id(controller, "controller name").encode(),
+                    hashlib.sha256).digest()  # fmt: skip
+
+
 class Codec:
     """Encodes and decodes frames for one sender with an optional shared key.
 
-    Frame sequence numbers count up from 0 per codec (thread-safe: `itertools.count`).
+    With a `controller`, frames are tagged with that controller's key (`controller_key`). Frame
+    sequence numbers count up from 0 per codec (thread-safe: `itertools.count`).
     """
 
-    def __init__(self, sender: str, key: bytes | None = None) -> None:
+    def __init__(self, sender: str, key: bytes | None = None, controller: str | None = None) -> None:
         import itertools
 
         self.sender = check_id(sender, "sender id")
-        self.key = key or None
+        self.key = (controller_key(key, controller) if controller is not None else key) if key else None
+        """The key frames are tagged and checked with (the controller's, where one is given)."""
         self._seq = itertools.count()
 
     def encode(self, msg: Message) -> bytes:

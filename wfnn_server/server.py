@@ -153,7 +153,10 @@ class ThinkServer:
         self.bus = bus
         self.keys = Keys(config.controller)
         self.id = config.server_id
-        self.codec = Codec(config.server_id, load_key(str(config.key_file) if config.key_file else None))
+        key = load_key(str(config.key_file) if config.key_file else None)
+        self.codec = Codec(config.server_id, key, config.controller)
+        self._key = key
+        """The shared key as given (logs replayed check each their own controller's tags)."""
         self.data_dir = config.data_dir
         self.data_dir.mkdir(parents=True, exist_ok=True)
         # The store first: its lock refuses a second server on this data directory before that
@@ -332,7 +335,7 @@ class ThinkServer:
             )
         spec = spec or (described.spec_hash() if described is not None else "")
         counts = ReadCounts()
-        offered = sum(len(b) for b in merged(directories, self.codec.key, spec, counts))
+        offered = sum(len(b) for b in merged(directories, self._key, spec, counts))
         if counts.damage:
             log.warning("the logs hold %d damaged spans (%d bytes), skipped", len(counts.damage),
                         counts.report.skipped_bytes)  # fmt: skip
@@ -345,7 +348,7 @@ class ThinkServer:
                 )
             log.warning("records refused while reading the logs: %s", reasons)
         imported = 0
-        for batch in merged(directories, self.codec.key, spec):
+        for batch in merged(directories, self._key, spec):
             admitted = self.store.admit(mark_non_finite(batch)[0], allow_gap=True)
             if admitted.lost:  # in none of the logs (damaged, or never there): the rest is imported
                 log.warning("client %s: experiences %d-%d are in none of the logs; imported what follows",

@@ -378,3 +378,22 @@ def test_a_fifo_where_a_sidecar_should_be_is_refused_without_waiting(tmp_path):
     assert (
         outcome[0].experiences == BATCHES * PER_BATCH and "not a regular file" in outcome[0].description_error
     )
+
+
+def test_a_journal_tagged_for_its_controller_reads_with_the_key_and_refuses_another(tmp_path):
+    """A reader with the key checks a client's frames with the key of the controller it recorded."""
+    from wfnn_io.protocol import controller_key
+
+    cfg, key = small_config(), b"k" * 32
+    j = Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg, controller="arm")
+    codec = Codec("c1", key, "arm")
+    for i in range(3):
+        b = batch(cfg, i * PER_BATCH, PER_BATCH)
+        j.append(codec.encode(b), b.last_seq)
+    j.close()
+    assert logs.summarise(tmp_path / "j", key).experiences == 3 * PER_BATCH
+    counts = logs.ReadCounts()
+    assert not list(
+        logs.read_entries(tmp_path / "j", controller_key(key, "arm"), counts)
+    )  # not the raw key's
+    assert counts.refused["auth"] == 3

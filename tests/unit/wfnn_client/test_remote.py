@@ -135,7 +135,7 @@ def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1
         learned_through=learned_through or {},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
-    return Codec(server, key).encode(snap)
+    return Codec(server, key, "t").encode(snap)
 
 
 def test_invalid_snapshots_never_drive_the_robot(tmp_path):
@@ -148,7 +148,7 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
         "spec": forge(cfg, spec="0123456789abcdef", key=KEY),
         "shape": forge(cfg, params=np.zeros((1, n + 1)), key=KEY),
         "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=KEY),
-        "misrouted": Codec("s2", KEY).encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
+        "misrouted": Codec("s2", KEY, "t").encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
         "unannounced": forge(cfg, incarnation=7, key=KEY),  # not what s1's status says it is
     }
     for reason, frame in bad.items():  # one at a time: the downlink keeps only the newest per server
@@ -177,7 +177,7 @@ def announce(bus, server, cfg, started_ns, key=None, incarnation=1, store="store
         learner_config=cfg.to_json(), weights_version=0, stored_through=stored_through or {}, rejected={},
         metrics={},
     )  # fmt: skip
-    bus.put(KEYS.server_status(server), Codec(server, key).encode(status), None)
+    bus.put(KEYS.server_status(server), Codec(server, key, "t").encode(status), None)
 
 
 def test_with_no_healthy_server_the_weights_relearned_after_a_reset_drive_the_robot(tmp_path):
@@ -371,7 +371,7 @@ def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path
     brain, bus = keyed(tmp_path, hub, cfg)
     announce(bus, "s1", cfg, started_ns=1, key=KEY)
     old_snapshot = forge(cfg, version=9, key=KEY)
-    old = Codec("s1", KEY).encode(
+    old = Codec("s1", KEY, "t").encode(
         ServerStatus(server="s1", incarnation=1, store="store1", started_ns=1, spec_hash=cfg.spec_hash(),
                      learner_config=cfg.to_json(), weights_version=0, stored_through={}, rejected={},
                      metrics={})

@@ -229,6 +229,14 @@ def test_receiver_with_key_rejects_unkeyed_frame():
         Codec("srv1", KEY).decode(Codec("robot1").encode(make_ack()), Ack)
 
 
+def test_a_frame_tagged_for_one_controller_is_refused_by_another_sharing_the_key():
+    frame = Codec("robot1", KEY, "arm").encode(make_ack())
+    assert isinstance(Codec("srv1", KEY, "arm").decode(frame, Ack)[1], Ack)
+    for other in (Codec("srv1", KEY, "base"), Codec("srv1", KEY)):
+        with pytest.raises(AuthError):
+            other.decode(frame, Ack)
+
+
 def test_receiver_with_key_rejects_frame_with_other_key():
     with pytest.raises(AuthError):
         decode(encode(make_batch(), "robot1", 0, OTHER_KEY), KEY)

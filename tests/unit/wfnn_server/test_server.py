@@ -80,7 +80,7 @@ def announce(hub, cfg, client="c1", produced_through=-1, metrics=None):
 
 
 def send(hub, b, client="c1", key=None):
-    hub.bus().put(KEYS.experiences(client), Codec(client, key).encode(b), None)
+    hub.bus().put(KEYS.experiences(client), Codec(client, key, "t").encode(b), None)
 
 
 @pytest.mark.parametrize("learner", LEARNERS)
