@@ -45,6 +45,10 @@ from wfnn_bench.hosts import unavailable as hosts_unavailable
 from wfnn_io.cli_errors import guarded
 from wfnn_io.persist import to_jsonable, writable
 
+MAX_POPULATION = 100_000
+"""Most learners, runs or controllers a benchmark option asks for (beyond: refused naming it,
+not by numpy's array limits once the run has started)."""
+
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
 )
@@ -188,7 +192,9 @@ def _cell(value: Any) -> str:
 
 @app.command()
 def boat(
-    controllers: Annotated[int, typer.Option(min=1, help="Controllers per condition.")] = 20,
+    controllers: Annotated[
+        int, typer.Option(min=1, max=MAX_POPULATION, help="Controllers per condition.")
+    ] = 20,
     mode: Annotated[str, typer.Option(help="advantage, q or both.")] = "both",
     targets: Annotated[int, typer.Option(min=1)] = 40,
     thinks: Annotated[
@@ -228,7 +234,7 @@ def boat(
 
 @app.command()
 def cartpole(
-    runs: Annotated[int, typer.Option(min=1)] = 8,
+    runs: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 8,
     steps: Annotated[int, typer.Option(min=1, help="Control steps per run.")] = 30_000,
     thinks: Annotated[int, typer.Option(min=0)] = 100,
     max_attempt_steps: Annotated[int, typer.Option(min=1)] = 10_000,
@@ -252,7 +258,7 @@ def cartpole(
 def speed(
     act_calls: Annotated[int, typer.Option(min=100)] = 20_000,
     thinks: Annotated[int, typer.Option(min=1000)] = 200_000,
-    population: Annotated[int, typer.Option(min=1)] = 64,
+    population: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 64,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
     verbose: bool = False,
@@ -266,12 +272,14 @@ def speed(
 
 @app.command()
 def hydra(
-    controllers: Annotated[int, typer.Option(min=1, help="1-DOF controllers per training regime.")] = 4,
+    controllers: Annotated[
+        int, typer.Option(min=1, max=MAX_POPULATION, help="1-DOF controllers per training regime.")
+    ] = 4,
     episodes: Annotated[int, typer.Option(min=1, help="1-DOF training episodes (30 s each).")] = 30,
     eval_episodes: Annotated[int, typer.Option(min=1)] = 4,
     thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action (thesis).")] = 200,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
-    four_dof_controllers: Annotated[int, typer.Option(min=1)] = 2,
+    four_dof_controllers: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 2,
     four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
     advantage_k: Annotated[
         float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning; the thesis' 0.2).")
@@ -300,7 +308,9 @@ def hydra(
 
 @app.command()
 def nomad(
-    controllers: Annotated[int, typer.Option(min=1, help="Servo controllers learning at once.")] = 8,
+    controllers: Annotated[
+        int, typer.Option(min=1, max=MAX_POPULATION, help="Servo controllers learning at once.")
+    ] = 8,
     episodes: Annotated[int, typer.Option(min=1, help="Servo training episodes (15 s each).")] = 30,
     eval_every: Annotated[int, typer.Option(min=1, help="Evaluate greedily every this many episodes.")] = 5,
     wander_episodes: Annotated[int, typer.Option(min=1, help="Learned wandering: 60 s episodes.")] = 15,
@@ -427,7 +437,9 @@ def dashboard(
 
 @app.command()
 def relearn(
-    controllers: Annotated[int, typer.Option(min=1, help="Controllers learning at once.")] = 2,
+    controllers: Annotated[
+        int, typer.Option(min=1, max=MAX_POPULATION, help="Controllers learning at once.")
+    ] = 2,
     episodes: Annotated[int, typer.Option(min=1, help="30 s episodes of online learning.")] = 40,
     eval_every: Annotated[int, typer.Option(min=1, help="Episodes between greedy evaluations.")] = 5,
     thinks: Annotated[int, typer.Option(min=1, help="Thinks per action.")] = 200,
@@ -452,7 +464,7 @@ def relearn(
 
 @app.command()
 def passive(
-    controllers: Annotated[int, typer.Option(min=1, help="Learners per condition.")] = 8,
+    controllers: Annotated[int, typer.Option(min=1, max=MAX_POPULATION, help="Learners per condition.")] = 8,
     learner: Annotated[
         str, typer.Option(help="thesis | deep: the learner of every condition but the thesis' passive one.")
     ] = "thesis",

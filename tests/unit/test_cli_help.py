@@ -49,6 +49,7 @@ def test_help_texts_come_through_rich_markup_whole(module: str) -> None:
         ("wfnn_client.cli", ["--sim", "nope"]),  # a value its own check refuses
         ("wfnn_client.cli", ["--rate-hz", "abc"]),  # a value of the wrong type
         ("wfnn_bench.cli", ["boat", "--mode", "foo"]),
+        ("wfnn_bench.cli", ["boat", "--controllers", "99999999999999999999"]),  # named, not numpy's limit
         ("wfnn_io.logs_cli", ["inspect"]),  # a missing argument
         ("wfnn_server.cli", ["--no-such-option"]),
     ],
