@@ -17,7 +17,7 @@ import secrets
 from pathlib import Path
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.logs import CLIENT_JSON, ExperienceLog, journal_controller, set_aside
+from wfnn_io.logs import CLIENT_JSON, MAX_CONTROLLERS, ExperienceLog, journal_controllers, set_aside
 from wfnn_io.persist import atomic_write_text, read_regular_text
 from wfnn_io.protocol import MAX_SEQ, check_id
 from wfnn_io.segments import FsyncPolicy, Position
@@ -43,9 +43,9 @@ class Journal:
         controller: str | None = None,
     ) -> None:
         directory = Path(directory)
-        self.controller = controller
-        """The controller its frames are tagged for (recorded, so that a reader with the key checks
-        them with that controller's key: `wfnn_io.logs.read_entries`)."""
+        self.controllers = journal_controllers(directory)
+        """The controllers its frames were tagged for, by this run and earlier ones (recorded, so that
+        a reader with the key checks them with those controllers' keys: `wfnn_io.logs.read_entries`)."""
         self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
                                  segment_bytes=segment_bytes)  # fmt: skip
         self._first: list[int] = []
@@ -67,7 +67,8 @@ class Journal:
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
-            if controller is not None and journal_controller(directory) != controller:
+            if controller is not None and controller not in self.controllers:
+                self.controllers = [*self.controllers, controller][-MAX_CONTROLLERS:]
                 self._write_meta(self._reserved(directory), closed=self._closed_cleanly(directory))
             self.reserved_through = self._reserved(directory)
             """Numbers through this may have been published (`reserve`); -1: none beyond the journal."""
@@ -131,8 +132,8 @@ class Journal:
     def _write_meta(self, reserved_through: int, closed: bool) -> None:
         meta: dict[str, object] = {"client": self.client_id, "reserved_through": reserved_through,
                                    "closed": closed}  # fmt: skip
-        if self.controller is not None:
-            meta["controller"] = self.controller
+        if self.controllers:
+            meta["controllers"] = self.controllers
         atomic_write_text(self.log.directory / CLIENT_JSON, json.dumps(meta))
         self.reserved_through = reserved_through
 

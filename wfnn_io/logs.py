@@ -44,7 +44,7 @@ from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -59,6 +59,7 @@ from wfnn_io.protocol import (
     EXP_VETO_ACTUAL,
     EXP_VETO_PROPOSED,
     MAGIC,
+    AuthError,
     Codec,
     ExperienceBatch,
     ProtocolError,
@@ -187,16 +188,46 @@ CLIENT_JSON = "client.json"
 controller its frames are tagged for)."""
 
 
-def journal_controller(directory: Path) -> str | None:
-    """The controller a client's journal records that its frames are tagged for (None: none)."""
+MAX_CONTROLLERS = 16
+"""Controllers a journal records (the most recent), whose keys a reader tries."""
+
+
+def journal_controllers(directory: Path) -> list[str]:
+    """The controllers a client's journal records that its frames were tagged for (oldest first)."""
     try:
-        controller = json.loads(read_regular_text(Path(directory) / CLIENT_JSON)).get("controller")
+        named = json.loads(read_regular_text(Path(directory) / CLIENT_JSON)).get("controllers", [])
     except (OSError, ValueError, AttributeError, RecursionError):
-        return None
-    try:
-        return check_id(controller, "controller name") if controller is not None else None
-    except ValueError:
-        return None
+        return []
+    if not isinstance(named, list):
+        return []
+    kept = []
+    for name in named[-MAX_CONTROLLERS:]:
+        try:
+            kept.append(check_id(name, "controller name"))
+        except ValueError:
+            continue
+    return kept
+
+
+def _candidate_keys(directory: Path, key: bytes) -> list[bytes]:
+    """The keys a tag in this log may have been made with.
+
+    Its controllers', then the default controller's, then the shared key itself (frames of
+    clients from before tags named their controller).
+    """
+    names = [*journal_controllers(directory), "default"]
+    return [*dict.fromkeys(controller_key(key, name) for name in names), key]
+
+
+def _decode_batch(frame: bytes, keys: list[bytes | None]) -> ExperienceBatch:
+    """The batch of a stored frame whose tag, if any, verifies with one of `keys`."""
+    for k, key in enumerate(keys):
+        try:
+            return cast(ExperienceBatch, decode(frame, key, expect=ExperienceBatch, mac="if_present").message)
+        except AuthError:
+            if k == len(keys) - 1:
+                raise
+    raise AssertionError("no keys")  # keys is never empty
 
 
 def read_entries(
@@ -205,16 +236,15 @@ def read_entries(
     """Every experience batch in a log, oldest first: (where, frame, batch).
 
     Read-only. Damaged records are skipped (resynchronising on the next frame), frames that
-    are not valid batches are refused; both are counted in `counts`. With `key`, tags are
-    checked with the key of the controller a client's journal records (else the key itself).
+    are not valid batches are refused; both are counted in `counts`. With `key`, a tag must
+    verify with the key of a controller the client's journal records, the default controller's
+    or the shared key itself (a wrong key is told: every tagged record is refused `auth`).
     """
     counts = counts if counts is not None else ReadCounts()
-    controller = journal_controller(directory) if key else None
-    if key and controller is not None:
-        key = controller_key(key, controller)
+    keys: list[bytes | None] = [*_candidate_keys(directory, key)] if key else [None]
     for position, frame in read_records(directory, None, counts.report, marker=MAGIC):
         try:
-            _, _, batch = decode(frame, key, expect=ExperienceBatch, mac="if_present")
+            batch = _decode_batch(frame, keys)
         except ProtocolError as exc:
             counts.refused[exc.reason] += 1
             log.error("%s: record at %s is not an experience batch (%s); skipped", directory, position, exc)

@@ -142,7 +142,8 @@ class Dashboard:
         if self._thread.ident is not None:  # shutdown waits for serve_forever, which never ran otherwise
             self._http.shutdown()
         self._http.server_close()
-        self._thread.join(timeout=5.0)
+        if self._thread.ident is not None:  # a start that failed before serving never started it
+            self._thread.join(timeout=5.0)
 
     # ------------------------------------------------------------------ sampling (learner thread)
     def _sample(self, status: ServerStatus) -> None:

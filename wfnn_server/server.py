@@ -524,15 +524,17 @@ class ThinkServer:
         """Stop the threads, write a final checkpoint and close the store."""
         self._stop.set()
         self._wake.set()
-        if self.dashboard is not None:
-            self.dashboard.stop()
-            self.dashboard = None
-        for thread in self._threads:
-            thread.join(timeout=30)
-        self._threads.clear()
-        if self.learner is not None:
-            self.checkpoint()
-        self.store.close()
+        try:
+            if self.dashboard is not None:
+                self.dashboard.stop()
+                self.dashboard = None
+            for thread in self._threads:
+                thread.join(timeout=30)
+            self._threads.clear()
+            if self.learner is not None:
+                self.checkpoint()
+        finally:
+            self.store.close()
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until stopped (or a thread failed); returns whether stopped."""

@@ -380,20 +380,17 @@ def test_a_fifo_where_a_sidecar_should_be_is_refused_without_waiting(tmp_path):
     )
 
 
-def test_a_journal_tagged_for_its_controller_reads_with_the_key_and_refuses_another(tmp_path):
-    """A reader with the key checks a client's frames with the key of the controller it recorded."""
-    from wfnn_io.protocol import controller_key
-
+def test_a_journal_tagged_for_its_controllers_reads_with_the_key_and_refuses_another_key(tmp_path):
+    """A reader with the key checks a client's frames with the keys of the controllers it recorded."""
     cfg, key = small_config(), b"k" * 32
-    j = Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg, controller="arm")
-    codec = Codec("c1", key, "arm")
-    for i in range(3):
-        b = batch(cfg, i * PER_BATCH, PER_BATCH)
+    for n, controller in enumerate(("arm", "base")):  # a journal reopened under another controller
+        j = Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg, controller=controller)
+        codec = Codec("c1", key, controller)
+        b = batch(cfg, n * PER_BATCH, PER_BATCH)
         j.append(codec.encode(b), b.last_seq)
-    j.close()
-    assert logs.summarise(tmp_path / "j", key).experiences == 3 * PER_BATCH
+        j.close()
+    Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg).close()  # a local run on it
+    assert logs.summarise(tmp_path / "j", key).experiences == 2 * PER_BATCH
     counts = logs.ReadCounts()
-    assert not list(
-        logs.read_entries(tmp_path / "j", controller_key(key, "arm"), counts)
-    )  # not the raw key's
-    assert counts.refused["auth"] == 3
+    assert not list(logs.read_entries(tmp_path / "j", b"w" * 32, counts))
+    assert counts.refused["auth"] == 2

@@ -553,3 +553,23 @@ def test_a_start_refused_at_its_dashboard_port_leaves_the_count_of_starts_as_it_
             server.start()
         server.stop()
     assert (tmp_path / "s1" / "incarnation").read_text() == str(first.incarnation)
+
+
+def test_a_start_that_fails_after_binding_its_dashboard_stops_cleanly_and_says_why(tmp_path, monkeypatch):
+    """The failure is what is raised, and stopping still closes the store (its lock)."""
+    from wfnn_server import server as server_module
+    from wfnn_server.config import DashboardConfig
+
+    hub, cfg = Hub(), small_config()
+    server = make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=0))
+
+    def full(path, text):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(server_module, "atomic_write_text", full)
+    with pytest.raises(OSError, match="No space left"):
+        server.start()
+    monkeypatch.undo()
+    server.stop()
+    with make_server(tmp_path, hub, cfg):  # the store's lock was released
+        pass
