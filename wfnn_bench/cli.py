@@ -42,7 +42,7 @@ from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
-from wfnn_io.cli_errors import guarded
+from wfnn_io.cli_errors import guarded, path_given
 from wfnn_io.persist import to_jsonable, writable
 
 MAX_POPULATION = 100_000
@@ -54,8 +54,12 @@ app = typer.Typer(
 )
 console = Console()
 
-JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the full result as JSON here.")]
-PlotOpt = Annotated[Path | None, typer.Option("--plot", help="Write the figure as PNG here.")]
+JsonOpt = Annotated[
+    Path | None, typer.Option("--json", parser=path_given, help="Write the full result as JSON here.")
+]
+PlotOpt = Annotated[
+    Path | None, typer.Option("--plot", parser=path_given, help="Write the figure as PNG here.")
+]
 
 
 def _logging(verbose: bool, json_path: Path | None, plot_path: Path | None) -> None:
@@ -563,7 +567,9 @@ def faults(
     rate_limit_s: Annotated[float, typer.Option(min=1.0, help="Rate limit length (f).")] = 30.0,
     warmup_s: Annotated[float, typer.Option(min=1.0, help="Learning before each fault.")] = 10.0,
     after_s: Annotated[float, typer.Option(min=1.0, help="Running on after each fault.")] = 20.0,
-    keep: Annotated[Path | None, typer.Option(help="Keep every case's logs, stores and traces here.")] = None,
+    keep: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Keep every case's logs, stores and traces here.")
+    ] = None,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,

@@ -28,7 +28,7 @@ import numpy as np
 import typer
 
 from wfnn_common.config import check_fields, settings
-from wfnn_io.cli_errors import guarded
+from wfnn_io.cli_errors import guarded, path_given
 from wfnn_io.logs import is_log
 from wfnn_io.persist import atomic_write_bytes, atomic_write_text, read_regular_text
 
@@ -284,8 +284,11 @@ def _tools() -> None:
 
 @app.command()
 def report(
-    path: Annotated[Path, typer.Argument(help="A run directory, a benchmark JSON, or a folder of them.")],
-    out: Annotated[Path | None, typer.Option(help="The HTML file to write.")] = None,
+    path: Annotated[
+        Path,
+        typer.Argument(parser=path_given, help="A run directory, a benchmark JSON, or a folder of them."),
+    ],
+    out: Annotated[Path | None, typer.Option(parser=path_given, help="The HTML file to write.")] = None,
 ) -> None:
     """Render a self-contained HTML report (and a PNG of a run's curves)."""
     try:

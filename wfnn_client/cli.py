@@ -26,7 +26,7 @@ from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, path_given
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
@@ -108,14 +108,18 @@ def client(
         list[str] | None, typer.Option(help="Zenoh endpoint to listen on (repeatable).")
     ] = None,
     mode: Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")] = "peer",
-    zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
+    zenoh_config: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
+    ] = None,
     shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
     controller: Annotated[
         str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
     ] = "default",
     client_id: Annotated[str | None, typer.Option(help="Client id (default: from the journal).")] = None,
     follow: Annotated[str | None, typer.Option(help="Follow only this server id.")] = None,
-    key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
+    key_file: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Shared key: frames are HMAC-authenticated.")
+    ] = None,
     insecure: Annotated[
         bool,
         typer.Option(
@@ -123,7 +127,9 @@ def client(
         ),
     ] = False,
     learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
-    weights: Annotated[Path | None, typer.Option(help="Start from these saved weights.")] = None,
+    weights: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Start from these saved weights.")
+    ] = None,
     learner: Annotated[
         str,
         typer.Option(help="thesis (the thesis' WFNN) or deep (deep wire fitting, torch where it thinks)."),
@@ -203,9 +209,12 @@ def client(
     safe_action: Annotated[str | None, typer.Option(help="Safe action, comma-separated (default 0).")] = None,
     veto: Annotated[bool, typer.Option(help="Apply the robot's veto rules.")] = True,
     out: Annotated[
-        Path, typer.Option("--out", "--record", help="Run directory (journal, weights...).")
+        Path,
+        typer.Option("--out", "--record", parser=path_given, help="Run directory (journal, weights...)."),
     ] = Path("runs/latest"),
-    json_stats: Annotated[Path | None, typer.Option(help="Write the final figures as JSON here.")] = None,
+    json_stats: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Write the final figures as JSON here.")
+    ] = None,
     timing_trace: Annotated[
         bool, typer.Option(help="Also write every tick's timing and every applied snapshot into the metrics.")
     ] = False,

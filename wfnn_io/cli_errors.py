@@ -16,6 +16,7 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 
@@ -31,6 +32,18 @@ def describe(exc: BaseException) -> str:
     # A cause its error already quotes ("unreadable (X)" caused by X) is not said twice.
     text = ": ".join(p for i, p in enumerate(parts) if p and not any(p in q for q in parts[:i]))
     return " ".join(text.split())
+
+
+def path_given(value: str | Path) -> Path:
+    """A path from the command line (typer's `parser`): an empty one is refused.
+
+    `Path("")` is the current directory, so `--out ""` would write a run there without a word.
+    """
+    if isinstance(value, Path):
+        return value  # a default
+    if not value:
+        raise ValueError("an empty path (give one; '.' names the current directory)")
+    return Path(value)
 
 
 def _one(exc: BaseException) -> str:

@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from wfnn_io import logs
-from wfnn_io.cli_errors import describe, guarded
+from wfnn_io.cli_errors import describe, guarded, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import load_key
 
@@ -22,7 +22,9 @@ app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a serv
                   no_args_is_help=True)  # fmt: skip
 console = Console()
 errors = Console(stderr=True)
-KeyOpt = Annotated[Path | None, typer.Option(help="Shared key file, where the frames carry HMAC tags.")]
+KeyOpt = Annotated[
+    Path | None, typer.Option(parser=path_given, help="Shared key file, where the frames carry HMAC tags.")
+]
 
 
 def _key(path: Path | None) -> bytes | None:
@@ -45,7 +47,7 @@ def _setup(verbose: bool = False) -> None:
 
 @app.command()
 def inspect(
-    log_dir: Path,
+    log_dir: Annotated[Path, typer.Argument(parser=path_given)],
     key_file: KeyOpt = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON.")] = False,
 ) -> None:
@@ -86,9 +88,12 @@ def inspect(
 @app.command()
 def merge(
     sources: Annotated[
-        list[Path], typer.Argument(help="Logs to merge (each client's experiences kept once).")
+        list[Path],
+        typer.Argument(parser=path_given, help="Logs to merge (each client's experiences kept once)."),
     ],
-    out: Annotated[Path, typer.Option(help="The new log's directory (must not hold a log).")],
+    out: Annotated[
+        Path, typer.Option(parser=path_given, help="The new log's directory (must not hold a log).")
+    ],
     key_file: KeyOpt = None,
 ) -> None:
     """Merge logs into a new one."""
@@ -101,8 +106,10 @@ def merge(
 
 @app.command()
 def split(
-    source: Path,
-    out: Annotated[Path, typer.Option(help="Directory for the new logs (one subdirectory each).")],
+    source: Annotated[Path, typer.Argument(parser=path_given)],
+    out: Annotated[
+        Path, typer.Option(parser=path_given, help="Directory for the new logs (one subdirectory each).")
+    ],
     by: Annotated[str, typer.Option(help="client, behaviour (weights source) or count.")] = "client",
     every: Annotated[int, typer.Option(help="by count: experiences per part (whole batches).")] = 0,
     key_file: KeyOpt = None,
@@ -118,8 +125,8 @@ def split(
 
 @app.command()
 def export(
-    sources: Annotated[list[Path], typer.Argument(help="Logs to export (merged).")],
-    out: Annotated[Path, typer.Option(help="The .npz file to write.")],
+    sources: Annotated[list[Path], typer.Argument(parser=path_given, help="Logs to export (merged).")],
+    out: Annotated[Path, typer.Option(parser=path_given, help="The .npz file to write.")],
     key_file: KeyOpt = None,
 ) -> None:
     """Write logs' experiences as plain numpy arrays in one .npz (np.load(..., allow_pickle=False))."""

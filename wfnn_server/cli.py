@@ -15,7 +15,7 @@ from rich.markup import escape
 from rich.status import Status
 
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
@@ -49,15 +49,20 @@ def serve(
     mode: Annotated[str, typer.Option(help="Zenoh mode: router, peer or client.")] = "router",
     listen: Annotated[list[str] | None, typer.Option(help="Endpoint to listen on (repeatable).")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Endpoint to connect to (repeatable).")] = None,
-    zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
-    shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
-    data_dir: Annotated[Path, typer.Option(help="Store, checkpoint and config directory.")] = Path(
-        "wfnn-data"
-    ),
-    learner_config: Annotated[
-        Path | None, typer.Option(help="LearnerConfig JSON (default: adopt the first client's).")
+    zenoh_config: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
     ] = None,
-    key_file: Annotated[Path | None, typer.Option(help="Shared key: frames are HMAC-authenticated.")] = None,
+    shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
+    data_dir: Annotated[
+        Path, typer.Option(parser=path_given, help="Store, checkpoint and config directory.")
+    ] = Path("wfnn-data"),
+    learner_config: Annotated[
+        Path | None,
+        typer.Option(parser=path_given, help="LearnerConfig JSON (default: adopt the first client's)."),
+    ] = None,
+    key_file: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Shared key: frames are HMAC-authenticated.")
+    ] = None,
     insecure: Annotated[
         bool,
         typer.Option(
@@ -96,6 +101,7 @@ def serve(
     replay_only: Annotated[
         list[Path] | None,
         typer.Option(
+            parser=path_given,
             help="Learn from these experience logs (client --record DIR/journal, server DATA_DIR/store; "
             "repeatable) with no robot: import them into the store, think until each experience has had "
             "its thinks, checkpoint, stop. Rerun without it to go on learning online.",

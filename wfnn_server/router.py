@@ -21,7 +21,7 @@ import typer
 
 from wfnn_common.config import check_fields
 from wfnn_io.bus import NetConfig, ZenohBus, endpoints, is_loopback
-from wfnn_io.cli_errors import guarded
+from wfnn_io.cli_errors import guarded, path_given
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,9 @@ def route(
     connect: Annotated[
         list[str] | None, typer.Option(help="Another router to connect to (repeatable).")
     ] = None,
-    zenoh_config: Annotated[Path | None, typer.Option(help="Zenoh JSON5 config (TLS, auth...).")] = None,
+    zenoh_config: Annotated[
+        Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
+    ] = None,
     verbose: bool = False,
 ) -> None:
     """Route until SIGTERM/SIGINT."""

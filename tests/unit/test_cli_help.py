@@ -52,6 +52,9 @@ def test_help_texts_come_through_rich_markup_whole(module: str) -> None:
         ("wfnn_bench.cli", ["boat", "--controllers", "99999999999999999999"]),  # named, not numpy's limit
         ("wfnn_io.logs_cli", ["inspect"]),  # a missing argument
         ("wfnn_server.cli", ["--no-such-option"]),
+        ("wfnn_client.cli", ["--out", ""]),  # an empty path is not the current directory
+        ("wfnn_server.cli", ["--data-dir", ""]),
+        ("wfnn_io.logs_cli", ["merge", "a", "--out", ""]),
     ],
 )
 def test_a_usage_error_ends_in_one_error_line(module, argv, monkeypatch, capsys):
