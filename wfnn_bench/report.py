@@ -30,7 +30,8 @@ import typer
 from wfnn_common.config import check_fields, settings
 from wfnn_io.cli_errors import guarded, path_given
 from wfnn_io.logs import is_log
-from wfnn_io.persist import atomic_write_bytes, atomic_write_text, read_regular_text
+from wfnn_io.persist import atomic_write_bytes, atomic_write_text, read_regular_bytes, read_regular_text
+from wfnn_io.protocol import PNG_SIGNATURE
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
     scores = np.asarray([np.nan if s is None else s for s in metrics["scores"]], dtype=np.float64)
     episodes = np.arange(1, len(scores) + 1)
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [3, 1]})
-    policies = metrics.get("episode_policies") or []
+    policies = _policies(metrics, len(scores))
     if policies and len(set(policies)) > 1:
         for name in sorted(set(policies)):
             mask = np.array([p == name for p in policies])
@@ -184,7 +185,7 @@ def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
         raise ReportError(f"{path} is not a client run's metrics (no scores)")
     try:
         return _run_sections_of(directory, metrics)
-    except (TypeError, ValueError, KeyError, AttributeError, ArithmeticError, RecursionError) as exc:
+    except (TypeError, ValueError, LookupError, AttributeError, ArithmeticError, RecursionError) as exc:
         raise ReportError(f"{path}: malformed metrics ({type(exc).__name__}: {exc})") from exc
 
 
@@ -196,7 +197,7 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
         if present:
             rows.append((name, _fmt(metrics[present[0]])))
     sections = [Section("Run", rows, [("learning curve and episode scores", _uri(figure))], [])]
-    policies = metrics.get("episode_policies") or []
+    policies = _policies(metrics, len(metrics["scores"]))
     if policies and len(set(policies)) > 1:
         counts = {p: policies.count(p) for p in sorted(set(policies))}
         sections[0].notes.append("episodes driven by: " + ", ".join(f"{p} {n}" for p, n in counts.items()))
@@ -208,9 +209,44 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
     cameras = sorted((directory / "cameras").glob("*.png")) if (directory / "cameras").is_dir() else []
     if cameras:
         chosen = [cameras[0], cameras[-1]] if len(cameras) > 1 else cameras
-        sections.append(Section("Cameras", [("pictures saved", str(len(cameras)))],
-                                [(f"{p.name}", _uri(p.read_bytes())) for p in chosen], []))  # fmt: skip
+        pictures, notes = _pictures(directory, chosen)
+        sections.append(Section("Cameras", [("pictures saved", str(len(cameras)))], pictures, notes))
     return sections, figure
+
+
+PICTURE_LIMIT = 16 << 20
+"""The largest picture a report embeds."""
+
+
+def _pictures(directory: Path, paths: list[Path]) -> tuple[list[tuple[str, str]], list[str]]:
+    """The PNG pictures among `paths` inside `directory`, as data URIs; and notes on the others.
+
+    A picture is embedded only where it is a regular PNG file of at most PICTURE_LIMIT bytes
+    inside the run directory: a report is shared, and a link in a directory someone else made
+    could point at any file (a key, say); a FIFO would block the reader for good.
+    """
+    pictures, notes = [], []
+    root = directory.resolve()
+    for p in paths:
+        try:
+            if not p.resolve().is_relative_to(root):
+                raise OSError(f"a link out of the run directory ({p.resolve()})")
+            data = read_regular_bytes(p, PICTURE_LIMIT)
+            if not data.startswith(PNG_SIGNATURE):
+                raise ValueError("not a PNG picture")
+        except (OSError, ValueError) as exc:
+            notes.append(f"{p.name} not shown: {exc}")
+            continue
+        pictures.append((p.name, _uri(data)))
+    return pictures, notes
+
+
+def _policies(metrics: dict[str, Any], n: int) -> list[str]:
+    """The episodes' behaviour policies, where metrics.json gives one name per episode (else none)."""
+    policies = metrics.get("episode_policies")
+    if isinstance(policies, list) and len(policies) == n and all(isinstance(p, str) for p in policies):
+        return policies
+    return []
 
 
 def _journal_section(journal: Path) -> Section:
@@ -232,8 +268,7 @@ def _bench_section(path: Path) -> Section:
     if not isinstance(data, dict):
         raise ReportError(f"{path}: a benchmark result is a JSON object")
     png = path.with_suffix(".png")
-    images = [(png.name, _uri(png.read_bytes()))] if png.exists() else []
-    notes = []
+    images, notes = _pictures(path.parent, [png]) if png.exists() else ([], [])
     machine = data.get("machine")
     if isinstance(machine, dict):
         notes.append("measured on: " + ", ".join(f"{k} {v}" for k, v in machine.items()))

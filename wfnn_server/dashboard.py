@@ -73,6 +73,9 @@ MAX_CONNECTIONS = 64
 """Connections served at once; more are closed as they arrive (each holds a thread)."""
 TIMEOUT_S = 30.0
 """Socket timeout of a connection: an idle, half-sent or unread one ends after this long."""
+HEAD_S = 10.0
+"""A request's line and headers must arrive within this long: one trickled a byte at a time
+(each within the socket timeout) would hold its connection's slot for good."""
 
 
 def _f32(values: np.ndarray) -> str:
@@ -384,13 +387,34 @@ class _Handler(BaseHTTPRequestHandler):
     wbufsize = 1 << 16
     server_version = "wfnn-dashboard"
     timeout = TIMEOUT_S  # an idle, half-sent or unread connection ends rather than holding its thread
+    _head_timer: threading.Timer | None = None
+
+    def handle_one_request(self) -> None:
+        """One request, its head (line and headers) due within HEAD_S or the connection is cut."""
+        timer = threading.Timer(HEAD_S, self._cut)
+        timer.daemon = True
+        self._head_timer = timer
+        timer.start()
+        try:
+            super().handle_one_request()
+        finally:
+            timer.cancel()
+
+    def _cut(self) -> None:
+        try:
+            self.connection.shutdown(socket.SHUT_RDWR)  # the blocked read returns: the handler ends
+        except OSError:
+            pass
 
     def parse_request(self) -> bool:
         """The standard parsing, then the Host header checked.
 
         A page of another name that resolves to this address (DNS rebinding) gets nothing.
         """
-        if not super().parse_request():
+        parsed = super().parse_request()
+        if self._head_timer is not None:  # the head has arrived: a stream may last
+            self._head_timer.cancel()
+        if not parsed:
             return False
         if self.dashboard.host_allowed(self.headers.get_all("Host") or []):
             return True

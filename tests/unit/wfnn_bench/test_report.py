@@ -93,3 +93,24 @@ def test_a_deep_runs_report_shows_the_deep_learners_settings_not_the_thesis_ones
     thesis = dict(settings(small_config().to_dict()))
     assert "state_low" not in thesis
     assert thesis["n_hidden"] == 6 and not [k for k in thesis if k.startswith("deep")]
+
+
+def test_pictures_that_are_not_the_runs_own_pngs_are_named_not_embedded(tmp_path):
+    """A link out of the run, a FIFO or a file that is no PNG: noted, never read into the page."""
+    import os
+    import threading
+
+    run_dir = tmp_path / "run"
+    (run_dir / "cameras").mkdir(parents=True)
+    (tmp_path / "secret.key").write_bytes(b"the key" * 100)
+    (run_dir / "cameras" / "a.png").symlink_to(tmp_path / "secret.key")
+    os.mkfifo(run_dir / "cameras" / "z.png")
+    (run_dir / "metrics.json").write_text(json.dumps({"scores": [1.0, 2.0, 3.0], "episode_policies": ["x"]}))
+    done = []
+    worker = threading.Thread(target=lambda: done.append(run(ReportConfig(path=run_dir))), daemon=True)
+    worker.start()
+    worker.join(30.0)
+    assert done, "the report waited on a FIFO"
+    html = done[0].read_text()
+    assert "a.png not shown: a link out of the run directory" in html and "z.png not shown" in html
+    assert "the key" not in html and "dGhlIGtleX" not in html  # nor its base64

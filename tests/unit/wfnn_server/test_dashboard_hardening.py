@@ -186,6 +186,31 @@ def test_idle_and_half_sent_connections_are_closed(running, monkeypatch):
     assert time.monotonic() - t0 < 4.0
 
 
+def test_a_request_head_trickled_a_byte_at_a_time_is_cut_at_its_deadline(running, monkeypatch):
+    """Each byte within the socket timeout, the head never done: the slot comes back anyway."""
+    monkeypatch.setattr(dashboard_module, "HEAD_S", 0.5)
+    d = running()
+    conn = socket.create_connection(("127.0.0.1", d.port), timeout=5)
+    t0 = time.monotonic()
+    cut = False
+    try:
+        for byte in b"GET /api/view HTTP/1.1\r\nHost: 127.0.0.1":
+            conn.sendall(bytes([byte]))
+            time.sleep(0.1)
+            if time.monotonic() - t0 > 3.0:
+                break
+        conn.settimeout(2.0)
+        cut = conn.recv(100) == b""
+    except TimeoutError:  # still open: not cut
+        cut = False
+    except OSError:  # reset by the cut
+        cut = True
+    finally:
+        conn.close()
+    assert cut and time.monotonic() - t0 < 4.0
+    assert _get(d.port, f"127.0.0.1:{d.port}")[0] == 200
+
+
 def test_connections_beyond_the_cap_are_closed(running, monkeypatch):
     monkeypatch.setattr(dashboard_module, "MAX_CONNECTIONS", 2)
     d = running()
