@@ -123,7 +123,9 @@ class Dashboard:
             raise OSError(exc.errno, f"dashboard cannot listen on {config.host} port {config.port}: "
                           f"{exc.strerror or exc}") from None  # fmt: skip
         self.port = int(self._http.server_address[1])
-        self.hosts = _allowed_hosts(config.host, self.port)
+        # Every interface by the address bound, not by its spelling ("0" and "0.0.0.00" bind it too).
+        self.every_interface = _unspecified(str(self._http.server_address[0]))
+        self.hosts = _allowed_hosts(config.host, self.port, self.every_interface)
         """Host headers served (lower case): the page's own addresses, never another name (DNS rebinding)."""
         self._thread = threading.Thread(target=self._http.serve_forever, name="dashboard", daemon=True)
         view.status_listeners.append(self._sample)
@@ -185,9 +187,7 @@ class Dashboard:
         host = hosts[0].strip().lower()
         if host in self.hosts:
             return True
-        return (
-            self.config.host in WILDCARDS and _ip_literal(host) and host.rpartition(":")[2] == str(self.port)
-        )
+        return self.every_interface and _ip_literal(host) and host.rpartition(":")[2] == str(self.port)
 
     def view(self, since: int = 0) -> dict[str, Any]:
         """Everything the page shows, with only the samples newer than `since`."""
@@ -311,13 +311,21 @@ def _host_name(host: str) -> str:
     return f"[{host}]".lower() if ":" in host else host.lower()
 
 
-def _allowed_hosts(host: str, port: int) -> frozenset[str]:
+def _unspecified(address: str) -> bool:
+    """Whether a bound address is every interface's (0.0.0.0 or ::)."""
+    try:
+        return ipaddress.ip_address(address.split("%", 1)[0]).is_unspecified
+    except ValueError:
+        return False
+
+
+def _allowed_hosts(host: str, port: int, every_interface: bool = False) -> frozenset[str]:
     """The Host headers the dashboard serves: its own address and the loopback names.
 
     With its port, and without where the port is HTTP's default, as browsers send it.
     """
     names = {"127.0.0.1", "localhost", "[::1]", _host_name(host)}
-    if host in WILDCARDS:  # serving every interface: the machine's own names too
+    if every_interface or host in WILDCARDS:  # serving every interface: the machine's own names too
         names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
     hosts = {f"{name}:{port}" for name in names}
     if port == 80:

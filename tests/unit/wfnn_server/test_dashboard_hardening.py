@@ -330,3 +330,23 @@ def test_the_surface_and_camera_are_the_newest_clients(running):
     d._cached = None
     v = d.view()
     assert v["surface"]["client"] == "z" and v["camera"] == "a"
+
+
+def test_every_interface_is_told_by_the_address_bound_not_its_spelling():
+    """ "0" and "0.0.0.00" bind 0.0.0.0 as well: such a dashboard serves pages naming its IP addresses."""
+    import socket as sockets
+
+    assert dashboard_module._unspecified("0.0.0.0") and dashboard_module._unspecified("::")
+    assert not dashboard_module._unspecified("127.0.0.1") and not dashboard_module._unspecified("::1")
+    names = dashboard_module._allowed_hosts("0", 8080, every_interface=True)
+    assert f"{sockets.gethostname().lower()}:8080" in names
+    own = f"{sockets.gethostname().lower()}:8080"
+    if own not in {"localhost:8080", "127.0.0.1:8080"}:  # a machine named like loopback serves it anyway
+        assert own not in dashboard_module._allowed_hosts("127.0.0.1", 8080)
+
+
+def test_a_dashboard_on_every_interface_serves_pages_naming_an_ip_address_with_its_port(running):
+    d = running()
+    assert not d.every_interface and not d.host_allowed([f"10.1.2.3:{d.port}"])  # bound to loopback
+    d.every_interface = True  # as one bound to 0.0.0.0 is, however its host was spelt
+    assert d.host_allowed([f"10.1.2.3:{d.port}"]) and not d.host_allowed([f"10.1.2.3:{d.port + 1}"])
