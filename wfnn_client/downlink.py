@@ -17,7 +17,7 @@ import queue
 import threading
 import time
 from collections import Counter
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -34,6 +34,7 @@ from wfnn_io.protocol import (
     ServerStatus,
     WeightSnapshot,
     check_frame,
+    decode,
     max_frame,
     take,
 )
@@ -248,7 +249,9 @@ class Downlink:
                 view.alive = alive
 
     def _take_snapshot(self, data: bytes) -> None:
-        sender, snap = self.codec.decode(data, WeightSnapshot)
+        # Only frames `_on_snapshot` checked (CRC and tag) wait here: the tag is not checked twice.
+        sender, _, message = decode(data, expect=WeightSnapshot)
+        snap = cast(WeightSnapshot, message)
         reason = self._invalid(sender, snap)
         if reason:
             self.rejected[reason] += 1

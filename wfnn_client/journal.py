@@ -15,9 +15,17 @@ import json
 import logging
 import secrets
 from pathlib import Path
+from typing import Any
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.logs import CLIENT_JSON, MAX_CONTROLLERS, ExperienceLog, journal_controllers, set_aside
+from wfnn_io.logs import (
+    CLIENT_JSON,
+    MAX_CONTROLLERS,
+    ExperienceLog,
+    client_meta,
+    journal_controllers,
+    set_aside,
+)
 from wfnn_io.persist import atomic_write_text, read_regular_text
 from wfnn_io.protocol import MAX_SEQ, check_id
 from wfnn_io.segments import FsyncPolicy, Position
@@ -26,6 +34,12 @@ log = logging.getLogger(__name__)
 
 RESERVE_BLOCK = 256
 """Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
+
+
+def _reserved(meta: dict[str, Any]) -> int:
+    """A `client.json`'s reservation (-1 where it holds none)."""
+    reserved = meta.get("reserved_through", -1)
+    return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_SEQ // 2 else -1
 
 
 class Journal:
@@ -43,9 +57,6 @@ class Journal:
         controller: str | None = None,
     ) -> None:
         directory = Path(directory)
-        self.controllers = journal_controllers(directory)
-        """The controllers its frames were tagged for, by this run and earlier ones (recorded, so that
-        a reader with the key checks them with those controllers' keys: `wfnn_io.logs.read_entries`)."""
         self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
                                  segment_bytes=segment_bytes)  # fmt: skip
         self._first: list[int] = []
@@ -67,11 +78,16 @@ class Journal:
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
+            meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
+            self.controllers = journal_controllers(meta)
+            """The controllers its frames were tagged for, by this run and earlier ones (recorded, so
+            that a reader with the key checks them with those controllers' keys: `logs.read_entries`)."""
+            self.reserved_through = _reserved(meta)
+            """Numbers through this may have been published (`reserve`); -1: none beyond the journal."""
+            closed = meta.get("closed") is True
             if controller is not None and controller not in self.controllers:
                 self.controllers = [*self.controllers, controller][-MAX_CONTROLLERS:]
-                self._write_meta(self._reserved(directory), closed=self._closed_cleanly(directory))
-            self.reserved_through = self._reserved(directory)
-            """Numbers through this may have been published (`reserve`); -1: none beyond the journal."""
+                self._write_meta(self.reserved_through, closed=closed)
         except BaseException:
             self.log.close()
             raise
@@ -81,7 +97,7 @@ class Journal:
             # Numbers an earlier run reserved may have been published, and the journal's newest
             # records lost (a power cut before their fsync): new experiences must not reuse them.
             self.skipped_at_open = self.reserved_through + 1 - self.next_seq
-            if not self._closed_cleanly(directory):
+            if not closed:
                 log.warning("journal %s was not closed by its last run: numbering continues after the "
                             "numbers it reserved, at %d (%d-%d, published or not, are not in the "
                             "journal)", directory, self.reserved_through + 1, self.next_seq,
@@ -111,23 +127,6 @@ class Journal:
         if not meta.exists():
             atomic_write_text(meta, json.dumps({"client": client_id}))
         return client_id
-
-    @staticmethod
-    def _reserved(directory: Path) -> int:
-        """`client.json`'s reservation (-1 where it holds none)."""
-        try:
-            reserved = json.loads(read_regular_text(directory / CLIENT_JSON)).get("reserved_through", -1)
-        except (OSError, ValueError, AttributeError, RecursionError):
-            return -1
-        return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_SEQ // 2 else -1
-
-    @staticmethod
-    def _closed_cleanly(directory: Path) -> bool:
-        """Whether `client.json` says its journal's last run closed it."""
-        try:
-            return json.loads(read_regular_text(directory / CLIENT_JSON)).get("closed") is True
-        except (OSError, ValueError, AttributeError, RecursionError):
-            return False
 
     def _write_meta(self, reserved_through: int, closed: bool) -> None:
         meta: dict[str, object] = {"client": self.client_id, "reserved_through": reserved_through,

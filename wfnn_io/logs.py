@@ -44,7 +44,7 @@ from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, TypeGuard, cast
 
 import numpy as np
 
@@ -96,7 +96,7 @@ def new_log_id() -> str:
     return secrets.token_hex(8)
 
 
-def _is_log_id(identity: object) -> bool:
+def _is_log_id(identity: object) -> TypeGuard[str]:
     """Whether a `log.json` id can name a store on the wire (acks and statuses carry it)."""
     if not isinstance(identity, str):
         return False
@@ -192,12 +192,18 @@ MAX_CONTROLLERS = 16
 """Controllers a journal records (the most recent), whose keys a reader tries."""
 
 
-def journal_controllers(directory: Path) -> list[str]:
-    """The controllers a client's journal records that its frames were tagged for (oldest first)."""
+def client_meta(directory: Path) -> dict[str, Any]:
+    """A client's journal's `client.json` as a dict (empty where it is missing or unreadable)."""
     try:
-        named = json.loads(read_regular_text(Path(directory) / CLIENT_JSON)).get("controllers", [])
-    except (OSError, ValueError, AttributeError, RecursionError):
-        return []
+        meta = json.loads(read_regular_text(Path(directory) / CLIENT_JSON))
+    except (OSError, ValueError, RecursionError):
+        return {}
+    return meta if isinstance(meta, dict) else {}
+
+
+def journal_controllers(meta: dict[str, Any]) -> list[str]:
+    """The controllers a journal's `client_meta` records that its frames were tagged for (oldest first)."""
+    named = meta.get("controllers", [])
     if not isinstance(named, list):
         return []
     kept = []
@@ -215,19 +221,18 @@ def _candidate_keys(directory: Path, key: bytes) -> list[bytes]:
     Its controllers', then the default controller's, then the shared key itself (frames of
     clients from before tags named their controller).
     """
-    names = [*journal_controllers(directory), "default"]
+    names = [*journal_controllers(client_meta(directory)), "default"]
     return [*dict.fromkeys(controller_key(key, name) for name in names), key]
 
 
 def _decode_batch(frame: bytes, keys: list[bytes | None]) -> ExperienceBatch:
-    """The batch of a stored frame whose tag, if any, verifies with one of `keys`."""
-    for k, key in enumerate(keys):
+    """The batch of a stored frame whose tag, if any, verifies with one of `keys` (the last's error)."""
+    for key in keys[:-1]:
         try:
             return cast(ExperienceBatch, decode(frame, key, expect=ExperienceBatch, mac="if_present").message)
         except AuthError:
-            if k == len(keys) - 1:
-                raise
-    raise AssertionError("no keys")  # keys is never empty
+            continue
+    return cast(ExperienceBatch, decode(frame, keys[-1], expect=ExperienceBatch, mac="if_present").message)
 
 
 def read_entries(
@@ -300,7 +305,7 @@ class ExperienceLog:
                 f"{config.spec_hash()} (another task or ranges): use another run directory"
             )
         identity = info.get("id") if info is not None else None
-        self.id: str = identity if isinstance(identity, str) and _is_log_id(identity) else new_log_id()
+        self.id: str = identity if _is_log_id(identity) else new_log_id()
         """The log's identity, made when it was created."""
         if info is not None and identity != self.id:
             unusable = unusable or f"its id is not a name ({identity!r})"

@@ -223,6 +223,22 @@ def test_one_forged_snapshot_of_a_huge_version_stops_driving_the_robot(tmp_path)
             brain.stop()
 
 
+def lose_one_live_batch(hub, brain):
+    """One experience fed to `brain` whose live batch is lost on the way (the journal keeps it)."""
+    lost = {"n": 1}
+
+    def tap(key, payload):
+        if "/exp/live/" in key and lost["n"]:
+            lost["n"] -= 1
+            return None
+        return payload
+
+    hub.tap = tap
+    feed(brain, 1, seed=1)
+    assert wait(lambda: lost["n"] == 0)
+    hub.tap = None
+
+
 def test_one_forged_ack_of_a_huge_number_does_not_stop_resends(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
@@ -235,18 +251,7 @@ def test_one_forged_ack_of_a_huge_number_does_not_stop_resends(tmp_path):
                          started_ns=server.started_ns, stored_through=2**63)  # fmt: skip
             hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
             assert wait(lambda: brain.rejected["ack_beyond"] == 1)
-            lost = {"n": 1}
-
-            def tap(key, payload):  # one live batch lost on the way
-                if "/exp/live/" in key and lost["n"]:
-                    lost["n"] -= 1
-                    return None
-                return payload
-
-            hub.tap = tap
-            feed(brain, 1, seed=1)
-            assert wait(lambda: lost["n"] == 0)
-            hub.tap = None
+            lose_one_live_batch(hub, brain)
             feed(brain, 40, seed=2)
             assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
             assert wait(brain.all_acked)
@@ -460,18 +465,7 @@ def test_an_ack_within_what_was_produced_does_not_hold_back_resends_past_the_nex
         try:
             feed(brain, 20)
             assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
-            lost = {"n": 1}
-
-            def tap(key, payload):  # one live batch lost on the way
-                if "/exp/live/" in key and lost["n"]:
-                    lost["n"] -= 1
-                    return None
-                return payload
-
-            hub.tap = tap
-            feed(brain, 1, seed=1)
-            assert wait(lambda: lost["n"] == 0)
-            hub.tap = None
+            lose_one_live_batch(hub, brain)
             forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
                          started_ns=server.started_ns, stored_through=brain.produced_through)  # fmt: skip
             hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
