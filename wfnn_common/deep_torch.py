@@ -9,6 +9,9 @@ target averaging are one operation each. One update on a minibatch of B experien
     y  = R + discount * min_j Q'_j(x', u')                       (twin critics, Fujimoto 2018)
     y  = V(x) + (y - V(x)) / k,  V(x) = min_j Q'_j(x, best wire)  (advantage learning, Eq 4.1)
     L  = sum_j mean (Q_j(x, u) - y)^2 + separation * sum_j mean_{i<l} 1 / (|u_i - u_l| + 0.1)
+         (the best wire held still in its pairs unless deep.separate_best)
+         + sum_j mean max(0, |z| - tanh_limit)^2   (z the wire head's inputs to tanh)
+         - ascent * sum_j mean V_j(x, best wire of critic j) / mean |V_j|  (to the wire head only)
          + bc_weight * mean |best wire of critic 1 at x - u|^2
 
 Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires (the deep.top_k of
@@ -71,25 +74,48 @@ class Critics:
         both = theta.view(2, self.n)
         return {name: both[:, a:b].reshape(2, *shape) for name, (a, b, shape) in self.slices.items()}
 
-    def wires(self, p: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Both critics' wires (blocks p) at states x [B, S] -> (actions [2, B, N, A], values [2, B, N])."""
+    def trunk(self, p: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        """Both critics' trunk features at states x [B, S] -> [2, B, H]."""
         shapes = self.shapes
-        batch = x.shape[0]
-        h = x.unsqueeze(0).expand(2, batch, x.shape[1])
+        h = x.unsqueeze(0).expand(2, x.shape[0], x.shape[1])
         for k in range(len(shapes.hidden)):
             h = torch.baddbmm(p[f"b{k}"].unsqueeze(1), h, p[f"W{k}"].transpose(1, 2))
             if shapes.layer_norm:
                 h = tnf.layer_norm(h, h.shape[-1:], eps=LN_EPS)
             h = tnf.relu(h)
-        u = torch.tanh(torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2)))
-        u = u.view(2, batch, shapes.n_wires, shapes.action_dim)
+        return h
+
+    def wire_preactivations(self, p: dict[str, torch.Tensor], h: torch.Tensor) -> torch.Tensor:
+        """The wire head's inputs to tanh at trunk features h [2, B, H] -> [2, B, N A]."""
+        return torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2))
+
+    def wire_actions(self, p: dict[str, torch.Tensor], h: torch.Tensor) -> torch.Tensor:
+        """The wire head's actions at trunk features h [2, B, H] -> [2, B, N, A]."""
+        u = torch.tanh(self.wire_preactivations(p, h))
+        return u.view(2, h.shape[1], self.shapes.n_wires, self.shapes.action_dim)
+
+    def values(self, p: dict[str, torch.Tensor], h: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The value head's scores of actions u [2, B, M, A] at trunk features h [2, B, H] -> [2, B, M]."""
         z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
         # einsum and a broadcast product rather than bmm: with A or the output width 1 these
         # are outer and inner products, which a batched matrix product does several times slower.
         zu = torch.einsum("cbna,cha->cbnh", u, p["Vu"])
         g = tnf.relu(z.unsqueeze(2) + zu)
         q = (g * p["vo"].view(2, 1, 1, -1)).sum(dim=-1)
-        return u, q + p["bo"].view(2, 1, 1)
+        return q + p["bo"].view(2, 1, 1)
+
+    def wires(self, p: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both critics' wires (blocks p) at states x [B, S] -> (actions [2, B, N, A], values [2, B, N])."""
+        u, q, _ = self.wires_and_trunk(p, x)
+        return u, q
+
+    def wires_and_trunk(
+        self, p: dict[str, torch.Tensor], x: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`wires`, and the trunk features they came from ([2, B, H])."""
+        h = self.trunk(p, x)
+        u = self.wire_actions(p, h)
+        return u, self.values(p, h, u), h
 
 
 def wirefit(
@@ -116,8 +142,17 @@ def best_wire(wire_u: torch.Tensor, wire_q: torch.Tensor) -> torch.Tensor:
     return torch.gather(wire_u, 1, best.view(-1, 1, 1).expand(-1, 1, wire_u.shape[-1])).squeeze(1)
 
 
-def separation(wire_u: torch.Tensor) -> torch.Tensor:
-    """Mean over states and wire pairs of 1 / (distance + SEPARATION_EPS); wire_u [..., N, A]."""
+def separation(wire_u: torch.Tensor, wire_q: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over states and wire pairs of 1 / (distance + SEPARATION_EPS); wire_u [..., N, A].
+
+    Given the wires' values wire_q [..., N], each state's best wire is held where it is: the
+    pairs it is in push only the other wire. The greedy action is then placed by the values
+    alone, not driven toward the action range's corners by the push (where tanh's gradient
+    vanishes: on Reacher-v5 that left the greedy action at full torque for thousands of steps).
+    """
+    if wire_q is not None:
+        best = tnf.one_hot(wire_q.argmax(dim=-1), wire_q.shape[-1]).unsqueeze(-1).bool()
+        wire_u = torch.where(best, wire_u.detach(), wire_u)
     n = wire_u.shape[-2]
     if n < 2:
         return wire_u.new_zeros(())
@@ -128,6 +163,27 @@ def separation(wire_u: torch.Tensor) -> torch.Tensor:
     inverse = 1.0 / (dist + SEPARATION_EPS)
     diagonal = n / SEPARATION_EPS
     return (inverse.sum(dim=(-1, -2)) - diagonal).mean() / (n * (n - 1))
+
+
+def ascent(
+    critics: Critics, p: dict[str, torch.Tensor], h: torch.Tensor, wire_q: torch.Tensor
+) -> torch.Tensor:
+    """Minus each critic's value of its best wires, for the wire head only (an actor's step).
+
+    The best wire of each state (by wire_q [2, B, N]) is scored by its critic's value head at
+    the trunk features h [2, B, H]; the gradient reaches only the wire head's weights (Ww, bw),
+    so the best wire climbs the value head's slope in the action while the critic is fitted by
+    the TD error alone. Divided by the mean |value| (held constant), as TD3+BC scales its actor
+    term, so that its pull does not grow with the rewards' scale.
+    """
+    h = h.detach()
+    frozen = {name: block.detach() for name, block in p.items() if name not in ("Ww", "bw")}
+    u = critics.wire_actions(p, h)  # [2, B, N, A], grad to Ww, bw
+    best = wire_q.detach().argmax(dim=-1)  # [2, B]
+    u_best = torch.gather(u, 2, best.view(2, -1, 1, 1).expand(-1, -1, 1, u.shape[-1]))  # [2, B, 1, A]
+    q = critics.values(frozen, h, u_best).squeeze(-1)  # [2, B]
+    scale = q.detach().abs().mean(dim=1).clamp_min(1e-3)  # [2]
+    return -(q.mean(dim=1) / scale).sum()
 
 
 def loss(
@@ -163,11 +219,16 @@ def loss(
             nu, nq = critics.wires(target_blocks, x)
             v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps, k).min(dim=0).values
             y = v + (y - v) / cfg.advantage_k
-    wu, wq = critics.wires(blocks, x)
+    wu, wq, h = critics.wires_and_trunk(blocks, x)
     Q = wirefit(wu, wq, u, c, eps, k)  # [2, B]
     total = ((Q - y) ** 2).mean(dim=1).sum()
     if d.separation > 0.0:
-        total = total + 2.0 * d.separation * separation(wu)
+        total = total + 2.0 * d.separation * separation(wu, None if d.separate_best else wq)
+    if d.tanh_limit > 0.0:
+        z = critics.wire_preactivations(blocks, h)
+        total = total + (tnf.relu(z.abs() - d.tanh_limit) ** 2).mean(dim=(1, 2)).sum()
+    if d.ascent > 0.0:
+        total = total + d.ascent * ascent(critics, blocks, h, wq)
     if cfg.bc_weight > 0.0:
         total = total + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
     return total, Q[0].detach(), y

@@ -17,6 +17,7 @@ from wfnn_common.deep import DeepWFNN
 from wfnn_common.deep_torch import (
     SEPARATION_EPS,
     Critics,
+    ascent,
     best_wire,
     compiled_loss,
     loss,
@@ -219,9 +220,11 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
-@pytest.mark.parametrize("top_k", [0, 3])
-def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(top_k):
-    trainer = _fed(DeepWFNN(config(deep={"compile": True, "top_k": top_k})))._train()
+@pytest.mark.parametrize(
+    "options", [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0, "ascent": 1.0}]
+)
+def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(options):
+    trainer = _fed(DeepWFNN(config(deep={"compile": True, **options})))._train()
     rng = np.random.default_rng(5)
     args = (trainer.theta, trainer.target, *(torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
             for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
@@ -234,7 +237,7 @@ def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(top_k):
     (grad_plain,) = torch.autograd.grad(plain[0], trainer.theta)
     torch.testing.assert_close(grad_compiled, grad_plain, rtol=1e-4, atol=1e-6)
     # Learners that differ only in their seed (a population's members) share the compiled loss.
-    other = _fed(DeepWFNN(config(seed=7, deep={"compile": True, "top_k": top_k})))
+    other = _fed(DeepWFNN(config(seed=7, deep={"compile": True, **options})))
     other.think(1)
     assert other._trainer._compiled is trainer._compiled
 
@@ -699,3 +702,55 @@ def test_weights_beyond_float32s_range_are_refused_as_the_training_state_is():
     flat[0, 3] = 1e300
     with pytest.raises(ValueError, match="float32"):
         DeepWFNN(cfg, params=weights_from_flat(cfg, flat))
+
+
+def test_separation_holds_each_states_best_wire_still_when_given_the_values():
+    wires = torch.tensor([[[0.0], [0.05], [0.5]], [[0.0], [0.05], [0.5]]], requires_grad=True)
+    values = torch.tensor([[1.0, 0.0, -1.0], [0.0, 2.0, -1.0]])
+    separation(wires, values).backward()
+    g = wires.grad
+    assert g is not None and g[0, 0, 0] == 0.0 and g[1, 1, 0] == 0.0  # each state's best wire
+    assert g[0, 1, 0] < 0.0 < g[1, 0, 0]  # ... still pushes its neighbour away
+    assert torch.isclose(separation(wires, values), separation(wires))  # the same term, fewer movers
+
+
+def test_ascent_moves_only_the_wire_head_and_raises_the_best_wires_values():
+    cfg = config(deep={"ascent": 1.0})
+    critics = Critics(deep_net.DeepShapes.of(cfg))
+    flat = DeepWFNN(cfg).params.flat.ravel()
+    theta = torch.tensor(flat, dtype=torch.float32).repeat(2).requires_grad_(True)
+    x = torch.tensor(np.random.default_rng(0).uniform(-1.0, 1.0, (64, 2)), dtype=torch.float32)
+    blocks = critics.blocks(theta)
+    _, q, h = critics.wires_and_trunk(blocks, x)
+    ascent(critics, blocks, h, q).backward()
+    assert theta.grad is not None
+    grad = theta.grad.view(2, critics.n)
+    moved = {name for name, (a, b, _) in critics.slices.items() if grad[:, a:b].abs().sum() > 0}
+    assert moved == {"Ww", "bw"}
+    with torch.no_grad():
+        before = q.max(dim=-1).values
+        theta -= 1e-2 * theta.grad
+        after = critics.wires(critics.blocks(theta), x)[1].max(dim=-1).values
+    assert after.mean() > before.mean()
+
+
+def test_tanh_limit_pulls_saturated_wires_back_from_tanhs_flat_ends():
+    learner = _fed(DeepWFNN(config(deep={"tanh_limit": 3.0})))
+    trainer = learner._train()
+    critics = trainer.critics
+    with torch.no_grad():
+        both = trainer.theta.view(2, critics.n)
+        a, b, _ = critics.slices["bw"]
+        both[:, a:b] = 10.0  # every wire's input to tanh far beyond the limit
+    rng = np.random.default_rng(5)
+    args = (trainer.theta, trainer.target, *(torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
+            for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
+    limited = loss(critics, trainer.config, *args)[0]
+    free = loss(critics, with_options(trainer.config, {"deep": {"tanh_limit": 0.0}}), *args)[0]
+    (grad_limited,) = torch.autograd.grad(limited, trainer.theta)
+    (grad_free,) = torch.autograd.grad(free, trainer.theta)
+    blocks = critics.blocks(trainer.theta)
+    z = critics.wire_preactivations(blocks, critics.trunk(blocks, args[2]))
+    torch.testing.assert_close(limited - free, ((z.abs() - 3.0).clamp_min(0.0) ** 2).mean(dim=(1, 2)).sum())
+    pull = (grad_limited - grad_free).view(2, critics.n)[:, a:b]
+    assert (pull > 0).all()  # a descent step lowers every wire's input toward the limit
