@@ -135,12 +135,9 @@ class DeepConfig:
     tanh_limit: float = 0.0
     """Where set, the wire head's inputs to tanh beyond +-this are penalised (squared excess),
     so that a push that never relents (separation's, under Adam's normalised steps) cannot
-    drive wires into tanh's flat ends, where float32 rounds them to the range's bounds and no
-    gradient moves them again; 3 keeps wires within 0.995 of the bounds. 0 disables."""
-    ascent: float = 0.0
-    """Weight of the term that moves each state's best wire up its critic's value head (the
-    value's gradient in the action, as an actor's update), for the wire head's weights only,
-    divided by the mean |value|; 0 leaves the wires to the TD error and separation alone."""
+    drive wires deep into tanh's flat ends, where its slope all but vanishes (below 0.002
+    beyond 0.999) and float32 finally rounds them to the range's bounds; 3 keeps wires within
+    0.995 of the bounds. 0 disables."""
     top_k: int = 0
     """Q(x, u) interpolates only the `top_k` wires of largest weight (nearest u, with the
     smoothing term), as Q3C does, so that far wires neither shape Q there nor learn from it;
@@ -171,7 +168,6 @@ class DeepConfig:
             (0.0 <= self.target_noise <= 10.0, "deep.target_noise must be in [0, 10]"),
             (0.0 <= self.target_noise_clip <= 10.0, "deep.target_noise_clip must be in [0, 10]"),
             (0.0 <= self.separation <= 1e3, "deep.separation must be in [0, 1000]"),
-            (0.0 <= self.ascent <= 1e3, "deep.ascent must be in [0, 1000]"),
             (0.0 <= self.tanh_limit <= 20.0, "deep.tanh_limit must be in [0, 20]"),
             (0 <= self.top_k <= MAX_WIRES, f"deep.top_k must be in [0, {MAX_WIRES}]"),
             (1 <= self.n_step <= 100, "deep.n_step must be in [1, 100]"),

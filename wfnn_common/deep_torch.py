@@ -11,7 +11,6 @@ target averaging are one operation each. One update on a minibatch of B experien
     L  = sum_j mean (Q_j(x, u) - y)^2 + separation * sum_j mean_{i<l} 1 / (|u_i - u_l| + 0.1)
          (the best wire held still in its pairs unless deep.separate_best)
          + sum_j mean max(0, |z| - tanh_limit)^2   (z the wire head's inputs to tanh)
-         - ascent * sum_j mean V_j(x, best wire of critic j) / mean |V_j|  (to the wire head only)
          + bc_weight * mean |best wire of critic 1 at x - u|^2
 
 Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires (the deep.top_k of
@@ -165,27 +164,6 @@ def separation(wire_u: torch.Tensor, wire_q: torch.Tensor | None = None) -> torc
     return (inverse.sum(dim=(-1, -2)) - diagonal).mean() / (n * (n - 1))
 
 
-def ascent(
-    critics: Critics, p: dict[str, torch.Tensor], h: torch.Tensor, wire_q: torch.Tensor
-) -> torch.Tensor:
-    """Minus each critic's value of its best wires, for the wire head only (an actor's step).
-
-    The best wire of each state (by wire_q [2, B, N]) is scored by its critic's value head at
-    the trunk features h [2, B, H]; the gradient reaches only the wire head's weights (Ww, bw),
-    so the best wire climbs the value head's slope in the action while the critic is fitted by
-    the TD error alone. Divided by the mean |value| (held constant), as TD3+BC scales its actor
-    term, so that its pull does not grow with the rewards' scale.
-    """
-    h = h.detach()
-    frozen = {name: block.detach() for name, block in p.items() if name not in ("Ww", "bw")}
-    u = critics.wire_actions(p, h)  # [2, B, N, A], grad to Ww, bw
-    best = wire_q.detach().argmax(dim=-1)  # [2, B]
-    u_best = torch.gather(u, 2, best.view(2, -1, 1, 1).expand(-1, -1, 1, u.shape[-1]))  # [2, B, 1, A]
-    q = critics.values(frozen, h, u_best).squeeze(-1)  # [2, B]
-    scale = q.detach().abs().mean(dim=1).clamp_min(1e-3)  # [2]
-    return -(q.mean(dim=1) / scale).sum()
-
-
 def loss(
     critics: Critics,
     config: LearnerConfig,
@@ -227,8 +205,6 @@ def loss(
     if d.tanh_limit > 0.0:
         z = critics.wire_preactivations(blocks, h)
         total = total + (tnf.relu(z.abs() - d.tanh_limit) ** 2).mean(dim=(1, 2)).sum()
-    if d.ascent > 0.0:
-        total = total + d.ascent * ascent(critics, blocks, h, wq)
     if cfg.bc_weight > 0.0:
         total = total + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
     return total, Q[0].detach(), y

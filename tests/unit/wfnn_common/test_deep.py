@@ -17,7 +17,6 @@ from wfnn_common.deep import DeepWFNN
 from wfnn_common.deep_torch import (
     SEPARATION_EPS,
     Critics,
-    ascent,
     best_wire,
     compiled_loss,
     loss,
@@ -220,9 +219,7 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
-@pytest.mark.parametrize(
-    "options", [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0, "ascent": 1.0}]
-)
+@pytest.mark.parametrize("options", [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0}])
 def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(options):
     trainer = _fed(DeepWFNN(config(deep={"compile": True, **options})))._train()
     rng = np.random.default_rng(5)
@@ -714,26 +711,6 @@ def test_separation_holds_each_states_best_wire_still_when_given_the_values():
     assert torch.isclose(separation(wires, values), separation(wires))  # the same term, fewer movers
 
 
-def test_ascent_moves_only_the_wire_head_and_raises_the_best_wires_values():
-    cfg = config(deep={"ascent": 1.0})
-    critics = Critics(deep_net.DeepShapes.of(cfg))
-    flat = DeepWFNN(cfg).params.flat.ravel()
-    theta = torch.tensor(flat, dtype=torch.float32).repeat(2).requires_grad_(True)
-    x = torch.tensor(np.random.default_rng(0).uniform(-1.0, 1.0, (64, 2)), dtype=torch.float32)
-    blocks = critics.blocks(theta)
-    _, q, h = critics.wires_and_trunk(blocks, x)
-    ascent(critics, blocks, h, q).backward()
-    assert theta.grad is not None
-    grad = theta.grad.view(2, critics.n)
-    moved = {name for name, (a, b, _) in critics.slices.items() if grad[:, a:b].abs().sum() > 0}
-    assert moved == {"Ww", "bw"}
-    with torch.no_grad():
-        before = q.max(dim=-1).values
-        theta -= 1e-2 * theta.grad
-        after = critics.wires(critics.blocks(theta), x)[1].max(dim=-1).values
-    assert after.mean() > before.mean()
-
-
 def test_tanh_limit_pulls_saturated_wires_back_from_tanhs_flat_ends():
     learner = _fed(DeepWFNN(config(deep={"tanh_limit": 3.0})))
     trainer = learner._train()
@@ -741,7 +718,8 @@ def test_tanh_limit_pulls_saturated_wires_back_from_tanhs_flat_ends():
     with torch.no_grad():
         both = trainer.theta.view(2, critics.n)
         a, b, _ = critics.slices["bw"]
-        both[:, a:b] = 10.0  # every wire's input to tanh far beyond the limit
+        both[:, a:b] = 10.0  # every wire's input to tanh far beyond the limit, half of them below it
+        both[:, a : (a + b) // 2] = -10.0
     rng = np.random.default_rng(5)
     args = (trainer.theta, trainer.target, *(torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
             for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
@@ -752,5 +730,26 @@ def test_tanh_limit_pulls_saturated_wires_back_from_tanhs_flat_ends():
     blocks = critics.blocks(trainer.theta)
     z = critics.wire_preactivations(blocks, critics.trunk(blocks, args[2]))
     torch.testing.assert_close(limited - free, ((z.abs() - 3.0).clamp_min(0.0) ** 2).mean(dim=(1, 2)).sum())
-    pull = (grad_limited - grad_free).view(2, critics.n)[:, a:b]
-    assert (pull > 0).all()  # a descent step lowers every wire's input toward the limit
+    pull = (grad_limited - grad_free).view(2, critics.n)
+    # a descent step brings every wire's input back toward the limit, from either side
+    assert (pull[:, a : (a + b) // 2] < 0).all() and (pull[:, (a + b) // 2 : b] > 0).all()
+
+
+def test_the_loss_holds_the_best_wire_still_only_when_asked():
+    learner = _fed(DeepWFNN(config()))
+    trainer = learner._train()
+    critics = trainer.critics
+    rng = np.random.default_rng(6)
+    args = (trainer.theta, trainer.target, *(torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
+            for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)]))  # fmt: skip
+    grads = {}
+    for held in (False, True):
+        cfg = with_options(trainer.config, {"deep": {"separate_best": not held}})
+        (grads[held],) = torch.autograd.grad(loss(critics, cfg, *args)[0], trainer.theta)
+    a, b, _ = critics.slices["Ww"]
+    wire_head = (grads[True] - grads[False]).view(2, critics.n)[:, a:b]
+    assert wire_head.abs().max() > 0  # the switch reaches the loss
+    change = (grads[True] - grads[False]).view(2, critics.n)
+    for name in ("Vh", "Vu", "bv", "vo", "bo"):  # separation never reaches the value head
+        start, end, _ = critics.slices[name]
+        assert change[:, start:end].abs().max() == 0.0
