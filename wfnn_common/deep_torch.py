@@ -84,15 +84,6 @@ class Critics:
             h = tnf.relu(h)
         return h
 
-    def wire_preactivations(self, p: dict[str, torch.Tensor], h: torch.Tensor) -> torch.Tensor:
-        """The wire head's inputs to tanh at trunk features h [2, B, H] -> [2, B, N A]."""
-        return torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2))
-
-    def wire_actions(self, p: dict[str, torch.Tensor], h: torch.Tensor) -> torch.Tensor:
-        """The wire head's actions at trunk features h [2, B, H] -> [2, B, N, A]."""
-        u = torch.tanh(self.wire_preactivations(p, h))
-        return u.view(2, h.shape[1], self.shapes.n_wires, self.shapes.action_dim)
-
     def values(self, p: dict[str, torch.Tensor], h: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """The value head's scores of actions u [2, B, M, A] at trunk features h [2, B, H] -> [2, B, M]."""
         z = torch.baddbmm(p["bv"].unsqueeze(1), h, p["Vh"].transpose(1, 2))  # [2, B, Hv]
@@ -105,16 +96,17 @@ class Critics:
 
     def wires(self, p: dict[str, torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Both critics' wires (blocks p) at states x [B, S] -> (actions [2, B, N, A], values [2, B, N])."""
-        u, q, _ = self.wires_and_trunk(p, x)
+        u, q, _ = self.wires_and_preactivations(p, x)
         return u, q
 
-    def wires_and_trunk(
+    def wires_and_preactivations(
         self, p: dict[str, torch.Tensor], x: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """`wires`, and the trunk features they came from ([2, B, H])."""
+        """`wires`, and the wire head's inputs to tanh that gave their actions ([2, B, N A])."""
         h = self.trunk(p, x)
-        u = self.wire_actions(p, h)
-        return u, self.values(p, h, u), h
+        z = torch.baddbmm(p["bw"].unsqueeze(1), h, p["Ww"].transpose(1, 2))
+        u = torch.tanh(z).view(2, x.shape[0], self.shapes.n_wires, self.shapes.action_dim)
+        return u, self.values(p, h, u), z
 
 
 def wirefit(
@@ -197,13 +189,12 @@ def loss(
             nu, nq = critics.wires(target_blocks, x)
             v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps, k).min(dim=0).values
             y = v + (y - v) / cfg.advantage_k
-    wu, wq, h = critics.wires_and_trunk(blocks, x)
+    wu, wq, z = critics.wires_and_preactivations(blocks, x)
     Q = wirefit(wu, wq, u, c, eps, k)  # [2, B]
     total = ((Q - y) ** 2).mean(dim=1).sum()
     if d.separation > 0.0:
         total = total + 2.0 * d.separation * separation(wu, None if d.separate_best else wq)
     if d.tanh_limit > 0.0:
-        z = critics.wire_preactivations(blocks, h)
         total = total + (tnf.relu(z.abs() - d.tanh_limit) ** 2).mean(dim=(1, 2)).sum()
     if cfg.bc_weight > 0.0:
         total = total + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
