@@ -21,8 +21,14 @@ rest). Shapes: x [B, S], u [B, A].
 
 Adam (Kingma and Ba 2015) and gradient-norm clipping are written out over the flat vector;
 with `deep.compile` the loss and its gradient go through torch.compile (the same arithmetic,
-fused). Making a trainer has one effect outside it: glibc's malloc is asked to keep freed
-memory for reuse (`keep_freed_memory`), which halves a small network's update.
+fused). The loss takes the weights as views of their vector, one per block, whose gradients are
+views of one gradient vector that the backward pass adds into: differentiated through slices of
+the weights' vector, the compiled backward pass spent about 8% of an update assembling its
+gradient element by element.
+
+Making a trainer has one effect outside it: glibc's malloc is asked to keep freed memory for
+reuse (`keep_freed_memory`), which halves a small network's update. Importing this module
+silences torch's one warning about the gradient's layout.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import ctypes.util
 import dataclasses
 import functools
 import logging
+import warnings
 from collections.abc import Callable
 from typing import Any, cast
 
@@ -43,6 +50,11 @@ from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes
 
 logger = logging.getLogger(__name__)
+
+# A block's gradient is laid out as the block itself (a strided view of one vector), which
+# torch's layout check for gradients flags once per process: the layout is deliberate (above).
+warnings.filterwarnings("ignore", message="grad and param do not obey the gradient layout contract",
+                        category=UserWarning)  # fmt: skip
 
 Losses = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 """What `loss` gives: (loss, critic 1's Q(x, u) [B], targets y [B])."""
@@ -65,10 +77,10 @@ class Critics:
         self.slices = shapes.slices()
 
     def blocks(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Views [2, *shape] of each block of both critics in theta [2 n].
+        """Views [2, *shape] of each block of both critics in theta [2 n], in the vector's order.
 
-        Views made once stay valid across in-place updates of theta, and gradients through
-        them accumulate in theta's, so the trainer makes them once per vector.
+        Views made once stay valid across in-place updates of theta, so the trainer makes them
+        once per vector.
         """
         both = theta.view(2, self.n)
         return {name: both[:, a:b].reshape(2, *shape) for name, (a, b, shape) in self.slices.items()}
@@ -159,7 +171,7 @@ def separation(wire_u: torch.Tensor, wire_q: torch.Tensor | None = None) -> torc
 def loss(
     critics: Critics,
     config: LearnerConfig,
-    theta: torch.Tensor,
+    blocks: dict[str, torch.Tensor],
     target: torch.Tensor,
     x: torch.Tensor,
     u: torch.Tensor,
@@ -170,13 +182,13 @@ def loss(
 ) -> Losses:
     """The update's loss (module docstring) -> (loss, critic 1's Q(x, u) [B], targets y [B]).
 
-    theta and target [2 n] are both critics' weights and targets; x [B, S], u [B, A], reward and
-    discount [B], next_state [B, S], noise [B, A] standard normal. Pure in its arguments, so
-    that torch.compile can take it whole.
+    blocks are both critics' weights (`Critics.blocks`), target [2 n] their targets as one vector;
+    x [B, S], u [B, A], reward and discount [B], next_state [B, S], noise [B, A] standard normal.
+    Pure in its arguments, so that torch.compile can take it whole.
     """
     cfg, d = config, config.deep
     c, eps, k = cfg.smoothing_c, cfg.eps, d.top_k
-    blocks, target_blocks = critics.blocks(theta), critics.blocks(target)
+    target_blocks = critics.blocks(target)
     with torch.no_grad():
         tu, tq = critics.wires(target_blocks, next_state)
         next_u = best_wire(tu[0], tq[0])
@@ -211,8 +223,8 @@ def compiled_loss(config: LearnerConfig) -> Callable[..., Losses]:
     """
     critics = Critics(DeepShapes.of(config))
 
-    def bound(*args: torch.Tensor) -> Losses:
-        return loss(critics, config, *args)
+    def bound(blocks: dict[str, torch.Tensor], *args: torch.Tensor) -> Losses:
+        return loss(critics, config, blocks, *args)
 
     return torch.compile(bound, dynamic=False)
 
@@ -266,17 +278,23 @@ class Trainer:
             torch.set_num_threads(1)
         keep_freed_memory()
         self.critics = Critics(DeepShapes.of(config))
-        self.theta = torch.tensor(theta, dtype=torch.float32, device=self.device).requires_grad_(True)
-        self.target = self.theta.detach().clone()
+        self.theta = torch.tensor(theta, dtype=torch.float32, device=self.device)
+        """Both critics' weights [2 n], outside autograd: Adam updates them in place."""
+        self.blocks = self.critics.blocks(self.theta)
+        """theta's blocks (views), each a leaf of the loss's graph: the gradient is taken per block."""
+        self._grad = torch.zeros_like(self.theta)
+        """The loss's gradient [2 n], laid out as theta: each block's gradient is a view of it, into
+        which the backward pass adds in place (no gradient vector assembled per update)."""
+        for block, grad in zip(self.blocks.values(), self.critics.blocks(self._grad).values(), strict=True):
+            block.requires_grad_(True)
+            block.grad = grad
+        self.target = self.theta.clone()
         self.adam_m = torch.zeros_like(self.target)
         self.adam_v = torch.zeros_like(self.target)
         self.adam_step = 0
-        self._theta_data = self.theta.detach()
-        """theta without its autograd identity (the same storage), made once: updates and reads
-        outside the graph take it instead of a fresh `detach()` each time."""
         self._denominator = torch.empty_like(self.target)
         """Adam's denominator, rewritten in place by each step (no new vector per update)."""
-        self._critic1 = self._theta_data[: self.critics.n].numpy() if self.device.type == "cpu" else None
+        self._critic1 = self.theta[: self.critics.n].numpy() if self.device.type == "cpu" else None
         """Critic 1's float32 weights as a numpy view of theta (on a CPU), for `critic1`."""
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self._compiled: Any = None
@@ -284,9 +302,8 @@ class Trainer:
 
     def reset(self, theta: np.ndarray) -> None:
         """Fresh weights (targets equal), and Adam's moments forgotten."""
-        with torch.no_grad():
-            self.theta.copy_(torch.as_tensor(theta, dtype=torch.float32))
-            self.target.copy_(self.theta)
+        self.theta.copy_(torch.as_tensor(theta, dtype=torch.float32))
+        self.target.copy_(self.theta)
         self._forget_adam()
 
     def _forget_adam(self) -> None:
@@ -314,13 +331,13 @@ class Trainer:
         self.adam_v.mul_(beta2).addcmul_(grad, grad, value=1.0 - beta2)
         denominator = torch.div(self.adam_v, 1.0 - beta2**self.adam_step, out=self._denominator)
         denominator.sqrt_().add_(ADAM_EPS)
-        self._theta_data.addcdiv_(self.adam_m, denominator, value=-d.lr / (1.0 - beta1**self.adam_step))
+        self.theta.addcdiv_(self.adam_m, denominator, value=-d.lr / (1.0 - beta1**self.adam_step))
 
     def critic1(self) -> np.ndarray:
         """Critic 1's weights as float64 [n_params] (what `act` uses)."""
         if self._critic1 is not None:  # float32 to float64 is exact, in numpy as in torch
             return self._critic1.astype(np.float64)
-        return self._theta_data[: self.critics.n].to("cpu", torch.float64).numpy()
+        return self.theta[: self.critics.n].to("cpu", torch.float64).numpy()
 
     def _tensors(self, batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         """The minibatch's arrays as float32 tensors on the device, moved in one copy.
@@ -346,17 +363,25 @@ class Trainer:
         d = self.config.deep
         t = self._tensors(batch)
         noise = torch.randn(t["action"].shape, generator=self.generator, device=self.device)
-        args = (self.theta, self.target, t["state"], t["action"], t["reward"], t["next_state"], t["discount"],
-                noise)  # fmt: skip
+        args = (self.blocks, self.target, t["state"], t["action"], t["reward"], t["next_state"],
+                t["discount"], noise)  # fmt: skip
         total, Q1, y = self._compiled_loss(args) if d.compile else loss(self.critics, self.config, *args)
-        (grad,) = torch.autograd.grad(total, self.theta)
-        self._step(grad)
-        self.target.lerp_(self._theta_data, d.tau)
+        self._step(self.gradient(total))
+        self.target.lerp_(self.theta, d.tau)
         if not stats:
             return float("nan"), float("nan")
         return float(Q1.mean()), float((y - Q1).abs_().mean())
 
-    def _compiled_loss(self, args: tuple[torch.Tensor, ...]) -> Losses:
+    def gradient(self, total: torch.Tensor) -> torch.Tensor:
+        """The gradient [2 n] of a loss computed from `blocks`, laid out as theta.
+
+        One vector, rewritten by the next call: copy it to keep it.
+        """
+        self._grad.zero_()
+        total.backward()
+        return self._grad
+
+    def _compiled_loss(self, args: tuple[Any, ...]) -> Losses:
         """`loss` through torch.compile (compiled in its first call); uncompiled where that fails."""
         if self._compiled is None:
             self._compiled = compiled_loss(dataclasses.replace(self.config, seed=0))
@@ -371,7 +396,7 @@ class Trainer:
     # ------------------------------------------------------------------ state
     def state(self) -> dict[str, np.ndarray]:
         """Everything training needs to resume: weights, targets, Adam's moments and step."""
-        out = {"theta": self.theta.detach().cpu().numpy().copy(), "target": self.target.cpu().numpy().copy()}
+        out = {"theta": self.theta.cpu().numpy().copy(), "target": self.target.cpu().numpy().copy()}
         if self.adam_step > 0:
             out["adam_m"] = self.adam_m.cpu().numpy().copy()
             out["adam_v"] = self.adam_v.cpu().numpy().copy()
@@ -380,11 +405,10 @@ class Trainer:
 
     def load(self, state: dict[str, np.ndarray]) -> None:
         """Inverse of `state` (arrays checked for shape and finiteness by the caller)."""
-        with torch.no_grad():
-            self.theta.copy_(torch.as_tensor(state["theta"], dtype=torch.float32))
-            self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
-            self._forget_adam()
-            if "adam_m" in state:
-                self.adam_m.copy_(torch.as_tensor(state["adam_m"], dtype=torch.float32))
-                self.adam_v.copy_(torch.as_tensor(state["adam_v"], dtype=torch.float32))
-                self.adam_step = int(state["adam_step"])
+        self.theta.copy_(torch.as_tensor(state["theta"], dtype=torch.float32))
+        self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
+        self._forget_adam()
+        if "adam_m" in state:
+            self.adam_m.copy_(torch.as_tensor(state["adam_m"], dtype=torch.float32))
+            self.adam_v.copy_(torch.as_tensor(state["adam_v"], dtype=torch.float32))
+            self.adam_step = int(state["adam_step"])

@@ -202,7 +202,20 @@ def _loss_args(trainer, seed):
     rng = np.random.default_rng(seed)
     batch = (torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
              for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)])  # fmt: skip
-    return (trainer.theta, trainer.target, *batch)
+    return (trainer.blocks, trainer.target, *batch)
+
+
+@pytest.mark.parametrize("options", [{}, {"top_k": 3, "tanh_limit": 3.0}])
+def test_the_gradient_taken_block_by_block_is_the_whole_vectors(options):
+    trainer = _fed(DeepWFNN(config(deep=options)))._train()
+    args = _loss_args(trainer, seed=4)
+    whole = trainer.theta.clone().requires_grad_(True)
+    (expected,) = torch.autograd.grad(
+        loss(trainer.critics, trainer.config, trainer.critics.blocks(whole), *args[1:])[0], whole
+    )
+    got = trainer.gradient(loss(trainer.critics, trainer.config, *args)[0])
+    assert got.shape == trainer.theta.shape and expected.abs().min() < expected.abs().max()
+    torch.testing.assert_close(got, expected, rtol=0.0, atol=0.0)
 
 
 def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
@@ -236,8 +249,8 @@ def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(options):
     plain = loss(trainer.critics, trainer.config, *args)
     for a, b in zip(compiled, plain, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-    (grad_compiled,) = torch.autograd.grad(compiled[0], trainer.theta)
-    (grad_plain,) = torch.autograd.grad(plain[0], trainer.theta)
+    grad_compiled = trainer.gradient(compiled[0]).clone()
+    grad_plain = trainer.gradient(plain[0])
     torch.testing.assert_close(grad_compiled, grad_plain, rtol=1e-4, atol=1e-6)
     # Learners that differ only in their seed (a population's members) share the compiled loss.
     other = _fed(DeepWFNN(config(seed=7, deep={"compile": True, **options})))
@@ -729,9 +742,9 @@ def test_tanh_limit_pulls_saturated_wires_back_from_tanhs_flat_ends():
     args = _loss_args(trainer, seed=5)
     limited = loss(critics, trainer.config, *args)[0]
     free = loss(critics, with_options(trainer.config, {"deep": {"tanh_limit": 0.0}}), *args)[0]
-    (grad_limited,) = torch.autograd.grad(limited, trainer.theta)
-    (grad_free,) = torch.autograd.grad(free, trainer.theta)
-    z = critics.wires_and_preactivations(critics.blocks(trainer.theta), args[2])[2]
+    grad_limited = trainer.gradient(limited).clone()
+    grad_free = trainer.gradient(free)
+    z = critics.wires_and_preactivations(trainer.blocks, args[2])[2]
     torch.testing.assert_close(limited - free, ((z.abs() - 3.0).clamp_min(0.0) ** 2).mean(dim=(1, 2)).sum())
     pull = (grad_limited - grad_free).view(2, critics.n)
     # a descent step brings every wire's input back toward the limit, from either side
@@ -746,7 +759,7 @@ def test_the_loss_holds_the_best_wire_still_only_when_asked():
     grads = {}
     for held in (False, True):
         cfg = with_options(trainer.config, {"deep": {"separate_best": not held}})
-        (grads[held],) = torch.autograd.grad(loss(critics, cfg, *args)[0], trainer.theta)
+        grads[held] = trainer.gradient(loss(critics, cfg, *args)[0]).clone()
     change = (grads[True] - grads[False]).view(2, critics.n)
     a, b, _ = critics.slices["Ww"]
     assert change[:, a:b].abs().max() > 0  # the switch reaches the loss
