@@ -50,6 +50,9 @@ class BoatBenchConfig:
     """Learner config fields over those defaults, a JSON object (as `wfnn-client --learner-options`)."""
     dt: float = 0.1
     """Boat time step per action (see sims.boat)."""
+    hold: int = 1
+    """A decision interval: each chosen action is held for this many steps (`Hold`), and the
+    learner learns one experience per held action. 1 (the thesis' protocol) chooses every step."""
     greedy_targets: int = 10
     """Fresh targets scored after learning with the greedy policy and learning off."""
     acceptable: float = 0.5
@@ -60,6 +63,8 @@ class BoatBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        if not 1 <= self.hold <= self.steps_per_target or self.steps_per_target % self.hold:
+            raise ValueError(f"hold must divide steps_per_target ({self.steps_per_target}), got {self.hold}")
         if self.learner_options:
             learner_config(self, 1.0, self.seed)  # a ConfigError (a ValueError) now, not mid-run
 
@@ -87,6 +92,49 @@ def learner_config(bench: BoatBenchConfig, advantage_k: float, seed: int) -> Lea
     if bench.learner_options:
         config = with_options(config, parse_json(bench.learner_options, "learner options"))
     return config
+
+
+class Hold:
+    """A decision interval: `choose`'s action is held for `steps` steps and learned as one experience.
+
+    The experience runs from the state where the action was chosen to the state after its last
+    step, with the steps' rewards summed (undiscounted): the learner's discount then applies per
+    decision, as it would to a boat whose step is `steps` times as long. The holds restart at
+    each target (the protocol's steps per target are a multiple of `steps`), and the learner
+    thinks once per held action, after learning it.
+    """
+
+    def __init__(self, steps: int, choose: Callable[[FloatArray], FloatArray],
+                 learn: Learn | None = None, think: Callable[[], object] | None = None) -> None:  # fmt: skip
+        self.steps, self._choose, self._learn, self._think = steps, choose, learn, think
+        self._taken = 0
+        self._state = self._action = self._reward = np.zeros(0)
+        self._valid = np.zeros(0, dtype=np.bool_)
+        self._learned = False
+
+    def choose(self, x: FloatArray) -> FloatArray:
+        """The held action [n, A] for states x [n, S]: a new one every `steps` calls."""
+        if self._taken % self.steps == 0:
+            self._state, self._action = x.copy(), np.array(self._choose(x), dtype=np.float64)
+            self._reward, self._valid = np.zeros(len(x)), np.ones(len(x), dtype=np.bool_)
+        self._taken += 1
+        return self._action
+
+    def learn(self, state: FloatArray, action: FloatArray, next_state: FloatArray, reward: FloatArray,
+              terminal: NDArray[np.bool_], valid: NDArray[np.bool_]) -> None:  # fmt: skip
+        """Add one step; at the hold's last step (or a terminal one), learn the held action."""
+        self._reward = self._reward + reward
+        self._valid = self._valid & valid
+        if self._learn is not None and (self._taken % self.steps == 0 or np.any(terminal)):
+            self._learn(self._state, self._action, next_state, self._reward, terminal, self._valid)
+            self._learned = True
+            self._taken = 0  # a terminal step ends the hold
+
+    def think(self) -> None:
+        """Think once per learned held action."""
+        if self._learned and self._think is not None:
+            self._think()
+        self._learned = False
 
 
 class ProtocolRun(NamedTuple):
@@ -203,14 +251,21 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         learner.think()
         think_s[0] += time.perf_counter() - t0
 
+    def greedy_choose(x: FloatArray) -> FloatArray:
+        return learner.act(x, explore=False, params=frozen).action
+
+    learn: Learn = learner.learn
+    if bench.hold > 1:
+        held = Hold(bench.hold, choose, learner.learn, think)
+        choose, learn, think = held.choose, held.learn, held.think
     start = time.perf_counter()
-    scores, returns, terms = run_protocol(boat, bench.targets, rng, choose, learner.learn, think, progress)
+    scores, returns, terms = run_protocol(boat, bench.targets, rng, choose, learn, think, progress)
     wall = time.perf_counter() - start
     # Greedy evaluation on fresh targets: no exploration, no learning.
     frozen = learner.snapshot()
-    greedy, greedy_returns, greedy_terms = run_protocol(
-        boat, bench.greedy_targets, rng, lambda x: learner.act(x, explore=False, params=frozen).action
-    )
+    if bench.hold > 1:
+        greedy_choose = Hold(bench.hold, greedy_choose).choose
+    greedy, greedy_returns, greedy_terms = run_protocol(boat, bench.greedy_targets, rng, greedy_choose)
     last = slice(-min(10, bench.targets), None)  # the last 10 targets
     per_controller = np.median(scores[:, last], axis=1)
     thinks = int(learner.thinks.sum())

@@ -205,6 +205,9 @@ def boat(
         int | None, typer.Option(min=0, help="Replays (updates) per action (learner's: thesis 200, deep 1).")
     ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
+    hold: Annotated[
+        int, typer.Option(min=1, help="Steps each chosen action is held for (learned as one experience).")
+    ] = 1,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     learner_options: Annotated[
         str, typer.Option(help="Learner config fields over the learner's defaults (JSON).")
@@ -225,6 +228,7 @@ def boat(
             targets=targets,
             thinks=thinks,
             dt=dt,
+            hold=hold,
             learner=learner,
             learner_options=learner_options,
             seed=seed,

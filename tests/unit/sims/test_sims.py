@@ -5,7 +5,7 @@ from gymnasium.utils.env_checker import check_env
 from sims.boat import BoatConfig, BoatEnv, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleConfig, CartPoleEnv, CartPoleVec
 from sims.positioning import PositioningEnv, PositioningVec, handcoded_positioning
-from wfnn_bench.boat import handcoded_sweep, run_protocol
+from wfnn_bench.boat import BoatBenchConfig, Hold, handcoded_sweep, run_condition, run_protocol
 
 
 @pytest.mark.parametrize("make", [BoatEnv, CartPoleEnv, PositioningEnv])
@@ -99,6 +99,59 @@ def test_the_protocol_reports_each_targets_return_beside_its_score():
     np.testing.assert_allclose(terms[:, 0, 1], -200.0, rtol=1e-12)
     np.testing.assert_allclose(terms[:, 0, 2], -(199 * 16.0 + 4.0), rtol=1e-12)
     np.testing.assert_allclose(terms.sum(axis=-1), returns, rtol=1e-12)
+
+
+def test_a_held_action_is_chosen_every_hold_steps_and_learned_as_one_experience():
+    rng = np.random.default_rng(0)
+    boat = BoatVec(3)
+    boat.reset(rng)
+    chosen, learned, thought = [], [], []
+
+    def choose(x):
+        chosen.append(x.copy())
+        return rng.uniform(-1.0, 1.0, (x.shape[0], 2))
+
+    def learn(*experience):
+        learned.append([np.array(v, copy=True) for v in experience])
+
+    held = Hold(5, choose, learn, lambda: thought.append(len(learned)))
+    steps = []  # every step's (state, action, next state, reward), as the protocol ran it
+
+    def step(u):
+        x = boat.observe()
+        tr = real_step(u)
+        steps.append((x, u.copy(), tr.state, tr.reward))
+        return tr
+
+    boat.step, real_step = step, boat.step  # type: ignore[method-assign]
+    run_protocol(boat, 2, rng, held.choose, held.learn, held.think)
+    boat.step = real_step  # type: ignore[method-assign]
+    assert len(chosen) == len(learned) == len(thought) == 2 * 200 // 5
+    assert thought == list(range(1, 81))  # one think after each held action is learned
+    for k, (state, action, next_state, reward, terminal, valid) in enumerate(learned):
+        hold = steps[5 * k : 5 * k + 5]
+        np.testing.assert_array_equal(state, hold[0][0])
+        np.testing.assert_array_equal(state, chosen[k])
+        for _, u, _, _ in hold:  # the same action for all five steps
+            np.testing.assert_array_equal(u, action)
+        np.testing.assert_array_equal(next_state, hold[-1][2])
+        np.testing.assert_allclose(reward, sum(r for *_, r in hold), rtol=1e-12)
+        assert not terminal.any() and valid.all()
+    # A target's first state starts a new hold: the target jump is inside no experience.
+    np.testing.assert_array_equal(learned[40][0], steps[200][0])
+    assert not np.array_equal(learned[39][2], learned[40][0])
+
+
+def test_the_boat_benchmark_holds_actions_when_told():
+    with pytest.raises(ValueError, match="hold must divide steps_per_target"):
+        BoatBenchConfig(hold=3)
+    with pytest.raises(ValueError, match="hold must divide"):
+        BoatBenchConfig(hold=0)
+    bench = BoatBenchConfig(controllers=2, mode="q", targets=2, greedy_targets=1, thinks=1, hold=4)
+    result = run_condition(bench, "q")
+    # One experience, and one think, per held action: 2 targets x 200 steps / 4 per controller.
+    assert result["thinks"] == 2 * 2 * 200 // 4
+    assert np.asarray(result["scores"]).shape == (2, 2) and np.isfinite(result["greedy_median"])
 
 
 def test_gentler_hand_coded_gains_trade_score_for_reward():

@@ -198,7 +198,8 @@ def _fed(learner: DeepWFNN) -> DeepWFNN:
 
 
 def _loss_args(trainer, seed):
-    """`loss`'s arguments after the weights: a random minibatch of 32 of the test task's shapes."""
+    """`loss`'s arguments after the critics and config: the trainer's blocks and targets, and a
+    random minibatch of 32 of the test task's shapes."""
     rng = np.random.default_rng(seed)
     batch = (torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
              for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)])  # fmt: skip
@@ -736,11 +737,10 @@ def test_tanh_limit_pulls_saturated_wires_back_from_tanhs_flat_ends():
     learner = _fed(DeepWFNN(config(deep={"tanh_limit": 3.0})))
     trainer = learner._train()
     critics = trainer.critics
-    with torch.no_grad():
-        both = trainer.theta.view(2, critics.n)
-        a, b, _ = critics.slices["bw"]
-        both[:, a:b] = 10.0  # every wire's input to tanh far beyond the limit, half of them below it
-        both[:, a : (a + b) // 2] = -10.0
+    both = trainer.theta.view(2, critics.n)  # the weights need no gradient: the blocks are its leaves
+    a, b, _ = critics.slices["bw"]
+    both[:, a:b] = 10.0  # every wire's input to tanh far beyond the limit, half of them below it
+    both[:, a : (a + b) // 2] = -10.0
     args = _loss_args(trainer, seed=5)
     limited = loss(critics, trainer.config, *args)[0]
     free = loss(critics, with_options(trainer.config, {"deep": {"tanh_limit": 0.0}}), *args)[0]
