@@ -52,7 +52,9 @@ class BoatBenchConfig:
     """Boat time step per action (see sims.boat)."""
     hold: int = 1
     """A decision interval: each chosen action is held for this many steps (`Hold`), and the
-    learner learns one experience per held action. 1 (the thesis' protocol) chooses every step."""
+    learner learns one experience per held action. 1 (the thesis' protocol) chooses every step.
+    The learner's counts are then of held actions: its warm-up (the deep learner's
+    `deep.warmup` actions) lasts `hold` times as many steps, and `thinks` are per held action."""
     greedy_targets: int = 10
     """Fresh targets scored after learning with the greedy policy and learning off."""
     acceptable: float = 0.5
@@ -63,6 +65,8 @@ class BoatBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        if self.steps_per_target < 1:
+            raise ValueError(f"steps_per_target must be at least 1, got {self.steps_per_target}")
         if not 1 <= self.hold <= self.steps_per_target or self.steps_per_target % self.hold:
             raise ValueError(f"hold must divide steps_per_target ({self.steps_per_target}), got {self.hold}")
         if self.learner_options:
@@ -98,10 +102,13 @@ class Hold:
     """A decision interval: `choose`'s action is held for `steps` steps and learned as one experience.
 
     The experience runs from the state where the action was chosen to the state after its last
-    step, with the steps' rewards summed (undiscounted): the learner's discount then applies per
-    decision, as it would to a boat whose step is `steps` times as long. The holds restart at
-    each target (the protocol's steps per target are a multiple of `steps`), and the learner
-    thinks once per held action, after learning it.
+    step, with the steps' rewards summed (undiscounted) and valid only where every step was: the
+    learner's discount then applies per decision, as it would to a boat whose step is `steps`
+    times as long. A new action is chosen every `steps` calls from the first, so with the
+    protocol's steps per target a multiple of `steps` every hold lies within one target (the
+    target jump is in no experience). For tasks without terminal steps (the boat): a terminal
+    step would end one row's hold and not the others', so it is refused. The learner thinks once
+    per held action, after learning it.
     """
 
     def __init__(self, steps: int, choose: Callable[[FloatArray], FloatArray],
@@ -122,13 +129,14 @@ class Hold:
 
     def learn(self, state: FloatArray, action: FloatArray, next_state: FloatArray, reward: FloatArray,
               terminal: NDArray[np.bool_], valid: NDArray[np.bool_]) -> None:  # fmt: skip
-        """Add one step; at the hold's last step (or a terminal one), learn the held action."""
+        """Add one step; at the hold's last step, learn the held action."""
+        if np.any(terminal):
+            raise ValueError("a held action cannot end at a terminal step: Hold is for tasks without them")
         self._reward = self._reward + reward
         self._valid = self._valid & valid
-        if self._learn is not None and (self._taken % self.steps == 0 or np.any(terminal)):
+        if self._learn is not None and self._taken % self.steps == 0:
             self._learn(self._state, self._action, next_state, self._reward, terminal, self._valid)
             self._learned = True
-            self._taken = 0  # a terminal step ends the hold
 
     def think(self) -> None:
         """Think once per learned held action."""

@@ -206,7 +206,12 @@ def boat(
     ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     hold: Annotated[
-        int, typer.Option(min=1, help="Steps each chosen action is held for (learned as one experience).")
+        int,
+        typer.Option(
+            min=1,
+            help="Steps each chosen action is held for (learned as one experience); "
+            "warm-up and thinks then count held actions.",
+        ),
     ] = 1,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     learner_options: Annotated[

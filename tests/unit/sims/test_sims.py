@@ -5,6 +5,7 @@ from gymnasium.utils.env_checker import check_env
 from sims.boat import BoatConfig, BoatEnv, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleConfig, CartPoleEnv, CartPoleVec
 from sims.positioning import PositioningEnv, PositioningVec, handcoded_positioning
+from wfnn_bench import boat as boat_bench
 from wfnn_bench.boat import BoatBenchConfig, Hold, handcoded_sweep, run_condition, run_protocol
 
 
@@ -120,6 +121,8 @@ def test_a_held_action_is_chosen_every_hold_steps_and_learned_as_one_experience(
     def step(u):
         x = boat.observe()
         tr = real_step(u)
+        if len(steps) == 7:  # one step in the second hold is not learnable for robot 1
+            tr = tr._replace(learnable=np.array([True, False, True]))
         steps.append((x, u.copy(), tr.state, tr.reward))
         return tr
 
@@ -136,20 +139,46 @@ def test_a_held_action_is_chosen_every_hold_steps_and_learned_as_one_experience(
             np.testing.assert_array_equal(u, action)
         np.testing.assert_array_equal(next_state, hold[-1][2])
         np.testing.assert_allclose(reward, sum(r for *_, r in hold), rtol=1e-12)
-        assert not terminal.any() and valid.all()
+        assert not terminal.any()
+        # Valid only where every step of the hold was: not robot 1's second hold.
+        assert valid.tolist() == ([True, False, True] if k == 1 else [True, True, True])
     # A target's first state starts a new hold: the target jump is inside no experience.
     np.testing.assert_array_equal(learned[40][0], steps[200][0])
     assert not np.array_equal(learned[39][2], learned[40][0])
+    # A terminal step would end one robot's hold and not the others': refused.
+    x = boat.observe()
+    held.choose(x)
+    with pytest.raises(ValueError, match="terminal"):
+        held.learn(x, held.choose(x), x, np.zeros(3), np.array([False, True, False]), np.ones(3, dtype=bool))
 
 
-def test_the_boat_benchmark_holds_actions_when_told():
+def test_the_boat_benchmark_holds_actions_when_told(monkeypatch):
     with pytest.raises(ValueError, match="hold must divide steps_per_target"):
         BoatBenchConfig(hold=3)
     with pytest.raises(ValueError, match="hold must divide"):
         BoatBenchConfig(hold=0)
+    with pytest.raises(ValueError, match="steps_per_target must be at least 1"):
+        BoatBenchConfig(steps_per_target=0)
+    acts = {True: 0, False: 0}  # the learners' act calls, exploring and greedy
+    real_population = boat_bench.make_population
+
+    def counted(*args, **kwargs):
+        learner = real_population(*args, **kwargs)
+        act = learner.act
+
+        def counting_act(x, explore=True, **rest):
+            acts[explore] += 1
+            return act(x, explore=explore, **rest)
+
+        learner.act = counting_act
+        return learner
+
+    monkeypatch.setattr(boat_bench, "make_population", counted)
     bench = BoatBenchConfig(controllers=2, mode="q", targets=2, greedy_targets=1, thinks=1, hold=4)
     result = run_condition(bench, "q")
-    # One experience, and one think, per held action: 2 targets x 200 steps / 4 per controller.
+    # One choice, one experience and one think per held action, in learning and in the greedy
+    # evaluation alike: 2 targets (1 greedy) x 200 steps / 4.
+    assert acts == {True: 2 * 200 // 4, False: 200 // 4}
     assert result["thinks"] == 2 * 2 * 200 // 4
     assert np.asarray(result["scores"]).shape == (2, 2) and np.isfinite(result["greedy_median"])
 
