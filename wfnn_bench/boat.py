@@ -65,9 +65,8 @@ class BoatBenchConfig:
         check_fields(self)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
-        if self.steps_per_target < 1:
-            raise ValueError(f"steps_per_target must be at least 1, got {self.steps_per_target}")
-        if not 1 <= self.hold <= self.steps_per_target or self.steps_per_target % self.hold:
+        BoatConfig(dt=self.dt, steps_per_target=self.steps_per_target)  # the boat's own checks, now
+        if self.hold < 1 or self.steps_per_target % self.hold:
             raise ValueError(f"hold must divide steps_per_target ({self.steps_per_target}), got {self.hold}")
         if self.learner_options:
             learner_config(self, 1.0, self.seed)  # a ConfigError (a ValueError) now, not mid-run
@@ -259,9 +258,6 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
         learner.think()
         think_s[0] += time.perf_counter() - t0
 
-    def greedy_choose(x: FloatArray) -> FloatArray:
-        return learner.act(x, explore=False, params=frozen).action
-
     learn: Learn = learner.learn
     if bench.hold > 1:
         held = Hold(bench.hold, choose, learner.learn, think)
@@ -271,6 +267,10 @@ def run_condition(bench: BoatBenchConfig, condition: str, progress: Progress = n
     wall = time.perf_counter() - start
     # Greedy evaluation on fresh targets: no exploration, no learning.
     frozen = learner.snapshot()
+
+    def greedy_choose(x: FloatArray) -> FloatArray:
+        return learner.act(x, explore=False, params=frozen).action
+
     if bench.hold > 1:
         greedy_choose = Hold(bench.hold, greedy_choose).choose
     greedy, greedy_returns, greedy_terms = run_protocol(boat, bench.greedy_targets, rng, greedy_choose)
