@@ -5,6 +5,10 @@
     version newer than the last) per server; follow one server and fail over when it is gone,
     silent or diverged; swap the weights `act` uses in one reference assignment
 
+With a key, a status or snapshot numbered (the frame header's seq, which the MAC covers) at or
+below one taken from the same start of its server is a recorded frame replayed, and is refused:
+otherwise an old status could drop the newest weights as unconfirmed, or mark a dead server alive.
+
 Liveliness tokens and queries are not authenticated, so neither decides anything alone: a
 server is alive while its MAC-checked status arrives (a token that disappears marks it gone
 until its next status), and the query for a server's newest weights never waits.
@@ -186,7 +190,8 @@ class Downlink:
                     log.info("server %s: its liveliness token is gone", server)
 
     def _take_status(self, data: bytes) -> None:
-        sender, status = self.codec.decode(data, ServerStatus)
+        sender, seq, message = decode(data, self.codec.key, ServerStatus)
+        status = cast(ServerStatus, message)
         if sender != status.server:
             self.rejected["status_misrouted"] += 1
             return
@@ -202,6 +207,11 @@ class Downlink:
             if not self.table.announced(view, status.store, status.incarnation, status.started_ns):
                 self.rejected["status_stale"] += 1  # an earlier start's status, replayed
                 return
+            if self.codec.key is not None:  # the MAC covers the frame's number: an older one is replayed
+                if seq <= view.status_seq:
+                    self.rejected["status_replayed"] += 1
+                    return
+                view.status_seq = seq
             view.heard, view.gone, view.alive = time.monotonic(), False, True  # as `_refresh` would say
             view.spec_hash = status.spec_hash
             new_config = view.learner_config != status.learner_config and bool(status.learner_config)
@@ -250,9 +260,9 @@ class Downlink:
 
     def _take_snapshot(self, data: bytes) -> None:
         # Only frames `_on_snapshot` checked (CRC and tag) wait here: the tag is not checked twice.
-        sender, _, message = decode(data, expect=WeightSnapshot)
+        sender, seq, message = decode(data, expect=WeightSnapshot)
         snap = cast(WeightSnapshot, message)
-        reason = self._invalid(sender, snap)
+        reason = self._invalid(sender, seq, snap)
         if reason:
             self.rejected[reason] += 1
             log.debug("snapshot from %s rejected: %s", sender, reason)
@@ -269,14 +279,20 @@ class Downlink:
             if view is None:
                 self.rejected["snapshot_servers_full"] += 1
                 return
+            # Checked again: the uplink may have taken another start of this server meanwhile.
+            reason = self._out_of_turn(view, seq, snap)
+            if reason:
+                self.rejected[reason] += 1
+                return
             view.latest = weights
+            view.snapshot_seq = max(view.snapshot_seq, seq)
             if weights.diverged:  # it has reset: the weights this client suspected are gone
                 view.suspect_until = 0.0
             if not view.spec_hash:
                 view.spec_hash = snap.spec_hash
 
-    def _invalid(self, sender: str, snap: WeightSnapshot) -> str:
-        """Why a decoded snapshot must not drive the robot ("" when it may)."""
+    def _invalid(self, sender: str, seq: int, snap: WeightSnapshot) -> str:
+        """Why a decoded snapshot (frame number `seq`) must not drive the robot ("" when it may)."""
         if sender != snap.server:
             return "misrouted"
         if snap.spec_hash != self.spec_hash:
@@ -291,16 +307,22 @@ class Downlink:
             return "non_finite"
         with self.table.lock:
             view = self.table.views.get(snap.server)
-            if view is None or (snap.store, snap.incarnation, snap.started_ns) != (
-                view.store,
-                view.incarnation,
-                view.started_ns,
-            ):  # not the start that server's own status announces (an earlier one's, replayed, or
-                # of a store restored from a backup that counts its incarnations again)
-                return "unannounced"
-            latest = view.latest
-        if latest is not None and snap.version <= latest.version:
+            return "unannounced" if view is None else self._out_of_turn(view, seq, snap)
+
+    def _out_of_turn(self, view: ServerView, seq: int, snap: WeightSnapshot) -> str:
+        """Why `snap` (frame `seq`) may not follow what `view` holds ("" when it may; caller holds the lock).
+
+        Not the start that server's own status announces: an earlier one's, replayed, or of a store
+        restored from a backup that counts its incarnations again. Not newer than the snapshot held:
+        stale. With a key, numbered at or below a snapshot taken from this start: replayed (the
+        weights held may have been dropped as unconfirmed, so the version alone cannot tell).
+        """
+        if (snap.store, snap.incarnation, snap.started_ns) != (view.store, view.incarnation, view.started_ns):
+            return "unannounced"
+        if view.latest is not None and snap.version <= view.latest.version:
             return "stale"
+        if self.codec.key is not None and seq <= view.snapshot_seq:
+            return "replayed"
         return ""
 
     def _fresh_weights(self, view: ServerView, now: float) -> Weights | None:

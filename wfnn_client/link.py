@@ -124,6 +124,10 @@ class ServerView:
     window_end: int = -1
     """Last experience of the current re-send round."""
     last_resend: float = 0.0
+    status_seq: int = -1
+    snapshot_seq: int = -1
+    """The highest frame numbers (the header's seq, which the MAC covers) of the statuses and the
+    snapshots taken from its announced start; with a key, one numbered at or below is a replay."""
 
 
 MAX_SERVERS = 32
@@ -189,6 +193,9 @@ class ServerTable:
         silent, only a start earlier by both (a lower or equal incarnation that started before),
         so that a restored backup (a lower incarnation started later) and a start after the
         server's clock was set back (a higher incarnation started "before") are still taken.
+        Another store is refused while the server is alive unless it started later (a server
+        restarted on another data directory starts after the start it replaces; one started
+        before is a frame of an earlier store, replayed); once the server is silent it is taken.
         """
         if store == view.store:
             if view.alive:
@@ -203,12 +210,15 @@ class ServerTable:
                 return True
             log.info("server %s restarted (incarnation %d): re-sending what it lacks", view.server,
                      incarnation)  # fmt: skip
+        elif view.store and view.alive and started_ns <= view.started_ns:
+            return False
         elif view.store:
             log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,
                         store, view.store)  # fmt: skip
         view.acked, view.window_end, view.last_resend = -1, -1, 0.0
         view.store, view.incarnation, view.started_ns = store, incarnation, started_ns
         view.latest, view.asked = None, False
+        view.status_seq, view.snapshot_seq = -1, -1
         return True
 
 

@@ -125,6 +125,15 @@ def test_a_silent_server_is_left_for_a_live_one(tmp_path):
         brain.stop()
 
 
+_CODECS: dict[tuple[str, bytes | None], Codec] = {}
+
+
+def server_codec(server, key=None):
+    """The codec of a pretend server: one per server and key, so that its frames are numbered in
+    order as a real server's are (with a key, a client refuses a frame numbered below one it took)."""
+    return _CODECS.setdefault((server, key), Codec(server, key, "t"))
+
+
 def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
           store="store1", published_ns=None, learned_through=None, started_ns=1):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1] if params is None else params.shape[1]
@@ -135,7 +144,7 @@ def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1
         learned_through=learned_through or {},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
-    return Codec(server, key, "t").encode(snap)
+    return server_codec(server, key).encode(snap)
 
 
 def test_invalid_snapshots_never_drive_the_robot(tmp_path):
@@ -177,7 +186,7 @@ def announce(bus, server, cfg, started_ns, key=None, incarnation=1, store="store
         learner_config=cfg.to_json(), weights_version=0, stored_through=stored_through or {}, rejected={},
         metrics={},
     )  # fmt: skip
-    bus.put(KEYS.server_status(server), Codec(server, key, "t").encode(status), None)
+    bus.put(KEYS.server_status(server), server_codec(server, key).encode(status), None)
 
 
 def test_with_no_healthy_server_the_weights_relearned_after_a_reset_drive_the_robot(tmp_path):
@@ -386,6 +395,101 @@ def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path
         bus.put(KEYS.weights("s1"), old_snapshot, None)
         assert wait(lambda n=n: brain.rejected["unannounced"] == n)
     assert brain.current.incarnation == 2 and brain.servers["s1"].incarnation == 2
+    brain.stop()
+
+
+def status_frame(cfg, server="s1", started_ns=1, incarnation=1, store="store1", weights_version=0, key=KEY):
+    """A server's status as its codec frames it (numbered after its earlier frames)."""
+    status = ServerStatus(
+        server=server, incarnation=incarnation, store=store, started_ns=started_ns, spec_hash=cfg.spec_hash(),
+        learner_config=cfg.to_json(), weights_version=weights_version, stored_through={}, rejected={},
+        metrics={},
+    )  # fmt: skip
+    return server_codec(server, key).encode(status)
+
+
+def test_a_status_and_snapshot_of_the_same_start_replayed_are_refused(tmp_path):
+    """Recorded while s1 was at version 1 and replayed once it fell silent at version 5: the old
+    status would otherwise drop version 5 as one its statuses never confirm, mark s1 alive again,
+    and let the old snapshot back in."""
+    hub, cfg = Hub(), small_config()
+    brain, bus = keyed(tmp_path, hub, cfg, status_timeout_s=0.3)
+    old_status, old_snapshot = status_frame(cfg, weights_version=1), forge(cfg, version=1, key=KEY)
+    bus.put(KEYS.server_status("s1"), old_status, None)
+    bus.put(KEYS.weights("s1"), old_snapshot, None)
+    assert wait(lambda: brain.current is not None and brain.current.version == 1)
+    bus.put(KEYS.server_status("s1"), status_frame(cfg, weights_version=5), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=5, key=KEY), None)
+    assert wait(lambda: brain.current.version == 5)
+    assert wait(lambda: not brain.table.views["s1"].alive)  # silent longer than status_timeout_s
+    bus.put(KEYS.server_status("s1"), old_status, None)
+    assert wait(lambda: brain.rejected["status_replayed"] == 1)
+    bus.put(KEYS.weights("s1"), old_snapshot, None)
+    assert wait(lambda: brain.rejected["stale"] + brain.rejected["replayed"] == 1)
+    time.sleep(0.1)
+    view = brain.table.views["s1"]
+    assert brain.current.version == 5 and view.latest.version == 5 and not view.alive
+    assert brain.rejected["unconfirmed"] == 0
+    # Its next status (numbered after both) is taken: the server is back.
+    bus.put(KEYS.server_status("s1"), status_frame(cfg, weights_version=5), None)
+    assert wait(lambda: brain.table.views["s1"].alive)
+    brain.stop()
+
+
+@pytest.mark.parametrize("key", [KEY, None], ids=["key", "no_key"])
+def test_another_stores_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path, key):
+    """s1 restarted on another data directory (a later start): frames of its first store, recorded
+    and replayed, neither switch the client back nor make it re-send its journal from the start."""
+    hub, cfg = Hub(), small_config()
+    if key:
+        brain, bus = keyed(tmp_path, hub, cfg)
+    else:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        bus = hub.bus()
+    old_status = status_frame(cfg, store="storeA", started_ns=1, key=key)
+    old_snapshot = forge(cfg, version=9, key=key, store="storeA", started_ns=1)
+    bus.put(KEYS.server_status("s1"), old_status, None)
+    assert wait(lambda: "s1" in brain.table.views and brain.table.views["s1"].store == "storeA")
+    bus.put(KEYS.server_status("s1"), status_frame(cfg, store="storeB", started_ns=2, key=key), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=3, key=key, store="storeB", started_ns=2), None)
+    assert wait(lambda: brain.current is not None and brain.current.store == "storeB")
+    for n in range(1, 3):
+        bus.put(KEYS.server_status("s1"), old_status, None)
+        assert wait(lambda n=n: brain.rejected["status_stale"] == n)
+        bus.put(KEYS.weights("s1"), old_snapshot, None)
+        assert wait(lambda n=n: brain.rejected["unannounced"] == n)
+    view = brain.table.views["s1"]
+    assert view.store == "storeB" and brain.current.store == "storeB" and brain.current.version == 3
+    brain.stop()
+
+
+def test_a_snapshot_is_checked_again_against_a_start_taken_while_it_was_read(tmp_path, monkeypatch):
+    """The uplink (an ack of s1's next start) may change s1's view while the downlink reads a
+    snapshot of the start before: that snapshot must not be kept as the new start's."""
+    import wfnn_client.downlink as downlink
+
+    hub, cfg = Hub(), small_config()
+    brain, bus = keyed(tmp_path, hub, cfg)
+    bus.put(KEYS.server_status("s1"), status_frame(cfg, started_ns=1), None)
+    assert wait(lambda: "s1" in brain.table.views and brain.table.views["s1"].alive)
+    table, read = brain.table, downlink.weights_from_flat
+
+    def read_while_the_server_restarts(*args, **kwargs):
+        with table.lock:  # what the uplink does with an ack of the next start
+            table.announced(table.views["s1"], "store1", 2, 2)
+        return read(*args, **kwargs)
+
+    monkeypatch.setattr(downlink, "weights_from_flat", read_while_the_server_restarts)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=500, key=KEY, started_ns=1), None)
+    assert wait(lambda: brain.rejected["unannounced"] == 1)
+    monkeypatch.setattr(downlink, "weights_from_flat", read)
+    assert brain.table.views["s1"].latest is None and brain.current is None
+    # The new start's own first snapshot is followed, not refused as older than version 500.
+    bus.put(KEYS.server_status("s1"), status_frame(cfg, started_ns=2, incarnation=2), None)
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, key=KEY, started_ns=2, incarnation=2), None)
+    assert wait(lambda: brain.current is not None and brain.current.version == 1)
+    assert brain.current.incarnation == 2
     brain.stop()
 
 
