@@ -136,9 +136,18 @@ def sync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+MANIFEST = "manifest"
+"""The member, first in every archive written here, that lists the names of the others: an archive
+whose members are not those is damaged (one flipped bit in a zip's central directory can hide the
+members after it, and the rest would load without them)."""
+
+
 def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None = None) -> None:
-    """Write an `.npz` atomically (see `_atomic_write`)."""
-    _atomic_write(path, lambda f: np.savez(f, **arrays), keep_previous)
+    """Write an `.npz` atomically (see `_atomic_write`), its `MANIFEST` first."""
+    if MANIFEST in arrays:
+        raise ValueError(f"{MANIFEST!r} is the name of the member that lists the others")
+    members = {MANIFEST: np.str_(json.dumps(list(arrays))), **arrays}
+    _atomic_write(path, lambda f: np.savez(f, **members), keep_previous)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -201,37 +210,70 @@ MAX_MEMBERS = 64
 """Most members an archive read here may have."""
 
 
-def _members(path: Path, wanted: Callable[[str], bool]) -> list[str]:
-    """The array names of the archive's members that `wanted` takes, checked before any is unpacked."""
-    with zipfile.ZipFile(path) as archive:
+def _members(path: Path, f: BinaryIO) -> list[str]:
+    """The array names of the archive's members (open as `f`), checked before any is unpacked."""
+    with zipfile.ZipFile(f) as archive:
         infos = archive.infolist()
+        commented = bool(archive.comment)
     if len(infos) > MAX_MEMBERS:
         raise PersistError(f"{path}: {len(infos)} members, more than {MAX_MEMBERS}")
+    if commented or any(info.comment for info in infos):
+        # Never written here: a comment's length field damaged swallows the members after it.
+        raise PersistError(f"{path}: damaged (the archive's directory holds a comment)")
     names = []
     for info in infos:
         if info.file_size > info.compress_size + MAX_INFLATION_BYTES:
             raise PersistError(f"{path}: member {info.filename[:60]!r} would unpack from "
                                f"{info.compress_size:,} to {info.file_size:,} bytes (this project "
                                "stores its arrays uncompressed)")  # fmt: skip
-        name = info.filename.removesuffix(".npy")
-        if wanted(name):
-            names.append(name)
+        names.append(info.filename.removesuffix(".npy"))
     return names
 
 
-def _open(path: Path, expected_format: str, wanted: Callable[[str], bool]) -> dict[str, Any]:
-    """The arrays of an archive of `expected_format` that `wanted` takes (the rest are never unpacked)."""
-    if not Path(path).exists():
-        raise PersistError(f"{path}: no such file")
+def _check_manifest(path: Path, names: list[str], manifest: Any) -> None:
+    """The members present must be those the archive's `MANIFEST` lists (files written before it: none)."""
     try:
-        names = _members(Path(path), lambda name: name in ("format", "format_version") or wanted(name))
-        with np.load(Path(path), allow_pickle=False) as data:
-            arrays = {k: data[k] for k in names}
+        listed = json.loads(str(manifest))
+    except (ValueError, RecursionError):
+        listed = None
+    if not isinstance(listed, list) or not all(isinstance(n, str) for n in listed):
+        raise PersistError(f"{path}: damaged (its list of members is unreadable)")
+    present = [n for n in names if n != MANIFEST]
+    if sorted(present) != sorted(listed):
+        missing = sorted(set(listed) - set(present))
+        extra = sorted(set(present) - set(listed))
+        raise PersistError(f"{path}: damaged (members missing: {', '.join(missing)[:200] or 'none'}; "
+                           f"not listed: {', '.join(extra)[:200] or 'none'})")  # fmt: skip
+
+
+def _open(path: Path, expected_format: str, wanted: Callable[[str], bool]) -> dict[str, Any]:
+    """The arrays of an archive of `expected_format` that `wanted` takes (the rest are never unpacked).
+
+    Opened without waiting and refused unless it is a regular file (a FIFO in its place would
+    block the reader for good), and read from that one open file.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise PersistError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise PersistError(f"{path}: cannot be opened ({exc.strerror or exc})") from None
+    try:
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise PersistError(f"{path}: not a regular file")
+            names = _members(Path(path), f)
+            take = [n for n in names if n in ("format", "format_version", MANIFEST) or wanted(n)]
+            f.seek(0)
+            with np.load(f, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in take}
     except PersistError:
         raise
     except Exception as exc:  # a truncated or damaged archive fails in zipfile, zlib or numpy alike
         detail = str(exc).split(". ")[0][:120]
         raise PersistError(f"{path}: not a readable .npz file ({type(exc).__name__}: {detail})") from None
+    if MANIFEST in arrays:
+        _check_manifest(Path(path), names, arrays.pop(MANIFEST))
     fmt = str(arrays.get("format", ""))
     if fmt != expected_format:
         raise PersistError(f"{path}: expected format {expected_format!r}, found {fmt!r}")
@@ -300,12 +342,17 @@ def load_checkpoint(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any],
     except (KeyError, ValueError, TypeError) as exc:
         raise PersistError(f"{path}: no usable params ({exc})") from exc
     size = n_params(config)
-    if flat.ndim != 2 or flat.shape[1] != size or (config.learner == "deep" and flat.shape[0] != 1):
+    one = config.learner == "deep"
+    if flat.ndim != 2 or flat.shape[0] < 1 or flat.shape[1] != size or (one and flat.shape[0] != 1):
         raise PersistError(f"{path}: params {flat.shape} do not fit the config ({size} per net)")
     if not np.isfinite(flat).all():
         raise PersistError(f"{path}: params contain non-finite values")
     training = {k[len(TRAINING_PREFIX) :]: v for k, v in arrays.items() if k.startswith(TRAINING_PREFIX)}
-    return config, weights_from_flat(config, flat), meta, training
+    try:
+        weights = weights_from_flat(config, flat)
+    except (ValueError, IndexError, TypeError) as exc:
+        raise PersistError(f"{path}: params do not make the config's network ({exc})") from exc
+    return config, weights, meta, training
 
 
 def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> None:
@@ -337,8 +384,20 @@ def load_experiences(path: Path, config: LearnerConfig | None = None) -> Experie
             f"{path}: experiences were recorded for spec {arrays['spec_hash']}, "
             f"this learner is {config.spec_hash()}"
         )
+    if config is None:
+        try:
+            config = LearnerConfig.from_json(str(arrays.get("config", "")), f"{path}: its config")
+        except (ValueError, RecursionError) as exc:
+            raise PersistError(f"{path}: {exc}") from exc
     exp = Experiences(*(np.asarray(arrays[name]) for name in Experiences._fields))
     n = exp.reward.shape[0]
-    if any(a.shape[0] != n for a in exp):
-        raise PersistError(f"{path}: experience arrays have different lengths")
+    s, a = config.state_dim, config.action_dim
+    shapes = {"state": (n, s), "action": (n, a), "next_state": (n, s), "reward": (n,), "terminal": (n,)}
+    for name, shape in shapes.items():
+        array = getattr(exp, name)
+        if array.shape != shape:
+            raise PersistError(f"{path}: {name} is {array.shape}, not {shape} (N experiences, S={s}, A={a})")
+        if array.dtype.kind not in ("b" if name == "terminal" else "fiu"):
+            raise PersistError(f"{path}: {name} holds {array.dtype}, not "
+                               f"{'booleans' if name == 'terminal' else 'real numbers'}")  # fmt: skip
     return exp

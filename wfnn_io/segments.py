@@ -69,7 +69,8 @@ class Damage:
     offset: int
     length: int
     kind: Literal["corrupt", "tail"]
-    """`corrupt`: valid records follow it in the segment; `tail`: it runs to the end of the segment."""
+    """`tail`: it runs to the end of the last segment (a torn write, or one in progress); `corrupt`:
+    anywhere else (a segment is synced before the next one begins, so none ends torn)."""
 
 
 @dataclass
@@ -192,7 +193,9 @@ def read_records(
         records, damage = scan(data, marker)
         if report is not None:
             for offset, length in damage:
-                kind: Literal["corrupt", "tail"] = "tail" if offset + length == len(data) else "corrupt"
+                # Only the last segment can end in a torn write: a segment is synced before the next begins.
+                last = n == numbers[-1] and offset + length == len(data)
+                kind: Literal["corrupt", "tail"] = "tail" if last else "corrupt"
                 report.damage.append(Damage(n, offset, length, kind))
                 log.warning("%s: %d damaged bytes at offset %d (%s) skipped",
                             directory / segment_name(n), length, offset, kind)  # fmt: skip

@@ -394,3 +394,98 @@ def test_a_journal_tagged_for_its_controllers_reads_with_the_key_and_refuses_ano
     counts = logs.ReadCounts()
     assert not list(logs.read_entries(tmp_path / "j", b"w" * 32, counts))
     assert counts.refused["auth"] == 2
+
+
+def checkpoint_content(path):
+    """What `load_checkpoint` gives, comparable with ==."""
+    from wfnn_io.persist import load_checkpoint
+
+    config, params, meta, training = load_checkpoint(path)
+    return config.to_json(), params.flat.tobytes(), meta, {k: v.tobytes() for k, v in training.items()}
+
+
+@pytest.mark.slow
+def test_every_bit_flipped_in_a_checkpoints_directory_is_refused_or_loads_what_was_saved(tmp_path):
+    """A flip that lengthens a member's comment hid the members after it (the deep learner's
+    training state), and the rest loaded without them: a server resumed with reset critics."""
+    import struct
+
+    from wfnn_common.learners import make_learner
+    from wfnn_io.persist import PersistError, save_weights
+
+    cfg = small_config(learner="deep")
+    learner = make_learner(cfg)
+    path = tmp_path / "checkpoint.npz"
+    save_weights(path, cfg, learner.params, {"thinks": 3}, training=learner.training_state())
+    saved, original = checkpoint_content(path), path.read_bytes()
+    assert saved[3].keys() == {"theta", "target"}
+    directory = struct.unpack_from("<I", original, original.rindex(b"PK\x05\x06") + 16)[0]
+    loaded = refused = 0
+    for i in range(directory, len(original)):
+        for bit in range(8):
+            damaged = bytearray(original)
+            damaged[i] ^= 1 << bit
+            path.write_bytes(bytes(damaged))
+            try:
+                content = checkpoint_content(path)
+            except PersistError:
+                refused += 1
+                continue
+            assert content == saved, (i, bit)
+            loaded += 1
+    assert refused > 0 and loaded > 0
+
+
+def test_a_checkpoint_that_is_a_fifo_or_holds_no_network_is_refused_without_waiting(tmp_path):
+    import os
+    import threading
+    import types
+
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import PersistError, load_checkpoint, save_weights
+
+    os.mkfifo(tmp_path / "fifo.npz")  # opening it to read would wait for a writer for good
+    outcome: list[str] = []
+
+    def load():
+        try:
+            load_checkpoint(tmp_path / "fifo.npz")
+        except PersistError as exc:
+            outcome.append(str(exc))
+
+    reader = threading.Thread(target=load, daemon=True)
+    reader.start()
+    reader.join(10.0)
+    assert not reader.is_alive() and "not a regular file" in outcome[0]
+    cfg = small_config()
+    no_network = types.SimpleNamespace(flat=WFNN(cfg).params.flat[:0])  # [0, n_params]
+    save_weights(tmp_path / "none.npz", cfg, no_network)  # type: ignore[arg-type]
+    with pytest.raises(PersistError, match="do not fit"):
+        load_checkpoint(tmp_path / "none.npz")
+
+
+@pytest.mark.parametrize("damage", ["wide_state", "state_3d", "reward_strings", "terminal_floats",
+                                    "action_1d"])  # fmt: skip
+def test_experiences_that_do_not_fit_their_config_are_refused(tmp_path, damage):
+    from wfnn_common.replay import Experiences
+    from wfnn_io.persist import PersistError, load_experiences, save_experiences
+
+    cfg, n = small_config(), 10  # S 3, A 2
+    rng = np.random.default_rng(0)
+    exp = Experiences(rng.normal(size=(n, 3)), rng.normal(size=(n, 2)), rng.normal(size=(n, 3)),
+                      rng.normal(size=n), np.zeros(n, dtype=bool))  # fmt: skip
+    save_experiences(tmp_path / "good.npz", cfg, exp)
+    for config in (cfg, None):
+        assert all(np.array_equal(a, b) for a, b in zip(load_experiences(tmp_path / "good.npz", config), exp,
+                                                        strict=True))  # fmt: skip
+    bad = {
+        "wide_state": exp._replace(state=rng.normal(size=(n, 7))),
+        "state_3d": exp._replace(state=rng.normal(size=(n, 3, 4))),
+        "reward_strings": exp._replace(reward=np.array(["x"] * n)),
+        "terminal_floats": exp._replace(terminal=np.full(n, 0.5)),
+        "action_1d": exp._replace(action=rng.normal(size=n)),
+    }[damage]
+    save_experiences(tmp_path / "bad.npz", cfg, bad)
+    for config in (cfg, None):
+        with pytest.raises(PersistError, match=r"bad\.npz: (state|action|reward|terminal)"):
+            load_experiences(tmp_path / "bad.npz", config)

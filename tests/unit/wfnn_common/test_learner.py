@@ -180,17 +180,23 @@ def test_weights_whose_params_or_format_version_are_damaged_are_refused_naming_t
 
 def test_an_archive_whose_members_would_unpack_to_far_more_than_they_hold_is_refused_unread(tmp_path):
     """A 100 KB file that inflates to 80 MiB (or gigabytes) is no file this project wrote; a small
-    member it does not know is left unread."""
+    member it does not know, listed in its manifest (a later version's), is left unread, and one
+    added after it was written is damage."""
     import zipfile
 
-    from wfnn_io.persist import MAX_INFLATION_BYTES
+    from wfnn_io.persist import MANIFEST, MAX_INFLATION_BYTES, atomic_savez
 
     cfg = small_config()
     learner = WFNN(cfg)
     save_weights(tmp_path / "w.npz", cfg, learner.params)
-    with zipfile.ZipFile(tmp_path / "w.npz", "a") as archive:
-        archive.writestr("notes.npy", b"not an array")  # never unpacked: it is not one of the format's
+    with np.load(tmp_path / "w.npz") as npz:
+        members = {name: npz[name] for name in npz.files if name != MANIFEST}
+    atomic_savez(tmp_path / "w.npz", {**members, "notes": np.str_("never unpacked")})
     assert np.array_equal(load_weights(tmp_path / "w.npz")[1].flat, learner.params.flat)
+    with zipfile.ZipFile(tmp_path / "w.npz", "a") as archive:
+        archive.writestr("added.npy", b"not an array")
+    with pytest.raises(PersistError, match="not listed: added"):
+        load_weights(tmp_path / "w.npz")
     with zipfile.ZipFile(tmp_path / "w.npz", "a", compression=zipfile.ZIP_DEFLATED) as archive:
         archive.writestr("train/bomb.npy", bytes(MAX_INFLATION_BYTES + (16 << 20)))
     assert (tmp_path / "w.npz").stat().st_size < 1 << 20

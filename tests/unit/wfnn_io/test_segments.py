@@ -293,6 +293,19 @@ def test_reading_changes_no_file_whatever_the_damage(tmp_path):
     assert snapshot(tmp_path) == before
 
 
+def test_damage_at_the_end_of_a_segment_before_the_last_is_corrupt_not_a_torn_tail(tmp_path):
+    """Only the last segment can end in a torn write: a segment is synced before the next begins."""
+    with SegmentLog(tmp_path, segment_bytes=40) as log:  # one record per segment
+        positions = [log.append(p) for p in payloads(4)]
+    assert [p.segment for p in positions] == [0, 1, 2, 3]
+    damaged = bytearray(seg_path(tmp_path, 1).read_bytes())
+    damaged[-1] ^= 1
+    seg_path(tmp_path, 1).write_bytes(bytes(damaged))
+    report = segments.ReadReport()
+    assert len(list(segments.read_records(tmp_path, report=report))) == 3
+    assert [(d.segment, d.kind) for d in report.damage] == [(1, "corrupt")]
+
+
 def test_reading_works_without_write_permission(tmp_path):
     import os
     import stat
