@@ -65,7 +65,7 @@ from wfnn_io.protocol import (
 )
 from wfnn_io.segments import check_free
 from wfnn_server.config import ServerConfig
-from wfnn_server.store import ExperienceStore
+from wfnn_server.store import Admission, ExperienceStore
 from wfnn_server.view import ViewModel, kept
 
 if TYPE_CHECKING:
@@ -580,6 +580,14 @@ class ThinkServer:
         batch, non_finite = mark_non_finite(batch)
         admitted = self.store.admit(batch)
         self.counters["ingest/batches"] += 1
+        if admitted.new is not None and admitted.lost:
+            said = self.view.clients.get(batch.client)
+            if said is None or admitted.new.last_seq > said.produced_through:
+                # A loss is declared only in a re-send of what the client's journal holds, which its
+                # status has announced: one frame declaring everything up to a huge number lost would
+                # make each later batch a duplicate, for good. Refused as a gap (it is sent again).
+                self.rejected["declared_beyond_produced"] += 1
+                admitted = Admission(None, gap=True)
         if admitted.new is None:
             self.counters["ingest/duplicates" if admitted.duplicate else "ingest/gaps"] += 1
             # The client is re-sending or skipped ahead: tell it where our run of its data ends.

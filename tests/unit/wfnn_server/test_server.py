@@ -573,3 +573,29 @@ def test_a_start_that_fails_after_binding_its_dashboard_stops_cleanly_and_says_w
     server.stop()
     with make_server(tmp_path, hub, cfg):  # the store's lock was released
         pass
+
+
+def test_a_loss_declared_beyond_what_the_client_announced_is_refused(tmp_path):
+    """One frame declaring everything up to a huge number lost would make every later batch of that
+    client a duplicate, for good (and its acks would tell the client all was stored)."""
+    from wfnn_io.protocol import EXP_AFTER_LOSS, MAX_SEQ
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 5))
+        assert listener.wait(lambda: listener.acked() == 4)
+        forged = batch(cfg, MAX_SEQ, 1)
+        forged.flags[:] = EXP_AFTER_LOSS
+        send(hub, forged)
+        assert listener.wait(lambda: server.rejected["declared_beyond_produced"] == 1)
+        announce(hub, cfg, produced_through=19)  # what the client says it has produced
+        for first in (5, 10):
+            send(hub, batch(cfg, first, 5))
+        assert listener.wait(lambda: listener.acked() == 14)
+        declared = batch(cfg, 17, 3)  # 15-16 lost from its journal, as a re-send declares
+        declared.flags[:] = EXP_AFTER_LOSS
+        send(hub, declared)
+        assert listener.wait(lambda: listener.acked() == 19)
+        assert server.store.stored_through["c1"] == 19 and server.store.lost["c1"] == 2
+        assert server.store.count == 18
