@@ -626,7 +626,7 @@ def _check(
     """-> (sender, seq, type, body length) of a frame whose header, CRC and tag check out."""
     if len(frame) < MIN_FRAME:
         raise Truncated(f"frame of {len(frame)} bytes is shorter than the minimum {MIN_FRAME}")
-    magic, version, type_code, flags, _, sender_raw, seq, body_len = HEADER.unpack_from(frame)
+    magic, version, type_code, flags, reserved, sender_raw, seq, body_len = HEADER.unpack_from(frame)
     if magic != MAGIC:
         raise BadMagic(f"expected magic {MAGIC!r}, found {magic!r}")
     if not 1 <= version <= PROTOCOL_VERSION:
@@ -658,6 +658,8 @@ def _check(
             raise AuthError("HMAC tag does not verify with the configured key")
     if flags & ~FLAG_MAC:
         raise MalformedBody(f"unknown flags {flags:#x}")
+    if reserved:  # written as 0 by every version: anything else is a frame of no version read here
+        raise MalformedBody(f"reserved header byte is {reserved:#x}, not 0")
     if expect is not None and msg_type != expect.TYPE:
         raise UnknownType(f"expected a {expect.TYPE.name} frame, found {msg_type.name}")
     sender = sender_raw.rstrip(b"\0").decode("ascii")

@@ -146,10 +146,12 @@ def assert_same_message(got, want):
             assert type(g) is type(w) and g == w, f.name
 
 
-def raw_frame(body: bytes, msg_type=MsgType.EXPERIENCES, sender=b"fuzz", seq=0, flags=0, version=None):
+def raw_frame(
+    body: bytes, msg_type=MsgType.EXPERIENCES, sender=b"fuzz", seq=0, flags=0, version=None, reserved=0
+):
     """A frame with a correct header, length and CRC around any body bytes."""
     v = PROTOCOL_VERSION if version is None else version
-    frame = HEADER.pack(MAGIC, v, int(msg_type), flags, 0, sender, seq, len(body)) + body
+    frame = HEADER.pack(MAGIC, v, int(msg_type), flags, reserved, sender, seq, len(body)) + body
     return frame + struct.pack("<I", crc32c(frame))
 
 
@@ -403,10 +405,13 @@ def test_experience_batches_of_protocol_version_1_stay_readable():
     np.testing.assert_array_equal(got.state, batch.state)
 
 
-def test_unknown_flags_are_rejected():
+def test_unknown_flags_and_a_reserved_byte_that_is_not_zero_are_rejected():
     body = msgpack.packb(to_body(make_ack()), use_bin_type=True)
-    with pytest.raises(MalformedBody):
+    assert isinstance(decode(raw_frame(body, MsgType.ACK)).message, Ack)
+    with pytest.raises(MalformedBody, match="flags"):
         decode(raw_frame(body, MsgType.ACK, flags=0x02))
+    with pytest.raises(MalformedBody, match="reserved"):
+        decode(raw_frame(body, MsgType.ACK, reserved=1))
 
 
 @pytest.mark.parametrize("sender", [b"", b"a/b", b"a*", b"\xff\xfe", b"ab\0cd"])
