@@ -10,12 +10,15 @@ mode, experiences.npz locally), metrics.json and a learning-curve PNG.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
+import signal
+import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -144,11 +147,34 @@ def run(
     spec = SIMS[config.sim]
     task = spec.make(config.sim_options)
     try:
-        return _run(config, spec, task, on_status)
+        with _terminated_as_interrupted():
+            return _run(config, spec, task, on_status)
     finally:
         close = getattr(task, "close", None)  # a renderer's GL context
         if close is not None:
             close()
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def _terminated_as_interrupted() -> Iterator[None]:
+    """SIGTERM (`kill`, a service manager's stop) ends the run as Ctrl-C does, cleanly.
+
+    By default it ends the process at once: the journal was not closed, so the next run took it
+    for a crash and declared the numbers reserved for it lost. Only the main thread can set a
+    handler; elsewhere (an embedding program's thread) the signal is left as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 @dataclass

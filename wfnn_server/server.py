@@ -418,6 +418,10 @@ class ThinkServer:
             budget += tpa * int(np.count_nonzero(ok & after))
         self.schedule = ThinkSchedule(learned_through=dict(meta.get("learned_through", {})))
         self.schedule.resume(int(learner.thinks[0]), budget, done_through)
+        relearn = min(int(meta.get("relearn", 0)), self.config.recovery_thinks_max)
+        if relearn:
+            self.schedule.recover(int(learner.thinks[0]), relearn)
+            log.warning("relearning after a divergence reset: %d thinks still to do", relearn)
         self.learner, self.learner_config, self.spec_hash = learner, cfg, cfg.spec_hash()
         self._config_json = cfg.to_json()
         self.view.learner_config, self.view.weights_version = cfg, self.version
@@ -445,7 +449,7 @@ class ThinkServer:
                     raise _OtherSpec(f"checkpoint spec {ck_cfg.spec_hash()} is not {cfg.spec_hash()}")
                 learner = make_learner(cfg, params=params)
                 learner.load_training_state(training)
-                for key in ("thinks", "resets", "version", "budget"):
+                for key in ("thinks", "resets", "version", "budget", "relearn"):
                     if not _is_count(meta.get(key, 0)):
                         raise PersistError(f"checkpoint meta {key} is not a count: {meta.get(key)!r}")
                 for key in ("stored_through", "learned_through"):
@@ -890,6 +894,9 @@ class ThinkServer:
             "resets": int(learner.resets[0]), "budget": self.budget,
             "stored_through": dict(self._queued_through), "learned_through": dict(self.learned_through),
             "server": self.id,
+            # Relearning after a divergence reset still to do: resumed, or a restart would publish
+            # weights that were just reset as healthy and stop relearning them.
+            "relearn": max(0, self.schedule.recover_until - int(learner.thinks[0])),
         }  # fmt: skip
         newest, previous = self.data_dir / CHECKPOINT, self.data_dir / PREVIOUS_CHECKPOINT
         save_weights(

@@ -274,3 +274,33 @@ def test_deep_learner_over_zenoh_matches_the_single_process_learner(tmp_path):
         assert float(ck["train/adam_step"]) == meta["thinks"] and ck["train/theta"].shape == (
             2 * params.flat.shape[1],
         )
+
+
+@pytest.mark.parametrize("signal_name", ["SIGTERM", "SIGINT"])
+def test_a_client_stopped_by_a_signal_closes_its_journal_and_its_restart_skips_nothing(tmp_path, signal_name):
+    """`kill` (or a service manager's stop) ends a client as Ctrl-C does: closed cleanly, not as a
+    crash whose reserved numbers the next run would declare lost."""
+    import signal
+
+    port = free_port()
+    out, stats = tmp_path / "c", tmp_path / "stats.json"
+    args = ["--sim", "positioning", "--episodes", "1000", "--rate-hz", "30", "--server", endpoint(port),
+            "--out", str(out)]  # fmt: skip
+    with ServerProcess(tmp_path / "srv", port):
+        proc = client(*args, "--duration", "60")
+        record = out / "journal" / "client.json"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and '"closed": false' not in (
+            record.read_text() if record.exists() else ""
+        ):
+            time.sleep(0.2)
+        time.sleep(2.0)  # experiences journaled and sent
+        proc.send_signal(getattr(signal, signal_name))
+        output, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 130, output
+        assert json.loads(record.read_text())["closed"] is True
+        finish(client(*args, "--duration", "2", "--json-stats", str(stats)))
+    figures = metrics(stats)
+    assert figures.get("uplink/numbers_skipped", 0) == 0
+    assert figures.get("uplink/numbers_reserved_skipped", 0) == 0
+    assert figures["uplink/produced_through"] > 30  # the first run's experiences, and more

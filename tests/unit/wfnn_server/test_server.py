@@ -599,3 +599,28 @@ def test_a_loss_declared_beyond_what_the_client_announced_is_refused(tmp_path):
         assert listener.wait(lambda: listener.acked() == 19)
         assert server.store.stored_through["c1"] == 19 and server.store.lost["c1"] == 2
         assert server.store.count == 18
+
+
+def test_relearning_after_a_divergence_reset_goes_on_after_a_restart(tmp_path):
+    """The relearning still to do is checkpointed: a restart would otherwise publish weights that
+    were just reset as healthy, and stop relearning them."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    server = make_server(tmp_path, hub, cfg)
+    thinks = int(server.learner.thinks[0])
+    server.schedule.recover(thinks, 5_000)  # as a reset does
+    server.checkpoint()
+    server.store.close()
+    again = make_server(tmp_path, hub, cfg)
+    resumed = int(again.learner.thinks[0])
+    assert resumed == thinks and again.schedule.recovering(resumed)
+    assert again.schedule.recover_until == resumed + 5_000
+    again.checkpoint()  # nothing relearned meanwhile: the same still to do
+    again.store.close()
+    third = make_server(tmp_path, hub, cfg)
+    assert third.schedule.recover_until == int(third.learner.thinks[0]) + 5_000
+    third.schedule.recover_until = 0  # relearned
+    third.checkpoint()
+    third.store.close()
+    last = make_server(tmp_path, hub, cfg)
+    assert not last.schedule.recovering(thinks)
+    last.store.close()
