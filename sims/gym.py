@@ -47,8 +47,10 @@ def make_env(env_id: str, **make_kwargs: Any) -> gym.Env[Any, Any]:
         env = gym.make(env_id, **make_kwargs)
     except gym.error.Error as exc:  # the cause is in the message: not chained, so not told twice
         raise ValueError(f"Gymnasium cannot make {env_id!r}: {exc}") from None
-    except ModuleNotFoundError as exc:
+    except ImportError as exc:  # a missing package, or one gymnasium asks for by message
         raise ValueError(f"{env_id!r} needs a package that is not installed: {exc}") from None
+    except Exception as exc:  # the task's own constructor failed: still one line, naming the task
+        raise ValueError(f"Gymnasium cannot make {env_id!r}: {type(exc).__name__}: {exc}") from None
     problem = _space_problem(env)
     if problem:
         env.close()

@@ -562,6 +562,12 @@ def with_options(config: LearnerConfig, options: dict[str, Any]) -> LearnerConfi
     """
     if not isinstance(options, dict):
         raise ConfigError(f"learner options must be a JSON object, got {type(options).__name__}")
+    wanted = options.get("learner", config.learner)
+    if wanted != config.learner and wanted in LEARNERS:  # another name is refused as any bad value is
+        # Each learner starts from its own defaults (`for_task`): switching here would keep the
+        # other's (a deep learner with the thesis' gamma, thinks and squashed rewards).
+        raise ConfigError(f"learner options cannot change the learner ({config.learner} to {wanted}): "
+                          "choose it with --learner")  # fmt: skip
     data = config.to_dict()
     data.pop("symmetries")  # kept as objects: to_dict's form of them is not what from_dict takes
     for key, value in options.items():

@@ -119,6 +119,9 @@ class WFNN:
         self._replay_rng = np.random.default_rng(seeds[1])
         self.state_scaler = Scaler(config.state_low, config.state_high)
         self.action_scaler = Scaler(config.action_low, config.action_high)
+        self._action_low = np.asarray(config.action_low, dtype=np.float64)
+        self._action_high = np.asarray(config.action_high, dtype=np.float64)
+        """The action range: an action mapped back from [-1, 1] can round one step past it."""
         self.buffer = ReplayBuffer(population, config.replay_capacity, config.state_dim, config.action_dim)
         self.explorer = Explorer(
             config.exploration, population, config.action_dim, np.random.default_rng(seeds[2])
@@ -219,7 +222,7 @@ class WFNN:
         diverged = self.monitor.observe(value, valid)
         if params is None and diverged.any():
             self.reset_weights(diverged)
-        action = u * self.action_scaler.half + self.action_scaler.mid
+        action = self._in_range(u * self.action_scaler.half + self.action_scaler.mid)
         if single:
             return ActResult(action[0], value[0], valid[0], explored[0], diverged[0])
         return ActResult(action, value, valid, explored, diverged)
@@ -278,8 +281,13 @@ class WFNN:
                     self.reset_weights(np.ones(1, dtype=np.bool_))
         else:
             monitor.run[0] = 0
-        action = u * self.action_scaler.half + self.action_scaler.mid
+        action = self._in_range(u * self.action_scaler.half + self.action_scaler.mid)
         return ActResult(action, np.float64(value), np.bool_(valid), np.bool_(explored), np.bool_(diverged))
+
+    def _in_range(self, action: FloatArray) -> FloatArray:
+        """`action` (physical units) clipped into the action range, in place (rounding of the mapping)."""
+        np.maximum(action, self._action_low, out=action)
+        return np.minimum(action, self._action_high, out=action)
 
     # ------------------------------------------------------------------ learn
     def to_experiences(

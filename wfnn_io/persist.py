@@ -90,8 +90,7 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.is_dir():
-        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
+    _check_replaceable(path)
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     except OSError as exc:  # named by the file asked for, not the temporary one beside it
@@ -118,6 +117,18 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
         Path(tmp).unlink(missing_ok=True)
         raise
     sync_dir(path.parent)
+
+
+def _check_replaceable(path: Path) -> None:
+    """OSError unless `path` is missing or a regular file (a write renames a new file over it).
+
+    A directory cannot be replaced; a FIFO, socket or device would be, silently, by a regular
+    file that whatever reads it never sees.
+    """
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "is a directory, not a file", str(path))
+    if path.exists() and not path.is_file():
+        raise OSError(errno.EINVAL, "exists and is not a regular file", str(path))
 
 
 def _about(exc: OSError, path: Path) -> OSError:
@@ -172,8 +183,7 @@ def writable(path: Path) -> None:
     """Raise OSError now if file `path` cannot be written (its folder is made if missing)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.is_dir():
-        raise IsADirectoryError(21, "is a directory, not a file", str(path))
+    _check_replaceable(path)
     try:
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
             pass

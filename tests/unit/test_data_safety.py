@@ -489,3 +489,17 @@ def test_experiences_that_do_not_fit_their_config_are_refused(tmp_path, damage):
     for config in (cfg, None):
         with pytest.raises(PersistError, match=r"bad\.npz: (state|action|reward|terminal)"):
             load_experiences(tmp_path / "bad.npz", config)
+
+
+def test_an_output_path_that_is_a_fifo_is_refused_not_replaced(tmp_path):
+    """A write renames a new file over its path: a FIFO there would be replaced silently."""
+    import os
+
+    from wfnn_io.persist import atomic_savez, atomic_write_text, writable
+
+    os.mkfifo(tmp_path / "out")
+    writes = (lambda p: atomic_write_text(p, "{}"), lambda p: atomic_savez(p, {"x": np.zeros(1)}), writable)
+    for write in writes:
+        with pytest.raises(OSError, match="not a regular file"):
+            write(tmp_path / "out")
+    assert (tmp_path / "out").is_fifo()

@@ -44,6 +44,16 @@ def test_tasks_without_box_spaces_or_unknown_ids_are_refused_clearly():
         GymVec("NoSuchTask-v9")
 
 
+@pytest.mark.parametrize("error", [ImportError("install the extra package"), TypeError("bad argument")])
+def test_a_task_whose_constructor_fails_is_refused_naming_it(error):
+    def make(**kwargs):
+        raise error
+
+    gym.register(f"WfnnTestFails{type(error).__name__}-v0", entry_point=make)
+    with pytest.raises(ValueError, match=f"WfnnTestFails{type(error).__name__}-v0.*{error}"):
+        GymVec(f"WfnnTestFails{type(error).__name__}-v0")
+
+
 class _Drift(gym.Env):
     """Unbounded observations: a random walk the actions push (declared bounds infinite)."""
 

@@ -87,6 +87,17 @@ def test_overrides_set_only_the_fields_given_and_options_come_last():
     assert deep.deep.lr == 1e-3 and deep.alpha == small_config(learner="deep").alpha
 
 
+def test_options_may_name_the_learner_they_are_for_but_not_another():
+    """Each learner starts from its own defaults: a switch in the options kept the other's."""
+    from wfnn_common.config import ConfigError, with_options
+
+    for learner, other in (("thesis", "deep"), ("deep", "thesis")):
+        base = small_config(learner=learner)
+        assert with_options(base, {"learner": learner, "seed": 4}) == with_options(base, {"seed": 4})
+        with pytest.raises(ConfigError, match="--learner"):
+            with_options(base, {"learner": other})
+
+
 @pytest.mark.parametrize(
     "kw", [{"bc_weight": 2.0}, {"learning_rate": -1.0}, {"advantage_k": 0.0}, {"options": "[1]"},
            {"options": "{not json"}, {"seed": "1"}],

@@ -164,6 +164,22 @@ def test_weights_and_experiences_roundtrip(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+@pytest.mark.parametrize(("learner", "population"), [("thesis", 1), ("thesis", 3), ("deep", 1)])
+def test_explored_actions_never_leave_a_narrow_offset_range(learner, population):
+    """Mapped back from [-1, 1], a clipped action rounded one float step past 0.9."""
+    from wfnn_common.config import ExplorationConfig, with_options
+    from wfnn_common.learners import make_learner
+
+    cfg = with_options(small_config(state_dim=1, action_dim=1, learner=learner),
+                       {"action_low": [0.7], "action_high": [0.9]})  # fmt: skip
+    cfg = with_options(cfg, {"exploration": ExplorationConfig(kind="gaussian", sigma=1.0).__dict__})
+    agent = make_learner(cfg) if population == 1 else WFNN(cfg, population=population)
+    states = np.zeros(1) if population == 1 else np.zeros((population, 1))
+    actions = np.array([agent.act(states).action for _ in range(400)])
+    assert (actions >= 0.7).all() and (actions <= 0.9).all()
+    assert (actions == 0.9).any() and (actions == 0.7).any()  # the bounds themselves are reached
+
+
 def test_weights_whose_params_or_format_version_are_damaged_are_refused_naming_the_file(tmp_path):
     cfg = small_config()
     save_weights(tmp_path / "w.npz", cfg, WFNN(cfg).params)
