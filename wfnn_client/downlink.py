@@ -89,8 +89,8 @@ class Downlink:
         self.rejected = rejected
         self._statuses: Inbox[bytes] = Inbox(STATUS_INBOX_BYTES)
         self._presence: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
-        self._snapshots: dict[str, bytes] = {}
-        """Newest unprocessed snapshot frame per server (a ring of one)."""
+        self._snapshots: dict[str, tuple[int, bytes]] = {}
+        """Newest unprocessed snapshot frame per server, with its number (a ring of one)."""
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.current: Weights | None = None
@@ -141,14 +141,20 @@ class Downlink:
     def _on_snapshot(self, key: str, data: bytes) -> None:
         server = Keys.last(key)
         try:  # one frame per server waits to be decoded: junk must not push out a genuine snapshot
-            sender = check_frame(data, self.codec.key, WeightSnapshot)
+            sender, seq = check_frame(data, self.codec.key, WeightSnapshot)
         except ProtocolError as exc:
             self.rejected[exc.reason] += 1
             return
         if sender != server:
             self.rejected["misrouted"] += 1
             return
-        self._snapshots[server] = data
+        waiting = self._snapshots.get(server)
+        if self.codec.key is not None and waiting is not None and waiting[0] > seq:
+            # With a key the number is the server's own: a lower one, recorded and replayed, must
+            # not push out the newer snapshot waiting to be read.
+            self.rejected["replayed"] += 1
+            return
+        self._snapshots[server] = (seq, data)
         self._wake.set()
 
     def suspect(self, server: str) -> None:
@@ -174,9 +180,9 @@ class Downlink:
                 take(frame, self._take_status, self.rejected, "server status", "status_")
             self._refresh()
             for server in list(self._snapshots):
-                data = self._snapshots.pop(server, None)
-                if data is not None:
-                    take(data, self._take_snapshot, self.rejected, "snapshot")
+                waiting = self._snapshots.pop(server, None)
+                if waiting is not None:
+                    take(waiting[1], self._take_snapshot, self.rejected, "snapshot")
             self._choose()
             self._watch_weights()
 

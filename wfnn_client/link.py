@@ -193,9 +193,12 @@ class ServerTable:
         silent, only a start earlier by both (a lower or equal incarnation that started before),
         so that a restored backup (a lower incarnation started later) and a start after the
         server's clock was set back (a higher incarnation started "before") are still taken.
-        Another store is refused while the server is alive unless it started later (a server
+        Another store is refused unless it started later than the start announced now (a server
         restarted on another data directory starts after the start it replaces; one started
-        before is a frame of an earlier store, replayed); once the server is silent it is taken.
+        before is a frame of an earlier store, replayed, which would drive the robot with that
+        store's weights). A server restarted on another data directory after its clock was set
+        back is therefore not followed until this client restarts: it is counted
+        (`status_stale`) and logged.
         """
         if store == view.store:
             if view.alive:
@@ -210,7 +213,7 @@ class ServerTable:
                 return True
             log.info("server %s restarted (incarnation %d): re-sending what it lacks", view.server,
                      incarnation)  # fmt: skip
-        elif view.store and view.alive and started_ns <= view.started_ns:
+        elif view.store and started_ns <= view.started_ns:
             return False
         elif view.store:
             log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,

@@ -40,6 +40,7 @@ from wfnn_common.config import (
 )
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
+from wfnn_io.cli_errors import Terminated
 from wfnn_io.persist import (
     load_weights,
     make_directory,
@@ -124,8 +125,9 @@ def prepare(config: ClientConfig) -> list[str]:
     learners and the weights they start from are known to fit the task.
     """
     make_directory(config.out, "--out names a run directory")
-    if config.json_stats is not None:
-        writable(config.json_stats)  # now, not when the run is over
+    for path in (config.json_stats, config.out / "learning_curve.png"):
+        if path is not None:
+            writable(path)  # now, not when the run is over
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
     warnings = [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
     for journal in Path(config.out).glob("journal*"):  # a run already on this directory keeps its record
@@ -156,12 +158,12 @@ def run(
 
 
 def _interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+    raise Terminated(signum)
 
 
 @contextlib.contextmanager
 def _terminated_as_interrupted() -> Iterator[None]:
-    """SIGTERM (`kill`, a service manager's stop) ends the run as Ctrl-C does, cleanly.
+    """SIGTERM (`kill`, a service manager's stop) ends the run as Ctrl-C does, cleanly (`Terminated`).
 
     By default it ends the process at once: the journal was not closed, so the next run took it
     for a crash and declared the numbers reserved for it lost. Only the main thread can set a

@@ -59,6 +59,28 @@ def _one(exc: BaseException) -> str:
     return text
 
 
+class Terminated(KeyboardInterrupt):
+    """A run stopped by a signal such as SIGTERM, as Ctrl-C stops it (cleanly), keeping its number.
+
+    The tool then exits as the signal's status (128 + its number), as a supervisor expects of a
+    stop. Typer turns any KeyboardInterrupt into exit 130, so the number is also noted here.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"signal {signum}")
+        self.signum = signum
+        _terminated.append(signum)
+
+
+_terminated: list[int] = []
+"""Signals that raised `Terminated` in this process."""
+
+
+def _exit_code(code: int) -> int:
+    """A tool's exit status: an interrupt's (130) is the terminating signal's where one was."""
+    return 128 + _terminated[-1] if code == 130 and _terminated else code
+
+
 def guarded(app: Callable[[], Any]) -> Callable[[], None]:
     """An entry point that runs `app` and turns an escaping exception into one line on stderr."""
 
@@ -66,8 +88,8 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
         try:
             _invoke(app)
         except KeyboardInterrupt:
-            print("interrupted", file=sys.stderr)
-            sys.exit(130)
+            print("terminated" if _terminated else "interrupted", file=sys.stderr)
+            sys.exit(_exit_code(130))
         except (OSError, ValueError) as exc:
             _report(exc, 2)
         except Exception as exc:
@@ -88,7 +110,7 @@ def _invoke(app: Callable[[], Any]) -> None:
         return
     code = typer.main.get_command(app).main(standalone_mode=False)
     if type(code) is int and code:  # an explicit exit (typer.Exit) with a nonzero code
-        sys.exit(code)
+        sys.exit(_exit_code(code))
 
 
 def _usage_error(exc: Exception) -> bool:

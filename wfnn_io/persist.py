@@ -108,6 +108,7 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
             f.flush()
             os.fsync(f.fileno())
         if keep_previous is not None and path.exists():
+            _check_replaceable(Path(keep_previous))
             os.replace(path, keep_previous)
         os.replace(tmp, path)
     except OSError as exc:
@@ -224,12 +225,14 @@ def _members(path: Path, f: BinaryIO) -> list[str]:
     """The array names of the archive's members (open as `f`), checked before any is unpacked."""
     with zipfile.ZipFile(f) as archive:
         infos = archive.infolist()
-        commented = bool(archive.comment)
     if len(infos) > MAX_MEMBERS:
         raise PersistError(f"{path}: {len(infos)} members, more than {MAX_MEMBERS}")
-    if commented or any(info.comment for info in infos):
-        # Never written here: a comment's length field damaged swallows the members after it.
-        raise PersistError(f"{path}: damaged (the archive's directory holds a comment)")
+    listed = any(info.filename == MANIFEST + ".npy" for info in infos)
+    if not listed and any(info.comment for info in infos):
+        # Where no manifest lists the members (a file of an older version, or not written here),
+        # a member's comment is what a damaged comment length makes of the members after it.
+        raise PersistError(f"{path}: a member carries a comment, which no version writes: damaged, "
+                           "or not a file of this project")  # fmt: skip
     names = []
     for info in infos:
         if info.file_size > info.compress_size + MAX_INFLATION_BYTES:

@@ -597,18 +597,20 @@ def decode(
 
 def check_frame(
     frame: bytes | bytearray | memoryview, key: bytes | None = None, expect: type[Message] | None = None
-) -> str:
+) -> tuple[str, int]:
     """Check a frame's header, length, CRC and (with `key`) HMAC tag without unpacking its body.
 
-    Returns the sender id; raises only `ProtocolError` subclasses. For a receiver that keeps one
-    frame per key until it is decoded: an unchecked frame must not push out a checked one.
+    Returns the sender id and the frame's number (seq); raises only `ProtocolError` subclasses.
+    For a receiver that keeps one frame per key until it is decoded: an unchecked frame must not
+    push out a checked one (nor, with a key, a lower-numbered one a higher: a replay).
     """
     try:
-        return _check(bytes(frame), key, expect, "required")[0]
+        sender, seq, _, _ = _check(bytes(frame), key, expect, "required")
     except ProtocolError:
         raise
     except Exception as exc:
         raise MalformedBody(f"{type(exc).__name__}: {exc}") from exc
+    return sender, seq
 
 
 def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacPolicy) -> Frame:

@@ -297,7 +297,7 @@ def test_a_client_stopped_by_a_signal_closes_its_journal_and_its_restart_skips_n
         time.sleep(2.0)  # experiences journaled and sent
         proc.send_signal(getattr(signal, signal_name))
         output, _ = proc.communicate(timeout=60)
-        assert proc.returncode == 130, output
+        assert proc.returncode == 128 + getattr(signal, signal_name), output
         assert json.loads(record.read_text())["closed"] is True
         finish(client(*args, "--duration", "2", "--json-stats", str(stats)))
     figures = metrics(stats)

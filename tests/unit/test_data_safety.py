@@ -503,3 +503,43 @@ def test_an_output_path_that_is_a_fifo_is_refused_not_replaced(tmp_path):
         with pytest.raises(OSError, match="not a regular file"):
             write(tmp_path / "out")
     assert (tmp_path / "out").is_fifo()
+
+
+def test_a_comment_is_harmless_where_a_manifest_lists_the_members_and_damage_where_none_does(tmp_path):
+    """An archiving tool may add comments; a damaged comment length makes one of the members after it."""
+    import zipfile
+
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import MANIFEST, PersistError, load_weights, save_weights
+
+    cfg = small_config()
+    params = WFNN(cfg).params
+    save_weights(tmp_path / "w.npz", cfg, params)
+    with zipfile.ZipFile(tmp_path / "w.npz", "a") as archive:
+        archive.comment = b"archived"
+        archive.getinfo("params.npy").comment = b"checked"
+    assert np.array_equal(load_weights(tmp_path / "w.npz")[1].flat, params.flat)
+    with np.load(tmp_path / "w.npz") as npz:  # as an older version wrote it: no manifest
+        members = {name: npz[name] for name in npz.files if name != MANIFEST}
+    with open(tmp_path / "old.npz", "wb") as f:
+        np.savez(f, **members)
+    assert np.array_equal(load_weights(tmp_path / "old.npz")[1].flat, params.flat)
+    with zipfile.ZipFile(tmp_path / "old.npz", "a") as archive:
+        archive.getinfo("config.npy").comment = b"x"
+        archive.comment = b""  # marks the archive changed: its directory is written again
+    with pytest.raises(PersistError, match="comment"):
+        load_weights(tmp_path / "old.npz")
+
+
+def test_a_previous_checkpoint_path_that_is_a_fifo_is_refused_not_replaced(tmp_path):
+    import os
+
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import save_weights
+
+    cfg = small_config()
+    save_weights(tmp_path / "w.npz", cfg, WFNN(cfg).params)
+    os.mkfifo(tmp_path / "w.prev.npz")
+    with pytest.raises(OSError, match="not a regular file"):
+        save_weights(tmp_path / "w.npz", cfg, WFNN(cfg).params, keep_previous=tmp_path / "w.prev.npz")
+    assert (tmp_path / "w.prev.npz").is_fifo() and (tmp_path / "w.npz").is_file()

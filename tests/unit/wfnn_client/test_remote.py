@@ -436,15 +436,17 @@ def test_a_status_and_snapshot_of_the_same_start_replayed_are_refused(tmp_path):
     brain.stop()
 
 
+@pytest.mark.parametrize("silent", [False, True], ids=["alive", "silent"])
 @pytest.mark.parametrize("key", [KEY, None], ids=["key", "no_key"])
-def test_another_stores_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path, key):
+def test_another_stores_earlier_start_replayed_is_refused(tmp_path, key, silent):
     """s1 restarted on another data directory (a later start): frames of its first store, recorded
-    and replayed, neither switch the client back nor make it re-send its journal from the start."""
+    and replayed, whether s1 is alive or has fallen silent, neither switch the client back (to that
+    store's weights) nor make it re-send its journal from the start."""
     hub, cfg = Hub(), small_config()
     if key:
-        brain, bus = keyed(tmp_path, hub, cfg)
+        brain, bus = keyed(tmp_path, hub, cfg, status_timeout_s=0.3 if silent else 2.0)
     else:
-        brain = remote(tmp_path, hub, cfg)
+        brain = remote(tmp_path, hub, cfg, status_timeout_s=0.3 if silent else 2.0)
         brain.start()
         bus = hub.bus()
     old_status = status_frame(cfg, store="storeA", started_ns=1, key=key)
@@ -454,6 +456,8 @@ def test_another_stores_earlier_start_replayed_while_the_server_is_alive_is_refu
     bus.put(KEYS.server_status("s1"), status_frame(cfg, store="storeB", started_ns=2, key=key), None)
     bus.put(KEYS.weights("s1"), forge(cfg, version=3, key=key, store="storeB", started_ns=2), None)
     assert wait(lambda: brain.current is not None and brain.current.store == "storeB")
+    if silent:
+        assert wait(lambda: not brain.table.views["s1"].alive)
     for n in range(1, 3):
         bus.put(KEYS.server_status("s1"), old_status, None)
         assert wait(lambda n=n: brain.rejected["status_stale"] == n)
@@ -462,6 +466,35 @@ def test_another_stores_earlier_start_replayed_while_the_server_is_alive_is_refu
     view = brain.table.views["s1"]
     assert view.store == "storeB" and brain.current.store == "storeB" and brain.current.version == 3
     brain.stop()
+
+
+def test_a_replayed_snapshot_does_not_push_out_a_newer_one_waiting_to_be_read(tmp_path):
+    """The downlink keeps one snapshot per server until its thread reads it: with a key, a recorded
+    one (numbered lower) arriving meanwhile must not take the genuine one's place."""
+    hub, cfg = Hub(), small_config()
+    (tmp_path / "key").write_bytes(KEY)
+    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")  # not started: its rounds run here
+    downlink = brain.downlink
+
+    def one_round():
+        for frame in downlink._statuses.drained():
+            downlink._take_status(frame)
+        downlink._refresh()
+        for server in list(downlink._snapshots):
+            downlink._take_snapshot(downlink._snapshots.pop(server)[1])
+        downlink._choose()
+
+    downlink._on_status(KEYS.server_status("s1"), status_frame(cfg, weights_version=1))
+    recorded = forge(cfg, version=1, key=KEY)
+    downlink._on_snapshot(KEYS.weights("s1"), recorded)
+    one_round()
+    assert downlink.current.version == 1
+    downlink._on_status(KEYS.server_status("s1"), status_frame(cfg, weights_version=2))
+    downlink._on_snapshot(KEYS.weights("s1"), forge(cfg, version=2, key=KEY))
+    downlink._on_snapshot(KEYS.weights("s1"), recorded)  # replayed before the thread reads the genuine one
+    one_round()
+    assert downlink.current.version == 2 and brain.rejected["replayed"] == 1
+    brain.stop(flush_timeout_s=0.0)
 
 
 def test_a_snapshot_is_checked_again_against_a_start_taken_while_it_was_read(tmp_path, monkeypatch):
