@@ -45,6 +45,9 @@ T = TypeVar("T")
 
 INBOX_BYTES = 256 << 20
 """Bytes of received frames a receiver holds before it handles them (`Inbox`)."""
+ITEM_OVERHEAD = 256
+"""Bytes an `Inbox` charges each item besides its own: a queued frame's objects cost about 130
+bytes of memory whatever its size (empty frames were never counted against the limit)."""
 
 
 class Inbox(Generic[T]):
@@ -64,7 +67,12 @@ class Inbox(Generic[T]):
         self._lock = threading.Lock()
 
     def put(self, item: T, size: int) -> bool:
-        """Queue `item` of `size` bytes; False (counted in `dropped`) when the inbox is full."""
+        """Queue `item` of `size` bytes; False (counted in `dropped`) when the inbox is full.
+
+        Each item is charged ITEM_OVERHEAD bytes besides its size: what queuing it costs in
+        memory, so that a flood of empty or tiny frames is bounded too.
+        """
+        size += ITEM_OVERHEAD
         with self._lock:
             if self._bytes + size > self.max_bytes:
                 self.dropped += 1

@@ -63,6 +63,8 @@ FIGURES = ("think/thinks_per_s", "store/experiences", "learn/divergence_resets",
 """Server figures shown as numbers (the view sends only what the page shows)."""
 
 
+VIEW_CLIENTS = 64
+"""Clients the page's table lists at most (the most recently heard; `clients_heard` counts all)."""
 SAMPLED_CLIENTS = 16
 """Clients whose figures a sample keeps: the most recently heard (a sample per status, kept
 `history` times, must not grow with every client id the server has ever heard)."""
@@ -215,6 +217,16 @@ class Dashboard:
         newest = samples[-1]["seq"] if samples else since
         return orjson.dumps(extra)[:-1] + b"," + cached[1][1:], newest
 
+    def _shown_clients(self, clients: dict[str, Any]) -> list[str]:
+        """The clients the page's table lists: all, or the VIEW_CLIENTS most recently heard.
+
+        A server keeps up to MAX_HEARD (4,096, forged ids included without a key): all of them,
+        in every update to every viewer, came to 600 KB four times a second.
+        """
+        if len(clients) <= VIEW_CLIENTS:
+            return list(clients)
+        return self._heard.newest(VIEW_CLIENTS)
+
     def _current(self) -> dict[str, Any]:
         srv = self.view_of
         status = srv.last_status
@@ -237,8 +249,10 @@ class Dashboard:
                     "weights_version": c.weights_version,
                     "metrics": {k: c.metrics.get(k) for k in CLIENT_SERIES.values()},
                 }
-                for cid, c in srv.clients.items()
+                for cid in self._shown_clients(srv.clients)
+                if (c := srv.clients.get(cid)) is not None
             },
+            "clients_heard": len(srv.clients),
             "surface": None,
             "cameras": {cid: v.tick for cid, v in cameras.items()},
             "camera": next(reversed(cameras), None),  # the server keeps the newest picture last
@@ -506,6 +520,12 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")
 
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse  # noqa: N815 (the standard library's names)
+
+    def __getattr__(self, name: str) -> Any:
+        """Any other method (TRACE, CONNECT, WebDAV's, a misspelt one) is refused as read-only too."""
+        if name.startswith("do_"):
+            return self._refuse
+        raise AttributeError(name)
 
     def do_HEAD(self) -> None:
         """405 as for the other methods, with no body: a reply to HEAD never carries one."""

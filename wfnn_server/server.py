@@ -91,6 +91,8 @@ MAX_CAMERAS = 16
 """Clients whose newest camera picture is kept for the dashboard (the most recent ones)."""
 MAX_HEARD = 4096
 """Clients whose heartbeats (and dashboard statuses) are kept: the most recently heard."""
+LOGGED_CLIENTS = 16
+"""Clients named in the log per check as silent, or as heard again (the rest counted in one line)."""
 LEARNER_JSON = "learner_config.json"
 
 
@@ -822,19 +824,34 @@ class ThinkServer:
         return {client: through[client] for client, _ in recent if client in through}
 
     def _check_clients(self) -> int:
-        """Log clients whose heartbeat stopped or came back; -> how many are heard now."""
+        """Log clients whose heartbeat stopped or came back; -> how many are heard now.
+
+        At most LOGGED_CLIENTS of each by name per check, the rest counted in one line, and after
+        the lock is released: without a key thousands of forged ids can fall silent at once, and a
+        line each, written under the lock the ingest thread waits on, held up this thread's status
+        heartbeat past the clients' timeout.
+        """
         now = time.monotonic()
         heard = 0
+        back: list[str] = []
+        silent: list[tuple[str, float]] = []
         with self._heard_lock:
             for client, seen in list(self._heard.items()):
                 if now - seen <= CLIENT_TIMEOUT_S:
                     heard += 1
                     if client in self._silent:
                         self._silent.discard(client)
-                        log.info("client %s is heard again", client)
+                        back.append(client)
                 elif client not in self._silent:
                     self._silent.add(client)
-                    log.warning("client %s silent for %.1f s", client, now - seen)
+                    silent.append((client, now - seen))
+        for client in back[:LOGGED_CLIENTS]:
+            log.info("client %s is heard again", client)
+        for client, quiet in silent[:LOGGED_CLIENTS]:
+            log.warning("client %s silent for %.1f s", client, quiet)
+        if len(back) > LOGGED_CLIENTS or len(silent) > LOGGED_CLIENTS:
+            log.warning("%d more clients heard again and %d more silent (not named)",
+                        max(0, len(back) - LOGGED_CLIENTS), max(0, len(silent) - LOGGED_CLIENTS))  # fmt: skip
         return heard
 
     def _publish_status(self, thinks_per_s: float) -> None:

@@ -63,6 +63,9 @@ class ExperienceStore:
         """Experiences stored."""
         self.lost: dict[str, int] = {}
         """Per client: experiences of accepted gaps (lost before reaching this store)."""
+        self._moved: set[str] = set()
+        """Clients whose stored run grew since the last `sync`: what `due` and `sync` look at, so
+        that their cost after each frame does not grow with every client ever stored."""
         self._rebuild()
 
     def _rebuild(self) -> None:
@@ -74,6 +77,7 @@ class ExperienceStore:
                 if admitted.lost:
                     self.lost[batch.client] = self.lost.get(batch.client, 0) + admitted.lost
         self.durable_through = dict(self.stored_through)
+        self._moved.clear()
 
     @property
     def unreadable(self) -> int:
@@ -111,18 +115,24 @@ class ExperienceStore:
     def _count(self, batch: ExperienceBatch) -> None:
         self.stored_through[batch.client] = batch.last_seq
         self.count += len(batch)
+        self._moved.add(batch.client)
 
     def due(self) -> bool:
         """Whether stored experiences wait to be made durable and acknowledged, per the fsync policy."""
-        if self.stored_through == self.durable_through:
+        if not self._moved:
             return False
         return self.log.segments.fsync != "interval" or self.log.due()
 
     def sync(self) -> dict[str, int]:
         """Make everything appended durable; -> the clients whose durable point moved, and to where."""
         self.log.sync()
-        moved = {c: t for c, t in self.stored_through.items() if self.durable_through.get(c, -1) != t}
+        moved = {
+            c: self.stored_through[c]
+            for c in self._moved
+            if self.durable_through.get(c, -1) != self.stored_through[c]
+        }
         self.durable_through.update(moved)
+        self._moved.clear()
         return moved
 
     def close(self) -> None:

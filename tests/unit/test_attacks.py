@@ -435,12 +435,14 @@ def test_a_journal_written_without_a_key_is_resent_tagged_once_the_client_has_on
 
 def test_a_flood_faster_than_the_server_handles_is_held_in_bounded_memory_and_resent(tmp_path):
     """Frames beyond the inbox's bytes are dropped and counted; experiences then come from the journal."""
-    from wfnn_io.bus import Inbox
+    from wfnn_io.bus import ITEM_OVERHEAD, Inbox
 
-    inbox: Inbox[bytes] = Inbox(max_bytes=1000)
+    inbox: Inbox[bytes] = Inbox(max_bytes=10 * (100 + ITEM_OVERHEAD))
     assert all(inbox.put(b"x" * 100, 100) for _ in range(10)) and not inbox.put(b"y", 1)
     assert inbox.dropped == 1 and inbox.get(timeout=0) == b"x" * 100 and inbox.put(b"z" * 100, 100)
     assert len(list(inbox.drained())) == 10 and inbox.put(b"w" * 1000, 1000)
+    empty: Inbox[bytes] = Inbox(max_bytes=10 * ITEM_OVERHEAD)  # empty frames cost memory too
+    assert all(empty.put(b"", 0) for _ in range(10)) and not empty.put(b"", 0) and empty.dropped == 1
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
         server._inbox.max_bytes = 1  # as full as a flood leaves it: every frame is dropped

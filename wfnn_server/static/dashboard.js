@@ -136,9 +136,10 @@ function drawRejected(rejected) {
       yaxis: { title: { text: "frames" }, rangemode: "tozero" } }, plotConfig);
 }
 
-function drawClientTable(clients) {
+function drawClientTable(clients, heard) {
   const body = document.querySelector("#clients tbody");
   body.replaceChildren();
+  const listed = Object.keys(clients).length;
   for (const [client, c] of Object.entries(clients)) {
     const m = c.metrics;
     const row = document.createElement("tr");
@@ -148,6 +149,14 @@ function drawClientTable(clients) {
       cell.textContent = text;
       row.appendChild(cell);
     }
+    body.appendChild(row);
+  }
+  if (heard > listed) {  // the server lists the most recently heard only
+    const row = document.createElement("tr");
+    const cell = document.createElement("td");
+    cell.colSpan = 7;
+    cell.textContent = `${heard - listed} more clients heard, not listed`;
+    row.appendChild(cell);
     body.appendChild(row);
   }
 }
@@ -190,7 +199,7 @@ function show(view) {
   drawClients();
   drawSurface(view.surface);
   drawRejected(view.rejected);
-  drawClientTable(view.clients);
+  drawClientTable(view.clients, view.clients_heard);
   drawCamera(view.cameras, view.camera);
 }
 

@@ -296,6 +296,31 @@ def test_samples_keep_only_the_plotted_figures_of_recently_heard_clients(running
     assert d.view()["history"] == 10
 
 
+def test_the_client_table_lists_the_most_recently_heard_and_counts_the_rest(running, monkeypatch):
+    """Every heard client (up to 4,096, forged ids included) in every update was 600 KB a time."""
+    monkeypatch.setattr(dashboard_module, "VIEW_CLIENTS", 8)
+    view = ViewModel(server="s1", incarnation=1, controller="c")
+    view.clients = {f"c{i:02d}": _status(f"c{i:02d}") for i in range(8)}
+    d = running(view, update_hz=30)
+    assert sorted(d.view()["clients"]) == sorted(view.clients) and d.view()["clients_heard"] == 8
+    view.clients = {**view.clients, **{f"c{i:02d}": _status(f"c{i:02d}") for i in range(8, 40)}}
+    d._sample(_server_status())  # type: ignore[arg-type]
+    time.sleep(0.01)
+    view.clients = {**view.clients, "c03": _status("c03", jitter=9.0)}  # heard again: the newest
+    d._sample(_server_status())  # type: ignore[arg-type]
+    time.sleep(0.05)  # past the view's cache (1 / update_hz)
+    listed = d.view()
+    assert len(listed["clients"]) == 8 and listed["clients_heard"] == 40 and "c03" in listed["clients"]
+
+
+def test_every_other_method_is_refused_as_read_only(running):
+    d = running()
+    for method in (b"TRACE", b"CONNECT", b"PROPFIND", b"get"):
+        host = f"Host: 127.0.0.1:{d.port}\r\nConnection: close\r\n\r\n".encode()
+        reply = _raw(d.port, method + b" / HTTP/1.1\r\n" + host)
+        assert reply.split(b"\r\n")[0].split(b" ")[1] == b"405", reply[:40]
+
+
 def _newest_last(entries, client, value):
     """As the server updates its view's states and pictures: the client heard from last comes last."""
     return {**{c: v for c, v in entries.items() if c != client}, client: value}

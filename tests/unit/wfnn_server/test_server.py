@@ -624,3 +624,24 @@ def test_relearning_after_a_divergence_reset_goes_on_after_a_restart(tmp_path):
     last = make_server(tmp_path, hub, cfg)
     assert not last.schedule.recovering(thinks)
     last.store.close()
+
+
+def test_many_clients_falling_silent_at_once_are_logged_in_bounded_lines(tmp_path, monkeypatch, caplog):
+    """Thousands of forged ids falling silent, a line each under the lock the ingest waits on, held
+    up the status heartbeat past the clients' timeout."""
+    import logging
+
+    import wfnn_server.server as server_module
+
+    monkeypatch.setattr(server_module, "CLIENT_TIMEOUT_S", 0.3)
+    hub, cfg = Hub(), small_config()
+    listener = Listener(hub)
+    with caplog.at_level(logging.INFO), make_server(tmp_path, hub, cfg):
+        for n in range(100):
+            announce(hub, cfg, client=f"c{n}")
+        assert listener.wait(
+            lambda: bool(listener.statuses) and listener.statuses[-1].metrics.get("clients/silent") == 100
+        )
+    named = [r for r in caplog.records if "silent for" in r.getMessage()]
+    assert len(named) == server_module.LOGGED_CLIENTS
+    assert any("84 more silent" in r.getMessage() for r in caplog.records)
