@@ -90,7 +90,10 @@ class Downlink:
         self._statuses: Inbox[bytes] = Inbox(STATUS_INBOX_BYTES)
         self._presence: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
         self._snapshots: dict[str, tuple[int, bytes]] = {}
-        """Newest unprocessed snapshot frame per server, with its number (a ring of one)."""
+        """The highest-numbered unprocessed snapshot frame per server, with its number."""
+        self._lower: dict[str, bytes] = {}
+        """The latest unprocessed one numbered below it, per server (with a key): a recording
+        replayed, or the first of a start that restarted its numbers; read before it."""
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.current: Weights | None = None
@@ -150,11 +153,12 @@ class Downlink:
             return
         waiting = self._snapshots.get(server)
         if self.codec.key is not None and waiting is not None and waiting[0] > seq:
-            # With a key the number is the server's own: a lower one, recorded and replayed, must
-            # not push out the newer snapshot waiting to be read.
-            self.rejected["replayed"] += 1
-            return
-        self._snapshots[server] = (seq, data)
+            # With a key the number is the server's own: a lower one (a recording replayed, or the
+            # first of the server's next start) must not push out the higher one waiting, nor be
+            # pushed out by it; both are read, and their starts and versions decide.
+            self._lower[server] = data
+        else:
+            self._snapshots[server] = (seq, data)
         self._wake.set()
 
     def suspect(self, server: str) -> None:
@@ -179,10 +183,11 @@ class Downlink:
             for frame in self._statuses.drained():
                 take(frame, self._take_status, self.rejected, "server status", "status_")
             self._refresh()
-            for server in list(self._snapshots):
-                waiting = self._snapshots.pop(server, None)
-                if waiting is not None:
-                    take(waiting[1], self._take_snapshot, self.rejected, "snapshot")
+            for server in set(self._snapshots) | set(self._lower):
+                lower, waiting = self._lower.pop(server, None), self._snapshots.pop(server, None)
+                for data in (lower, waiting[1] if waiting is not None else None):
+                    if data is not None:
+                        take(data, self._take_snapshot, self.rejected, "snapshot")
             self._choose()
             self._watch_weights()
 

@@ -144,10 +144,14 @@ class ServerTable:
     restarts what was acknowledged and which snapshots may be followed (`announced`).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, keyed: bool = False) -> None:
         self.lock = threading.Lock()
         self.views: dict[str, ServerView] = {}
         """Per server id; its views are read and changed under `lock`."""
+        self.keyed = keyed
+        """Whether frames carry MAC tags (then a frame is the server's own, or a recording of one)."""
+        self._refused_logged: set[tuple[str, str]] = set()
+        """(server, store) pairs whose refusal was logged (bounded: ids are forgeable)."""
 
     def view(self, server: str) -> ServerView | None:
         """Its view, made at the first word from it (caller holds the lock); None while the table is full.
@@ -193,12 +197,14 @@ class ServerTable:
         silent, only a start earlier by both (a lower or equal incarnation that started before),
         so that a restored backup (a lower incarnation started later) and a start after the
         server's clock was set back (a higher incarnation started "before") are still taken.
-        Another store is refused unless it started later than the start announced now (a server
-        restarted on another data directory starts after the start it replaces; one started
-        before is a frame of an earlier store, replayed, which would drive the robot with that
-        store's weights). A server restarted on another data directory after its clock was set
-        back is therefore not followed until this client restarts: it is counted
-        (`status_stale`) and logged.
+        Another store: with a key, refused unless it started later than the start announced now
+        (a server restarted on another data directory starts after the start it replaces; one
+        started before is a frame of an earlier store, replayed, which would drive the robot with
+        that store's weights), so a server restarted on another data directory after its clock was
+        set back is not followed until this client restarts (counted as `status_stale`, logged
+        once). Without a key, where any frame can be forged and a forged start "later" than every
+        real one would shut the real server out for good, it is refused only while the server is
+        alive.
         """
         if store == view.store:
             if view.alive:
@@ -213,7 +219,12 @@ class ServerTable:
                 return True
             log.info("server %s restarted (incarnation %d): re-sending what it lacks", view.server,
                      incarnation)  # fmt: skip
-        elif view.store and started_ns <= view.started_ns:
+        elif view.store and started_ns <= view.started_ns and (self.keyed or view.alive):
+            if len(self._refused_logged) < MAX_SERVERS and (view.server, store) not in self._refused_logged:
+                self._refused_logged.add((view.server, store))
+                log.warning("server %s announces store %s, which started before the store %s it announced "
+                            "since: refused (a recording replayed, or a restart after its clock was set "
+                            "back: then restart this client)", view.server, store, view.store)  # fmt: skip
             return False
         elif view.store:
             log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,

@@ -70,7 +70,7 @@ class RemoteBrain:
         self.codec = Codec(self.id, key, config.controller)
         self.spec_hash = learner.config.spec_hash()
         self._config_json = learner.config.to_json()
-        self.table = ServerTable()
+        self.table = ServerTable(keyed=key is not None)
         self.rejected: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
         self.uplink = Uplink(config, bus, self.codec, self.journal, self.spec_hash, self.table, self._status,

@@ -85,6 +85,7 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
     """An entry point that runs `app` and turns an escaping exception into one line on stderr."""
 
     def main() -> None:
+        _terminated.clear()  # a signal that ended an earlier run in this process is not this one's
         try:
             _invoke(app)
         except KeyboardInterrupt:

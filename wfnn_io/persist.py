@@ -91,6 +91,8 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     _check_replaceable(path)
+    if keep_previous is not None:
+        _check_replaceable(Path(keep_previous))
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     except OSError as exc:  # named by the file asked for, not the temporary one beside it
@@ -108,7 +110,6 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
             f.flush()
             os.fsync(f.fileno())
         if keep_previous is not None and path.exists():
-            _check_replaceable(Path(keep_previous))
             os.replace(path, keep_previous)
         os.replace(tmp, path)
     except OSError as exc:

@@ -517,7 +517,8 @@ class _Handler(BaseHTTPRequestHandler):
             t0 = time.thread_time()
 
     def _refuse(self) -> None:
-        self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET")
+        # Closed after the reply: a body it sent, unread, would otherwise be read as the next request.
+        self._send(b"read-only", "text/plain", HTTPStatus.METHOD_NOT_ALLOWED, allow="GET", close=True)
 
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse  # noqa: N815 (the standard library's names)
 

@@ -436,12 +436,13 @@ def test_a_status_and_snapshot_of_the_same_start_replayed_are_refused(tmp_path):
     brain.stop()
 
 
-@pytest.mark.parametrize("silent", [False, True], ids=["alive", "silent"])
-@pytest.mark.parametrize("key", [KEY, None], ids=["key", "no_key"])
+@pytest.mark.parametrize(("key", "silent"), [(KEY, False), (KEY, True), (None, False)],
+                         ids=["key-alive", "key-silent", "no_key-alive"])  # fmt: skip
 def test_another_stores_earlier_start_replayed_is_refused(tmp_path, key, silent):
     """s1 restarted on another data directory (a later start): frames of its first store, recorded
-    and replayed, whether s1 is alive or has fallen silent, neither switch the client back (to that
-    store's weights) nor make it re-send its journal from the start."""
+    and replayed, neither switch the client back (to that store's weights) nor make it re-send its
+    journal from the start; with a key also once s1 has fallen silent (without one, a silent
+    server's next store is taken: a forged later start must not shut the real one out for good)."""
     hub, cfg = Hub(), small_config()
     if key:
         brain, bus = keyed(tmp_path, hub, cfg, status_timeout_s=0.3 if silent else 2.0)
@@ -481,7 +482,10 @@ def test_a_replayed_snapshot_does_not_push_out_a_newer_one_waiting_to_be_read(tm
             downlink._take_status(frame)
         downlink._refresh()
         for server in list(downlink._snapshots):
-            downlink._take_snapshot(downlink._snapshots.pop(server)[1])
+            lower = downlink._lower.pop(server, None)
+            for data in (lower, downlink._snapshots.pop(server)[1]):
+                if data is not None:
+                    downlink._take_snapshot(data)
         downlink._choose()
 
     downlink._on_status(KEYS.server_status("s1"), status_frame(cfg, weights_version=1))
@@ -493,7 +497,65 @@ def test_a_replayed_snapshot_does_not_push_out_a_newer_one_waiting_to_be_read(tm
     downlink._on_snapshot(KEYS.weights("s1"), forge(cfg, version=2, key=KEY))
     downlink._on_snapshot(KEYS.weights("s1"), recorded)  # replayed before the thread reads the genuine one
     one_round()
-    assert downlink.current.version == 2 and brain.rejected["replayed"] == 1
+    assert downlink.current.version == 2 and brain.rejected["stale"] == 1
+    brain.stop(flush_timeout_s=0.0)
+
+
+def test_a_forged_later_start_without_a_key_shuts_the_real_server_out_only_while_it_is_sent(tmp_path):
+    """Without a key a start "later" than every real one can be forged: once the forger stops, the
+    real server is taken back (with a key, where a start cannot be forged, an earlier one stays out)."""
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg, status_timeout_s=0.3)
+    brain.start()
+    bus = hub.bus()
+    bus.put(KEYS.server_status("s1"), status_frame(cfg, store="real", started_ns=5, key=None), None)
+    assert wait(lambda: "s1" in brain.table.views and brain.table.views["s1"].store == "real")
+    forged = Codec("s1").encode(ServerStatus(
+        server="s1", incarnation=1, store="forged", started_ns=2**62, spec_hash=cfg.spec_hash(),
+        learner_config=cfg.to_json(), weights_version=0, stored_through={}, rejected={}, metrics={},
+    ))  # fmt: skip
+    bus.put(KEYS.server_status("s1"), forged, None)
+    assert wait(lambda: brain.table.views["s1"].store == "forged")
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and brain.table.views["s1"].store != "real":
+        bus.put(KEYS.server_status("s1"), status_frame(cfg, store="real", started_ns=5, key=None), None)
+        time.sleep(0.1)
+    assert brain.table.views["s1"].store == "real" and brain.table.views["s1"].alive
+    brain.stop()
+
+
+def test_the_first_snapshot_of_a_restarted_server_is_read_beside_a_higher_numbered_one_waiting(tmp_path):
+    """A server numbers its frames from 0 each start: its next start's first snapshot is numbered
+    below the last one of the start before, which may still wait to be read."""
+    hub, cfg = Hub(), small_config()
+    (tmp_path / "key").write_bytes(KEY)
+    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")  # not started: its rounds run here
+    downlink = brain.downlink
+    old_start = Codec("s1", KEY, "t")
+    for _ in range(500):  # a start that has published for a while
+        old_start.encode(ServerStatus(server="s1", incarnation=1, store="store1", started_ns=1,
+                                      spec_hash="", learner_config="", weights_version=0, stored_through={},
+                                      rejected={}, metrics={}))  # fmt: skip
+    old_frame = old_start.encode(Codec("s1").decode(forge(cfg, version=90, started_ns=1), WeightSnapshot)[1])
+    new_start = Codec("s1", KEY, "t")
+    downlink._on_status(KEYS.server_status("s1"), new_start.encode(ServerStatus(
+        server="s1", incarnation=2, store="store1", started_ns=2, spec_hash=cfg.spec_hash(),
+        learner_config=cfg.to_json(), weights_version=1, stored_through={}, rejected={}, metrics={},
+    )))  # fmt: skip
+    new_frame = new_start.encode(Codec("s1").decode(forge(cfg, version=1, incarnation=2, started_ns=2),
+                                                    WeightSnapshot)[1])  # fmt: skip
+    downlink._on_snapshot(KEYS.weights("s1"), old_frame)  # still waiting when the restart's arrives
+    downlink._on_snapshot(KEYS.weights("s1"), new_frame)
+    for frame in downlink._statuses.drained():
+        downlink._take_status(frame)
+    downlink._refresh()
+    for server in set(downlink._snapshots) | set(downlink._lower):
+        for data in (downlink._lower.pop(server, None), downlink._snapshots.pop(server)[1]):
+            if data is not None:
+                downlink._take_snapshot(data)
+    downlink._choose()
+    assert downlink.current is not None and (downlink.current.incarnation, downlink.current.version) == (2, 1)
+    assert brain.rejected["unannounced"] == 1
     brain.stop(flush_timeout_s=0.0)
 
 

@@ -37,3 +37,20 @@ def test_a_write_that_fails_names_the_file_asked_for_not_a_temporary_one(tmp_pat
                 write(target, "x")
             assert describe(info.value).startswith(f"{target}: "), describe(info.value)
     assert [p.name for p in tmp_path.iterdir()] == ["dir"]  # nothing left beside it
+
+
+def test_a_run_ended_by_sigterm_exits_143_and_a_later_ctrl_c_in_the_process_still_130(capsys):
+    import pytest
+
+    from wfnn_io.cli_errors import Terminated, guarded
+
+    def terminated() -> None:
+        raise Terminated(15)
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    for app, code, said in ((terminated, 143, "terminated"), (interrupted, 130, "interrupted")):
+        with pytest.raises(SystemExit) as stopped:
+            guarded(app)()
+        assert stopped.value.code == code and said in capsys.readouterr().err

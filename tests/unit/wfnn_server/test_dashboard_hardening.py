@@ -319,6 +319,11 @@ def test_every_other_method_is_refused_as_read_only(running):
         host = f"Host: 127.0.0.1:{d.port}\r\nConnection: close\r\n\r\n".encode()
         reply = _raw(d.port, method + b" / HTTP/1.1\r\n" + host)
         assert reply.split(b"\r\n")[0].split(b" ")[1] == b"405", reply[:40]
+    # A body the refused request carried is never read as the next request: the connection closes.
+    smuggled = b"GET / HTTP/1.1\r\nHost: 127.0.0.1:%d\r\n\r\n" % d.port
+    reply = _raw(d.port, b"PROPFIND / HTTP/1.1\r\nHost: 127.0.0.1:%d\r\nContent-Length: %d\r\n\r\n"
+                 % (d.port, len(smuggled)) + smuggled)  # fmt: skip
+    assert reply.count(b"HTTP/1.") == 1 and b"Connection: close" in reply
 
 
 def _newest_last(entries, client, value):
