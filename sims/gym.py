@@ -36,6 +36,9 @@ UNBOUNDED = 1e10
 """A space's bound at least this large stands for no bound."""
 STILL = 1e-3
 """A measured observation whose 1st-99th percentile span is below this did not move in the probe."""
+PROBE_SEED = 12345
+"""The seed of the probe that measures unbounded observations' ranges. Not the run's: the ranges
+go into the learner's spec, so runs of one task with other seeds share weights, logs and servers."""
 
 
 def make_env(env_id: str, **make_kwargs: Any) -> gym.Env[Any, Any]:
@@ -128,10 +131,10 @@ class GymVec:
     def _measured_ranges(
         self, low: FloatArray, high: FloatArray, steps: int
     ) -> tuple[FloatArray, FloatArray]:
-        rng = np.random.default_rng(self.seed + 12345)
+        rng = np.random.default_rng(PROBE_SEED)
         seen = []
-        obs, _ = self.env.reset(seed=self.seed + 12345)
-        self.env.action_space.seed(self.seed + 12345)  # unseeded, the ranges would differ per run
+        obs, _ = self.env.reset(seed=PROBE_SEED)
+        self.env.action_space.seed(PROBE_SEED)  # unseeded, the ranges would differ per run
         for _ in range(steps):
             seen.append(obs)
             obs, _, terminated, truncated, _ = self.env.step(self.env.action_space.sample())
@@ -150,10 +153,26 @@ class GymVec:
             np.where(np.isfinite(high), high, measured_high),
         )
 
+    def _observation(self, obs: Any) -> FloatArray:
+        """The env's observation as states [1, S].
+
+        ValueError naming the task where it does not fit its space: a learner given it would fail
+        later, naming the learner, the record or the log.
+        """
+        shape = self.env.observation_space.shape
+        try:
+            x = np.asarray(obs, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{self.env_id} returned an observation that is not numbers ({exc})") from None
+        if x.shape != shape:
+            raise ValueError(f"{self.env_id} returned an observation of shape {x.shape}; its observation "
+                             f"space has shape {shape}")  # fmt: skip
+        return x[None]
+
     def reset(self, rng: np.random.Generator) -> FloatArray:
         """A new episode -> states [1, S]."""
         obs, _ = self.env.reset(seed=int(rng.integers(2**31)))
-        self._obs = np.asarray(obs, dtype=np.float64)[None]
+        self._obs = self._observation(obs)
         self.episode_return = 0.0
         return self.observe()
 
@@ -165,15 +184,16 @@ class GymVec:
         """One environment step with actions [1, A]; a finished episode restarts at once."""
         u = np.clip(np.asarray(action, dtype=np.float64).reshape(1, -1)[0], self.action_low, self.action_high)
         obs, reward, terminated, truncated, _ = self.env.step(u.astype(self.env.action_space.dtype))
-        next_state = np.asarray(obs, dtype=np.float64)[None]
+        next_state = self._observation(obs)
         self.last_reward = np.array([float(reward)])
         self.episode_return += float(reward)
         if terminated or truncated:
             self.returns.append(self.episode_return)
             self.episodes += 1
             self.episode_return = 0.0
-            obs, _ = self.env.reset()
-        self._obs = np.asarray(obs, dtype=np.float64)[None]
+            self._obs = self._observation(self.env.reset()[0])
+        else:
+            self._obs = next_state.copy()
         return Transition(
             next_state, self.last_reward.copy(), np.array([bool(terminated)]), np.ones(1, dtype=np.bool_)
         )

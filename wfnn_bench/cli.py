@@ -42,7 +42,7 @@ from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
-from wfnn_io.cli_errors import guarded, path_given
+from wfnn_io.cli_errors import guarded, log_printably, path_given
 from wfnn_io.persist import to_jsonable, writable
 
 MAX_POPULATION = 100_000
@@ -73,6 +73,7 @@ def _logging(verbose: bool, json_path: Path | None, plot_path: Path | None) -> N
         format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )
+    log_printably()
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise ValueError(f"--plot {plot_path}: the figure is a PNG; name a .png file")
     for path in (json_path, plot_path):

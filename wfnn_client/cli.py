@@ -26,7 +26,7 @@ from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, path_given
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, path_given
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
@@ -226,6 +226,7 @@ def client(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
+    log_printably()
     if sim not in SIMS and env is None:
         raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
     own_rate = SIMS[sim].rate_hz if env is None else 0.0

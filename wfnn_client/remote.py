@@ -205,7 +205,8 @@ class RemoteBrain:
         return Acted(result, weights.source, weights.version)
 
     def learn(self, experience: Experience, acted: Acted | None) -> None:
-        """Queue an experience for the uplink (never blocks)."""
+        """Queue an experience for the uplink (never blocks); its reward sizes what `act` judges diverged."""
+        self.learner.rewarded([experience.reward])
         self.uplink.add(experience, acted)
 
     def sync(self, timeout_s: float) -> bool:

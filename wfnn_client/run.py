@@ -375,9 +375,16 @@ def _run(
             if config.duration_s is not None and time.perf_counter() - start >= config.duration_s:
                 break
         wall = time.perf_counter() - start
-    finally:
-        brains.stop()
-        camera_frames = frames.close() if frames is not None else None
+    except BaseException:
+        try:
+            brains.stop()  # what was recorded before the failure is kept
+        except Exception:  # the failure that ended the run is what to report
+            log.exception("stopping the brains after the run failed failed too")
+        if frames is not None:
+            frames.close()
+        raise
+    brains.stop()
+    camera_frames = frames.close() if frames is not None else None
     brains.check()
     final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     out = Path(config.out)

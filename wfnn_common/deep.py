@@ -18,12 +18,12 @@ from dataclasses import replace
 from typing import Any, cast
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common import deep_net
 from wfnn_common.config import LearnerConfig
 from wfnn_common.deep_net import DeepParams, DeepShapes
-from wfnn_common.learner import FLOAT32_MAX, WFNN, ActResult, BoolArray, FloatArray
+from wfnn_common.learner import FLOAT32_MAX, MAX_REWARD, WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
@@ -116,15 +116,27 @@ class DeepWFNN(WFNN):
         small rewards at the usual discounts are as before).
         """
         exp, ok = super()._check(s, a, sn, r, term, ok)
-        if ok.any():
-            scale = float(np.abs(r[ok]).max())
-            if scale > self._reward_scale:
-                self._reward_scale = scale
-                horizon = (1.0 - REFERENCE_GAMMA) / (1.0 - self.config.gamma)  # 1 at the reference
-                factor = max(1.0, scale / REFERENCE_REWARD * horizon)
-                base = self.config.divergence_threshold  # a threshold at or below 0 is the user's, as set
-                self.monitor.threshold = base * factor if base > 0.0 else base
+        self.rewarded(r[ok])
         return exp, ok
+
+    def rewarded(self, reward: ArrayLike) -> None:
+        """Rewards [N] met: the divergence threshold follows the largest (as `learn` does).
+
+        A robot acting on a server's snapshots learns nothing itself: without them, its
+        threshold stayed the config's while the server's grew, and it judged healthy weights
+        diverged and stopped following them.
+        """
+        r = np.abs(np.asarray(reward, dtype=np.float64).reshape(-1))
+        r = r[r <= MAX_REWARD]  # NaN fails: what learn would refuse says nothing of the values
+        if not r.size:
+            return
+        scale = float(r.max())
+        if scale > self._reward_scale:
+            self._reward_scale = scale
+            horizon = (1.0 - REFERENCE_GAMMA) / (1.0 - self.config.gamma)  # 1 at the reference
+            factor = max(1.0, scale / REFERENCE_REWARD * horizon)
+            base = self.config.divergence_threshold  # a threshold at or below 0 is the user's, as set
+            self.monitor.threshold = base * factor if base > 0.0 else base
 
     def experienced(self, n: int) -> None:
         """Count n experiences produced before this process (a robot's journal): warm-up included."""

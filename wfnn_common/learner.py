@@ -33,8 +33,11 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 """Largest finite float32: the deep learner trains in float32, where anything larger is infinite."""
-MAX_REWARD = FLOAT32_MAX
-"""Largest reward magnitude learned (a larger one would turn the deep learner's weights NaN)."""
+MAX_REWARD = 1e30
+"""Largest reward magnitude learned. The deep learner trains in float32 (largest 3.4e38): its
+values reach max |r| / (1 - gamma), its targets add n-step returns, and the loss's gradient
+doubles their difference, so rewards near float32's largest turned its weights NaN for good;
+1e30 leaves those eight orders of magnitude."""
 
 
 class ActResult(NamedTuple):
@@ -459,6 +462,9 @@ class WFNN:
 
     def experienced(self, n: int) -> None:
         """Count n experiences produced before this process (the thesis' learner has no use for it)."""
+
+    def rewarded(self, reward: ArrayLike) -> None:
+        """Rewards met while acting on snapshots (the thesis' learner judges squashed values alike)."""
 
     def prepare_thinking(self) -> None:
         """Nothing to load: the compiled think comes from numba's cache at its first call."""

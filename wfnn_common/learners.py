@@ -75,6 +75,13 @@ class Learner(Protocol):
     def experienced(self, n: int) -> None:
         """Count n experiences this robot produced before (a journal's): the deep learner's warm-up."""
 
+    def rewarded(self, reward: ArrayLike) -> None:
+        """Rewards [N] a robot acting on snapshots met (not learned here).
+
+        What `learn` would judge values by: the deep learner's divergence threshold follows the
+        rewards' size.
+        """
+
     def prepare_thinking(self) -> None:
         """Load what thinking needs now, before the caller starts its threads (the deep learner: torch)."""
 

@@ -6,11 +6,14 @@ use, a malformed endpoint or config (OSError, ValueError and their kinds) ends t
 `--verbose` adds the traceback for whoever debugs it.
 
 What else the tools share about their console lives here too: how often a status line is
-written where the output is no terminal (`Every`).
+written where the output is no terminal (`Every`), and text from outside (names off the network,
+a damaged file's bytes) shown without the control characters that drive a terminal (`printable`,
+`log_printably`).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import time
@@ -18,6 +21,36 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+_CONTROLS = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0)) if chr(c) not in "\n\t"}
+
+
+def printable(text: str) -> str:
+    """`text` with its control characters shown as escapes (ESC as backslash x1b); newlines and tabs kept.
+
+    Client ids are checked, but other names (who chose an action, a config's field names) come
+    off the network or out of a file as any text: an escape sequence printed as it is would
+    drive the operator's terminal (clear it, set its title or clipboard).
+    """
+    return text.translate(_CONTROLS)
+
+
+class _Printable(logging.Filter):
+    """Log records rendered with `printable` (their arguments may come from anywhere)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        clean = printable(message)
+        if clean != message:
+            record.msg, record.args = clean, None
+        return True
+
+
+def log_printably() -> None:
+    """Show every log record through `printable` (call once the tool's handlers are set up)."""
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, _Printable) for f in handler.filters):
+            handler.addFilter(_Printable())
 
 
 def describe(exc: BaseException) -> str:
@@ -136,7 +169,7 @@ def _report(exc: BaseException, code: int) -> None:
     if "--verbose" in sys.argv:
         traceback.print_exception(exc)
     hint = "" if "--verbose" in sys.argv or code == 2 else " (--verbose shows where)"
-    print(f"error: {describe(exc)}{hint}", file=sys.stderr)
+    print(f"error: {printable(describe(exc))}{hint}", file=sys.stderr)
     sys.exit(code)
 
 

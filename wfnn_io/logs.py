@@ -33,6 +33,7 @@ are). This module also summarises, merges, splits and exports logs (`wfnn-logs`)
 
 from __future__ import annotations
 
+import bisect
 import json
 import logging
 import os
@@ -118,7 +119,7 @@ def read_log_json(directory: Path) -> dict[str, Any] | None:
         raise LogFormatError(f"{info}: unreadable ({exc})") from exc
     if (
         not isinstance(data, dict) or data.get("format") != LOG_FORMAT
-        or not isinstance(data.get("version"), int) or not 1 <= data["version"] <= LOG_VERSION
+        or type(data.get("version")) is not int or not 1 <= data["version"] <= LOG_VERSION
     ):  # fmt: skip
         raise LogFormatError(f"{info}: not a {LOG_FORMAT} version <= {LOG_VERSION} description")
     return data
@@ -192,13 +193,27 @@ MAX_CONTROLLERS = 16
 """Controllers a journal records (the most recent), whose keys a reader tries."""
 
 
-def client_meta(directory: Path) -> dict[str, Any]:
-    """A client's journal's `client.json` as a dict (empty where it is missing or unreadable)."""
+def client_meta(directory: Path, warn: bool = False) -> dict[str, Any]:
+    """A client's journal's `client.json` as a dict (empty where it is missing or unreadable).
+
+    With `warn`, one that is there but unreadable is named in a warning: a reader with a key
+    needs the controllers it records to verify the journal's frames.
+    """
+    path = Path(directory) / CLIENT_JSON
+    why = ""
     try:
-        meta = json.loads(read_regular_text(Path(directory) / CLIENT_JSON))
-    except (OSError, ValueError, RecursionError):
+        meta = json.loads(read_regular_text(path))
+    except FileNotFoundError:
         return {}
-    return meta if isinstance(meta, dict) else {}
+    except (OSError, ValueError, RecursionError) as exc:
+        meta, why = None, f"{type(exc).__name__}: {str(exc)[:200]}"
+    if not isinstance(meta, dict):
+        if warn:
+            log.warning("%s cannot be read (%s): the controllers it records are unknown, so frames tagged "
+                        "for any but the default controller fail the key's check", path,
+                        why or "not a JSON object")  # fmt: skip
+        return {}
+    return meta
 
 
 def journal_controllers(meta: dict[str, Any]) -> list[str]:
@@ -221,7 +236,7 @@ def _candidate_keys(directory: Path, key: bytes) -> list[bytes]:
     Its controllers', then the default controller's, then the shared key itself (frames of
     clients from before tags named their controller).
     """
-    names = [*journal_controllers(client_meta(directory)), "default"]
+    names = [*journal_controllers(client_meta(directory, warn=True)), "default"]
     return [*dict.fromkeys(controller_key(key, name) for name in names), key]
 
 
@@ -358,6 +373,29 @@ class ClientRun:
     """Places where the numbering skips (experiences missing from the log)."""
     duplicates: int = 0
     """Experiences present more than once."""
+    held: list[list[int]] = field(default_factory=list, repr=False)
+    """The numbers present, as disjoint [first, last] runs in order (batches may come in any order:
+    a merged log, or a server's store where re-sent experiences filled a hole)."""
+
+    def add(self, first: int, last: int) -> None:
+        """Count experiences first..last: duplicates of what is held, and the gaps left between."""
+        self.experiences += last - first + 1
+        self.first_seq = first if self.first_seq < 0 else min(self.first_seq, first)
+        self.last_seq = max(self.last_seq, last)
+        held = self.held
+        if not held or first > held[-1][1] + 1:  # past the end: the usual case, in O(1)
+            held.append([first, last])
+        else:
+            i = bisect.bisect_left(
+                held, first, key=lambda run: run[1] + 1
+            )  # the first run reaching first - 1
+            j = i
+            while j < len(held) and held[j][0] <= last + 1:
+                self.duplicates += max(0, min(last, held[j][1]) - max(first, held[j][0]) + 1)
+                j += 1
+            merged = [min([first, *(r[0] for r in held[i:j])]), max([last, *(r[1] for r in held[i:j])])]
+            held[i:j] = [merged]
+        self.gaps = len(held) - 1
 
 
 @dataclass
@@ -391,7 +429,7 @@ class Summary:
         """JSON-ready."""
         return {
             "experiences": self.experiences, "batches": self.batches,
-            "clients": {c: vars(r) for c, r in self.clients.items()},
+            "clients": {c: {k: v for k, v in vars(r).items() if k != "held"} for c, r in self.clients.items()},  # noqa: E501
             "spec_hashes": dict(self.spec_hashes), "behaviour": dict(self.behaviour),
             "flags": dict(self.flags),
             "terminal": self.terminal, "reward_mean": self.reward_mean, "unreadable": self.unreadable,
@@ -410,14 +448,7 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
         n = len(batch)
         out.batches += 1
         out.experiences += n
-        run = out.clients.setdefault(batch.client, ClientRun())
-        if run.last_seq >= 0:
-            if batch.first_seq > run.last_seq + 1:
-                run.gaps += 1
-            run.duplicates += max(0, min(run.last_seq, batch.last_seq) - batch.first_seq + 1)
-        run.first_seq = batch.first_seq if run.first_seq < 0 else min(run.first_seq, batch.first_seq)
-        run.last_seq = max(run.last_seq, batch.last_seq)
-        run.experiences += n
+        out.clients.setdefault(batch.client, ClientRun()).add(batch.first_seq, batch.last_seq)
         out.spec_hashes[batch.spec_hash] += n
         out.behaviour[batch.weights_source or "(none)"] += n
         for bit, name in FLAG_NAMES.items():

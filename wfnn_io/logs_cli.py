@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from wfnn_io import logs
-from wfnn_io.cli_errors import describe, guarded, path_given
+from wfnn_io.cli_errors import describe, guarded, log_printably, path_given, printable
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import load_key
 
@@ -33,7 +33,7 @@ def _key(path: Path | None) -> bytes | None:
 
 def _fail(exc: Exception) -> typer.Exit:
     """Bad input (an unreadable log, a wrong option value): one line on stderr, exit 2, as every tool."""
-    errors.print(f"[red]error:[/] {escape(describe(exc))}", soft_wrap=True)
+    errors.print(f"[red]error:[/] {escape(printable(describe(exc)))}", soft_wrap=True)
     return typer.Exit(2)
 
 
@@ -43,6 +43,7 @@ def _setup(verbose: bool = False) -> None:
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=Console(stderr=True), show_path=False)],
     )  # fmt: skip
+    log_printably()
 
 
 @app.command()
@@ -59,24 +60,25 @@ def inspect(
     if json_out:
         print(json.dumps(to_jsonable(summary.to_dict()), indent=1, allow_nan=False))  # strict JSON: no NaN
         return
-    title = f"{escape(str(log_dir))}: {summary.experiences:,} experiences in {summary.batches:,} batches"
+    where = escape(printable(str(log_dir)))
+    title = f"{where}: {summary.experiences:,} experiences in {summary.batches:,} batches"
     table = Table(title=title)
     table.add_column("")
     table.add_column("", justify="right")
     for client, run in summary.clients.items():
-        table.add_row(f"client {escape(client)}",
+        table.add_row(f"client {escape(printable(client))}",
                       f"{run.experiences:,} (seq {run.first_seq}..{run.last_seq}, "
                       f"{run.gaps} gaps, {run.duplicates} duplicates)")  # fmt: skip
     for source, n in summary.behaviour.items():
-        table.add_row(f"chosen by {escape(source)}", f"{n:,}")
+        table.add_row(f"chosen by {escape(printable(source))}", f"{n:,}")
     for name, n in summary.flags.items():
-        table.add_row(f"flag {escape(name)}", f"{n:,}")
+        table.add_row(f"flag {escape(printable(name))}", f"{n:,}")
     table.add_row("terminal", f"{summary.terminal:,}")
     table.add_row("mean reward", f"{summary.reward_mean:.4f}")
-    table.add_row("learner spec", escape(", ".join(summary.spec_hashes)) or "-")
+    table.add_row("learner spec", escape(printable(", ".join(summary.spec_hashes))) or "-")
     table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
     if summary.description_error:
-        table.add_row("[red]description[/]", escape(summary.description_error))
+        table.add_row("[red]description[/]", escape(printable(summary.description_error)))
     for why, n in summary.refused.most_common():
         table.add_row(f"[red]records refused ({escape(why)})[/]", f"{n:,}")
     for d in summary.damage:
@@ -120,7 +122,7 @@ def split(
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
     for name, n in parts.items():
-        console.print(f"{escape(str(out / name))}: {n:,} experiences")
+        console.print(f"{escape(printable(str(out / name)))}: {n:,} experiences")
 
 
 @app.command()

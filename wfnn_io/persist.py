@@ -52,7 +52,15 @@ def read_regular_bytes(path: Path | str, limit: int = MAX_TEXT_BYTES) -> bytes:
         if info.st_size > limit:
             raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
         with os.fdopen(fd, "rb", closefd=False) as f:
-            data = f.read(limit + 1)
+            # As much as the file holds (a read of `limit` would reserve that much memory first),
+            # and on in pieces where it has grown since.
+            data = f.read(info.st_size + 1)
+            if len(data) > info.st_size:
+                parts, total = [data], len(data)
+                while total <= limit and (more := f.read(min(1 << 20, limit + 1 - total))):
+                    parts.append(more)
+                    total += len(more)
+                data = b"".join(parts)
     finally:
         os.close(fd)
     if len(data) > limit:

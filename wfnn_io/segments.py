@@ -29,6 +29,7 @@ import fcntl
 import itertools
 import logging
 import os
+import shutil
 import stat
 import struct
 import time
@@ -46,6 +47,15 @@ RECORD = struct.Struct("<II")
 SUFFIX = ".seg"
 QUARANTINE = "quarantine"
 MAX_RECORD = 64 << 20
+MAX_SEGMENT_BYTES = 256 << 20
+"""The largest size at which a writer starts a new segment (`SegmentLog`'s `segment_bytes`)."""
+MAX_SEGMENT = MAX_SEGMENT_BYTES + 8 + MAX_RECORD
+"""No segment written is longer (one record may cross `segment_bytes`): a reader takes at most
+this much of one, and reports the rest as damage, rather than read a huge file whole."""
+RESYNC_WORK = 8
+"""Bytes a scan may checksum while looking past damage, per byte of its segment (besides
+reading it once, plus two records): legitimate damage costs about one try; a file crafted with
+a false record header every few bytes, each claiming a long record, took quadratic time."""
 FsyncPolicy = Literal["always", "interval", "never"]
 
 
@@ -142,7 +152,23 @@ def _record_at(data: bytes | memoryview, pos: int) -> int:
     return end if crc32c(memoryview(data)[pos + RECORD.size : end]) == crc else -1
 
 
-def _resync(data: bytes, pos: int, marker: bytes) -> int:
+class _Exhausted(Exception):
+    """A scan has checksummed as much as it may (`RESYNC_WORK`)."""
+
+
+def _record_within(data: bytes, pos: int, budget: list[int]) -> int:
+    """`_record_at`, its checksum charged to `budget` (bytes left, shared by one scan)."""
+    if pos + RECORD.size > len(data):
+        return -1
+    length = RECORD.unpack_from(data, pos)[0]
+    if 0 < length <= MAX_RECORD and pos + RECORD.size + length <= len(data):
+        if budget[0] < length:
+            raise _Exhausted
+        budget[0] -= length
+    return _record_at(data, pos)
+
+
+def _resync(data: bytes, pos: int, marker: bytes, budget: list[int]) -> int:
     """Start of the next valid record after a damaged one at `pos`, or len(data) when none."""
     q = pos + 1
     while q + RECORD.size < len(data):
@@ -151,27 +177,45 @@ def _resync(data: bytes, pos: int, marker: bytes) -> int:
             if found < 0:
                 break
             q = found - RECORD.size
-        if _record_at(data, q) > 0:
+        if _record_within(data, q, budget) > 0:
             return q
         q += 1
     return len(data)
 
 
 def scan(data: bytes, marker: bytes = b"") -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
-    """One segment's bytes -> ([(offset, end)] of valid records, [(offset, length)] of damaged spans)."""
+    """One segment's bytes -> ([(offset, end)] of valid records, [(offset, length)] of damaged spans).
+
+    The checksums it computes are bounded (`RESYNC_WORK`): past that, the rest is damage.
+    """
     records: list[tuple[int, int]] = []
     damage: list[tuple[int, int]] = []
+    budget = [(RESYNC_WORK + 1) * len(data) + 2 * MAX_RECORD]
     pos = 0
-    while pos < len(data):
-        end = _record_at(data, pos)
-        if end > 0:
-            records.append((pos, end))
-            pos = end
-            continue
-        nxt = _resync(data, pos, marker)
-        damage.append((pos, nxt - pos))
-        pos = nxt
+    try:
+        while pos < len(data):
+            end = _record_within(data, pos, budget)
+            if end > 0:
+                records.append((pos, end))
+                pos = end
+                continue
+            nxt = _resync(data, pos, marker, budget)
+            damage.append((pos, nxt - pos))
+            pos = nxt
+    except _Exhausted:
+        log.warning("a segment holds more false record headers than damage leaves: its last %d bytes "
+                    "are taken as damaged", len(data) - pos)  # fmt: skip
+        if damage and damage[-1][0] == pos:
+            damage.pop()
+        damage.append((pos, len(data) - pos))
     return records, damage
+
+
+def read_segment(path: Path) -> tuple[bytes, int]:
+    """A segment's bytes, at most MAX_SEGMENT of them, and the file's size (more: damage)."""
+    with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        return f.read(min(size, MAX_SEGMENT)), size
 
 
 def read_records(
@@ -188,13 +232,14 @@ def read_records(
         if start is not None and n < start.segment:
             continue
         _check_segment(directory / segment_name(n), owner=False)
-        with open(directory / segment_name(n), "rb") as f:
-            data = f.read()
+        data, size = read_segment(directory / segment_name(n))
         records, damage = scan(data, marker)
+        if size > len(data):  # longer than any segment written: read no further
+            damage = [*damage, (len(data), size - len(data))]
         if report is not None:
             for offset, length in damage:
                 # Only the last segment can end in a torn write: a segment is synced before the next begins.
-                last = n == numbers[-1] and offset + length == len(data)
+                last = n == numbers[-1] and offset + length == size
                 kind: Literal["corrupt", "tail"] = "tail" if last else "corrupt"
                 report.damage.append(Damage(n, offset, length, kind))
                 log.warning("%s: %d damaged bytes at offset %d (%s) skipped",
@@ -305,13 +350,13 @@ class SegmentLog:
     def _repair(self, n: int) -> None:
         """Move a torn tail of the last segment to quarantine and cut it off; count inner damage."""
         path = self.directory / segment_name(n)
-        data = path.read_bytes()
+        data, size = read_segment(path)
         records, damage = scan(data, self.marker)
         valid_end = records[-1][1] if records else 0
         self.recovery.corrupt_spans += sum(1 for offset, _ in damage if offset < valid_end)
-        if valid_end == len(data):
+        if valid_end == size:
             return
-        cut = len(data) - valid_end
+        cut = size - valid_end
         quarantine = self.directory / QUARANTINE
         if not quarantine.is_dir():
             quarantine.mkdir()
@@ -323,8 +368,9 @@ class SegmentLog:
                 break
             except FileExistsError:
                 kept = quarantine / f"{n:08d}-{valid_end:010d}.{k}.torn"
-        with os.fdopen(fd, "wb") as f:
-            f.write(data[valid_end:])
+        with os.fdopen(fd, "wb") as f, open(path, "rb") as torn:
+            torn.seek(valid_end)
+            shutil.copyfileobj(torn, f, 1 << 20)  # in pieces: a tail may be longer than any segment
             f.flush()
             os.fsync(f.fileno())
         sync_dir(quarantine)

@@ -15,7 +15,7 @@ from rich.markup import escape
 from rich.status import Status
 
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, path_given
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
@@ -127,6 +127,7 @@ def serve(
         level=logging.INFO if verbose else logging.WARNING, format="%(message)s",
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
+    log_printably()
     # A config that does not hold (a ValueError), a data directory, key or endpoint that cannot be
     # used, or logs that cannot be replayed end in one `error:` line and exit 2 (`main`).
     default_listen = ("tcp/127.0.0.1:7447",) if mode == "router" else ()

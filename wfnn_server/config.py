@@ -9,7 +9,7 @@ from typing import Literal
 from wfnn_common.config import DeepConfig, LearnerOverrides, check_fields
 from wfnn_io.bus import NetConfig
 from wfnn_io.protocol import check_id
-from wfnn_io.segments import FsyncPolicy
+from wfnn_io.segments import MAX_SEGMENT_BYTES, FsyncPolicy
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -115,6 +115,8 @@ class ServerConfig:
     fsync_interval_s: float = 0.02
     """With fsync `interval`: acknowledgements wait at most this long for an fsync."""
     segment_bytes: int = 64 << 20
+    """Where the store starts a new segment file (readers read at most this much of one, with a
+    record more: `wfnn_io.segments.MAX_SEGMENT_BYTES`)."""
     replay: tuple[Path, ...] = ()
     """Experience logs (client records `DIR/journal`, other servers' `DATA_DIR/store`) imported
     into the store at start, each client's experiences once; they are owed their thinks like
@@ -168,6 +170,8 @@ class ServerConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.think_batch < 1:
             raise ValueError(f"think_batch must be >= 1, got {self.think_batch}")
+        if not 1 <= self.segment_bytes <= MAX_SEGMENT_BYTES:
+            raise ValueError(f"segment_bytes must be in [1, {MAX_SEGMENT_BYTES}], got {self.segment_bytes}")
         if self.fsync not in ("always", "interval", "never"):
             raise ValueError(f"fsync must be always, interval or never, got {self.fsync!r}")
         if self.think not in ("budget", "continuous"):

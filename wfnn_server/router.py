@@ -21,7 +21,7 @@ import typer
 
 from wfnn_common.config import check_fields
 from wfnn_io.bus import NetConfig, ZenohBus, endpoints, is_loopback
-from wfnn_io.cli_errors import guarded, path_given
+from wfnn_io.cli_errors import guarded, log_printably, path_given
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,7 @@ def route(
 ) -> None:
     """Route until SIGTERM/SIGINT."""
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
+    log_printably()
     net = NetConfig(
         mode="router",
         listen=tuple(listen or ()),

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import itertools
 import logging
 import os
 import queue
@@ -25,7 +26,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -229,6 +230,10 @@ class ThinkServer:
         """Per client: the last experience handed to the learner (its thinks are owed)."""
         self._loaded_through: dict[str, int] = {}
         """Per client: the last experience the learner was given from the store when it was built."""
+        self._loaded_fills: set[tuple[str, int]] = set()
+        """(client, first experience) of the records filling holes that the learner was given then."""
+        self._queued_fills: set[tuple[str, int]] = set()
+        """(client, first experience) of the queued batches filling holes (below `_loaded_through`)."""
         # --learner-config or an earlier run's, else the config the logs say they were recorded for
         cfg = self._initial_config() or replay_config
         if config.replay_only and cfg is None:
@@ -351,12 +356,15 @@ class ThinkServer:
             log.warning("records refused while reading the logs: %s", reasons)
         imported = 0
         for batch in merged(directories, self._key, spec):
-            admitted = self.store.admit(mark_non_finite(batch)[0], allow_gap=True)
-            if admitted.lost:  # in none of the logs (damaged, or never there): the rest is imported
-                log.warning("client %s: experiences %d-%d are in none of the logs; imported what follows",
-                            batch.client, batch.first_seq - admitted.lost, batch.first_seq - 1)  # fmt: skip
-            if admitted.new is not None:
-                self.store.append(admitted.new, admitted.lost)
+            for admitted in self.store.parts(mark_non_finite(batch)[0], allow_gap=True):
+                if admitted.new is None:
+                    continue
+                if admitted.missing:  # in none of the logs so far (damaged, or never there): a hole
+                    first = admitted.new.first_seq
+                    log.warning("client %s: experiences %d-%d are in none of the logs so far; imported what "
+                                "follows (the client is asked for them if it comes)", batch.client,
+                                first - admitted.missing, first - 1)  # fmt: skip
+                self.store.append(admitted.new, admitted.lost, allow_gap=True)
                 imported += len(admitted.new)
         self.store.sync()
         log.info("imported %d of %d experiences from %d logs", imported, offered, len(directories))
@@ -414,6 +422,8 @@ class ThinkServer:
             ok = self._learn_batch(learner, batch)
             loaded += len(batch)
             through = self._loaded_through.get(batch.client, -1)
+            if batch.last_seq <= through:  # a hole filled after later experiences were stored
+                self._loaded_fills.add((batch.client, batch.first_seq))
             self._loaded_through[batch.client] = max(through, batch.last_seq)
             # Experiences stored after the checkpoint have not had their thinks yet.
             after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
@@ -584,31 +594,43 @@ class ThinkServer:
         self._allowed(batch.client)
         self._check_spec(batch)
         batch, non_finite = mark_non_finite(batch)
-        admitted = self.store.admit(batch)
         self.counters["ingest/batches"] += 1
-        if admitted.new is not None and admitted.lost:
+        parts = self.store.parts(batch)
+        admitted = next(parts)
+        if admitted.lost:
             said = self.view.clients.get(batch.client)
-            if said is None or admitted.new.last_seq > said.produced_through:
+            if said is None or batch.last_seq > said.produced_through:
                 # A loss is declared only in a re-send of what the client's journal holds, which its
                 # status has announced: one frame declaring everything up to a huge number lost would
                 # make each later batch a duplicate, for good. Refused as a gap (it is sent again).
                 self.rejected["declared_beyond_produced"] += 1
                 admitted = Admission(None, gap=True)
+            elif admitted.new is None:  # nothing new in it: the holes before it are given up
+                self._declared_lost(batch, self.store.declare_lost(batch.client, batch.first_seq))
         if admitted.new is None:
             self.counters["ingest/duplicates" if admitted.duplicate else "ingest/gaps"] += 1
             # The client is re-sending or skipped ahead: tell it where our run of its data ends.
             self._ack(batch.client, self.store.durable_through.get(batch.client, -1))
             return
-        if non_finite:
-            self.counters["ingest/non_finite"] += int(np.count_nonzero(admitted.new.flags & EXP_NON_FINITE))
-        if admitted.lost:
-            self.counters["ingest/declared_lost"] += admitted.lost
-            log.warning("client %s declares experiences %d-%d lost (its journal lacks them)", batch.client,
-                        admitted.new.first_seq - admitted.lost, admitted.new.first_seq - 1)  # fmt: skip
-        self.store.append(admitted.new, admitted.lost)
-        self._to_learn.append(admitted.new)
+        for part in itertools.chain([admitted], parts):
+            new = cast(ExperienceBatch, part.new)
+            if non_finite:
+                self.counters["ingest/non_finite"] += int(np.count_nonzero(new.flags & EXP_NON_FINITE))
+            if part.lost:
+                self._declared_lost(batch, part.lost)
+            if new.first_seq <= self.store.stored_through.get(new.client, -1):
+                self._queued_fills.add((new.client, new.first_seq))  # below what the learner was given
+                self.counters["ingest/holes_filled"] += len(new)
+            self.store.append(new, part.lost)
+            self._to_learn.append(new)
         self._recent = _noted(self._recent, batch.client, 2 * MAX_LISTED)
         self._wake.set()
+
+    def _declared_lost(self, batch: ExperienceBatch, lost: int) -> None:
+        if lost:
+            self.counters["ingest/declared_lost"] += lost
+            log.warning("client %s declares %d experiences before %d lost (its journal lacks them)",
+                        batch.client, lost, batch.first_seq)  # fmt: skip
 
     def _check_spec(self, batch: ExperienceBatch) -> None:
         cfg = self.learner_config or self._pending_config
@@ -720,15 +742,21 @@ class ThinkServer:
         tpa = learner.config.thinks_per_action
         while self._to_learn:
             batch = self._to_learn.popleft()
-            if batch.last_seq <= self._loaded_through.get(batch.client, -1):
+            key = (batch.client, batch.first_seq)
+            fill = key in self._queued_fills
+            self._queued_fills.discard(key)
+            through = self._loaded_through.get(batch.client, -1)
+            if (key in self._loaded_fills) if fill else batch.last_seq <= through:
                 # Stored and queued before the learner was built, which learned it from the store
                 # (its thinks in the budget then): learning the queued copy would learn it twice.
+                self._loaded_fills.discard(key)
                 self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
             else:
                 ok = self._learn_batch(learner, batch)
                 self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
                 self._observe(learner, batch)
-            self._queued_through[batch.client] = batch.last_seq
+            queued = self._queued_through.get(batch.client, -1)
+            self._queued_through[batch.client] = max(batch.last_seq, queued)
 
     def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness.
@@ -864,6 +892,7 @@ class ThinkServer:
             "store/torn_bytes_cut": float(self.store.log.segments.recovery.torn_bytes_cut),
             "store/damaged_spans": float(len(self.store.log.counts.damage)),
             "store/unreadable_records": float(self.store.unreadable),
+            "store/missing": float(self.store.missing()),
             "learn/divergence_resets": float(learner.resets[0]) if learner else 0.0,
             "learn/diverged": float(learner is not None and self.schedule.recovering(int(learner.thinks[0]))),
             "learn/rejected_by_limits": float(learner.rejected[0]) if learner else 0.0,

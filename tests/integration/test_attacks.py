@@ -51,6 +51,41 @@ def test_a_server_restarted_empty_under_the_same_id_ends_with_every_experience(t
     assert result["following"] == "srv"
 
 
+def test_a_hole_damage_left_in_a_servers_store_is_re_sent_by_the_client(tmp_path):
+    """Acknowledged experiences damaged on the server's disk: the restarted server asks for them
+    (its acks stop before the hole) and the client's journal re-sends them."""
+    port = free_port()
+    stats, out = tmp_path / "stats.json", tmp_path / "c"
+    server = ServerProcess(tmp_path / "a", port).start()
+    proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "10", "--rate-hz", "30",
+                  "--server", endpoint(port), "--out", str(out), "--json-stats", str(stats))  # fmt: skip
+    try:
+        time.sleep(4.0)
+        server.stop()
+        (segment,) = sorted((tmp_path / "a" / "store").glob("*.seg"))
+        raw = bytearray(segment.read_bytes())
+        raw[len(raw) // 2 : len(raw) // 2 + 3] = b"\x00\x00\x00"
+        segment.write_bytes(bytes(raw))
+        store = ExperienceStore(tmp_path / "a" / "store", "check")
+        damaged = store.missing()
+        store.close()
+        assert damaged > 0
+        with ServerProcess(tmp_path / "a", port):
+            finish(proc, timeout=60)
+            time.sleep(0.5)
+    finally:
+        server.stop()
+    result = json.loads(stats.read_text())
+    produced = int(result["uplink/produced_through"])
+    client_id = json.loads((out / "journal" / "client.json").read_text())["client"]
+    store = ExperienceStore(tmp_path / "a" / "store", "check")
+    try:
+        assert store.holes == {} and store.lost == {}
+        assert (store.stored_through.get(client_id), store.count) == (produced, produced + 1)
+    finally:
+        store.close()
+
+
 @pytest.mark.parametrize("megabytes", [40, 30])
 def test_huge_frames_on_the_weights_key_never_delay_the_tick(tmp_path, megabytes):
     """Eight frames of 40 MB (past what Zenoh reassembles) or 30 MB (past what the client copies)."""

@@ -7,7 +7,7 @@ import pytest
 
 from tests.fakes import Hub, small_config
 from tests.mounts import files, read_only, tmpfs
-from tests.unit.wfnn_server.test_server import Listener, batch, make_server, send
+from tests.unit.wfnn_server.test_server import Listener, announce, batch, make_server, send
 from wfnn_client.journal import Journal
 from wfnn_io import logs, segments
 from wfnn_io.logs import LogFormatError
@@ -96,10 +96,14 @@ def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_expe
     server = make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j",), replay_only=True)
     try:
         assert files(tmp_path / "j") == before
-        # The damaged batch is in no log: c1's run goes on after it (counted as lost).
+        # The damaged batch is in no log: c1's run goes on after it, and it is a hole, missing
+        # (c1 would be asked for it), not given up as lost.
         assert server.imported == server.store.count == (BATCHES - lost) * PER_BATCH
-        assert server.store.lost == {"c1": lost * PER_BATCH}
+        assert server.store.lost == {}
+        assert server.store.missing() == lost * PER_BATCH
         assert server.store.stored_through == {"c1": BATCHES * PER_BATCH - 1}
+        first = server.store.holes["c1"][0][0]
+        assert server.store.durable_through == {"c1": first - 1}  # the acks stop before the hole
     finally:
         server.store.close()
 
@@ -230,6 +234,74 @@ def test_a_store_damaged_in_the_middle_loads_every_readable_batch(tmp_path):
     assert again.store.count == 40 and len(again.store.log.counts.damage) == 1
     assert again.learner.buffer.count[0] == 40
     again.store.close()
+
+
+def _store_with_a_hole(tmp_path, hub, listener, cfg):
+    """A server's store of c1's experiences 0-49 (five batches), its middle record then damaged."""
+    sent = [batch(cfg, 10 * i, 10) for i in range(5)]
+    with make_server(tmp_path, hub, cfg):
+        for b in sent:
+            send(hub, b)
+            assert listener.wait(lambda b=b: listener.acked() == b.last_seq)
+    store = tmp_path / "s1" / "store"
+    overwrite(seg(store), seg(store).stat().st_size // 2, b"\x00\x00\x00")
+    listener.acks.clear()
+    listener.statuses.clear()
+    return sent
+
+
+def test_a_hole_damage_left_in_the_store_is_asked_for_again_filled_and_learned_once(tmp_path):
+    """Experiences acknowledged and then damaged on the server's disk were skipped for good; the
+    client's journal still holds them. The acks now stop before the hole, so the client re-sends."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    sent = _store_with_a_hole(tmp_path, hub, listener, cfg)
+    with make_server(tmp_path, hub, cfg) as again:
+        [(first, last)] = again.store.holes["c1"]
+        assert last - first + 1 == 10 and again.store.missing() == 10
+        assert again.store.count == 40 and again.learner.buffer.count[0] == 40  # the rest is learned
+        assert again.store.stored_through == {"c1": 49} and again.store.lost == {}
+        # Its status (what a client hearing of this start believes) stops before the hole.
+        assert listener.wait(lambda: any(s.stored_through.get("c1") == first - 1 for s in listener.statuses))
+        send(hub, batch(cfg, 50, 5))  # a live batch is stored after the run, not acknowledged past the hole
+        assert listener.wait(lambda: again.store.stored_through["c1"] == 54)
+        assert again.store.durable_through == {"c1": first - 1}
+        for b in sent:  # the client re-sends from the hole: its part is new, the rest duplicates
+            send(hub, b)
+        assert listener.wait(lambda: listener.acked() == 54)
+        assert again.store.holes == {} and again.store.count == 55
+        assert listener.wait(lambda: not again._to_learn)
+        assert again.learner.buffer.count[0] == 55 and again.counters["ingest/holes_filled"] == 10
+    with make_server(tmp_path, hub, cfg) as third:
+        assert third.store.holes == {} and third.store.count == 55 and third.learner.buffer.count[0] == 55
+        assert third.store.durable_through == {"c1": 54}
+        seqs = sorted(s for b in third.store.batches() for s in range(b.first_seq, b.last_seq + 1))
+        assert seqs == list(range(55))  # each stored once
+
+
+def test_a_hole_filled_before_the_learner_is_built_is_learned_once(tmp_path, monkeypatch):
+    import threading
+
+    import wfnn_server.server as server_module
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    sent = _store_with_a_hole(tmp_path, hub, listener, cfg)
+    for path in (tmp_path / "s1").iterdir():  # the adopted config and checkpoints: adopted again
+        if path.is_file() and path.name != "incarnation":
+            path.unlink()
+    stored = threading.Event()
+    monkeypatch.setattr(server_module, "lower_priority", lambda nice: stored.wait(10.0))
+    with make_server(tmp_path, hub, None) as again:
+        assert again.learner is None and again.store.missing() == 10
+        announce(hub, cfg, produced_through=49)
+        assert listener.wait(lambda: again._pending_config is not None)
+        for b in sent:
+            send(hub, b)
+        assert listener.wait(lambda: again.store.count == 50)
+        stored.set()  # the learner is built: it loads the fill from the store, not again from its queue
+        assert listener.wait(lambda: again.learner is not None and not again._to_learn)
+        assert int(again.learner.buffer.count[0]) == 50
 
 
 # --------------------------------------------------------------------------- what the key protects
@@ -543,3 +615,60 @@ def test_a_previous_checkpoint_path_that_is_a_fifo_is_refused_not_replaced(tmp_p
     with pytest.raises(OSError, match=r"not a regular file.*w\.prev\.npz"):
         save_weights(tmp_path / "w.npz", cfg, WFNN(cfg).params, keep_previous=tmp_path / "w.prev.npz")
     assert (tmp_path / "w.prev.npz").is_fifo() and (tmp_path / "w.npz").is_file()
+
+
+def test_reading_a_small_file_under_a_large_limit_reserves_no_more_memory_than_it_holds(tmp_path):
+    """`wfnn report` reads metrics.json with a 4 GiB limit: the read reserved the whole limit first,
+    so on a machine without that much to spare every report failed with MemoryError."""
+    import subprocess
+    import sys
+
+    (tmp_path / "small.json").write_text('{"scores": [1, 2, 3]}')
+    child = (
+        "import resource, sys\n"
+        "from wfnn_io.persist import read_regular_bytes\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))\n"
+        f"data = read_regular_bytes({str(tmp_path / 'small.json')!r}, 4 << 30)\n"
+        "assert data == b'{\"scores\": [1, 2, 3]}'\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_a_file_that_grows_while_read_is_read_on_up_to_the_limit(tmp_path, monkeypatch):
+    from wfnn_io import persist
+
+    path = tmp_path / "growing"
+    path.write_bytes(b"a" * 10)
+    real_fstat = persist.os.fstat
+
+    def stale_fstat(fd):  # as if the file grew by 90 bytes after its size was taken
+        info = real_fstat(fd)
+        path.write_bytes(b"a" * 100)
+        return info
+
+    monkeypatch.setattr(persist.os, "fstat", stale_fstat)
+    assert persist.read_regular_bytes(path, limit=1000) == b"a" * 100
+    path.write_bytes(b"a" * 10)
+    with pytest.raises(OSError, match="larger than 50"):
+        persist.read_regular_bytes(path, limit=50)
+
+
+def test_a_damaged_client_json_is_named_when_a_keyed_journals_frames_fail_their_check(tmp_path, caplog):
+    """The journal's controllers are recorded only there: without them its frames fail the key's
+    check, and the user was told only that the key did not verify."""
+    from wfnn_io.protocol import controller_key
+
+    cfg, key = small_config(), b"k" * 32
+    j = Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg, controller="rv")
+    codec = Codec("c1", controller_key(key, "rv"))
+    b = batch(cfg, 0, PER_BATCH)
+    j.append(codec.encode(b), b.last_seq)
+    j.close()
+    assert logs.summarise(tmp_path / "j", key).experiences == PER_BATCH
+    (tmp_path / "j" / "client.json").write_bytes(b"\xff\xfe")
+    with caplog.at_level(logging.WARNING):
+        summary = logs.summarise(tmp_path / "j", key)
+    assert summary.experiences == 0 and summary.refused["auth"] == 1
+    assert any("client.json cannot be read" in r.getMessage() for r in caplog.records)
+    assert (tmp_path / "j" / "client.json").read_bytes() == b"\xff\xfe"  # reading changed nothing

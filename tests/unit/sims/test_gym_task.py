@@ -78,6 +78,11 @@ def test_infinite_observation_bounds_are_measured_from_random_play():
     again = GymVec("WfnnTestDrift-v0", probe_steps=3000)  # the same seed measures the same ranges
     assert again.state_low == task.state_low and again.state_high == task.state_high
     again.close()
+    # And so does another seed: the ranges go into the learner's spec, and runs of one task with
+    # other seeds share weights, logs and servers (weights of seed 0 were refused by seed 1).
+    other = GymVec("WfnnTestDrift-v0", seed=1, probe_steps=3000)
+    assert other.state_low == task.state_low and other.state_high == task.state_high
+    other.close()
     # The second coordinate wanders about 17 times further than the first.
     assert 8 < (high[1] - low[1]) / (high[0] - low[0]) < 35  # steps of 10 against about 0.6
     # Measured ranges are estimates: a state far beyond them is still learned (only non-finite
@@ -191,3 +196,45 @@ def test_a_tasks_non_finite_rewards_are_counted_apart_from_the_episodes_score(tm
     metrics = run(config)
     assert metrics["scores"] == [-1.0 * 45 / 50, -1.0 * 45 / 50]  # the 45 finite rewards over 50 steps
     assert metrics["metric_not_finite"] == 10
+
+
+class _MisShaped(gym.Env):
+    """An env whose observation grows from 3 to 5 numbers at its fifth step."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(3), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.zeros(5 if self.t >= 5 else 3), -1.0, False, False, {}
+
+
+def test_an_observation_that_does_not_fit_the_space_ends_the_run_naming_the_task_and_keeps_the_record(
+    tmp_path,
+):
+    """It ended in "writing the experience record failed" and lost the experiences before it."""
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+    from wfnn_io import logs
+
+    gym.register("WfnnTestMisShaped-v0", entry_point=_MisShaped, max_episode_steps=50)
+    task = GymVec("WfnnTestMisShaped-v0")
+    task.reset(np.random.default_rng(0))
+    for _ in range(4):
+        task.step(np.zeros((1, 1)))
+    with pytest.raises(
+        ValueError, match=r"WfnnTestMisShaped-v0 returned an observation of shape \(5,\); .* \(3,\)"
+    ):
+        task.step(np.zeros((1, 1)))
+    task.close()
+    config = ClientConfig(
+        sim="gym", env="WfnnTestMisShaped-v0", episodes=1, rate_hz=0.0, out=tmp_path / "run"
+    )
+    with pytest.raises(ValueError, match="WfnnTestMisShaped-v0 returned an observation of shape"):
+        run(config)
+    assert logs.summarise(tmp_path / "run" / "journal").experiences == 4

@@ -826,3 +826,27 @@ def test_a_journal_closed_cleanly_continues_where_it_was_and_says_nothing(tmp_pa
         assert again.next_seq == 10 and again.skipped_at_open == 10
         again.close()
     assert "was not closed" not in caplog.text
+
+
+def test_a_robot_acting_on_snapshots_judges_their_values_by_the_rewards_it_meets(tmp_path):
+    """The server's deep learner scales its divergence threshold with the rewards it learns; the
+    robot's learner learns nothing, so its threshold stayed the config's, and it judged a healthy
+    server's values (rewards of 1e5 a step) diverged and stopped following its weights."""
+    from wfnn_common.learners import make_learner
+
+    cfg = small_config(learner="deep", gamma=0.99, squash_reward=False, divergence_threshold=1e4)
+    server_side = make_learner(cfg)
+    z3, z2 = np.zeros(3), np.zeros(2)
+    server_side.learn(z3, z2, z3, 1e5)
+    assert server_side.monitor.threshold == pytest.approx(1e8)
+    brain = RemoteBrain(
+        make_learner(cfg), RemoteConfig(controller="t", journal_dir=tmp_path / "j"), Hub().bus()
+    )
+    try:
+        assert brain.learner.monitor.threshold == 1e4
+        brain.learn(Experience(z3, z2, z3, -1e5), None)
+        assert brain.learner.monitor.threshold == server_side.monitor.threshold
+        brain.learn(Experience(z3, z2, z3, float("nan")), None)  # refused by a learner: says nothing
+        assert brain.learner.monitor.threshold == server_side.monitor.threshold
+    finally:
+        brain.stop()

@@ -6,6 +6,7 @@ from tests.fakes import random_experiences, small_config
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.exploration import Explorer
 from wfnn_common.learner import WFNN, DivergenceMonitor
+from wfnn_common.learners import make_learner
 from wfnn_common.network import forward, split_wires
 from wfnn_common.replay import ReplayBuffer
 from wfnn_io.persist import PersistError, load_experiences, load_weights, save_experiences, save_weights
@@ -86,12 +87,35 @@ def test_a_non_finite_value_is_divergence_at_once():
     assert not DivergenceMonitor(1, threshold=0.5, patience=0).observe(np.array([np.nan])).any()  # disabled
 
 
-def test_a_reward_too_large_for_float32_is_refused():
-    learner = WFNN(small_config(state_dim=1, action_dim=1))
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_reward_too_large_for_float32_training_is_refused(learner):
+    cfg = small_config(state_dim=1, action_dim=1, learner=learner)
+    model = make_learner(cfg)
     stored = [
-        bool(learner.learn(np.zeros(1), np.zeros(1), np.zeros(1), r)) for r in (1e38, 1e39, -1e39, np.nan)
+        bool(model.learn(np.zeros(1), np.zeros(1), np.zeros(1), r)) for r in (1e30, 2e38, 1e39, -1e39, np.nan)
     ]
-    assert stored == [True, False, False, False] and int(learner.rejected[0]) == 3
+    assert stored == [True, False, False, False, False] and int(model.rejected[0]) == 4
+
+
+def test_the_deep_learner_stays_finite_on_the_largest_rewards_it_takes():
+    """Rewards of 2e38 (below float32's largest) were taken: the gradient 2(q - y) overflowed, the
+    weights turned NaN and the divergence monitor reset them at every act, for good."""
+    from wfnn_common.config import DeepConfig
+    from wfnn_common.learner import MAX_REWARD
+
+    cfg = small_config(state_dim=2, action_dim=1, learner="deep", batch_size=16, gamma=0.99,
+                       squash_reward=False, divergence_threshold=1e4,
+                       deep=DeepConfig(hidden=(16,), value_hidden=8, warmup=10), n_wires=3)  # fmt: skip
+    model = make_learner(cfg)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, 2)
+    for _ in range(120):
+        a = model.act(x).action
+        x_next = rng.uniform(-1, 1, 2)
+        model.learn(x, a, x_next, MAX_REWARD * rng.uniform(-1, 1))
+        model.think(1)
+        x = x_next
+    assert np.isfinite(model.params.flat).all() and int(model.resets[0]) == 0
 
 
 def test_divergence_resets_weights_and_keeps_experiences():

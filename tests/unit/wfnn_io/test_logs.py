@@ -241,3 +241,71 @@ def test_inspect_json_of_a_log_with_no_readable_experience_is_strict_json(tmp_pa
 
     summary = json.loads(result.output, parse_constant=refuse)
     assert summary["experiences"] == 0 and summary["reward_mean"] is None
+
+
+@pytest.mark.parametrize(
+    ("runs", "gaps", "duplicates"),
+    [
+        ([(0, 9), (10, 19), (20, 29)], 0, 0),
+        ([(0, 9), (20, 29), (10, 19)], 0, 0),  # a merged log, or a store whose hole was filled later
+        ([(20, 29), (0, 9)], 1, 0),
+        ([(0, 9), (20, 29), (12, 14)], 2, 0),
+        ([(0, 9), (5, 14), (30, 39), (0, 39)], 0, 5 + 15 + 10),
+        ([(0, 9), (0, 9), (0, 9)], 0, 20),
+    ],
+)
+def test_gaps_and_duplicates_are_counted_whatever_the_order_of_the_batches(runs, gaps, duplicates):
+    run = logs.ClientRun()
+    for first, last in runs:
+        run.add(first, last)
+    assert (run.gaps, run.duplicates) == (gaps, duplicates)
+    assert run.experiences == sum(b - a + 1 for a, b in runs)
+    assert (run.first_seq, run.last_seq) == (min(a for a, _ in runs), max(b for _, b in runs))
+
+
+def test_inspect_shows_control_characters_of_names_as_escapes_never_raw(tmp_path):
+    """A name off the network holding an escape sequence (here: set the clipboard, clear the
+    screen) reached the operator's terminal as it was."""
+    from typer.testing import CliRunner
+
+    from wfnn_io.logs_cli import app
+
+    source = "\x1b]52;c;ZXZpbA==\x1b\\\x1b[2J\x9b\r"
+    record(tmp_path / "log", n=20, source=source)
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert not any(c in result.output for c in "\x1b\x9b\r")
+    assert "chosen by \\x1b]52;c;ZXZpbA==\\x1b\\\\x1b[2J\\x9b\\x0d" in result.output
+
+
+def test_log_records_reach_a_tools_handlers_with_their_control_characters_escaped():
+    import io
+    import logging
+
+    from wfnn_io.cli_errors import log_printably
+
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        log_printably()
+        log_printably()  # once is enough: not a second filter
+        logging.getLogger("wfnn.test").error("client %s says %s", "c1", "\x1b[2Jhi\rthere\n")
+    finally:
+        root.removeHandler(handler)
+    assert stream.getvalue() == "client c1 says \\x1b[2Jhi\\x0dthere\n\n"
+    assert len(handler.filters) == 1
+
+
+@pytest.mark.parametrize("version", [True, 1.0, "1", None])
+def test_a_log_description_whose_version_is_not_a_whole_number_is_refused(tmp_path, version):
+    import json
+
+    from tests.fakes import small_config
+
+    logs.ExperienceLog(tmp_path / "log", small_config()).close()
+    path = tmp_path / "log" / "log.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "version": version}))
+    with pytest.raises(logs.LogFormatError, match="version"):
+        logs.read_log_json(tmp_path / "log")

@@ -466,3 +466,52 @@ def test_new_directory_entries_are_made_durable_before_they_are_relied_on(tmp_pa
     synced.clear()
     SegmentLog(tmp_path / "never", fsync="never").close()
     assert synced == []
+
+
+# --------------------------------------------------------------------------- crafted and huge segments
+@pytest.mark.parametrize("valid_between", [False, True])
+def test_false_record_headers_crafted_everywhere_cost_a_bounded_checksum_work(
+    tmp_path, monkeypatch, valid_between
+):
+    """Every 16 bytes a header claiming half the segment, then the marker (with or without a
+    valid record between): each try checksummed half the file, so reading took quadratic time
+    (a 1 MiB segment did not finish in 25 s)."""
+    size = 512 << 10
+    unit = RECORD.pack(size // 2, 0) + b"WFNN" + b"\0" * 4
+    if valid_between:
+        unit = RECORD.pack(size // 2, 0) + b"WFNN" + RECORD.pack(4, crc32c(b"WFNN")) + b"WFNN"
+    tmp_path.joinpath(segments.segment_name(0)).write_bytes(unit * (size // len(unit)))
+    checked = [0]
+
+    def counting(data):
+        checked[0] += len(data)
+        return crc32c(data)
+
+    monkeypatch.setattr(segments, "crc32c", counting)
+    report = segments.ReadReport()
+    records = list(segments.read_records(tmp_path, report=report, marker=b"WFNN"))
+    assert all(p == b"WFNN" for _, p in records) and (valid_between or not records)
+    assert sum(d.length for d in report.damage) + len(records) * 12 == len(unit * (size // len(unit)))
+    assert checked[0] <= (segments.RESYNC_WORK + 1) * size + 2 * segments.MAX_RECORD
+
+
+def test_a_segment_longer_than_any_written_is_read_only_so_far_and_the_rest_reported(tmp_path, monkeypatch):
+    monkeypatch.setattr(segments, "MAX_SEGMENT", 200)
+    with SegmentLog(tmp_path) as log:
+        for p in payloads(5, size=40):  # 5 records of 50 bytes: the last ends past 200
+            log.append(p)
+    path = seg_path(tmp_path, 0)
+    size = path.stat().st_size
+    report = segments.ReadReport()
+    assert [p for _, p in segments.read_records(tmp_path, report=report)] == payloads(4, size=40)
+    assert [(d.offset, d.offset + d.length) for d in report.damage][-1][1] == size
+    assert report.damage[-1].kind == "tail"
+
+
+def test_the_store_refuses_a_segment_size_readers_would_not_read_whole():
+    from wfnn_server.config import ServerConfig
+
+    with pytest.raises(ValueError, match="segment_bytes"):
+        ServerConfig(
+            controller="t", server_id="s", data_dir="d", segment_bytes=segments.MAX_SEGMENT_BYTES + 1
+        )

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from wfnn_io import segments
-from wfnn_io.protocol import Codec, ExperienceBatch
+from wfnn_io.protocol import EXP_AFTER_LOSS, Codec, ExperienceBatch
 from wfnn_server.store import Admission, ExperienceStore
 
 ARRAYS = ["state", "action", "next_state", "reward", "terminal", "weights_version", "flags"]
@@ -301,3 +301,142 @@ def test_interleaved_clients_keep_separate_counters(tmp_path):
         ("a", 0, 3), ("b", 0, 5), ("a", 3, 2), ("b", 5, 2),
     ]  # fmt: skip
     again.close()
+
+
+# --------------------------------------------------------------------------- holes
+def declared(b):
+    """`b` declaring the experiences its receiver lacks before it lost (as a client's re-send does)."""
+    flags = b.flags.copy()
+    flags[0] |= EXP_AFTER_LOSS
+    return dataclasses.replace(b, flags=flags)
+
+
+def store_with_hole(directory):
+    """robot1's 0-9 and 20-29 stored: 10-19 missing (as a damaged record leaves them)."""
+    store = ExperienceStore(directory, "srv1")
+    store_all(store, batch(0, 10))
+    gap = store.admit(batch(20, 10), allow_gap=True)
+    assert gap.new is not None and gap.missing == 10 and gap.lost == 0
+    store.append(gap.new, allow_gap=True)
+    return store
+
+
+def stored_numbers(store, client="robot1"):
+    return sorted(
+        s for b in store.batches() if b.client == client for s in range(b.first_seq, b.last_seq + 1)
+    )
+
+
+def test_a_hole_is_acknowledged_before_and_filled_by_a_resend_that_runs_past_it(tmp_path):
+    store = store_with_hole(tmp_path)
+    assert store.holes == {"robot1": [(10, 19)]} and store.stored_through == {"robot1": 29}
+    assert store.missing() == 10 and store.lost == {} and store.count == 20
+    assert store.sync() == {"robot1": 9}  # acks promise everything through: not past the hole
+    assert store.admit(batch(30, 5)).new is not None  # the live stream goes on after the run
+    assert store.admit(batch(31, 1)).gap and store.admit(batch(22, 3)).duplicate
+    admissions = []
+    for admitted in store.parts(batch(5, 30)):  # a re-send from the acknowledged point: 5-34
+        admissions.append((admitted.new.first_seq, admitted.new.last_seq))
+        store.append(admitted.new)
+    assert admissions == [(10, 19), (30, 34)]
+    assert store.holes == {} and store.count == 35 and store.stored_through == {"robot1": 34}
+    assert store.sync() == {"robot1": 34}
+    assert stored_numbers(store) == list(range(35))
+    for got, want in zip(
+        store.batches(), [batch(0, 10), batch(20, 10), batch(10, 10), batch(30, 5)], strict=True
+    ):
+        assert_same_batch(got, want)
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert (
+        again.holes == {}
+        and again.stored_through == {"robot1": 34}
+        and again.durable_through == {"robot1": 34}
+    )
+    assert again.count == 35 and again.lost == {}
+    again.close()
+
+
+def test_reopening_keeps_the_holes_and_acknowledges_before_the_first(tmp_path):
+    store = store_with_hole(tmp_path)
+    store.append(store.admit(batch(40, 5), allow_gap=True).new, allow_gap=True)
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.holes == {"robot1": [(10, 19), (30, 39)]} and again.missing() == 20
+    assert again.durable_through == {"robot1": 9} and again.stored_through == {"robot1": 44}
+    store_all(again, batch(10, 10))
+    assert again.sync() == {"robot1": 29}
+    again.close()
+
+
+def test_a_fill_may_split_a_hole(tmp_path):
+    store = store_with_hole(tmp_path)
+    fill = store.admit(batch(12, 3))
+    assert fill.new is not None and (fill.new.first_seq, fill.new.last_seq) == (12, 14)
+    store.append(fill.new)
+    assert store.holes == {"robot1": [(10, 11), (15, 19)]} and store.sync() == {"robot1": 9}
+    store.close()
+
+
+def test_a_declared_loss_that_brings_nothing_new_gives_up_the_holes_before_it(tmp_path):
+    store = store_with_hole(tmp_path)
+    store.sync()
+    admitted = store.admit(declared(batch(25, 3)))
+    assert admitted == Admission(None, duplicate=True, lost=10)
+    assert store.holes == {"robot1": [(10, 19)]}  # admit changes nothing
+    assert store.declare_lost("robot1", 25) == 10
+    assert store.holes == {} and store.lost == {"robot1": 10} and store.sync() == {"robot1": 29}
+    assert store.declare_lost("robot1", 25) == 0
+    store.close()
+
+
+def test_a_declared_loss_past_the_run_gives_up_the_holes_and_the_gap_and_is_reopened_alike(tmp_path):
+    store = store_with_hole(tmp_path)
+    admitted = store.admit(declared(batch(35, 5)))
+    assert admitted.new is not None and admitted.lost == 15  # 10-19 and 30-34
+    store.append(admitted.new, admitted.lost)
+    assert store.holes == {} and store.stored_through == {"robot1": 39} and store.lost == {"robot1": 15}
+    assert store.sync() == {"robot1": 39}
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.holes == {} and again.stored_through == {"robot1": 39} and again.lost == {"robot1": 15}
+    again.close()
+
+
+def test_a_declared_loss_inside_a_hole_gives_up_only_what_is_before_it(tmp_path):
+    store = store_with_hole(tmp_path)
+    parts = store.parts(declared(batch(15, 10)))  # 15-24: 10-14 lost, 15-19 fill the rest of the hole
+    first = next(parts)
+    assert first.lost == 5 and (first.new.first_seq, first.new.last_seq) == (15, 19)
+    assert first.new.flags[0] & EXP_AFTER_LOSS  # stored declaring it, so that reopening agrees
+    store.append(first.new, first.lost)
+    assert list(parts) == []  # 20-24 are stored
+    assert store.holes == {} and store.lost == {"robot1": 5} and store.count == 25
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.holes == {} and again.lost == {"robot1": 5} and again.durable_through == {"robot1": 29}
+    again.close()
+
+
+def test_a_declared_part_that_starts_later_in_its_batch_carries_the_declaration(tmp_path):
+    store = store_with_hole(tmp_path)
+    admitted = store.admit(declared(batch(25, 10)))  # 25-29 stored: the new part 30-34 is stored declaring
+    assert admitted.lost == 10 and admitted.new.first_seq == 30 and admitted.new.flags[0] & EXP_AFTER_LOSS
+    store.append(admitted.new, admitted.lost)
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert again.holes == {} and again.lost == {"robot1": 10} and again.stored_through == {"robot1": 34}
+    again.close()
+
+
+@pytest.mark.parametrize(("first", "n", "lost"), [(5, 10, 0), (18, 5, 0), (10, 10, 3), (30, 2, 1)])
+def test_append_refuses_what_does_not_fit_and_writes_nothing(tmp_path, first, n, lost):
+    store = store_with_hole(tmp_path)
+    size = store.log.segments.position
+    with pytest.raises(ValueError, match="robot1"):
+        store.append(batch(first, n), lost)
+    assert store.log.segments.position == size
+    assert (
+        store.holes == {"robot1": [(10, 19)]} and store.stored_through == {"robot1": 29} and store.count == 20
+    )
+    store.close()
