@@ -26,7 +26,10 @@ def _is_int(v: Any) -> bool:
 
 
 def _is_number(v: Any) -> bool:
-    return (_is_int(v) or isinstance(v, float | np.floating)) and math.isfinite(float(v))
+    try:
+        return (_is_int(v) or isinstance(v, float | np.floating)) and math.isfinite(float(v))
+    except OverflowError:  # an integer beyond any float (JSON allows 1 with 400 zeros)
+        return False
 
 
 _CHECKS: dict[str, Any] = {
@@ -484,7 +487,7 @@ class LearnerConfig:
             return cls(**data)
         except ConfigError:
             raise
-        except (ValueError, TypeError, RecursionError) as exc:
+        except (ValueError, TypeError, ArithmeticError, RecursionError) as exc:
             raise ConfigError(f"not a learner config: {type(exc).__name__}: {str(exc)[:200]}") from None
 
     @classmethod

@@ -76,5 +76,5 @@ class Symmetry:
                 action_index=tuple(int(i) for i in data["action_index"]),
                 action_sign=tuple(float(s) for s in data["action_sign"]),
             )
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"not a symmetry: {data!r} ({exc})") from exc
+        except (KeyError, TypeError, ArithmeticError, ValueError) as exc:  # int(Infinity): OverflowError
+            raise ValueError(f"not a symmetry: {str(data)[:200]} ({exc})") from exc

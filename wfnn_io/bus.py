@@ -26,8 +26,10 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
+import os
 import queue
 import re
+import stat
 import threading
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -312,6 +314,13 @@ def zenoh_config(net: NetConfig) -> Any:
     """A `zenoh.Config` for `net`."""
     import zenoh
 
+    if net.zenoh_config:  # Zenoh opens it to read: a FIFO there would hold the tool for good
+        try:
+            regular = stat.S_ISREG(os.stat(net.zenoh_config).st_mode)
+        except OSError as exc:
+            raise NetError(f"Zenoh config {net.zenoh_config}: {exc.strerror or exc}") from None
+        if not regular:
+            raise NetError(f"Zenoh config {net.zenoh_config}: not a regular file")
     try:
         conf = zenoh.Config.from_file(net.zenoh_config) if net.zenoh_config else zenoh.Config()
     except zenoh.ZError as exc:

@@ -189,6 +189,8 @@ class ThinkServer:
         self._inbox: Inbox[tuple[str, bytes]] = Inbox()
         """Frames received, waiting for the ingest thread (bounded in bytes: a flood is dropped)."""
         self._to_learn: collections.deque[ExperienceBatch] = collections.deque()
+        self._status_sent = 0.0
+        """When a status was last published (monotonic), by either thread."""
         self._threads: list[threading.Thread] = []
         self._latest_frame: bytes | None = None
         self._spec_warned: set[str] = set()
@@ -382,17 +384,23 @@ class ThinkServer:
         and its stored experiences would not be learned: a mistaken flag, refused like a client's
         run directory of another task.
         """
-        path = self.data_dir / LEARNER_JSON
-        if not path.exists():
-            return
-        try:
-            held = LearnerConfig.from_json(read_regular_text(path), str(path))
-        except (OSError, ConfigError, UnicodeDecodeError):
-            return  # unreadable: set aside when it is read for use, as before
-        if held.spec_hash() != given.spec_hash():
+        held: LearnerConfig | None = None
+        # Its own copy, else (missing or unreadable) what its checkpoints were saved for, as
+        # `_initial_config` reads them: an unreadable copy did not make a mistaken flag pass.
+        for name in (LEARNER_JSON, CHECKPOINT, PREVIOUS_CHECKPOINT):
+            path = self.data_dir / name
+            try:
+                if name == LEARNER_JSON:
+                    held = LearnerConfig.from_json(read_regular_text(path), str(path))
+                else:
+                    held = load_weights(path)[0]
+                break
+            except (OSError, ValueError):  # ConfigError, PersistError, UnicodeDecodeError: unreadable
+                continue
+        if held is not None and held.spec_hash() != given.spec_hash():
             raise ConfigError(
                 f"data directory {self.data_dir} holds a learner of spec {held.spec_hash()} "
-                f"({LEARNER_JSON}); --learner-config is spec {given.spec_hash()} (another task, ranges "
+                f"({name}); --learner-config is spec {given.spec_hash()} (another task, ranges "
                 "or network): use another --data-dir, or start without --learner-config"
             )
 
@@ -574,6 +582,8 @@ class ThinkServer:
             if self.store.due():
                 for client, through in self.store.sync().items():
                     self._ack(client, through)
+            if time.monotonic() - self._status_sent > 2 * self.config.status_period_s:
+                self._relay_status()
         for client, through in self.store.sync().items():
             self._ack(client, through)
 
@@ -920,6 +930,7 @@ class ThinkServer:
             metrics=metrics,
         )  # fmt: skip
         self.view.last_status = status
+        self._status_sent = time.monotonic()
         try:
             frame = self.codec.encode(status)
         except FrameTooLarge as exc:  # never the end of the learner: robots keep their last status
@@ -929,6 +940,25 @@ class ThinkServer:
         self.bus.put(self.keys.server_status(self.id), frame, Channel.LATEST)
         for listener in self.view.status_listeners:
             listener(status)
+
+    def _relay_status(self) -> None:
+        """The learner thread's last status again, with what is stored now (ingest thread).
+
+        The learner thread publishes statuses between think calls; one update of a large
+        network (a client's config can ask for one) takes seconds, and robots drop a server
+        silent for 2 s. The store is this thread's: its acknowledged points are current.
+        """
+        last = self.view.last_status
+        if last is None:
+            return
+        self._status_sent = time.monotonic()
+        status = dataclasses.replace(last, stored_through=self._listed(self.store.durable_through))
+        try:
+            frame = self.codec.encode(status)
+        except FrameTooLarge:
+            return  # counted where the learner thread made it
+        self.bus.put(self.keys.server_status(self.id), frame, Channel.LATEST)
+        self.counters["publish/status_relayed"] += 1
 
     def checkpoint(self) -> None:
         """Save weights, counters and config atomically (resumed at the next start)."""

@@ -161,3 +161,19 @@ def test_a_gymnasium_task_gets_the_same_learner_config_through_the_client_as_alo
 def test_a_seed_out_of_range_is_refused_before_the_run(seed):
     with pytest.raises(ValueError, match="seed must be in"):
         ClientConfig(seed=seed)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory", "missing"])
+def test_a_zenoh_config_that_is_not_a_regular_file_is_refused_without_waiting(tmp_path, kind):
+    """A FIFO given as --zenoh-config held both tools for good (opened for reading, no writer)."""
+    import os
+
+    from wfnn_io.bus import NetError, zenoh_config
+
+    path = tmp_path / "zenoh.json5"
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "directory":
+        path.mkdir()
+    with pytest.raises(NetError, match="Zenoh config"):
+        zenoh_config(NetConfig(zenoh_config=str(path)))

@@ -115,3 +115,33 @@ def test_the_bounds_leave_room_for_every_task_here():
     small_config(n_hidden=4096, n_wires=64)  # 4096 x 3 + 128 x 4097 parameters
     small_config(update="minibatch", batch_size=4096, n_wires=64)
     small_config(state_low=(0.0, -1e-9), state_high=(1e-7, 1e-9))
+
+
+HUGE = int("1" + "0" * 400)
+"""An integer JSON allows and no float holds."""
+
+
+@pytest.mark.parametrize(
+    "patch",
+    [
+        {"gamma": HUGE},
+        {"state_low": [HUGE] * 3},
+        {"learner": "deep", "deep": {"lr": HUGE}},
+        {"exploration": {"kind": "gaussian", "sigma": HUGE}},
+        {
+            "symmetries": [
+                {
+                    "name": "m",
+                    "state_index": [0, 1, 2],
+                    "state_sign": [1, 1, 1],
+                    "action_index": [float("inf"), 1],
+                    "action_sign": [1, 1],
+                }
+            ]
+        },
+    ],
+)
+def test_numbers_beyond_any_float_are_a_config_error_not_an_overflow(patch):
+    """They escaped as OverflowError: a traceback for a client's status, exit 1 naming no field."""
+    with pytest.raises(ConfigError):
+        LearnerConfig.from_dict({**small_config().to_dict(), **patch})

@@ -520,13 +520,45 @@ def test_a_slow_learner_keeps_the_heartbeat_going(tmp_path):
         assert len(listener.statuses) - before >= 6
 
 
-def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tmp_path):
-    """A mistaken --learner-config neither sets the checkpoints aside nor replaces the saved config."""
+def test_one_update_longer_than_the_clients_patience_keeps_the_heartbeat_going(tmp_path):
+    """A client's config may ask for a network whose one update takes seconds (within the memory
+    limits): the statuses came only between updates, and every client dropped the server as silent."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1000)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, think="continuous", think_batch=1, status_period_s=0.05) as server:
+        assert listener.wait(lambda: server.learner is not None)
+        learner = server.learner
+        real = learner.think
+
+        def slow(n=None):
+            time.sleep(1.5)  # one update
+            return real(n)
+
+        learner.think = slow
+        send(hub, batch(cfg, 0, 5))
+        assert listener.wait(lambda: listener.acked() == 4)
+        time.sleep(0.3)  # thinking now
+        before = len(listener.statuses)
+        time.sleep(2.0)
+        statuses = listener.statuses[before:]
+        assert len(statuses) >= 8
+        assert all(s.stored_through.get("c1") == 4 for s in statuses)
+        assert server.counters["publish/status_relayed"] > 0
+
+
+@pytest.mark.parametrize("saved_copy", ["kept", "unreadable", "missing"])
+def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tmp_path, saved_copy):
+    """A mistaken --learner-config neither sets the checkpoints aside nor replaces the saved config,
+    also where the saved copy cannot be read (the checkpoints then say what the directory holds)."""
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
         send(hub, batch(cfg, 0, 10))
         assert Listener(hub).wait(lambda: server.store.count == 10 and server.replayed())
     data = tmp_path / "s1"
+    if saved_copy == "unreadable":
+        (data / "learner_config.json").write_text("{corrupt")
+    elif saved_copy == "missing":
+        (data / "learner_config.json").unlink()
     before = {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()}
     assert "checkpoint.npz" in before
     other = small_config(state_dim=4)
