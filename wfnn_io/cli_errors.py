@@ -39,7 +39,10 @@ class _Printable(logging.Filter):
     """Log records rendered with `printable` (their arguments may come from anywhere)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        message = record.getMessage()
+        try:
+            message = record.getMessage()
+        except Exception:  # a call whose arguments do not fit: the handler reports it, as without us
+            return True
         clean = printable(message)
         if clean != message:
             record.msg, record.args = clean, None

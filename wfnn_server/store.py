@@ -10,7 +10,9 @@ that fills a hole is stored where the hole was, and a batch that leaves a gap is
 client re-sends from the acknowledged point). A gap the sender declares lost (EXP_AFTER_LOSS:
 its journal lost those experiences to damage) is given up: everything missing before the batch
 is counted as lost and the run goes on after it, so that one damaged record never stalls a
-client's stream.
+client's stream. The log does not say which experiences a declaration gave up (a record damaged
+before it would be given up too, and acknowledged unstored), so reopening takes every gap for a
+hole: the client is asked for what it declared lost again, and declares it again.
 
 Holes are gaps met in the log itself when the store is opened (a record damaged on disk after
 it was acknowledged), or met importing logs that none of them fills. The experiences after a
@@ -105,7 +107,7 @@ class ExperienceStore:
         for batch in self.batches():
             for admitted in self.parts(batch, allow_gap=True):
                 if admitted.new is not None:
-                    self._commit(admitted.new, self._run_after(admitted.new, admitted.lost > 0, True))
+                    self._commit(admitted.new, self._run_after(admitted.new, False, True))
         self.durable_through = {c: self._acknowledgeable(c) for c in self.stored_through}
         self._moved.clear()
 
@@ -156,12 +158,13 @@ class ExperienceStore:
 
         A batch that starts past the end of the client's stored run is a gap, refused, unless
         it declares the missing experiences before it lost (EXP_AFTER_LOSS), or with
-        `allow_gap`, where they stay missing (a hole). A declared loss that brings nothing new
-        is a duplicate with `lost` set: `declare_lost` gives those experiences up.
+        `allow_gap` (a log read whole: reopening, importing), where they stay missing (a hole)
+        and a declaration counts for nothing. A declared loss that brings nothing new is a
+        duplicate with `lost` set: `declare_lost` gives those experiences up.
         """
         f, last = batch.first_seq, batch.last_seq
         runs = self._missing(batch.client)
-        declared = bool(batch.flags[0] & EXP_AFTER_LOSS)
+        declared = bool(batch.flags[0] & EXP_AFTER_LOSS) and not allow_gap  # a log's gaps are holes
         lost = sum(min(b, f - 1) - a + 1 for a, b in runs if a < f) if declared else 0
         reached = next(((a, b) for a, b in runs if b >= f and a <= last), None)
         if reached is None:
@@ -171,12 +174,6 @@ class ExperienceStore:
             return Admission(None, gap=True)
         start, end = max(reached[0], f), min(reached[1], last)
         new = batch if (start, end) == (f, last) else batch.slice(start - f, end + 1 - f)
-        if lost and not new.flags[0] & EXP_AFTER_LOSS:
-            # Stored with the loss declared on its first experience, so that reopening the
-            # store gives up the same experiences (the flag was on one before this part).
-            flags = new.flags.copy()
-            flags[0] |= EXP_AFTER_LOSS
-            new = dataclasses.replace(new, flags=flags)
         missing = start - end_of_run if start > end_of_run and not declared else 0
         return Admission(new, lost=lost, missing=missing)
 

@@ -296,6 +296,7 @@ def test_log_records_reach_a_tools_handlers_with_their_control_characters_escape
         root.removeHandler(handler)
     assert stream.getvalue() == "client c1 says \\x1b[2Jhi\\x0dthere\n\n"
     assert len(handler.filters) == 1
+    assert handler.filters[0].filter(logging.LogRecord("x", logging.ERROR, "f", 1, "%s %s", ("one",), None))
 
 
 @pytest.mark.parametrize("version", [True, 1.0, "1", None])

@@ -390,7 +390,7 @@ def test_a_declared_loss_that_brings_nothing_new_gives_up_the_holes_before_it(tm
     store.close()
 
 
-def test_a_declared_loss_past_the_run_gives_up_the_holes_and_the_gap_and_is_reopened_alike(tmp_path):
+def test_a_declared_loss_past_the_run_gives_up_the_holes_and_the_gap_until_reopened(tmp_path):
     store = store_with_hole(tmp_path)
     admitted = store.admit(declared(batch(35, 5)))
     assert admitted.new is not None and admitted.lost == 15  # 10-19 and 30-34
@@ -398,8 +398,13 @@ def test_a_declared_loss_past_the_run_gives_up_the_holes_and_the_gap_and_is_reop
     assert store.holes == {} and store.stored_through == {"robot1": 39} and store.lost == {"robot1": 15}
     assert store.sync() == {"robot1": 39}
     store.close()
+    # The log does not say what the declaration gave up: reopened, those are holes, asked for again.
     again = ExperienceStore(tmp_path, "srv1")
-    assert again.holes == {} and again.stored_through == {"robot1": 39} and again.lost == {"robot1": 15}
+    assert again.holes == {"robot1": [(10, 19), (30, 34)]} and again.lost == {}
+    assert again.stored_through == {"robot1": 39} and again.durable_through == {"robot1": 9}
+    admitted = again.admit(declared(batch(35, 5)))  # the client's journal still lacks them: said again
+    assert admitted == Admission(None, duplicate=True, lost=15)
+    assert again.declare_lost("robot1", 35) == 15 and again.sync() == {"robot1": 39}
     again.close()
 
 
@@ -408,24 +413,49 @@ def test_a_declared_loss_inside_a_hole_gives_up_only_what_is_before_it(tmp_path)
     parts = store.parts(declared(batch(15, 10)))  # 15-24: 10-14 lost, 15-19 fill the rest of the hole
     first = next(parts)
     assert first.lost == 5 and (first.new.first_seq, first.new.last_seq) == (15, 19)
-    assert first.new.flags[0] & EXP_AFTER_LOSS  # stored declaring it, so that reopening agrees
     store.append(first.new, first.lost)
     assert list(parts) == []  # 20-24 are stored
     assert store.holes == {} and store.lost == {"robot1": 5} and store.count == 25
     store.close()
     again = ExperienceStore(tmp_path, "srv1")
-    assert again.holes == {} and again.lost == {"robot1": 5} and again.durable_through == {"robot1": 29}
+    assert (
+        again.holes == {"robot1": [(10, 14)]} and again.lost == {} and again.durable_through == {"robot1": 9}
+    )
     again.close()
 
 
-def test_a_declared_part_that_starts_later_in_its_batch_carries_the_declaration(tmp_path):
-    store = store_with_hole(tmp_path)
-    admitted = store.admit(declared(batch(25, 10)))  # 25-29 stored: the new part 30-34 is stored declaring
-    assert admitted.lost == 10 and admitted.new.first_seq == 30 and admitted.new.flags[0] & EXP_AFTER_LOSS
+def test_a_record_damaged_before_a_declared_loss_is_a_hole_when_reopened_not_acknowledged(tmp_path):
+    """Reopening gave up everything missing before a declaration, a damaged record's experiences
+    too, and acknowledged them though they were not stored."""
+    store = ExperienceStore(tmp_path, "srv1", fsync="always")
+    store_all(store, batch(0, 10))
+    admitted = store.admit(declared(batch(20, 10)))
     store.append(admitted.new, admitted.lost)
     store.close()
+    (path,) = seg_files(tmp_path)
+    raw = bytearray(path.read_bytes())
+    raw[segments.RECORD.size + 40] ^= 0xFF  # inside the first record (0-9)
+    path.write_bytes(bytes(raw))
     again = ExperienceStore(tmp_path, "srv1")
-    assert again.holes == {} and again.lost == {"robot1": 10} and again.stored_through == {"robot1": 34}
+    assert again.holes == {"robot1": [(0, 19)]} and again.durable_through == {"robot1": -1}
+    assert again.lost == {} and again.count == 10
+    again.close()
+
+
+def test_a_flag_inside_a_batch_declares_nothing_for_the_part_stored_from_it(tmp_path):
+    store = store_with_hole(tmp_path)
+    flagged = batch(26, 10)  # 26-35: 30-35 new; the flag sits on 30, not on the batch's first
+    flagged.flags[4] |= EXP_AFTER_LOSS
+    flagged.flags[0] &= ~EXP_AFTER_LOSS & 0xFF
+    (admitted,) = list(store.parts(flagged))
+    assert admitted.lost == 0 and (admitted.new.first_seq, admitted.new.last_seq) == (30, 35)
+    store.append(admitted.new, admitted.lost)
+    assert store.holes == {"robot1": [(10, 19)]} and store.lost == {}
+    store.close()
+    again = ExperienceStore(tmp_path, "srv1")
+    assert (
+        again.holes == {"robot1": [(10, 19)]} and again.lost == {} and again.stored_through == {"robot1": 35}
+    )
     again.close()
 
 
