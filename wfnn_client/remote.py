@@ -157,7 +157,11 @@ class RemoteBrain:
     def _failed(self, exc: BaseException) -> None:
         """A thread ended by `exc` (called in its handler): kept for `check`, and logged."""
         self.error = exc
-        log.exception("client thread failed")
+        if isinstance(exc, OSError):  # a full disk, a lost directory: the error line says it all
+            log.error("client thread failed (%s)", exc)
+            log.debug("where", exc_info=exc)
+        else:
+            log.exception("client thread failed")
 
     def stop(self, flush_timeout_s: float = 2.0) -> None:
         """Send what is queued, wait briefly for acks, stop the threads, close the journal and the bus."""

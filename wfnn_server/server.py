@@ -541,7 +541,11 @@ class ThinkServer:
     def _failed(self, exc: BaseException) -> None:
         """A thread ended by `exc` (called in its handler): kept, logged, and the others stop."""
         self.error = exc
-        log.exception("server thread failed; stopping")
+        if isinstance(exc, OSError):  # a full disk, a lost directory: the error line says it all
+            log.error("server thread failed (%s); stopping", exc)
+            log.debug("where", exc_info=exc)
+        else:
+            log.exception("server thread failed; stopping")
         self._stop.set()
 
     def stop(self) -> None:

@@ -1,4 +1,5 @@
 import json
+import logging
 import time
 
 import numpy as np
@@ -677,3 +678,21 @@ def test_many_clients_falling_silent_at_once_are_logged_in_bounded_lines(tmp_pat
     named = [r for r in caplog.records if "silent for" in r.getMessage()]
     assert len(named) == server_module.LOGGED_CLIENTS
     assert any("84 more silent" in r.getMessage() for r in caplog.records)
+
+
+def test_a_full_disk_stops_the_server_with_one_line_not_a_traceback(tmp_path, caplog):
+    import errno
+
+    hub, cfg = Hub(), small_config()
+    server = make_server(tmp_path, hub, cfg)
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    server.store.append = full
+    with caplog.at_level(logging.INFO), server:
+        send(hub, batch(cfg, 0, 5))
+        assert Listener.wait(lambda: server.error is not None)
+    assert isinstance(server.error, OSError)
+    [failed] = [r for r in caplog.records if "server thread failed" in r.getMessage()]
+    assert "No space left on device" in failed.getMessage() and failed.exc_info is None
