@@ -166,19 +166,25 @@ class RemoteBrain:
     def stop(self, flush_timeout_s: float = 2.0) -> None:
         """Send what is queued, wait briefly for acks, stop the threads, close the journal and the bus."""
         deadline = time.monotonic() + flush_timeout_s
-        while self.uplink.queued and time.monotonic() < deadline and self.error is None:
-            time.sleep(0.005)
-        while time.monotonic() < deadline and self.error is None and not self.all_acked():
-            if not self.table.any_alive():  # nobody to wait for: the journal keeps the rest
-                break
-            time.sleep(0.01)
-        self.uplink.stop()
-        self.downlink.stop()
-        for thread in self._threads:
-            thread.join(timeout=10)
-        self._threads.clear()
-        self.journal.close()
-        self.bus.close()
+        try:
+            while self.uplink.queued and time.monotonic() < deadline and self.error is None:
+                time.sleep(0.005)
+            while time.monotonic() < deadline and self.error is None and not self.all_acked():
+                if not self.table.any_alive():  # nobody to wait for: the journal keeps the rest
+                    break
+                time.sleep(0.01)
+        finally:  # interrupted or not, the threads stop and the journal and session close
+            try:
+                self.uplink.stop()
+                self.downlink.stop()
+                for thread in self._threads:
+                    thread.join(timeout=10)
+                self._threads.clear()
+            finally:
+                try:
+                    self.journal.close()
+                finally:
+                    self.bus.close()
 
     def check(self) -> None:
         """Raise if a background thread failed."""

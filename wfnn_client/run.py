@@ -179,6 +179,35 @@ def _terminated_as_interrupted() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
+def _stop_brains(brains: _Brains) -> int:
+    """Stop the brains with SIGTERM and SIGINT only noted meanwhile; -> the first noted, else 0.
+
+    Stopping waits for acks, joins threads and closes the journal and the network session; a
+    signal raised in the middle of it (a second Ctrl-C, a supervisor's SIGTERM while the servers
+    are silent) left the journal open and the process hung on the session's threads.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        brains.stop()
+        return 0
+    noted: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: noted.append(signum))
+                for s in (signal.SIGTERM, signal.SIGINT)}  # fmt: skip
+    try:
+        brains.stop()
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+    return noted[0] if noted else 0
+
+
+def _raise_noted(signum: int) -> None:
+    """End the run as the signal noted while stopping would have (after the brains stopped)."""
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    if signum:
+        raise Terminated(signum)
+
+
 @dataclass
 class Skill:
     """One learned behaviour of the robot: its learner, and the brain that acts and learns with it."""
@@ -377,14 +406,15 @@ def _run(
         wall = time.perf_counter() - start
     except BaseException:
         try:
-            brains.stop()  # what was recorded before the failure is kept
+            _stop_brains(brains)  # what was recorded before the failure is kept
         except Exception:  # the failure that ended the run is what to report
             log.exception("stopping the brains after the run failed failed too")
         if frames is not None:
             frames.close()
         raise
-    brains.stop()
+    noted = _stop_brains(brains)
     camera_frames = frames.close() if frames is not None else None
+    _raise_noted(noted)
     brains.check()
     final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     out = Path(config.out)

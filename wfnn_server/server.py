@@ -956,7 +956,11 @@ class ThinkServer:
         if last is None:
             return
         self._status_sent = time.monotonic()
-        status = dataclasses.replace(last, stored_through=self._listed(self.store.durable_through))
+        # The weights version too: snapshots go out more often than statuses, and a client drops a
+        # snapshot whose version no status has reached within its status timeout as forged.
+        status = dataclasses.replace(
+            last, stored_through=self._listed(self.store.durable_through), weights_version=self.version
+        )
         try:
             frame = self.codec.encode(status)
         except FrameTooLarge:

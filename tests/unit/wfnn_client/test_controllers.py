@@ -120,3 +120,33 @@ def test_a_learner_that_cannot_think_here_is_refused_before_its_journal_is_made(
     run(
         ClientConfig(sim="cartpole", rate_hz=0, episodes=1, duration_s=0.2, out=tmp_path / "c")
     )  # the run dir is usable
+
+
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGINT"])
+def test_a_signal_while_the_run_stops_ends_it_as_that_signal_with_the_journal_closed(
+    tmp_path, monkeypatch, signum
+):
+    """A second Ctrl-C, or a supervisor's SIGTERM while the servers are silent, arrived while the
+    client waited for acks: stopping was cut short, the journal stayed open and the process hung."""
+    import os
+    import signal
+    import time
+
+    from wfnn_client.brain import LocalBrain
+    from wfnn_io import logs, segments
+    from wfnn_io.cli_errors import Terminated
+
+    real_stop = LocalBrain.stop
+
+    def stop_under_a_signal(self):
+        os.kill(os.getpid(), getattr(signal, signum))
+        time.sleep(0.05)  # the handler runs here
+        real_stop(self)
+
+    monkeypatch.setattr(LocalBrain, "stop", stop_under_a_signal)
+    out = tmp_path / "run"
+    with pytest.raises(Terminated if signum == "SIGTERM" else KeyboardInterrupt):
+        run(ClientConfig(sim="boat", rate_hz=0, episodes=1, out=out))
+    segments.check_free(out / "journal")  # closed: no writer holds it
+    assert logs.summarise(out / "journal").experiences > 0
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers as they were

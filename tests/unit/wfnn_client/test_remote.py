@@ -850,3 +850,21 @@ def test_a_robot_acting_on_snapshots_judges_their_values_by_the_rewards_it_meets
         assert brain.learner.monitor.threshold == server_side.monitor.threshold
     finally:
         brain.stop()
+
+
+def test_a_stop_interrupted_while_waiting_for_acks_still_closes_the_journal_and_session(tmp_path):
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+
+    def interrupted():
+        raise KeyboardInterrupt  # a second Ctrl-C while waiting for a silent server's acks
+
+    brain.uplink.all_acked = interrupted
+    brain.table.any_alive = lambda: True
+    with pytest.raises(KeyboardInterrupt):
+        brain.stop()
+    from wfnn_io.segments import check_free
+
+    check_free(tmp_path / "journal")  # closed: no writer holds it
+    assert not brain._threads

@@ -696,3 +696,19 @@ def test_a_full_disk_stops_the_server_with_one_line_not_a_traceback(tmp_path, ca
     assert isinstance(server.error, OSError)
     [failed] = [r for r in caplog.records if "server thread failed" in r.getMessage()]
     assert "No space left on device" in failed.getMessage() and failed.exc_info is None
+
+
+def test_a_relayed_status_announces_the_weights_version_published_since(tmp_path):
+    """Snapshots go out more often than statuses: a relay of the last status said an older version
+    than the newest snapshot, and clients dropped that snapshot as forged ("unconfirmed")."""
+    hub, cfg = Hub(), small_config()
+    listener = Listener(hub)
+    server = make_server(tmp_path, hub, cfg)
+    try:
+        server._publish_status(0.0)
+        server.version += 3  # snapshots published since, by the learner thread
+        server._relay_status()
+        assert listener.wait(lambda: len(listener.statuses) == 2)
+        assert [s.weights_version for s in listener.statuses] == [0, 3]
+    finally:
+        server.store.close()
