@@ -288,7 +288,9 @@ class Uplink:
                   "held or an earlier run reserved); server %s is told they are lost",
                   acked + 1, batch.first_seq - 1, server)  # fmt: skip
         self.counters["uplink/declared_lost"] += batch.first_seq - acked - 1
-        return self.codec.encode(dataclasses.replace(batch, flags=flags))
+        # From where: a late or replayed declaration then gives up only these, never a hole the
+        # server met since (after a restart) that this journal still holds.
+        return self.codec.encode(dataclasses.replace(batch, flags=flags, lost_from=acked + 1))
 
     def _publish_status(self) -> None:
         self.bus.put(self.keys.client_status(self.id), self.codec.encode(self._status()), Channel.LATEST)

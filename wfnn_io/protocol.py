@@ -186,6 +186,8 @@ def _array(dtype: str, ndim: int) -> dict[str, Any]:
 
 
 _F8_1, _F8_2 = _array("<f8", 1), _array("<f8", 2)
+_OPTIONAL = {"optional": True}
+"""Field metadata: left out of the body where the field holds its default (read back as it)."""
 _B1_1, _U8_1, _U1_1 = _array("|b1", 1), _array("<u8", 1), _array("|u1", 1)
 
 
@@ -233,6 +235,10 @@ class ExperienceBatch:
     terminal: NDArray[np.bool_] = field(metadata=_B1_1)
     weights_version: NDArray[np.uint64] = field(metadata=_U8_1)
     flags: NDArray[np.uint8] = field(metadata=_U1_1)
+    lost_from: int = field(default=-1, metadata=_OPTIONAL)
+    """With EXP_AFTER_LOSS: the first experience its sender declares lost (the ones through
+    first_seq - 1 are too), its acknowledged point + 1 then; -1: from whatever its receiver lacks
+    first. Not in the body at -1 (frames that declare nothing are as before)."""
 
     def __len__(self) -> int:
         return int(self.reward.shape[0])
@@ -249,6 +255,10 @@ class ExperienceBatch:
         if n < 1 or not 0 <= self.first_seq <= MAX_SEQ - n + 1:
             raise MalformedBody(f"experience batch needs N >= 1 and 0 <= first_seq, last_seq <= MAX_SEQ, "
                                 f"got {n}, {self.first_seq}")  # fmt: skip
+        if not (self.lost_from == -1 or 0 <= self.lost_from < self.first_seq):
+            raise MalformedBody(
+                f"lost_from must be -1 or before first_seq {self.first_seq}, got {self.lost_from}"
+            )
         expected = {"state": (n, s), "action": (n, a), "next_state": (n, s), "terminal": (n,),
                     "weights_version": (n,), "flags": (n,)}  # fmt: skip
         for name, shape in expected.items():
@@ -483,6 +493,7 @@ def _fields(cls: type[Any]) -> list[tuple[str, str, dict[str, Any]]]:
 
 
 _FIELDS = {t: _fields(cls) for t, cls in MESSAGES.items()}
+_DEFAULTS = {t: {f.name: f.default for f in dataclasses.fields(cls)} for t, cls in MESSAGES.items()}
 
 
 def to_body(msg: Message) -> dict[str, Any]:
@@ -490,6 +501,8 @@ def to_body(msg: Message) -> dict[str, Any]:
     body: dict[str, Any] = {}
     for name, kind, meta in _FIELDS[msg.TYPE]:
         value = getattr(msg, name)
+        if meta.get("optional") and value == _DEFAULTS[msg.TYPE][name]:
+            continue
         if kind == "array":
             body[name] = _pack_array(value, meta["dtype"])
         elif kind == "dict:int":
@@ -511,11 +524,14 @@ def from_body(msg_type: MsgType, body: Any) -> Message:
         raise MalformedBody(f"body must be a map, found {type(body).__name__}")
     fields = _FIELDS[msg_type]
     names = {name for name, _, _ in fields}
-    if set(body) != names:
-        missing, extra = sorted(names - set(body)), sorted(set(body) - names)
+    required = {name for name, _, meta in fields if not meta.get("optional")}
+    if not required <= set(body) <= names:
+        missing, extra = sorted(required - set(body)), sorted(set(body) - names)
         raise MalformedBody(f"{MESSAGES[msg_type].__name__}: missing fields {missing}, unexpected {extra}")
     values: dict[str, Any] = {}
     for name, kind, meta in fields:
+        if name not in body:
+            continue  # an optional field at its default
         v = body[name]
         if kind == "array":
             values[name] = _unpack_array(name, v, meta["dtype"], meta["ndim"])

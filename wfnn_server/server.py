@@ -620,7 +620,7 @@ class ThinkServer:
                 self.rejected["declared_beyond_produced"] += 1
                 admitted = Admission(None, gap=True)
             elif admitted.new is None:  # nothing new in it: the holes before it are given up
-                self._declared_lost(batch, self.store.declare_lost(batch.client, batch.first_seq))
+                self._declared_lost(batch, self.store.declare_lost(batch))
         if admitted.new is None:
             self.counters["ingest/duplicates" if admitted.duplicate else "ingest/gaps"] += 1
             # The client is re-sending or skipped ahead: tell it where our run of its data ends.

@@ -165,13 +165,14 @@ class ExperienceStore:
         f, last = batch.first_seq, batch.last_seq
         runs = self._missing(batch.client)
         declared = bool(batch.flags[0] & EXP_AFTER_LOSS) and not allow_gap  # a log's gaps are holes
-        lost = sum(min(b, f - 1) - a + 1 for a, b in runs if a < f) if declared else 0
+        start_lost = _declared_from(batch)
+        lost = _within(runs, start_lost, f - 1) if declared else 0
         reached = next(((a, b) for a, b in runs if b >= f and a <= last), None)
         if reached is None:
             return Admission(None, duplicate=True, lost=lost)
         end_of_run = runs[-1][0]
-        if f > end_of_run and not (declared or allow_gap):
-            return Admission(None, gap=True)
+        if f > end_of_run and not ((declared and start_lost <= end_of_run) or allow_gap):
+            return Admission(None, gap=True)  # a declaration from further on leaves a gap before it
         start, end = max(reached[0], f), min(reached[1], last)
         new = batch if (start, end) == (f, last) else batch.slice(start - f, end + 1 - f)
         missing = start - end_of_run if start > end_of_run and not declared else 0
@@ -191,18 +192,19 @@ class ExperienceStore:
         self.log.append(self._codec.encode(batch))
         self._commit(batch, run)
 
-    def declare_lost(self, client: str, before: int) -> int:
-        """Give up the holes of `client` before experience `before`; -> how many experiences.
+    def declare_lost(self, batch: ExperienceBatch) -> int:
+        """Give up what `batch` declares lost of its client's holes; -> how many experiences.
 
-        For a batch declaring them lost that brought nothing new. Not in the log: after a
-        restart, they are asked for again (and declared lost again).
+        For a declaring batch that brought nothing new. Not in the log: after a restart, they
+        are asked for again (and declared lost again).
         """
-        holes = self.holes.get(client, [])
-        lost = sum(min(b, before - 1) - a + 1 for a, b in holes if a < before)
+        holes = self.holes.get(batch.client, [])
+        start, end = _declared_from(batch), batch.first_seq - 1
+        lost = _within(holes, start, end)
         if lost:
-            self._set_holes(client, [(max(a, before), b) for a, b in holes if b >= before])
-            self.lost[client] = self.lost.get(client, 0) + lost
-            self._moved.add(client)
+            self._set_holes(batch.client, _without(holes, start, end))
+            self.lost[batch.client] = self.lost.get(batch.client, 0) + lost
+            self._moved.add(batch.client)
         return lost
 
     def _run_after(self, batch: ExperienceBatch, declared: bool, allow_gap: bool) -> _Run:
@@ -211,9 +213,14 @@ class ExperienceStore:
         through = self.stored_through.get(client, -1)
         holes = list(self.holes.get(client, ()))
         lost = 0
-        if declared:  # everything missing before the batch is given up
-            lost = sum(min(b, f - 1) - a + 1 for a, b in holes if a < f) + max(0, f - 1 - through)
-            holes = [(max(a, f), b) for a, b in holes if b >= f]
+        if declared:  # what is missing of the declared span before the batch is given up
+            start = _declared_from(batch)
+            if f > through + 1 and start > through + 1:
+                raise ValueError(
+                    f"batch from {client} declares {start}-{f - 1} lost, its run ends at {through}"
+                )
+            lost = _within(holes, start, f - 1) + max(0, f - 1 - through)
+            holes = _without(holes, start, f - 1)
             through = max(through, f - 1)
         if f > through:
             if f > through + 1:
@@ -269,10 +276,28 @@ def _size(holes: Iterable[Hole]) -> int:
     return sum(b - a + 1 for a, b in holes)
 
 
+def _declared_from(batch: ExperienceBatch) -> int:
+    """The first experience a declaring batch says is lost (0: all before it, for an older sender)."""
+    return batch.lost_from if batch.lost_from >= 0 else 0
+
+
+def _within(runs: Iterable[Hole], start: int, end: int) -> int:
+    """How many experiences of `runs` lie in start..end."""
+    return sum(max(0, min(b, end) - max(a, start) + 1) for a, b in runs)
+
+
+def _without(holes: Iterable[Hole], start: int, end: int) -> list[Hole]:
+    """`holes` less start..end."""
+    out: list[Hole] = []
+    for a, b in holes:
+        out += [h for h in ((a, min(b, start - 1)), (max(a, end + 1), b)) if h[0] <= h[1]]
+    return out
+
+
 def _undeclared(batch: ExperienceBatch) -> ExperienceBatch:
     """`batch` without a declared loss on its first experience (a later part of a declaring batch)."""
-    if not batch.flags[0] & EXP_AFTER_LOSS:
+    if not batch.flags[0] & EXP_AFTER_LOSS and batch.lost_from == -1:
         return batch
     flags = batch.flags.copy()
     flags[0] &= ~EXP_AFTER_LOSS & 0xFF
-    return dataclasses.replace(batch, flags=flags)
+    return dataclasses.replace(batch, flags=flags, lost_from=-1)

@@ -868,3 +868,19 @@ def test_a_stop_interrupted_while_waiting_for_acks_still_closes_the_journal_and_
 
     check_free(tmp_path / "journal")  # closed: no writer holds it
     assert not brain._threads
+
+
+def test_a_declared_loss_names_from_where_it_declares(tmp_path):
+    """From the acknowledged point the re-send began at: a server restarted since with a hole this
+    journal still holds gives up only what the declaration names."""
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_io.protocol import EXP_AFTER_LOSS, ExperienceBatch, decode
+
+    hub, cfg = Hub(), small_config()
+    brain = remote(tmp_path, hub, cfg)
+    try:
+        frame = Codec(brain.id).encode(batch(cfg, 10, 5, client=brain.id))
+        declared = decode(brain.uplink._declare_loss(frame, "s1", acked=4), expect=ExperienceBatch).message
+        assert declared.flags[0] & EXP_AFTER_LOSS and declared.lost_from == 5 and declared.first_seq == 10
+    finally:
+        brain.stop()

@@ -740,3 +740,25 @@ def test_maps_of_too_many_entries_or_long_keys_are_refused():
     for bad in ({f"m{i}": 0.0 for i in range(MAX_MAP_ENTRIES + 1)}, {"k" * (MAX_KEY_CHARS + 1): 0.0}):
         with pytest.raises(ProtocolError, match="metrics"):
             codec.decode(codec.encode(status(bad)), ClientStatus)
+
+
+def test_lost_from_travels_only_where_a_batch_declares_from_where_and_is_checked():
+    """A declaration names from where it gives experiences up; frames that declare nothing are as
+    before (their bodies lack the field), so journals and stores written before read as they were."""
+    plain = make_batch(first_seq=10)
+    assert "lost_from" not in to_body(plain)
+    assert decode(Codec("robot1").encode(plain)).message.lost_from == -1
+    named = dataclasses.replace(plain, lost_from=4)
+    assert to_body(named)["lost_from"] == 4
+    assert decode(Codec("robot1", KEY).encode(named), KEY).message.lost_from == 4
+    assert named.slice(2).lost_from == 4
+    for bad in (10, 11, -2):  # at or after its first experience, or below -1
+        body = {**to_body(plain), "lost_from": bad}
+        with pytest.raises(MalformedBody, match="lost_from"):
+            decode(raw_frame(msgpack.packb(body, use_bin_type=True)))
+    body = {**to_body(plain), "lost_from": "4"}
+    with pytest.raises(MalformedBody, match="lost_from"):
+        decode(raw_frame(msgpack.packb(body, use_bin_type=True)))
+    body = {**to_body(plain), "lost_since": 4}  # any other name is still refused
+    with pytest.raises(MalformedBody, match="unexpected"):
+        decode(raw_frame(msgpack.packb(body, use_bin_type=True)))

@@ -304,11 +304,12 @@ def test_interleaved_clients_keep_separate_counters(tmp_path):
 
 
 # --------------------------------------------------------------------------- holes
-def declared(b):
-    """`b` declaring the experiences its receiver lacks before it lost (as a client's re-send does)."""
+def declared(b, lost_from=-1):
+    """`b` declaring the experiences its receiver lacks before it lost (as a client's re-send does),
+    from `lost_from` on (-1: all, as an older client's declaration)."""
     flags = b.flags.copy()
     flags[0] |= EXP_AFTER_LOSS
-    return dataclasses.replace(b, flags=flags)
+    return dataclasses.replace(b, flags=flags, lost_from=lost_from)
 
 
 def store_with_hole(directory):
@@ -384,9 +385,9 @@ def test_a_declared_loss_that_brings_nothing_new_gives_up_the_holes_before_it(tm
     admitted = store.admit(declared(batch(25, 3)))
     assert admitted == Admission(None, duplicate=True, lost=10)
     assert store.holes == {"robot1": [(10, 19)]}  # admit changes nothing
-    assert store.declare_lost("robot1", 25) == 10
+    assert store.declare_lost(declared(batch(25, 3))) == 10
     assert store.holes == {} and store.lost == {"robot1": 10} and store.sync() == {"robot1": 29}
-    assert store.declare_lost("robot1", 25) == 0
+    assert store.declare_lost(declared(batch(25, 3))) == 0
     store.close()
 
 
@@ -404,7 +405,7 @@ def test_a_declared_loss_past_the_run_gives_up_the_holes_and_the_gap_until_reope
     assert again.stored_through == {"robot1": 39} and again.durable_through == {"robot1": 9}
     admitted = again.admit(declared(batch(35, 5)))  # the client's journal still lacks them: said again
     assert admitted == Admission(None, duplicate=True, lost=15)
-    assert again.declare_lost("robot1", 35) == 15 and again.sync() == {"robot1": 39}
+    assert again.declare_lost(declared(batch(35, 5))) == 15 and again.sync() == {"robot1": 39}
     again.close()
 
 
@@ -469,4 +470,38 @@ def test_append_refuses_what_does_not_fit_and_writes_nothing(tmp_path, first, n,
     assert (
         store.holes == {"robot1": [(10, 19)]} and store.stored_through == {"robot1": 29} and store.count == 20
     )
+    store.close()
+
+
+def test_a_declaration_gives_up_only_what_it_names_not_a_hole_before_it(tmp_path):
+    """A declaration made before a restart (replayed, or delivered late) gave up every hole before
+    it, one the client's journal still holds among them, and acknowledged it unstored."""
+    store = store_with_hole(tmp_path)  # 10-19 missing, stored through 29
+    store.sync()
+    late = declared(batch(35, 5), lost_from=30)  # "my journal lacks 30-34", said when 0-29 were acknowledged
+    admitted = store.admit(late)
+    assert admitted.lost == 5 and admitted.new is not None
+    store.append(admitted.new, admitted.lost)
+    assert store.holes == {"robot1": [(10, 19)]} and store.lost == {"robot1": 5}
+    assert store.sync() == {} and store.durable_through == {"robot1": 9}  # the hole is still asked for
+    nothing_new = declared(batch(25, 3), lost_from=20)  # names none of the hole: gives none of it up
+    assert store.admit(nothing_new) == Admission(None, duplicate=True, lost=0)
+    assert store.declare_lost(nothing_new) == 0 and store.holes == {"robot1": [(10, 19)]}
+    partly = declared(batch(25, 3), lost_from=15)
+    assert store.declare_lost(partly) == 5 and store.holes == {"robot1": [(10, 14)]}
+    store.close()
+
+
+def test_a_declaration_that_starts_past_the_end_of_the_run_leaves_a_gap_and_is_refused(tmp_path):
+    store = ExperienceStore(tmp_path, "srv1")
+    store_all(store, batch(0, 10))
+    assert store.admit(declared(batch(20, 5), lost_from=15)) == Admission(
+        None, gap=True
+    )  # 10-14 named by none
+    with pytest.raises(ValueError, match="its run ends at 9"):
+        store.append(declared(batch(20, 5), lost_from=15), 5)
+    admitted = store.admit(declared(batch(20, 5), lost_from=10))
+    assert admitted.lost == 10
+    store.append(admitted.new, admitted.lost)
+    assert store.stored_through == {"robot1": 24} and store.lost == {"robot1": 10}
     store.close()
