@@ -190,13 +190,15 @@ def _stop_brains(brains: _Brains) -> int:
         brains.stop()
         return 0
     noted: list[int] = []
-    previous = {s: signal.signal(s, lambda signum, frame: noted.append(signum))
-                for s in (signal.SIGTERM, signal.SIGINT)}  # fmt: skip
+    previous: dict[int, Any] = {}
     try:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # ignored (a job started with &) stays so
+                previous[sig] = signal.signal(sig, lambda signum, frame: noted.append(signum))
         brains.stop()
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+        for number, handler in previous.items():
+            signal.signal(number, handler if handler is not None else signal.SIG_DFL)
     return noted[0] if noted else 0
 
 

@@ -39,10 +39,11 @@ from numpy.typing import NDArray
 log = logging.getLogger(__name__)
 
 MAGIC = b"WFNN"
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 """Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`; version 3 the
 server's effective learner config to `ServerStatus`; version 4 the start (`started_ns`) to `Ack`
-and `WeightSnapshot`."""
+and `WeightSnapshot`; version 5 the optional `lost_from` to `ExperienceBatch` (a version 4 reader
+would refuse a declaration carrying it as malformed: it is told of the version instead)."""
 FLAG_MAC = 0x01
 HEADER = struct.Struct("<4sBBBB16sQI")
 """magic, version, type, flags, reserved, sender, seq, body_len."""

@@ -150,3 +150,28 @@ def test_a_signal_while_the_run_stops_ends_it_as_that_signal_with_the_journal_cl
     segments.check_free(out / "journal")  # closed: no writer holds it
     assert logs.summarise(out / "journal").experiences > 0
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers as they were
+
+
+def test_an_ignored_sigint_stays_ignored_while_the_run_stops(tmp_path, monkeypatch):
+    """A job started with & inherits SIGINT ignored: noting it while stopping ended the run as 130."""
+    import os
+    import signal
+    import time
+
+    from wfnn_client.brain import LocalBrain
+
+    real_stop = LocalBrain.stop
+
+    def stop_under_sigint(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        real_stop(self)
+
+    monkeypatch.setattr(LocalBrain, "stop", stop_under_sigint)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        metrics = run(ClientConfig(sim="boat", rate_hz=0, episodes=1, out=tmp_path / "run"))
+        assert len(metrics["scores"]) == 1 and (tmp_path / "run" / "metrics.json").exists()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
