@@ -33,6 +33,7 @@ from wfnn_client.uplink import Uplink
 from wfnn_common.learners import Learner
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_io.bus import Bus, Channel, guarded
+from wfnn_io.cli_errors import log_failure
 from wfnn_io.protocol import CameraView, ClientStatus, Codec, Keys, load_key
 
 __all__ = [
@@ -157,11 +158,7 @@ class RemoteBrain:
     def _failed(self, exc: BaseException) -> None:
         """A thread ended by `exc` (called in its handler): kept for `check`, and logged."""
         self.error = exc
-        if isinstance(exc, OSError):  # a full disk, a lost directory: the error line says it all
-            log.error("client thread failed (%s)", exc)
-            log.debug("where", exc_info=exc)
-        else:
-            log.exception("client thread failed")
+        log_failure(log, "client thread failed", exc)
 
     def stop(self, flush_timeout_s: float = 2.0) -> None:
         """Send what is queued, wait briefly for acks, stop the threads, close the journal and the bus."""

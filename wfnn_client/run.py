@@ -162,21 +162,35 @@ def _interrupt(signum: int, frame: Any) -> None:
 
 
 @contextlib.contextmanager
-def _terminated_as_interrupted() -> Iterator[None]:
-    """SIGTERM (`kill`, a service manager's stop) ends the run as Ctrl-C does, cleanly (`Terminated`).
+def _handling(
+    handler: Callable[[int, Any], None], *signums: int, keep_ignored: bool = False
+) -> Iterator[None]:
+    """`handler` for `signums` meanwhile, then the handlers before put back.
 
-    By default it ends the process at once: the journal was not closed, so the next run took it
-    for a crash and declared the numbers reserved for it lost. Only the main thread can set a
-    handler; elsewhere (an embedding program's thread) the signal is left as it is.
+    Only the main thread can set a handler; elsewhere (an embedding program's thread) the signals
+    are left as they are. With `keep_ignored`, an ignored signal stays ignored.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    previous: dict[int, Any] = {}
     try:
+        for signum in signums:
+            if not (keep_ignored and signal.getsignal(signum) is signal.SIG_IGN):
+                previous[signum] = signal.signal(signum, handler)
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        for signum, before in previous.items():
+            signal.signal(signum, before if before is not None else signal.SIG_DFL)
+
+
+def _terminated_as_interrupted() -> contextlib.AbstractContextManager[None]:
+    """SIGTERM (`kill`, a service manager's stop) ends the run as Ctrl-C does, cleanly (`Terminated`).
+
+    By default it ends the process at once: the journal was not closed, so the next run took it
+    for a crash and declared the numbers reserved for it lost.
+    """
+    return _handling(_interrupt, signal.SIGTERM)
 
 
 def _stop_brains(brains: _Brains) -> int:
@@ -184,21 +198,14 @@ def _stop_brains(brains: _Brains) -> int:
 
     Stopping waits for acks, joins threads and closes the journal and the network session; a
     signal raised in the middle of it (a second Ctrl-C, a supervisor's SIGTERM while the servers
-    are silent) left the journal open and the process hung on the session's threads.
+    are silent) left the journal open and the process hung on the session's threads. An ignored
+    SIGINT (a job started with &) stays ignored.
     """
-    if threading.current_thread() is not threading.main_thread():
-        brains.stop()
-        return 0
     noted: list[int] = []
-    previous: dict[int, Any] = {}
-    try:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            if signal.getsignal(sig) is not signal.SIG_IGN:  # ignored (a job started with &) stays so
-                previous[sig] = signal.signal(sig, lambda signum, frame: noted.append(signum))
+    with _handling(
+        lambda signum, frame: noted.append(signum), signal.SIGTERM, signal.SIGINT, keep_ignored=True
+    ):
         brains.stop()
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler if handler is not None else signal.SIG_DFL)
     return noted[0] if noted else 0
 
 

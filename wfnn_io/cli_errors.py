@@ -49,6 +49,19 @@ class _Printable(logging.Filter):
         return True
 
 
+def log_failure(logger: logging.Logger, message: str, exc: BaseException) -> None:
+    """Log what ended a tool's thread.
+
+    An OSError (a full disk, a lost directory) in one line, its traceback only at debug level
+    (`--verbose`): the tool's one `error:` line follows. Anything else with its traceback.
+    """
+    if isinstance(exc, OSError):
+        logger.error("%s (%s)", message, exc)
+        logger.debug("where", exc_info=exc)
+    else:
+        logger.error(message, exc_info=exc)
+
+
 def log_printably() -> None:
     """Show every log record through `printable` (call once the tool's handlers are set up)."""
     for handler in logging.getLogger().handlers:

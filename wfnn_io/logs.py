@@ -386,15 +386,14 @@ class ClientRun:
         if not held or first > held[-1][1] + 1:  # past the end: the usual case, in O(1)
             held.append([first, last])
         else:
-            i = bisect.bisect_left(
-                held, first, key=lambda run: run[1] + 1
-            )  # the first run reaching first - 1
+            i = bisect.bisect_left(held, first, key=lambda run: run[1] + 1)  # first reaching first - 1
             j = i
             while j < len(held) and held[j][0] <= last + 1:
                 self.duplicates += max(0, min(last, held[j][1]) - max(first, held[j][0]) + 1)
                 j += 1
-            merged = [min([first, *(r[0] for r in held[i:j])]), max([last, *(r[1] for r in held[i:j])])]
-            held[i:j] = [merged]
+            if j > i:  # runs i..j-1 touch first..last (in order): one run now
+                first, last = min(first, held[i][0]), max(last, held[j - 1][1])
+            held[i:j] = [[first, last]]
         self.gaps = len(held) - 1
 
 

@@ -31,9 +31,14 @@ def _key(path: Path | None) -> bytes | None:
     return load_key(str(path)) if path is not None else None
 
 
+def _shown(text: str) -> str:
+    """Text from a log or the network as the console prints it: no markup, no control characters."""
+    return escape(printable(text))
+
+
 def _fail(exc: Exception) -> typer.Exit:
     """Bad input (an unreadable log, a wrong option value): one line on stderr, exit 2, as every tool."""
-    errors.print(f"[red]error:[/] {escape(printable(describe(exc)))}", soft_wrap=True)
+    errors.print(f"[red]error:[/] {_shown(describe(exc))}", soft_wrap=True)
     return typer.Exit(2)
 
 
@@ -60,25 +65,25 @@ def inspect(
     if json_out:
         print(json.dumps(to_jsonable(summary.to_dict()), indent=1, allow_nan=False))  # strict JSON: no NaN
         return
-    where = escape(printable(str(log_dir)))
+    where = _shown(str(log_dir))
     title = f"{where}: {summary.experiences:,} experiences in {summary.batches:,} batches"
     table = Table(title=title)
     table.add_column("")
     table.add_column("", justify="right")
     for client, run in summary.clients.items():
-        table.add_row(f"client {escape(printable(client))}",
+        table.add_row(f"client {_shown(client)}",
                       f"{run.experiences:,} (seq {run.first_seq}..{run.last_seq}, "
                       f"{run.gaps} gaps, {run.duplicates} duplicates)")  # fmt: skip
     for source, n in summary.behaviour.items():
-        table.add_row(f"chosen by {escape(printable(source))}", f"{n:,}")
+        table.add_row(f"chosen by {_shown(source)}", f"{n:,}")
     for name, n in summary.flags.items():
-        table.add_row(f"flag {escape(printable(name))}", f"{n:,}")
+        table.add_row(f"flag {_shown(name)}", f"{n:,}")
     table.add_row("terminal", f"{summary.terminal:,}")
     table.add_row("mean reward", f"{summary.reward_mean:.4f}")
-    table.add_row("learner spec", escape(printable(", ".join(summary.spec_hashes))) or "-")
+    table.add_row("learner spec", _shown(", ".join(summary.spec_hashes)) or "-")
     table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
     if summary.description_error:
-        table.add_row("[red]description[/]", escape(printable(summary.description_error)))
+        table.add_row("[red]description[/]", _shown(summary.description_error))
     for why, n in summary.refused.most_common():
         table.add_row(f"[red]records refused ({escape(why)})[/]", f"{n:,}")
     for d in summary.damage:
@@ -122,7 +127,7 @@ def split(
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
     for name, n in parts.items():
-        console.print(f"{escape(printable(str(out / name)))}: {n:,} experiences")
+        console.print(f"{_shown(str(out / name))}: {n:,} experiences")
 
 
 @app.command()

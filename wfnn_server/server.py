@@ -35,6 +35,7 @@ from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
+from wfnn_io.cli_errors import log_failure
 from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
 from wfnn_io.persist import (
     PersistError,
@@ -307,13 +308,19 @@ class ThinkServer:
                 return LearnerConfig.from_json(read_regular_text(path), str(path))
             except (OSError, ConfigError, UnicodeDecodeError) as exc:  # not text: as unreadable
                 set_aside(path, f"unreadable ({exc})")
+        saved = self._checkpoints_config()
+        if saved is None:
+            return None
+        log.warning("learner config taken from %s (with the overrides it was saved with)", saved[1])
+        return saved[0]
+
+    def _checkpoints_config(self) -> tuple[LearnerConfig, str] | None:
+        """The config the newest readable checkpoint was saved with, and that checkpoint's name."""
         for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
             try:
-                cfg = load_weights(self.data_dir / name)[0]
+                return load_weights(self.data_dir / name)[0], name
             except (PersistError, OSError):
                 continue
-            log.warning("learner config taken from %s (with the overrides it was saved with)", name)
-            return cfg
         return None
 
     def _overridden(self, cfg: LearnerConfig) -> LearnerConfig:
@@ -384,20 +391,14 @@ class ThinkServer:
         and its stored experiences would not be learned: a mistaken flag, refused like a client's
         run directory of another task.
         """
-        held: LearnerConfig | None = None
-        # Its own copy, else (missing or unreadable) what its checkpoints were saved for, as
-        # `_initial_config` reads them: an unreadable copy did not make a mistaken flag pass.
-        for name in (LEARNER_JSON, CHECKPOINT, PREVIOUS_CHECKPOINT):
-            path = self.data_dir / name
-            try:
-                if name == LEARNER_JSON:
-                    held = LearnerConfig.from_json(read_regular_text(path), str(path))
-                else:
-                    held = load_weights(path)[0]
-                break
-            except (OSError, ValueError):  # ConfigError, PersistError, UnicodeDecodeError: unreadable
-                continue
-        if held is not None and held.spec_hash() != given.spec_hash():
+        path = self.data_dir / LEARNER_JSON
+        saved: tuple[LearnerConfig, str] | None
+        try:
+            saved = LearnerConfig.from_json(read_regular_text(path), str(path)), LEARNER_JSON
+        except (OSError, ValueError):  # missing or unreadable (as `_initial_config` falls back): an
+            saved = self._checkpoints_config()  # unreadable copy did not make a mistaken flag pass
+        if saved is not None and saved[0].spec_hash() != given.spec_hash():
+            held, name = saved
             raise ConfigError(
                 f"data directory {self.data_dir} holds a learner of spec {held.spec_hash()} "
                 f"({name}); --learner-config is spec {given.spec_hash()} (another task, ranges "
@@ -541,11 +542,7 @@ class ThinkServer:
     def _failed(self, exc: BaseException) -> None:
         """A thread ended by `exc` (called in its handler): kept, logged, and the others stop."""
         self.error = exc
-        if isinstance(exc, OSError):  # a full disk, a lost directory: the error line says it all
-            log.error("server thread failed (%s); stopping", exc)
-            log.debug("where", exc_info=exc)
-        else:
-            log.exception("server thread failed; stopping")
+        log_failure(log, "server thread failed; stopping", exc)
         self._stop.set()
 
     def stop(self) -> None:

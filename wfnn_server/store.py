@@ -4,15 +4,16 @@ Each experience of a client is stored once. What is stored from a client is the 
 0..stored_through[client] less its `holes`, and what may be acknowledged is the part before the
 first hole (`durable_through`, once synced): acks promise "everything through here".
 
-A live batch must reach the first experience the client's stored run lacks (where the acks sent
-it to re-send from): a duplicate (a re-sent batch) is dropped, an overlap is trimmed, a batch
-that fills a hole is stored where the hole was, and a batch that leaves a gap is refused (the
-client re-sends from the acknowledged point). A gap the sender declares lost (EXP_AFTER_LOSS:
-its journal lost those experiences to damage) is given up: everything missing before the batch
-is counted as lost and the run goes on after it, so that one damaged record never stalls a
-client's stream. The log does not say which experiences a declaration gave up (a record damaged
-before it would be given up too, and acknowledged unstored), so reopening takes every gap for a
-hole: the client is asked for what it declared lost again, and declares it again.
+A live batch keeps what the store lacks of it: a duplicate (a re-sent batch) is dropped, an
+overlap is trimmed, a part that fills a hole is stored where the hole was, and a batch that
+starts past the end of the run leaves a gap and is refused (the client re-sends from the
+acknowledged point). A gap the sender declares lost (EXP_AFTER_LOSS: its journal lost those
+experiences to damage) is given up: what is missing from where the batch says (`lost_from`,
+else from the first) to the batch is counted as lost and the run goes on after it, so that one
+damaged record never stalls a client's stream. The log does not say which experiences a
+declaration gave up (a record damaged before it would be given up too, and acknowledged
+unstored), so reopening takes every gap for a hole: the client is asked for what it declared
+lost again, and declares it again.
 
 Holes are gaps met in the log itself when the store is opened (a record damaged on disk after
 it was acknowledged), or met importing logs that none of them fills. The experiences after a
@@ -228,12 +229,9 @@ class ExperienceStore:
                     raise ValueError(f"batch from {client} starts at {f}, not where its run ends ({through})")
                 holes.append((through + 1, f - 1))
             return _Run(last, holes, lost)
-        i = next((i for i, (a, b) in enumerate(holes) if a <= f <= b), None)
-        if i is None or last > holes[i][1]:
+        if not any(a <= f and last <= b for a, b in holes):  # a fill lies within one hole
             raise ValueError(f"batch from {client} ({f}-{last}) holds experiences already stored")
-        a, b = holes[i]
-        holes[i : i + 1] = [h for h in ((a, f - 1), (last + 1, b)) if h[0] <= h[1]]
-        return _Run(through, holes, lost)
+        return _Run(through, _without(holes, f, last), lost)
 
     def _commit(self, batch: ExperienceBatch, run: _Run) -> None:
         client = batch.client

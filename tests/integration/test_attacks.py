@@ -28,14 +28,28 @@ def stored(store_dir, client_id):
         store.close()
 
 
+def _streaming_client(port, tmp_path):
+    """A client streaming the positioning task at 30 Hz for 10 s to the server on `port`, after
+    4 s of it; -> the client's process."""
+    proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "10", "--rate-hz", "30",
+                  "--server", endpoint(port), "--out", str(tmp_path / "c"),
+                  "--json-stats", str(tmp_path / "stats.json"))  # fmt: skip
+    time.sleep(4.0)
+    return proc
+
+
+def _produced(tmp_path):
+    """The finished client's figures, the last experience it produced and its id."""
+    result = json.loads((tmp_path / "stats.json").read_text())
+    client_id = json.loads((tmp_path / "c" / "journal" / "client.json").read_text())["client"]
+    return result, int(result["uplink/produced_through"]), client_id
+
+
 def test_a_server_restarted_empty_under_the_same_id_ends_with_every_experience(tmp_path):
     port = free_port()
-    stats, out = tmp_path / "stats.json", tmp_path / "c"
     first = ServerProcess(tmp_path / "a", port).start()
-    proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "10", "--rate-hz", "30",
-                  "--server", endpoint(port), "--out", str(out), "--json-stats", str(stats))  # fmt: skip
     try:
-        time.sleep(4.0)
+        proc = _streaming_client(port, tmp_path)
         first.kill()
         # The same id and port, a new empty data directory: incarnation 1 again, another store.
         with ServerProcess(tmp_path / "b", port):
@@ -43,9 +57,7 @@ def test_a_server_restarted_empty_under_the_same_id_ends_with_every_experience(t
             time.sleep(0.5)
     finally:
         first.stop()
-    result = json.loads(stats.read_text())
-    produced = int(result["uplink/produced_through"])
-    client_id = json.loads((out / "journal" / "client.json").read_text())["client"]
+    result, produced, client_id = _produced(tmp_path)
     assert produced > 200
     assert stored(tmp_path / "b" / "store", client_id) == (produced, produced + 1)
     assert result["following"] == "srv"
@@ -55,12 +67,9 @@ def test_a_hole_damage_left_in_a_servers_store_is_re_sent_by_the_client(tmp_path
     """Acknowledged experiences damaged on the server's disk: the restarted server asks for them
     (its acks stop before the hole) and the client's journal re-sends them."""
     port = free_port()
-    stats, out = tmp_path / "stats.json", tmp_path / "c"
     server = ServerProcess(tmp_path / "a", port).start()
-    proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "10", "--rate-hz", "30",
-                  "--server", endpoint(port), "--out", str(out), "--json-stats", str(stats))  # fmt: skip
     try:
-        time.sleep(4.0)
+        proc = _streaming_client(port, tmp_path)
         server.stop()
         (segment,) = sorted((tmp_path / "a" / "store").glob("*.seg"))
         raw = bytearray(segment.read_bytes())
@@ -75,9 +84,7 @@ def test_a_hole_damage_left_in_a_servers_store_is_re_sent_by_the_client(tmp_path
             time.sleep(0.5)
     finally:
         server.stop()
-    result = json.loads(stats.read_text())
-    produced = int(result["uplink/produced_through"])
-    client_id = json.loads((out / "journal" / "client.json").read_text())["client"]
+    _, produced, client_id = _produced(tmp_path)
     store = ExperienceStore(tmp_path / "a" / "store", "check")
     try:
         assert store.holes == {} and store.lost == {}

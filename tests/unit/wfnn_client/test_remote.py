@@ -14,6 +14,7 @@ from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
 from wfnn_io.protocol import Codec, ServerStatus, WeightSnapshot
+from wfnn_io.segments import check_free
 
 
 def positioning_config(**kw):
@@ -864,8 +865,6 @@ def test_a_stop_interrupted_while_waiting_for_acks_still_closes_the_journal_and_
     brain.table.any_alive = lambda: True
     with pytest.raises(KeyboardInterrupt):
         brain.stop()
-    from wfnn_io.segments import check_free
-
     check_free(tmp_path / "journal")  # closed: no writer holds it
     assert not brain._threads
 

@@ -499,17 +499,19 @@ def test_the_server_keeps_of_each_clients_status_only_what_its_views_show(tmp_pa
         assert server.learner_config == cfg  # what the status said was used before it was trimmed
 
 
-def test_a_slow_learner_keeps_the_heartbeat_going(tmp_path):
-    """Thinks of 50 ms, 50 a call: the status still goes out about every status period, not every 2.5 s."""
+def _statuses_while_thinking(tmp_path, think_batch, delay, watch_s):
+    """The statuses a server sends over `watch_s` seconds while each think call of it first sleeps
+    `delay(n)` (n thinks a call), and the server's counters."""
     hub, cfg = Hub(), small_config(thinks_per_action=1000)
     listener = Listener(hub)
-    with make_server(tmp_path, hub, cfg, think="continuous", think_batch=50, status_period_s=0.05) as server:
+    options = {"think": "continuous", "think_batch": think_batch, "status_period_s": 0.05}
+    with make_server(tmp_path, hub, cfg, **options) as server:
         assert listener.wait(lambda: server.learner is not None)
         learner = server.learner
         real = learner.think
 
         def slow(n=None):
-            time.sleep(0.05 * (n or 1))
+            time.sleep(delay(n or 1))
             return real(n)
 
         learner.think = slow
@@ -517,34 +519,23 @@ def test_a_slow_learner_keeps_the_heartbeat_going(tmp_path):
         assert listener.wait(lambda: listener.acked() == 4)
         time.sleep(0.3)  # thinking now
         before = len(listener.statuses)
-        time.sleep(1.5)
-        assert len(listener.statuses) - before >= 6
+        time.sleep(watch_s)
+        return listener.statuses[before:], server.counters
+
+
+def test_a_slow_learner_keeps_the_heartbeat_going(tmp_path):
+    """Thinks of 50 ms, 50 a call: the status still goes out about every status period, not every 2.5 s."""
+    statuses, _ = _statuses_while_thinking(tmp_path, 50, lambda n: 0.05 * n, 1.5)
+    assert len(statuses) >= 6
 
 
 def test_one_update_longer_than_the_clients_patience_keeps_the_heartbeat_going(tmp_path):
     """A client's config may ask for a network whose one update takes seconds (within the memory
     limits): the statuses came only between updates, and every client dropped the server as silent."""
-    hub, cfg = Hub(), small_config(thinks_per_action=1000)
-    listener = Listener(hub)
-    with make_server(tmp_path, hub, cfg, think="continuous", think_batch=1, status_period_s=0.05) as server:
-        assert listener.wait(lambda: server.learner is not None)
-        learner = server.learner
-        real = learner.think
-
-        def slow(n=None):
-            time.sleep(1.5)  # one update
-            return real(n)
-
-        learner.think = slow
-        send(hub, batch(cfg, 0, 5))
-        assert listener.wait(lambda: listener.acked() == 4)
-        time.sleep(0.3)  # thinking now
-        before = len(listener.statuses)
-        time.sleep(2.0)
-        statuses = listener.statuses[before:]
-        assert len(statuses) >= 8
-        assert all(s.stored_through.get("c1") == 4 for s in statuses)
-        assert server.counters["publish/status_relayed"] > 0
+    statuses, counters = _statuses_while_thinking(tmp_path, 1, lambda n: 1.5, 2.0)  # 1.5 s an update
+    assert len(statuses) >= 8
+    assert all(s.stored_through.get("c1") == 4 for s in statuses)
+    assert counters["publish/status_relayed"] > 0
 
 
 @pytest.mark.parametrize("saved_copy", ["kept", "unreadable", "missing"])
