@@ -19,6 +19,7 @@ import base64
 import io
 import json
 import logging
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -118,6 +119,17 @@ def _scalars(data: dict[str, Any], prefix: str = "", depth: int = 0) -> list[tup
     return rows
 
 
+DRAWABLE = 1e300
+"""The largest score magnitude drawn: the axes' span must stay finite (a diverged run's scores
+may reach float64's limits, and the span of two such scores would overflow)."""
+
+
+def _drawable(scores: list[Any]) -> np.ndarray:
+    """The episodes' scores as floats, with missing, non-finite and undrawable ones NaN."""
+    values = np.asarray([np.nan if s is None else s for s in scores], dtype=np.float64)
+    return np.where(np.abs(values) <= DRAWABLE, values, np.nan)
+
+
 def _run_figure(metrics: dict[str, Any]) -> bytes:
     """Learning curve (with a running median) and box plots of the first and last episodes."""
     import matplotlib
@@ -125,7 +137,7 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scores = np.asarray([np.nan if s is None else s for s in metrics["scores"]], dtype=np.float64)
+    scores = _drawable(metrics["scores"])
     episodes = np.arange(1, len(scores) + 1)
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [3, 1]})
     policies = _policies(metrics, len(scores))
@@ -137,7 +149,9 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
         a.plot(episodes, scores, marker="o", ms=3, lw=0.8, label="episode")
     window = max(1, min(10, len(scores) // 4))
     if len(scores) >= 3:
-        running = [np.nanmedian(scores[max(0, i - window + 1) : i + 1]) for i in range(len(scores))]
+        with warnings.catch_warnings():  # a window of undrawn scores has no median: a gap in the line
+            warnings.simplefilter("ignore", RuntimeWarning)
+            running = [np.nanmedian(scores[max(0, i - window + 1) : i + 1]) for i in range(len(scores))]
         a.plot(episodes, running, color="black", lw=1.6, label=f"running median of {window}")
     a.set_xlabel("episode")
     a.set_ylabel(metrics.get("metric", "score"))
@@ -197,6 +211,13 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
         if present:
             rows.append((name, _fmt(metrics[present[0]])))
     sections = [Section("Run", rows, [("learning curve and episode scores", _uri(figure))], [])]
+    undrawn = sum(
+        s is not None and not np.isfinite(d) for s, d in zip(metrics["scores"], _drawable(metrics["scores"]))
+    )
+    if undrawn:
+        sections[0].notes.append(
+            f"{undrawn} episode scores beyond +-{DRAWABLE:g} or not finite are not drawn"
+        )
     policies = _policies(metrics, len(metrics["scores"]))
     if policies and len(set(policies)) > 1:
         counts = {p: policies.count(p) for p in sorted(set(policies))}
