@@ -211,9 +211,8 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
         if present:
             rows.append((name, _fmt(metrics[present[0]])))
     sections = [Section("Run", rows, [("learning curve and episode scores", _uri(figure))], [])]
-    undrawn = sum(
-        s is not None and not np.isfinite(d) for s, d in zip(metrics["scores"], _drawable(metrics["scores"]))
-    )
+    given = metrics["scores"]
+    undrawn = sum(s is not None and not np.isfinite(v) for s, v in zip(given, _drawable(given), strict=True))
     if undrawn:
         sections[0].notes.append(
             f"{undrawn} episode scores beyond +-{DRAWABLE:g} or not finite are not drawn"

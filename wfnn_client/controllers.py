@@ -60,6 +60,8 @@ def parse_mix(text: str) -> tuple[PolicyShare, ...]:
         raise ValueError("an empty behaviour-policy mix")
     if len({m.name for m in mix}) != len(mix):
         raise ValueError(f"behaviour policy named twice in {text!r}")
+    if not np.isfinite(sum(m.share for m in mix)):  # each share is divided by the total
+        raise ValueError(f"behaviour-policy shares {text!r} sum beyond the largest number")
     return tuple(mix)
 
 

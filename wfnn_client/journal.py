@@ -34,6 +34,10 @@ log = logging.getLogger(__name__)
 
 RESERVE_BLOCK = 256
 """Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
+ROOM = 1 << 40
+"""Experience numbers a journal must have left below MAX_SEQ to take more (a year at 30 kHz): one
+whose records already end nearer was numbered by something else, and batches numbered past
+MAX_SEQ would be written where no reader accepts them."""
 
 
 def _reserved(meta: dict[str, Any]) -> int:
@@ -103,6 +107,12 @@ class Journal:
                             "journal)", directory, self.reserved_through + 1, self.next_seq,
                             self.reserved_through)  # fmt: skip
             self.skip_to(self.reserved_through + 1)
+        if self.next_seq > MAX_SEQ - ROOM:
+            self.log.close()
+            raise ValueError(
+                f"journal {directory} continues at experience {self.next_seq}, too near the last "
+                f"number a batch may have ({MAX_SEQ}): use another record directory"
+            )
         if self.next_seq:
             log.info("journal %s: client %s continues at experience %d", directory, self.client_id,
                      self.next_seq)  # fmt: skip

@@ -378,15 +378,18 @@ def _run(
                     for k, sk in enumerate(skills)
                 ] if config.learn else []  # fmt: skip
                 transitions = robot_step(decided, behaviours.step, pupils)
+                if not config.learn:  # the rewards still size what act judges diverged (learn would)
+                    for sk in skills:
+                        sk.learner.rewarded(transitions[sk.name].reward)
                 if config.lockstep and config.learn and not brains.sync(config.lockstep_timeout_s):
                     lockstep_timeouts += 1
                     log.warning("lock-step: no snapshot covering experience %d in %.0f s",
                                 learned, config.lockstep_timeout_s)  # fmt: skip
                 measured = float(spec.metric(task)[0])
-                if np.isfinite(measured):
+                if np.isfinite(total + measured):
                     total += measured
-                else:  # a task's NaN reward would make the whole episode's score NaN: counted apart
-                    metric_not_finite += 1
+                else:  # a NaN reward, or finite ones summing past float64's range, would make the
+                    metric_not_finite += 1  # whole episode's score NaN or infinite: counted apart
                 rewards.append(float(transitions[skills[d].name].reward[0]))
                 if acted is not None and policy == LEARNER:
                     values.append(float(acted.result.value))
@@ -432,7 +435,12 @@ def _run(
         params = sk.learner.params if config.local else (current.params if current is not None else None)
         meta = {"sim": config.sim, "episodes": len(scores), "following": sk.brain.following,
                 "behaviour": sk.name}  # fmt: skip
-        if params is not None:
+        if params is not None and not np.isfinite(params.flat).all():
+            # Diverged past what the monitor reset (the run ended first): a file of them would
+            # be refused by every reader, so none is written.
+            log.error("%s: the weights are not finite at the end of the run; weights file not written",
+                      sk.name or config.sim)  # fmt: skip
+        elif params is not None:
             save_weights(out / f"{_named('weights', sk.name)}.npz", sk.lcfg, params, meta)
         if config.local and config.learn:
             save_experiences(

@@ -228,6 +228,11 @@ learner's minibatch update state_dim + 2 n_hidden + n_wires x (5 action_dim + 8)
 their errors and the interpolation's terms."""
 MIN_HALF_RANGE = 1e-12
 """Narrowest half-width of a state or action range: scaling divides by it."""
+MIN_ADVANTAGE_K = 1e-3
+"""Smallest advantage_k: advantage learning divides the target's advantage by k, and the
+minibatch updates run in float32, where a k below its smallest normal number (1.2e-38) made the
+first update's weights NaN; 1e-3 costs three of the eight orders of magnitude that MAX_REWARD
+leaves below float32's largest number."""
 MAX_SEED = (1 << 62) - 1
 """Largest seed: numpy and torch take it, and benchmarks add a seed number to it."""
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
@@ -333,6 +338,7 @@ class LearnerConfig:
                     raise ConfigError(f"{name} range {i} must be finite with high > low, got [{a}, {b}]")
                 if not (
                     math.isfinite(0.5 * (b - a))
+                    and math.isfinite(a + b)  # the range's midpoint, 0.5 (a + b), is what scaling subtracts
                     and 0.5 * (b - a) >= MIN_HALF_RANGE * max(1.0, abs(a), abs(b))
                 ):
                     raise ConfigError(f"{name} range {i} [{a}, {b}] is too narrow or too wide to scale")
@@ -344,7 +350,7 @@ class LearnerConfig:
             (1 <= self.n_hidden <= MAX_HIDDEN, f"n_hidden must be in [1, {MAX_HIDDEN}]"),
             (1 <= self.n_wires <= MAX_WIRES, f"n_wires must be in [1, {MAX_WIRES}]"),
             (0.0 <= self.gamma < 1.0, "gamma must be in [0, 1)"),
-            (0.0 < self.advantage_k <= 1.0, "advantage_k must be in (0, 1]"),
+            (MIN_ADVANTAGE_K <= self.advantage_k <= 1.0, f"advantage_k must be in [{MIN_ADVANTAGE_K:g}, 1]"),
             (0.0 < self.alpha <= 10.0, "alpha must be in (0, 10]"),
             (0.0 <= self.smoothing_c <= 1e3, "smoothing_c must be in [0, 1000]"),
             (0.0 < self.eps <= 1.0, "eps must be in (0, 1]"),
@@ -434,6 +440,14 @@ class LearnerConfig:
     def action_dim(self) -> int:
         """Number of action variables."""
         return len(self.action_low)
+
+    @property
+    def sanity_limit(self) -> float:
+        """Largest |scaled state| that is valid: 1 + 2 valid_margin, and a few ulps.
+
+        A state on its declared bound can scale to 1 plus an ulp or two by rounding.
+        """
+        return (1.0 + 2.0 * self.valid_margin) * (1.0 + 8.0 * float(np.finfo(np.float64).eps))
 
     @property
     def n_outputs(self) -> int:

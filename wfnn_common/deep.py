@@ -71,8 +71,14 @@ class DeepWFNN(WFNN):
         deep_net.act_one(pack, dims, z, z, z + 1.0, 1.0)
 
     def _fresh_theta(self) -> FloatArray:
-        scale = self.config.init_scale
-        return np.concatenate([deep_net.init_critic(self.shapes, self._weights_rng, scale) for _ in range(2)])
+        """Both critics' fresh weights, as float32 values.
+
+        The trainer holds them so: `act` before the first update, and a checkpoint taken then,
+        then use the same weights.
+        """
+        rng, scale = self._weights_rng, self.config.init_scale
+        theta = np.concatenate([deep_net.init_critic(self.shapes, rng, scale) for _ in range(2)])
+        return theta.astype(np.float32).astype(np.float64)
 
     def _train(self) -> Any:
         """The torch trainer, made on first use."""
@@ -250,11 +256,18 @@ class DeepWFNN(WFNN):
             self._sync()
         self.resets += 1
 
-    def training_state(self) -> dict[str, FloatArray]:
-        """Weights of both critics, their targets and Adam's state, to save with a checkpoint."""
+    def training_state(self) -> dict[str, NDArray[Any]]:
+        """Weights of both critics, their targets and Adam's state, to save with a checkpoint.
+
+        And the largest reward met, which sizes the divergence threshold (`rewarded`): without
+        it, a learner resumed on a task of large rewards judged its own healthy weights diverged.
+        """
+        state: dict[str, NDArray[Any]]
         if self._trainer is None:
-            return {"theta": self._theta0.astype(np.float32), "target": self._theta0.astype(np.float32)}
-        return dict(self._trainer.state())
+            state = {"theta": self._theta0.astype(np.float32), "target": self._theta0.astype(np.float32)}
+        else:
+            state = dict(self._trainer.state())
+        return {**state, "reward_scale": np.asarray(self._reward_scale, dtype=np.float64)}
 
     def load_training_state(self, state: dict[str, Any]) -> None:
         """Resume from `training_state`'s arrays; ValueError if they do not fit this config.
@@ -281,6 +294,9 @@ class DeepWFNN(WFNN):
             raise ValueError("training state has part of Adam's state")
         if "adam_v" in arrays and (arrays["adam_v"] < 0).any():
             raise ValueError("training state adam_v has negative entries")
+        scale = np.asarray(state.get("reward_scale", 0.0))  # absent from checkpoints made before it
+        if scale.dtype.kind not in "fiu" or scale.shape != () or not 0.0 <= float(scale) <= MAX_REWARD:
+            raise ValueError(f"training state reward_scale is not a reward's size: {str(scale)[:40]!r}")
         if "adam_step" in state:
             step = np.asarray(state["adam_step"])
             if (
@@ -297,6 +313,7 @@ class DeepWFNN(WFNN):
         self._theta0 = np.asarray(state["theta"], dtype=np.float64)
         self._train().load(state)
         self._sync()
+        self.rewarded([float(scale)])
 
     # ------------------------------------------------------------------ views
     def greedy_values(self, state: Any) -> FloatArray:

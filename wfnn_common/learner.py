@@ -130,7 +130,7 @@ class WFNN:
             config.exploration, population, config.action_dim, np.random.default_rng(seeds[2])
         )
         self.monitor = DivergenceMonitor(population, config.divergence_threshold, config.divergence_patience)
-        self._limit = 1.0 + 2.0 * config.valid_margin
+        self._limit = config.sanity_limit
         self._last_valid = np.zeros((population, config.state_dim))
         self.resets = np.zeros(population, dtype=np.int64)
         """Divergence resets per learner."""
@@ -203,7 +203,7 @@ class WFNN:
         single = s.ndim == 1
         if single and self.population == 1 and s.shape[0] == cfg.state_dim:
             return self._act_one(s, explore, params or self.params)
-        if s.shape[-1] != cfg.state_dim or s.size != self.population * cfg.state_dim:
+        if s.ndim == 0 or s.shape[-1] != cfg.state_dim or s.size != self.population * cfg.state_dim:
             raise ValueError(
                 f"expected state shape [{cfg.state_dim}] or [{self.population}, {cfg.state_dim}], "
                 f"got {s.shape}"

@@ -60,7 +60,7 @@ class SurfaceGrid:
         self.config, self.dims = config, tuple(dims)
         self.states = Scaler(config.state_low, config.state_high)
         self.actions = Scaler(config.action_low, config.action_high)
-        self.limit = 1.0 + 2.0 * config.valid_margin
+        self.limit = config.sanity_limit
         grid = np.linspace(-1.0, 1.0, points)
         mesh = np.meshgrid(*([grid] * len(dims)), indexing="xy")
         self.shape = mesh[0].shape

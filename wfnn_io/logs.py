@@ -544,13 +544,15 @@ def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
 
 
 def merged(
-    directories: Iterable[Path], key: bytes | None = None, spec: str = "", counts: ReadCounts | None = None
-) -> Iterator[ExperienceBatch]:
+    directories: Iterable[Path], key: bytes | None = None, spec: str = "", counts: ReadCounts | None = None,
+    dims: tuple[int, int] | None = None,
+) -> Iterator[ExperienceBatch]:  # fmt: skip
     """The batches of several logs, each client's experiences once (the first copy of each number).
 
     Logs of the same client (its journal and a server's store, say) overlap: what one has already
-    given is trimmed from the others. Batches of a learner spec other than `spec` (without one:
-    the first batch's) are refused. What reading skips is counted in `counts`.
+    given is trimmed from the others. Batches of a learner spec other than `spec`, or whose state
+    and action widths are not `dims` (without them: the first batch's), are refused: a LogFormatError,
+    as a spec fixes its widths. What reading skips is counted in `counts`.
     """
     through: dict[str, set[int]] = {}
     for directory in directories:
@@ -559,6 +561,14 @@ def merged(
             if batch.spec_hash != spec:
                 raise LogFormatError(
                     f"{directory}: experiences of learner spec {batch.spec_hash}, not {spec}"
+                )
+            widths = (batch.state.shape[1], batch.action.shape[1])
+            dims = dims or widths
+            if widths != dims:
+                raise LogFormatError(
+                    f"{directory}: experiences {batch.first_seq}-{batch.last_seq} of client {batch.client!r} "
+                    f"have {widths[0]} state and {widths[1]} action variables; their learner spec has "
+                    f"{dims[0]} and {dims[1]}"
                 )
             seen = through.setdefault(batch.client, set())
             keep = np.array([s not in seen for s in range(batch.first_seq, batch.last_seq + 1)])
@@ -577,7 +587,13 @@ def merged(
 def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
     check_outside(out, sources)
-    return write_log(out, merged(sources, key), common_config(sources))
+    config = common_config(sources)
+    return write_log(out, merged(sources, key, dims=_dims(config)), config)
+
+
+def _dims(config: LearnerConfig | None) -> tuple[int, int] | None:
+    """A config's state and action widths (None without a config)."""
+    return None if config is None else (config.state_dim, config.action_dim)
 
 
 def split(
@@ -630,7 +646,7 @@ def _directory_name(label: str, taken: set[str]) -> str:
 
 def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     """The experiences of logs (merged) as flat numpy arrays [N, ...] with their numbering."""
-    batches = list(merged(sources, key))
+    batches = list(merged(sources, key, dims=_dims(common_config(sources))))
     if not batches:
         raise LogFormatError(f"no experiences in {', '.join(map(str, sources))}")
     clients = sorted({b.client for b in batches})

@@ -316,8 +316,11 @@ def save_weights(
 
     `training`: the learner's training state beyond the weights (the deep learner's critics,
     targets and optimiser), kept as `train/<name>` arrays. With `keep_previous`, the file
-    replaced is kept there (see `atomic_savez`).
+    replaced is kept there (see `atomic_savez`). PersistError where the weights are not finite:
+    `load_weights` would refuse the file, so none is written (the one there, if any, is kept).
     """
+    if not np.isfinite(params.flat).all():
+        raise PersistError(f"{path}: weights that are not finite are not saved")
     atomic_savez(
         path,
         {

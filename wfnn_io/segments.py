@@ -408,6 +408,11 @@ class SegmentLog:
         """Hand appended records to the OS (readers in this process see them)."""
         self._file.flush()
 
+    @property
+    def dirty(self) -> bool:
+        """Whether appended records wait for `sync`."""
+        return self._dirty
+
     def due(self) -> bool:
         """Whether unsynced records wait and the interval policy says to sync now."""
         return self._dirty and (

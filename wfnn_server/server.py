@@ -85,6 +85,9 @@ THINK_CALL_S = 0.1
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 MAX_LISTED = 256
+LOSS_LOG_S = 10.0
+"""Shortest interval between two logged loss declarations of one client: without a key, anyone
+can send them as fast as frames go (each is counted in `ingest/declared_lost` all the same)."""
 """Clients whose experience numbers a snapshot or status lists: the most recently heard. Every
 client the store ever held would outgrow the frames a robot accepts (and the status's limit)
 on a long-lived server, or under forged ids; a client missing from one is heard again at its
@@ -195,6 +198,8 @@ class ThinkServer:
         self._threads: list[threading.Thread] = []
         self._latest_frame: bytes | None = None
         self._spec_warned: set[str] = set()
+        self._loss_logged: dict[str, float] = {}
+        """When each client's last declared loss was logged (one line per client per LOSS_LOG_S)."""
         self._heard: dict[str, float] = {}
         """Per client: when its heartbeat (status) last arrived (monotonic); at most MAX_HEARD."""
         self._recent: dict[str, float] = {}
@@ -350,8 +355,10 @@ class ThinkServer:
                 f"the logs were recorded for learner spec {described.spec_hash()}, this server's is {spec}"
             )
         spec = spec or (described.spec_hash() if described is not None else "")
+        config = known or described
+        dims = (config.state_dim, config.action_dim) if config is not None else None
         counts = ReadCounts()
-        offered = sum(len(b) for b in merged(directories, self._key, spec, counts))
+        offered = sum(len(b) for b in merged(directories, self._key, spec, counts, dims))
         if counts.damage:
             log.warning("the logs hold %d damaged spans (%d bytes), skipped", len(counts.damage),
                         counts.report.skipped_bytes)  # fmt: skip
@@ -364,7 +371,7 @@ class ThinkServer:
                 )
             log.warning("records refused while reading the logs: %s", reasons)
         imported = 0
-        for batch in merged(directories, self._key, spec):
+        for batch in merged(directories, self._key, spec, dims=dims):
             for admitted in self.store.parts(mark_non_finite(batch)[0], allow_gap=True):
                 if admitted.new is None:
                     continue
@@ -423,8 +430,9 @@ class ThinkServer:
         done_through = dict(self.store.stored_through)  # before the load: what it surely holds
         spec = cfg.spec_hash()
         for batch in self.store.batches():
-            if batch.spec_hash != spec:
-                # Stored under a config adopted before that made no learner (another task):
+            if not _fits(batch, cfg, spec):
+                # Stored under a config adopted before that made no learner (another task), or
+                # of widths its spec does not have (imported before logs were checked for them):
                 # kept, as acknowledged, but not for this learner.
                 other_spec += len(batch)
                 continue
@@ -638,20 +646,21 @@ class ThinkServer:
         self._wake.set()
 
     def _declared_lost(self, batch: ExperienceBatch, lost: int) -> None:
-        if lost:
-            self.counters["ingest/declared_lost"] += lost
-            log.warning("client %s declares %d experiences before %d lost (its journal lacks them)",
-                        batch.client, lost, batch.first_seq)  # fmt: skip
+        if not lost:
+            return
+        self.counters["ingest/declared_lost"] += lost
+        now, last = time.monotonic(), self._loss_logged.get(batch.client)
+        if len(self._loss_logged) >= MAX_LISTED if last is None else now - last < LOSS_LOG_S:
+            return
+        self._loss_logged[batch.client] = now
+        log.warning("client %s declares %d experiences before %d lost (its journal lacks them)",
+                    batch.client, lost, batch.first_seq)  # fmt: skip
 
     def _check_spec(self, batch: ExperienceBatch) -> None:
         cfg = self.learner_config or self._pending_config
         if cfg is None:
             raise _NoConfig("no learner config yet (waiting for a client status or --learner-config)")
-        if (
-            batch.spec_hash != cfg.spec_hash()
-            or batch.state.shape[1] != cfg.state_dim
-            or (batch.action.shape[1] != cfg.action_dim)
-        ):
+        if not _fits(batch, cfg, cfg.spec_hash()):
             if batch.client not in self._spec_warned and len(self._spec_warned) < MAX_LISTED:
                 self._spec_warned.add(batch.client)  # once per client, and not for every forged id
                 log.error(
@@ -788,18 +797,19 @@ class ThinkServer:
         self.view.latest_state = {**others, batch.client: batch.next_state[keep][-1].copy()}
         monitor = learner.monitor
         for v in values:
-            if not monitor.observe(np.array([v]))[0]:
-                continue
-            learner.reset_weights(np.ones(1, dtype=np.bool_))
-            n = int(learner.buffer.count[0])
-            relearn = min(learner.config.thinks_per_action * n, self.config.recovery_thinks_max)
-            self.schedule.recover(int(learner.thinks[0]), relearn)
-            log.warning(
-                "divergence: chosen-action values above %.2f for %d experiences; weights reset, "
-                "relearning from %d stored experiences", monitor.threshold, monitor.patience, n,
-            )  # fmt: skip
-            self.publish()  # followers learn of it at once and may fail over
-            break
+            if monitor.observe(np.array([v]))[0]:
+                self._reset_diverged(learner, f"chosen-action values above {monitor.threshold:.2f} for "
+                                              f"{monitor.patience} experiences")  # fmt: skip
+                break
+
+    def _reset_diverged(self, learner: Learner, why: str) -> None:
+        """Fresh weights after a divergence, relearnt from the stored experiences; followers told."""
+        learner.reset_weights(np.ones(1, dtype=np.bool_))
+        n = int(learner.buffer.count[0])
+        relearn = min(learner.config.thinks_per_action * n, self.config.recovery_thinks_max)
+        self.schedule.recover(int(learner.thinks[0]), relearn)
+        log.warning("divergence: %s; weights reset, relearning from %d stored experiences", why, n)
+        self.publish()  # followers learn of it at once and may fail over
 
     def _think(self, learner: Learner) -> bool:
         """Think at most think_batch times, and for about THINK_CALL_S at most.
@@ -819,6 +829,10 @@ class ThinkServer:
             t0 = time.monotonic()
             learner.think(n)
             took = (time.monotonic() - t0) / n
+            if not np.isfinite(learner.params.flat).all():
+                # Such weights never recover, and thinking on stored experiences alone (continuous,
+                # or relearning) brings no new states for the values' monitor to catch them by.
+                self._reset_diverged(learner, "the weights are no longer finite")
             lately = self._seconds_per_think
             self._seconds_per_think = took if lately is None else 0.8 * lately + 0.2 * took
         return n > 0
@@ -989,6 +1003,15 @@ class ThinkServer:
             meta["thinks"],
             self.store.count,
         )
+
+
+def _fits(batch: ExperienceBatch, config: LearnerConfig, spec: str) -> bool:
+    """Whether a batch is of the config's learner spec (`spec`, its hash), with the widths it fixes."""
+    return (
+        batch.spec_hash == spec
+        and batch.state.shape[1] == config.state_dim
+        and batch.action.shape[1] == config.action_dim
+    )
 
 
 class _NoConfig(ProtocolError):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -23,7 +24,14 @@ class ServerProcess(_ServerProcess):
 def client(*args: str) -> subprocess.Popen[str]:
     """Start `wfnn-client` for the controller `it` with `args`."""
     cmd = [str(BIN / "wfnn-client"), "--controller", "it", *args]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=ENV, text=True)
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=ENV, text=True,
+                            preexec_fn=_interruptible)  # fmt: skip
+
+
+def _interruptible() -> None:
+    """SIGINT as in a terminal: a test run started in the background (&) inherits it ignored, and
+    a child would then ignore the Ctrl-C a test sends it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def finish(proc: subprocess.Popen[str], timeout: float = 300) -> str:

@@ -1,5 +1,6 @@
 """Nothing acknowledged is lost and reading never destroys: logs, stores and a server's data directory."""
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -106,6 +107,37 @@ def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_expe
         assert server.store.durable_through == {"c1": first - 1}  # the acks stop before the hole
     finally:
         server.store.close()
+
+
+def _widened(b):
+    """A batch of its spec with two state variables more than the spec has."""
+    wide = np.concatenate([b.state, b.state[:, :2]], axis=1)
+    return dataclasses.replace(b, state=wide, next_state=wide.copy())
+
+
+def test_a_log_whose_batches_do_not_have_their_specs_widths_is_refused_before_anything_is_stored(tmp_path):
+    cfg = small_config(thinks_per_action=1)
+    j = Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg)
+    for i in range(4):
+        b = batch(cfg, i * 10, 10)
+        j.append(Codec("c1").encode(_widened(b) if i == 2 else b), b.last_seq)
+    j.close()
+    before = files(tmp_path / "j")
+    with pytest.raises(LogFormatError, match=r"experiences 20-29 of client 'c1' have 5 state .* has 3 and 2"):
+        make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j",), replay_only=True)
+    assert files(tmp_path / "j") == before
+    assert logs.summarise(tmp_path / "s1" / "store").experiences == 0
+    with pytest.raises(LogFormatError, match="5 state"):
+        logs.export([tmp_path / "j"], tmp_path / "out.npz")
+    # A store that took such a batch before logs were checked for it still opens: kept, not learned.
+    server = make_server(tmp_path, Hub(), cfg, server_id="s2")
+    server.store.append(_widened(batch(cfg, 0, 10, client="c2")))
+    server.store.close()
+    again = make_server(tmp_path, Hub(), cfg, server_id="s2")
+    try:
+        assert again.counters["store/other_spec"] == 10 and int(again.learner.buffer.count[0]) == 0
+    finally:
+        again.store.close()
 
 
 # --------------------------------------------------------------------------- only the owner repairs
@@ -490,7 +522,7 @@ def test_every_bit_flipped_in_a_checkpoints_directory_is_refused_or_loads_what_w
     path = tmp_path / "checkpoint.npz"
     save_weights(path, cfg, learner.params, {"thinks": 3}, training=learner.training_state())
     saved, original = checkpoint_content(path), path.read_bytes()
-    assert saved[3].keys() == {"theta", "target"}
+    assert saved[3].keys() == {"theta", "target", "reward_scale"}
     directory = struct.unpack_from("<I", original, original.rindex(b"PK\x05\x06") + 16)[0]
     loaded = refused = 0
     for i in range(directory, len(original)):

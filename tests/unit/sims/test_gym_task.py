@@ -198,6 +198,49 @@ def test_a_tasks_non_finite_rewards_are_counted_apart_from_the_episodes_score(tm
     assert metrics["metric_not_finite"] == 10
 
 
+class _Rewarding(_Spaces):
+    reward = 1e308
+
+    def step(self, action):
+        self.t += 1
+        return self._obs(), self.reward, False, False, {}
+
+
+def test_finite_rewards_that_sum_past_float64s_range_are_counted_apart_too(tmp_path):
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+
+    gym.register("WfnnTestHugeReward-v0", entry_point=_Rewarding, max_episode_steps=20)
+    config = ClientConfig(sim="gym", env="WfnnTestHugeReward-v0", rate_hz=0, episodes=1, out=tmp_path / "r")
+    metrics = run(config)
+    assert metrics["scores"] == [1e308 / 20]
+    assert metrics["metric_not_finite"] == 19  # each step past the first
+
+
+def test_a_greedy_run_of_saved_weights_sizes_its_divergence_threshold_by_the_rewards_it_meets(tmp_path):
+    """Not learning, the robot still meets the rewards that say how large healthy values are."""
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+    from wfnn_common.deep_net import DeepShapes
+    from wfnn_common.learners import weights_from_flat
+    from wfnn_io.persist import load_weights, save_weights
+
+    rich = type("Rich", (_Rewarding,), {"reward": 1e4})
+    gym.register("WfnnTestRich-v0", entry_point=rich, max_episode_steps=120)
+    options = '{"deep": {"hidden": [8], "value_hidden": 4, "warmup": 0}, "batch_size": 8}'
+    common = {"sim": "gym", "env": "WfnnTestRich-v0", "rate_hz": 0, "lockstep": True, "episodes": 1,
+              "learner": "deep", "learner_options": options}  # fmt: skip
+    run(ClientConfig(**common, thinks_per_action=0, out=tmp_path / "a"))
+    cfg, params, meta = load_weights(tmp_path / "a" / "weights.npz")
+    a, b, _ = DeepShapes.of(cfg).slices()["bo"]
+    flat = params.flat.copy()
+    flat[0, a:b] = 1e5  # values a task paying 1e4 a step reaches, far above the config's 1e4
+    save_weights(tmp_path / "a" / "weights.npz", cfg, weights_from_flat(cfg, flat), meta)
+    saved = tmp_path / "a" / "weights.npz"
+    metrics = run(ClientConfig(**common, learn=False, weights=saved, out=tmp_path / "b"))
+    assert metrics["learn/divergence_resets"] == 0 and metrics["client/q_mean"] > 9e4
+
+
 class _MisShaped(gym.Env):
     """An env whose observation grows from 3 to 5 numbers at its fifth step."""
 

@@ -20,7 +20,7 @@ def test_a_mix_is_parsed_with_shares_and_bad_ones_are_named():
     assert parse_mix("weights:runs/a=b/weights.npz=2") == (PolicyShare("weights:runs/a=b/weights.npz", 2.0),)
     for text, message in (("pid", "unknown behaviour policy"), ("wfnn=x", "must be a number"),
                           ("wfnn=0", "must be > 0"), ("", "empty"), ("random,random=2", "twice"),
-                          ("weights:", "unknown")):  # fmt: skip
+                          ("weights:", "unknown"), ("wfnn=1e308,random=1e308", "sum beyond")):  # fmt: skip
         with pytest.raises(ValueError, match=message):
             parse_mix(text)
     assert source_name("weights:/tmp/x/w.npz") == "weights:w.npz" and source_name("random") == "random"
@@ -145,11 +145,17 @@ def test_a_signal_while_the_run_stops_ends_it_as_that_signal_with_the_journal_cl
 
     monkeypatch.setattr(LocalBrain, "stop", stop_under_a_signal)
     out = tmp_path / "run"
-    with pytest.raises(Terminated if signum == "SIGTERM" else KeyboardInterrupt):
-        run(ClientConfig(sim="boat", rate_hz=0, episodes=1, out=out))
+    # Python's own SIGINT handler, as in a terminal: a test run started in the background (&)
+    # inherits SIGINT ignored, which the run rightly leaves ignored.
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(Terminated if signum == "SIGTERM" else KeyboardInterrupt):
+            run(ClientConfig(sim="boat", rate_hz=0, episodes=1, out=out))
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers as they were
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     segments.check_free(out / "journal")  # closed: no writer holds it
     assert logs.summarise(out / "journal").experiences > 0
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers as they were
 
 
 def test_an_ignored_sigint_stays_ignored_while_the_run_stops(tmp_path, monkeypatch):

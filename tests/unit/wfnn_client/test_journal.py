@@ -47,3 +47,25 @@ def test_a_record_damaged_after_it_was_indexed_is_no_longer_held(tmp_path):
     frames, last = journal.frames_from(5, 10)  # from the gap: the readable batches after it
     assert [Codec("c1").decode(f, ExperienceBatch)[1].first_seq for f in frames] == [10, 15] and last == 19
     journal.close()
+
+
+def test_a_journal_whose_records_end_near_the_last_number_is_refused_before_it_takes_more(tmp_path):
+    """Batches numbered past MAX_SEQ would be written where no reader accepts them."""
+    import pytest
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import ROOM, Journal
+    from wfnn_io.protocol import MAX_SEQ
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    b = batch(cfg, MAX_SEQ - ROOM - 10, 10)  # continues ROOM below the last number: still taken
+    journal.append(Codec("c1").encode(b), b.last_seq)
+    journal.close()
+    Journal(tmp_path / "j").close()
+    journal = Journal(tmp_path / "j")
+    b = batch(cfg, MAX_SEQ - ROOM, 1)
+    journal.append(Codec("c1").encode(b), b.last_seq)
+    journal.close()
+    with pytest.raises(ValueError, match="too near the last number"):
+        Journal(tmp_path / "j")

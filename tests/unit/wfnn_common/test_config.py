@@ -31,6 +31,8 @@ def test_thesis_defaults():
     [
         ({"gamma": 1.0}, "gamma"),
         ({"advantage_k": 0.0}, "advantage_k"),
+        # Below float32's smallest normal number, 1 / k made the first minibatch update's weights NaN.
+        ({"advantage_k": 1e-39}, "advantage_k"),
         ({"n_wires": 0}, "n_wires"),
         ({"state_low": (1.0, 0.0, 0.0)}, "state range"),
         ({"action_high": (1.0,)}, "action_low/high"),
@@ -38,6 +40,8 @@ def test_thesis_defaults():
         # Ranges scaling divides by: a half-width that underflows, or a width beyond float64.
         ({"state_low": (0.0, 0.0), "state_high": (5e-324, 1.0)}, "too narrow or too wide"),
         ({"action_low": (-1e308,), "action_high": (1e308,)}, "too narrow or too wide"),
+        # A finite width whose midpoint overflows: every state was judged invalid, silently.
+        ({"state_low": (1e308, 0.0), "state_high": (1.7e308, 1.0)}, "too narrow or too wide"),
         ({"divergence_threshold": float("nan")}, "divergence_threshold"),
         ({"valid_margin": 1e300}, "valid_margin"),
         # The thesis' network travels in one snapshot too, and its minibatch update is bounded.

@@ -67,6 +67,27 @@ def test_invalid_states_are_acted_on_but_never_learned():
     np.testing.assert_allclose(a_bad, learner.act(np.array([0.1, -0.2, 0.3]), explore=False).action)
 
 
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_states_on_their_declared_bounds_are_valid_with_no_margin(learner):
+    """Scaling can round a bound to 1 plus an ulp: with valid_margin 0 that was refused."""
+    lo, hi = -4.604265724722594, -2.0594087286058795  # hi scales to 1.0000000000000002
+    cfg = small_config(1, 1, learner=learner, state_low=(lo,), state_high=(hi,), valid_margin=0.0)
+    model = make_learner(cfg)
+    for s in (lo, hi):
+        assert model.act(np.array([s]), explore=False).valid and model.learn([s], [0.0], [s], -1.0)
+    outside = hi + 1e-12
+    assert not model.act(np.array([outside]), explore=False).valid
+    assert not model.learn([outside], [0.0], [hi], -1.0)
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_state_of_the_wrong_shape_is_a_clear_error(learner):
+    model = make_learner(small_config(state_dim=1, action_dim=1, learner=learner))
+    for state in (0.5, np.float32(0.5), np.array(0.5), np.zeros(2), np.zeros((2, 1))):
+        with pytest.raises(ValueError, match="expected state shape"):
+            model.act(state)
+
+
 def test_actions_outside_the_range_are_learned_clipped():
     learner = WFNN(small_config())
     learner.learn(np.zeros(3), [5.0, -5.0], np.zeros(3), -0.1)
@@ -164,6 +185,19 @@ def test_replay_buffer_is_a_bounded_ring_per_learner():
     buf.add(one, np.array([False, True]))  # one experience per learner; learner 0 skips
     assert buf.count.tolist() == [5, 1]
     np.testing.assert_allclose(buf.contents(1).reward, one.reward[1:])
+
+
+def test_weights_that_are_not_finite_are_never_saved(tmp_path):
+    """Every reader refuses such a file: it is not written, and the one there is kept."""
+    cfg = small_config()
+    learner = WFNN(cfg)
+    save_weights(tmp_path / "w.npz", cfg, learner.params)
+    kept = (tmp_path / "w.npz").read_bytes()
+    learner.params.flat[0, 5] = np.inf
+    with pytest.raises(PersistError, match="not finite"):
+        save_weights(tmp_path / "w.npz", cfg, learner.params)
+    assert (tmp_path / "w.npz").read_bytes() == kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["w.npz"]
 
 
 def test_weights_and_experiences_roundtrip(tmp_path):

@@ -17,7 +17,7 @@ from wfnn_io.protocol import (
     WeightSnapshot,
 )
 from wfnn_server.config import ServerConfig
-from wfnn_server.server import ThinkServer
+from wfnn_server.server import CHECKPOINT, ThinkServer
 
 KEYS = Keys("t")
 
@@ -323,6 +323,32 @@ def test_divergence_resets_and_flags_snapshots(tmp_path, learner):
         )
 
 
+def test_weights_gone_non_finite_while_thinking_on_stored_experiences_are_reset(tmp_path, monkeypatch):
+    """No new states arrive for the values' monitor: the weights themselves are checked."""
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import load_weights
+
+    original, poisoned = WFNN.think, []
+
+    def think(self, n=None):
+        stats = original(self, n)
+        if not poisoned:  # as an update that overflows would leave them
+            poisoned.append(True)
+            self.params.flat[:] = np.nan
+        return stats
+
+    monkeypatch.setattr(WFNN, "think", think)
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, think="continuous") as server:
+        send(hub, batch(cfg, 0, 10))
+        assert listener.wait(lambda: server.learner.resets[0] == 1)
+        assert listener.wait(lambda: any(s.diverged for s in listener.snapshots))
+        assert listener.wait(lambda: listener.snapshots[-1].thinks > 20)
+    assert all(np.isfinite(s.params).all() for s in listener.snapshots if s.thinks > 1)
+    assert np.isfinite(load_weights(tmp_path / "s1" / CHECKPOINT)[1].flat).all()
+
+
 @pytest.mark.parametrize(
     "bad",
     [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}, {"bc_weight": -1}, {"alpha": 0}],
@@ -623,6 +649,24 @@ def test_a_loss_declared_beyond_what_the_client_announced_is_refused(tmp_path):
         assert listener.wait(lambda: listener.acked() == 19)
         assert server.store.stored_through["c1"] == 19 and server.store.lost["c1"] == 2
         assert server.store.count == 18
+
+
+def test_declared_losses_are_counted_each_and_logged_once_per_client_in_a_while(tmp_path, caplog):
+    """Without a key anyone can declare losses as fast as frames go: the log is not theirs to fill."""
+    from wfnn_io.protocol import EXP_AFTER_LOSS
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with caplog.at_level(logging.WARNING, "wfnn_server.server"), make_server(tmp_path, hub, cfg) as server:
+        announce(hub, cfg, produced_through=999)
+        send(hub, batch(cfg, 0, 5))
+        assert listener.wait(lambda: listener.acked() == 4)
+        for first in range(7, 100, 3):  # each declares the two before it lost
+            declared = batch(cfg, first, 1)
+            declared.flags[:] = EXP_AFTER_LOSS
+            send(hub, declared)
+        assert listener.wait(lambda: server.counters["ingest/declared_lost"] == 2 * 31)
+    assert len([r for r in caplog.records if "declares" in r.getMessage()]) == 1
 
 
 def test_relearning_after_a_divergence_reset_goes_on_after_a_restart(tmp_path):

@@ -391,6 +391,17 @@ def test_a_declared_loss_that_brings_nothing_new_gives_up_the_holes_before_it(tm
     store.close()
 
 
+def test_a_declared_loss_that_appends_nothing_is_due_at_once_under_the_interval_policy(tmp_path, clock):
+    """No record waits to make it due: the client's acks stayed before the hole until another came."""
+    store_with_hole(tmp_path).close()
+    again = ExperienceStore(tmp_path, "srv1", fsync="interval", fsync_interval_s=0.5)
+    assert again.declare_lost(declared(batch(25, 3))) == 10
+    assert again.due() and again.sync() == {"robot1": 29}
+    store_all(again, batch(30, 1))
+    assert not again.due()  # an appended record waits for the interval as before
+    again.close()
+
+
 def test_a_declared_loss_past_the_run_gives_up_the_holes_and_the_gap_until_reopened(tmp_path):
     store = store_with_hole(tmp_path)
     admitted = store.admit(declared(batch(35, 5)))
