@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any, TypeGuard, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
 from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text
@@ -411,6 +412,7 @@ class Summary:
     """Experiences per EXP_* flag name."""
     terminal: int = 0
     reward_mean: float = float("nan")
+    """Mean of the finite rewards (NaN where there are none); those that are not are flagged."""
     refused: Counter[str] = field(default_factory=Counter)
     """Intact records whose frame was refused, by reason."""
     damage: list[Damage] = field(default_factory=list)
@@ -438,11 +440,20 @@ class Summary:
         }  # fmt: skip
 
 
+def _mean(values: NDArray[np.float64], weights: NDArray[np.float64] | None = None) -> float:
+    """The (weighted) mean of finite values, without overflowing where they are near float64's largest."""
+    scale = float(np.abs(values).max()) or 1.0
+    scaled = values / scale
+    return scale * float(np.mean(scaled) if weights is None else np.sum(scaled * weights))
+
+
 def summarise(directory: Path, key: bytes | None = None) -> Summary:
     """Count a log's experiences per client, behaviour policy and flag; find gaps and duplicates."""
     out = Summary()
     counts = ReadCounts()
-    reward_sum = 0.0
+    means: list[tuple[int, float]] = []
+    """(finite rewards, their mean) per batch: summed as they came, rewards near float64's largest
+    overflowed, and one NaN (recorded, flagged, never learned) made the whole mean NaN."""
     for batch in read_batches(directory, key, counts):
         n = len(batch)
         out.batches += 1
@@ -453,9 +464,13 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
         for bit, name in FLAG_NAMES.items():
             out.flags[name] += int(np.count_nonzero(batch.flags & bit))
         out.terminal += int(np.count_nonzero(batch.terminal))
-        reward_sum += float(batch.reward.sum())
+        finite = batch.reward[np.isfinite(batch.reward)]
+        if finite.size:
+            means.append((finite.size, _mean(finite)))
     out.refused, out.damage = counts.refused, counts.damage
-    out.reward_mean = reward_sum / out.experiences if out.experiences else float("nan")
+    total = sum(n for n, _ in means)
+    if total:  # weights that sum to 1: no partial sum beyond the largest term
+        out.reward_mean = _mean(np.array([m for _, m in means]), np.array([n / total for n, _ in means]))
     try:
         config = log_config(directory)
     except LogFormatError as exc:  # the experiences are still there: say so, read on

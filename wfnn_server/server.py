@@ -248,6 +248,8 @@ class ThinkServer:
             raise LogFormatError(
                 "replay-only: no learner config (give --learner-config, or logs whose log.json records one)"
             )
+        if config.replay_only and self.store.count == 0:  # else it saved untrained weights, and exited 0
+            raise LogFormatError("replay-only: the logs hold no readable experience, nor does the store")
         if cfg is not None:
             self._start_learner(cfg)
 

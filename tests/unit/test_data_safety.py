@@ -109,6 +109,15 @@ def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_expe
         server.store.close()
 
 
+def test_replay_only_of_logs_with_nothing_readable_is_refused_writing_nothing(tmp_path):
+    """It saved a checkpoint of untrained weights and ended as if it had learned."""
+    cfg = small_config(thinks_per_action=1)
+    Journal(tmp_path / "j", "c1", fsync="never", learner_config=cfg).close()
+    with pytest.raises(LogFormatError, match="no readable experience"):
+        make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j",), replay_only=True)
+    assert sorted(p.name for p in (tmp_path / "s1").iterdir()) == ["store"]
+
+
 def _widened(b):
     """A batch of its spec with two state variables more than the spec has."""
     wide = np.concatenate([b.state, b.state[:, :2]], axis=1)

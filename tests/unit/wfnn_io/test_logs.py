@@ -243,6 +243,20 @@ def test_inspect_json_of_a_log_with_no_readable_experience_is_strict_json(tmp_pa
     assert summary["experiences"] == 0 and summary["reward_mean"] is None
 
 
+def test_the_mean_reward_is_of_the_finite_rewards_and_does_not_overflow(tmp_path, recwarn):
+    """One NaN reward (recorded and flagged, never learned) made the whole mean NaN; rewards near
+    float64's largest overflowed the sum."""
+    config = LearnerConfig.for_task(BoatVec)
+    recorder = Recorder(tmp_path / "log", config, "robot1", batch_max=4)
+    z = np.zeros(config.state_dim)
+    for r in (1e308, 1e308, np.nan, 1e308, -np.inf, 1e308, 1e308):
+        recorder.add(Experience(z, np.zeros(config.action_dim), z, r, False, 0), "local", 0)
+    recorder.close()
+    summary = logs.summarise(tmp_path / "log")
+    assert summary.experiences == 7 and summary.reward_mean == pytest.approx(1e308)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
 @pytest.mark.parametrize(
     ("runs", "gaps", "duplicates"),
     [
