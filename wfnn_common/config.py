@@ -233,6 +233,10 @@ MIN_ADVANTAGE_K = 1e-3
 minibatch updates run in float32, where a k below its smallest normal number (1.2e-38) made the
 first update's weights NaN; 1e-3 costs three of the eight orders of magnitude that MAX_REWARD
 leaves below float32's largest number."""
+MIN_EPS = 1e-20
+"""Smallest wire-fitting epsilon: the float32 updates divide by it (1 / eps bounds a wire's weight),
+and an eps that float32 rounds to 0 made the first update's weights NaN where an action lay on a
+wire; 1e-20 leaves the weights times the values far below float32's largest number."""
 MAX_SEED = (1 << 62) - 1
 """Largest seed: numpy and torch take it, and benchmarks add a seed number to it."""
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
@@ -353,7 +357,7 @@ class LearnerConfig:
             (MIN_ADVANTAGE_K <= self.advantage_k <= 1.0, f"advantage_k must be in [{MIN_ADVANTAGE_K:g}, 1]"),
             (0.0 < self.alpha <= 10.0, "alpha must be in (0, 10]"),
             (0.0 <= self.smoothing_c <= 1e3, "smoothing_c must be in [0, 1000]"),
-            (0.0 < self.eps <= 1.0, "eps must be in (0, 1]"),
+            (MIN_EPS <= self.eps <= 1.0, f"eps must be in [{MIN_EPS:g}, 1]"),
             (0.0 <= self.bc_weight <= 1.0, "bc_weight must be in [0, 1] (a fraction of the difference)"),
             (0 <= self.thinks_per_action <= MAX_THINKS, f"thinks_per_action must be in [0, {MAX_THINKS}]"),
             (1 <= self.batch_size <= MAX_BATCH, f"batch_size must be in [1, {MAX_BATCH}]"),
@@ -443,11 +447,16 @@ class LearnerConfig:
 
     @property
     def sanity_limit(self) -> float:
-        """Largest |scaled state| that is valid: 1 + 2 valid_margin, and a few ulps.
+        """Largest |scaled state| that is valid: 1 + 2 valid_margin, and what rounding adds.
 
-        A state on its declared bound can scale to 1 plus an ulp or two by rounding.
+        A state on its declared bound scales, (s - mid) / half, to 1 plus the rounding of the
+        range's midpoint relative to its half-width: a few ulps times |mid| / half at most.
         """
-        return (1.0 + 2.0 * self.valid_margin) * (1.0 + 8.0 * float(np.finfo(np.float64).eps))
+        off_centre = max(
+            abs(0.5 * (a + b)) / (0.5 * (b - a)) for a, b in zip(self.state_low, self.state_high, strict=True)
+        )
+        limit = 1.0 + 2.0 * self.valid_margin
+        return limit + 4.0 * float(np.finfo(np.float64).eps) * (limit + off_centre)
 
     @property
     def n_outputs(self) -> int:

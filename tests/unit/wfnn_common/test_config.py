@@ -33,6 +33,7 @@ def test_thesis_defaults():
         ({"advantage_k": 0.0}, "advantage_k"),
         # Below float32's smallest normal number, 1 / k made the first minibatch update's weights NaN.
         ({"advantage_k": 1e-39}, "advantage_k"),
+        ({"eps": 1e-46}, "eps"),  # 0 in float32: a weight 1 / 0 where an action lies on a wire
         ({"n_wires": 0}, "n_wires"),
         ({"state_low": (1.0, 0.0, 0.0)}, "state range"),
         ({"action_high": (1.0,)}, "action_low/high"),

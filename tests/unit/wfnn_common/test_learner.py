@@ -69,15 +69,18 @@ def test_invalid_states_are_acted_on_but_never_learned():
 
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_states_on_their_declared_bounds_are_valid_with_no_margin(learner):
-    """Scaling can round a bound to 1 plus an ulp: with valid_margin 0 that was refused."""
-    lo, hi = -4.604265724722594, -2.0594087286058795  # hi scales to 1.0000000000000002
-    cfg = small_config(1, 1, learner=learner, state_low=(lo,), state_high=(hi,), valid_margin=0.0)
-    model = make_learner(cfg)
-    for s in (lo, hi):
-        assert model.act(np.array([s]), explore=False).valid and model.learn([s], [0.0], [s], -1.0)
-    outside = hi + 1e-12
-    assert not model.act(np.array([outside]), explore=False).valid
-    assert not model.learn([outside], [0.0], [hi], -1.0)
+    """Scaling rounds a bound to 1 plus a few ulps, more where the range lies far off centre
+    (its midpoint's rounding, relative to the half-width): with valid_margin 0 that was refused."""
+    ranges = [(-4.604265724722594, -2.0594087286058795), (5.27, 5.44), (-84.4, -79.8),
+              (132638.20679028725, 132638.20679070702)]  # fmt: skip
+    for lo, hi in ranges:
+        cfg = small_config(1, 1, learner=learner, state_low=(lo,), state_high=(hi,), valid_margin=0.0)
+        model = make_learner(cfg)
+        for s in (lo, hi):
+            assert model.act(np.array([s]), explore=False).valid and model.learn([s], [0.0], [s], -1.0)
+        outside = hi + 1e-3 * (hi - lo)
+        assert not model.act(np.array([outside]), explore=False).valid
+        assert not model.learn([outside], [0.0], [hi], -1.0)
 
 
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
