@@ -304,15 +304,18 @@ def client(
         else f"episode 1 {scores[0]:.3f} -> episode {len(scores)} {scores[-1]:.3f}"
     )
     refused = int(metrics.get("learn/rejected", 0))  # in-process: what the learner's sanity checks refused
+    # C/S: where no server took any (all of another task, say), the journal holds them all.
+    unacked = " (none acknowledged by a server)" if metrics.get("uplink/acked_through_max", 0) < 0 else ""
     console.print(
-        f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences"
+        f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences{unacked}"
         f"{f' ({refused} refused as not finite or out of range)' if refused else ''}, following "
         f"{metrics['following'] or '-'}, act p99 {metrics['client/act_latency_ms_p99']:.3f} ms, "
         f"jitter p99 {_shown(metrics['client/tick_jitter_ms_p99'], '.3f')} ms, "
         f"overruns {metrics['client/overruns']:.0f}",
         soft_wrap=True,
     )
-    saved = "weights, metrics.json and learning_curve.png"
+    # No weights where no snapshot ever came (C/S), or they were not finite.
+    saved = ("weights, " if metrics.get("weights_saved") else "") + "metrics.json and learning_curve.png"
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
     console.print(f"saved {saved} in {escape(str(out))}/", soft_wrap=True)

@@ -250,7 +250,10 @@ class Downlink:
             else:
                 view.learner_config = status.learner_config
                 warned = (status.server, status.learner_config) in self._config_warned
-                if differ and not warned and len(self._config_warned) < MAX_SERVERS:
+                # A server of another spec is no server of this client's (said once, as its
+                # snapshots are ignored): what it learns with neither applies nor is recorded.
+                ours = status.spec_hash == self.spec_hash
+                if ours and differ and not warned and len(self._config_warned) < MAX_SERVERS:
                     self._config_warned.add((status.server, status.learner_config))
                     log.warning("server %s learns with a config that is not this client's (%s): its "
                                 "own applies, and metrics.json records it",

@@ -430,6 +430,7 @@ def _run(
     brains.check()
     final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     out = Path(config.out)
+    weights_saved: list[str] = []
     for sk in skills:
         current = getattr(sk.brain, "current", None)  # C/S: the snapshot act used last
         params = sk.learner.params if config.local else (current.params if current is not None else None)
@@ -442,6 +443,7 @@ def _run(
                       sk.name or config.sim)  # fmt: skip
         elif params is not None:
             save_weights(out / f"{_named('weights', sk.name)}.npz", sk.lcfg, params, meta)
+            weights_saved.append(f"{_named('weights', sk.name)}.npz")
         if config.local and config.learn:
             save_experiences(
                 out / f"{_named('experiences', sk.name)}.npz", sk.lcfg, sk.learner.buffer.contents(0)
@@ -474,6 +476,7 @@ def _run(
         "client/startup_ticks": startup_ticks,
         "config": config_record,
         "camera_frames": camera_frames,
+        "weights_saved": weights_saved,
         **final,
     }
     if several is not None:

@@ -727,8 +727,8 @@ class ThinkServer:
         next_checkpoint = now + cfg.checkpoint_period_s
         last_status, last_thinks = now, 0
         while not self._stop.is_set():
-            if self.learner is None and self._pending_config is not None:
-                pending, self._pending_config = self._pending_config, None
+            pending = self._pending_config
+            if self.learner is None and pending is not None:
                 try:
                     self._start_learner(pending)
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
@@ -736,6 +736,10 @@ class ThinkServer:
                     self._unusable.add(pending.to_json())
                     log.error("the adopted learner config cannot make a learner (%s); waiting for another",
                               str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)  # fmt: skip
+                finally:
+                    # Only now: while the learner was built (seconds, for torch), the adopted config
+                    # kept another client's from being adopted and checked the batches that came.
+                    self._pending_config = None
             learner = self.learner
             thought = False
             if learner is not None:
@@ -768,7 +772,11 @@ class ThinkServer:
             fill = key in self._queued_fills
             self._queued_fills.discard(key)
             through = self._loaded_through.get(batch.client, -1)
-            if (key in self._loaded_fills) if fill else batch.last_seq <= through:
+            if not _fits(batch, learner.config, self.spec_hash):  # checked at ingest: never here
+                self.counters["store/other_spec"] += len(batch)
+                log.error("client %s: queued experiences of another spec than the learner's: not learned",
+                          batch.client)  # fmt: skip
+            elif (key in self._loaded_fills) if fill else batch.last_seq <= through:
                 # Stored and queued before the learner was built, which learned it from the store
                 # (its thinks in the budget then): learning the queued copy would learn it twice.
                 self._loaded_fills.discard(key)

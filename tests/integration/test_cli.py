@@ -152,6 +152,18 @@ def test_client_runs_learns_and_saves(tmp_path):
     assert load_experiences(out / "experiences.npz", cfg).reward.shape[0] == metrics["learn/experiences"]
 
 
+def test_a_client_no_server_answered_says_so_and_claims_no_weights(tmp_path):
+    """It printed "N experiences" and "saved weights" where no server took any and none came."""
+    from wfnn_server.spawn import endpoint, free_port
+
+    out = tmp_path / "run"
+    proc = run([BIN / "wfnn-client", "--sim", "positioning", "--episodes", "100", "--rate-hz", "30",
+                "--duration", "2", "--server", endpoint(free_port()), "--out", out])  # fmt: skip
+    assert "(none acknowledged by a server)" in proc.stdout and "saved metrics.json" in proc.stdout
+    assert json.loads((out / "metrics.json").read_text())["weights_saved"] == []
+    assert not (out / "weights.npz").exists()
+
+
 def test_client_hydra_with_rendered_vision_saves_camera_frames(tmp_path):
     from tests.fakes import render_problem
 

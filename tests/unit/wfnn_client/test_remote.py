@@ -308,6 +308,18 @@ def test_a_server_with_this_clients_config_is_not_warned_of(tmp_path, caplog):
     assert not [r for r in caplog.records if "not this client's" in r.getMessage()]
 
 
+def test_a_server_of_another_spec_is_not_said_to_learn_for_this_client(tmp_path, caplog):
+    """Its snapshots are ignored (said once): its config neither applies nor is recorded."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    other = small_config(state_dim=2, thinks_per_action=1)
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    announce(hub.bus(), "s9", other, started_ns=1)
+    assert wait(lambda: "s9" in brain.servers and brain.servers["s9"].learner_config != "")
+    brain.stop()
+    assert not [r for r in caplog.records if "not this client's" in r.getMessage()]
+
+
 def test_a_status_with_an_unreadable_config_is_counted_and_never_recorded(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     brain = remote(tmp_path, hub, cfg)

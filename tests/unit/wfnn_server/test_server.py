@@ -206,6 +206,37 @@ def test_experiences_stored_before_the_learner_is_built_are_learned_once(tmp_pat
         assert again.budget == 0
 
 
+def test_no_other_config_is_adopted_while_the_adopted_ones_learner_is_built(tmp_path, monkeypatch):
+    """Building takes seconds (torch): a client of another task heard meanwhile had its config
+    adopted, its experiences stored, acknowledged and handed to the learner of the first."""
+    import threading
+
+    building, release = threading.Event(), threading.Event()
+    real_start = ThinkServer._start_learner
+
+    def slow_start(self, adopted):
+        building.set()
+        release.wait(10)
+        real_start(self, adopted)
+
+    monkeypatch.setattr(ThinkServer, "_start_learner", slow_start)
+    hub = Hub()
+    cfg_a, cfg_b = small_config(3, 1, thinks_per_action=1), small_config(2, 1, thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub) as server:
+        announce(hub, cfg_a, client="A")
+        assert building.wait(10)
+        announce(hub, cfg_b, client="B")
+        send(hub, batch(cfg_b, 0, 10, client="B"), client="B")
+        send(hub, batch(cfg_a, 0, 10, client="A"), client="A")
+        assert listener.wait(lambda: listener.acked("A") == 9)
+        release.set()
+        assert listener.wait(lambda: server.learner is not None and int(server.learner.buffer.count[0]) == 10)
+        assert server.spec_hash == cfg_a.spec_hash() and server.error is None
+        assert listener.acked("B") == -1 and "B" not in server.store.stored_through
+        assert server.rejected["spec"] >= 1
+
+
 def test_experiences_of_a_config_that_made_no_learner_do_not_stop_the_next(tmp_path, monkeypatch):
     import threading
 
