@@ -772,10 +772,10 @@ class ThinkServer:
             fill = key in self._queued_fills
             self._queued_fills.discard(key)
             through = self._loaded_through.get(batch.client, -1)
-            if not _fits(batch, learner.config, self.spec_hash):  # checked at ingest: never here
-                self.counters["store/other_spec"] += len(batch)
-                log.error("client %s: queued experiences of another spec than the learner's: not learned",
-                          batch.client)  # fmt: skip
+            if not _fits(batch, learner.config, self.spec_hash):
+                # Queued for a config that made no learner: counted in store/other_spec when this
+                # learner was built from the store, which holds them.
+                pass
             elif (key in self._loaded_fills) if fill else batch.last_seq <= through:
                 # Stored and queued before the learner was built, which learned it from the store
                 # (its thinks in the budget then): learning the queued copy would learn it twice.

@@ -262,7 +262,9 @@ def test_experiences_of_a_config_that_made_no_learner_do_not_stop_the_next(tmp_p
         assert listener.wait(lambda: server.rejected["config"] == 1 and server._pending_config is None)
         announce(hub, other, client="c2")
         assert listener.wait(lambda: server.learner is not None), (server.rejected, server.counters)
+        assert listener.wait(lambda: not server._to_learn)
         assert server.counters["store/other_spec"] == 10
+        assert int(server.learner.buffer.count[0]) == 0  # the queued copies were not learned either
 
 
 def test_a_client_config_no_learner_can_be_made_from_is_refused_and_not_saved(tmp_path, monkeypatch):
