@@ -24,6 +24,7 @@ from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_population
+from wfnn_io.persist import save_figure
 
 log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
@@ -368,8 +369,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
         ax.legend(loc="upper right")
     axes[-1, 0].set_xlabel("target number")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

@@ -21,6 +21,7 @@ from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
+from wfnn_io.persist import save_figure
 
 log = logging.getLogger(__name__)
 
@@ -112,8 +113,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
         f"cart-pole, {len(result['attempt_steps'])} runs (cap {result['config']['max_attempt_steps']} steps)"
     )
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

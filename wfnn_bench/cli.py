@@ -6,6 +6,7 @@ import dataclasses
 import json
 import logging
 import math
+import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,7 +43,7 @@ from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
-from wfnn_io.cli_errors import guarded, log_printably, path_given
+from wfnn_io.cli_errors import Terminated, guarded, log_printably, path_given
 from wfnn_io.persist import to_jsonable, writable
 
 MAX_POPULATION = 100_000
@@ -62,11 +63,12 @@ PlotOpt = Annotated[
 ]
 
 
-def _logging(verbose: bool, json_path: Path | None, plot_path: Path | None) -> None:
+def _logging(verbose: bool, json_path: Path | None, plot_path: Path | None, *more: Path) -> None:
     """Set up logging, and check before any work that each output file can be written.
 
     The figure is a PNG: another suffix (matplotlib would write JPEG or PDF, or fail after the run)
-    is refused now.
+    is refused now, and so are two outputs in one file (the last written would replace the
+    other). `more`: further files the benchmark writes beside its plot.
     """
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -76,9 +78,13 @@ def _logging(verbose: bool, json_path: Path | None, plot_path: Path | None) -> N
     log_printably()
     if plot_path is not None and plot_path.suffix.lower() != ".png":
         raise ValueError(f"--plot {plot_path}: the figure is a PNG; name a .png file")
-    for path in (json_path, plot_path):
-        if path is not None:
-            writable(path)
+    outputs = [p for p in (json_path, plot_path, *more) if p is not None]
+    resolved = [p.resolve() for p in outputs]
+    for i, path in enumerate(resolved):
+        if path in resolved[:i]:
+            raise ValueError(f"{outputs[i]}: two of the benchmark's outputs would be written to one file")
+    for path in outputs:
+        writable(path)
 
 
 def _started(name: str, cfg: Any) -> None:
@@ -309,7 +315,8 @@ def hydra(
     verbose: bool = False,
 ) -> None:
     """HyDrA (Chapter 7): Table 7.1, controller analysis, 4-DOF, tick cost."""
-    _logging(verbose, json_path, plot_path)
+    cameras = [hydra_bench.cameras_path(plot_path)] if plot_path and render else []
+    _logging(verbose, json_path, plot_path, *cameras)
     cfg = hydra_bench.HydraBenchConfig(
         controllers=controllers, train_episodes=episodes, eval_episodes=eval_episodes, thinks=thinks,
         four_dof_controllers=four_dof_controllers, four_dof_episodes=four_dof_episodes, seed=seed,
@@ -619,8 +626,25 @@ def faults(
         faults_bench.plot(result, plot_path)
 
 
-main = guarded(app)
-"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""
+_guarded = guarded(app)
+
+
+def main() -> None:
+    """The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`).
+
+    SIGTERM (`kill`, a supervisor's stop) ends a benchmark as Ctrl-C does: the servers it started
+    are stopped and its temporary directories removed, where they were left running and behind.
+    """
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        _guarded()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated(signum)
+
 
 if __name__ == "__main__":
     main()

@@ -32,6 +32,7 @@ import numpy as np
 
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import check_fields
+from wfnn_io.persist import save_figure
 from wfnn_server.spawn import BIN, ServerProcess, free_port, wait_listening
 
 
@@ -213,8 +214,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     b.set_title("dashboard's attributed cost")
     b.legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

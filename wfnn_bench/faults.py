@@ -45,6 +45,7 @@ import numpy as np
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_bench.hosts import BIN, Hosts
 from wfnn_common.config import check_fields
+from wfnn_io.persist import save_figure
 from wfnn_server.store import ExperienceStore
 
 log = logging.getLogger(__name__)
@@ -471,6 +472,5 @@ def plot(result: dict[str, Any], path: Path) -> None:
         ax.legend(handles=handles, fontsize=7, loc="upper left")
     axes[-1, 0].set_xlabel("s from the fault's start")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)

@@ -34,6 +34,7 @@ from wfnn_bench.common import Progress, finite_median, fmt2, machine_info, nan_m
 from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learners import make_population
+from wfnn_io.persist import save_figure
 
 FloatArray = np.ndarray
 REGIMES_71 = ("static", "swing")
@@ -457,11 +458,15 @@ def plot(result: dict[str, Any], path: Path) -> None:
     ax.text(0, 1, "Table 7.1 (medians)\n" + "\n".join(rows) + f"\n\ntick {result['tick_ms_p50']:.3f} ms p50",
             va="top", family="monospace", fontsize=8)  # fmt: skip
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     if result.get("render_views"):
-        plot_views(result["render_views"], path.with_name(path.stem + "_cameras.png"))
+        plot_views(result["render_views"], cameras_path(path))
+
+
+def cameras_path(plot: Path) -> Path:
+    """Where the rendered-vision check's camera pictures go, beside the plot."""
+    return plot.with_name(plot.stem + "_cameras.png")
 
 
 def plot_views(views_by_regime: dict[str, list[dict[str, Any]]], path: Path) -> None:
@@ -485,7 +490,7 @@ def plot_views(views_by_regime: dict[str, list[dict[str, Any]]], path: Path) -> 
                 ax.imshow(np.concatenate([np.asarray(views["left"]), np.asarray(views["right"])], axis=1))
                 ax.set_title(f"{regime}: left | right (right tracked)", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 

@@ -46,6 +46,7 @@ from wfnn_common.config import DEEP_DEFAULTS, LEARNERS, LearnerConfig, check_fie
 from wfnn_common.learners import make_population
 from wfnn_common.update import squash_reward
 from wfnn_io import logs
+from wfnn_io.persist import save_figure
 from wfnn_io.protocol import EXP_EXPLORED
 
 FloatArray = NDArray[np.float64]
@@ -472,8 +473,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
                  "(Section 4.2 protocol)")  # fmt: skip
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 

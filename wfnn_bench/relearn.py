@@ -39,6 +39,7 @@ from wfnn_bench.hydra import EPISODE, learn_episode
 from wfnn_bench.passive import PassiveBenchConfig
 from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
+from wfnn_io.persist import save_figure
 
 FOUR_DOF = HydraConfig(
     joints=("pan", "tilt", "left", "right"), axes=("left_x", "left_y", "right_x", "right_y"), regime="elastic"
@@ -304,8 +305,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     b.set_title("thinking on the store alone (no robot)")
     b.legend(fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

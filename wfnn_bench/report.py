@@ -234,6 +234,14 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
     return sections, figure
 
 
+def _run_pictures(directory: Path) -> set[Path]:
+    """The pictures a run directory holds of its own (its curve and its cameras'), resolved."""
+    pictures = [directory / "learning_curve.png"]
+    if (directory / "cameras").is_dir():
+        pictures += (directory / "cameras").glob("*.png")
+    return {p.resolve() for p in pictures}
+
+
 PICTURE_LIMIT = 16 << 20
 """The largest picture a report embeds."""
 
@@ -320,6 +328,10 @@ def run(config: ReportConfig) -> Path:
         )
     if is_log(out.parent):
         raise ReportError(f"{out}: a report is never written into an experience log; give --out elsewhere")
+    if out.suffix.lower() not in (".html", ".htm"):  # never over a benchmark's JSON or PNG it reads
+        raise ReportError(f"--out {out}: the report is HTML; name a .html file")
+    if figure is not None and out.with_suffix(".png").resolve() in _run_pictures(path):
+        raise ReportError(f"--out {out}: its figure would replace {out.with_suffix('.png').name} of the run")
     html = TEMPLATE.render(title=title, subtitle=f"from {path.resolve()}", sections=sections)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, html)  # a report being rewritten is never seen half-written

@@ -35,6 +35,7 @@ from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import check_fields
 from wfnn_io import logs
 from wfnn_io.bus import Channel, NetConfig, ZenohBus
+from wfnn_io.persist import save_figure
 from wfnn_io.protocol import Codec, Keys, ServerStatus
 from wfnn_server.spawn import ServerProcess, free_port
 
@@ -312,8 +313,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     axes[3].set_title(f"huge frames at 50 Hz: {result['huge_frames_overruns']:.0f} overruns")
     axes[3].legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

@@ -22,6 +22,7 @@ from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN, FloatArray
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.replay import Experiences
+from wfnn_io.persist import save_figure
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -199,5 +200,5 @@ def plot(result: dict[str, Any], path: Path) -> None:
     b.set_ylabel("experience updates per second")
     b.set_title("thinking (the thesis' network)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

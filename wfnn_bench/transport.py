@@ -38,6 +38,7 @@ from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
 from wfnn_io.bus import NetConfig, ZenohBus
 from wfnn_io.logs import read_batches
+from wfnn_io.persist import save_figure
 from wfnn_server.spawn import ServerProcess, free_port
 from wfnn_server.store import ExperienceStore
 
@@ -326,8 +327,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
         f"{result['experiences_lost']} lost"
     )
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

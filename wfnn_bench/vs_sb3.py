@@ -34,6 +34,7 @@ from sims.gym import GymVec, make_env
 from wfnn_bench.common import Progress, machine_info, no_progress
 from wfnn_common.config import LEARNERS, MAX_SEED, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_learner
+from wfnn_io.persist import save_figure
 
 FloatArray = NDArray[np.float64]
 ALGORITHMS = ("wfnn", "sac", "td3")
@@ -78,6 +79,10 @@ class VsSb3Config:
             raise ValueError(f"unknown algorithms {sorted(unknown)}; choose from {ALGORITHMS}")
         if not self.learners or set(self.learners) - set(LEARNERS):
             raise ValueError(f"learners must be some of {LEARNERS}, got {self.learners}")
+        named = {"tasks": self.tasks, "algorithms": self.algorithms, "learners": self.learners}
+        for name, given in named.items():  # keys of the results: a name's last run would replace the others'
+            if len(set(given)) != len(given):
+                raise ValueError(f"{name} named twice: {', '.join(given)}")
         if self.seeds < 1 or not 0 <= self.seed <= self.seed + self.seeds - 1 <= MAX_SEED:
             raise ValueError(
                 f"seeds {self.seed} to {self.seed + self.seeds - 1}: they must lie in [0, {MAX_SEED}]"
@@ -340,8 +345,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
         )
         ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 

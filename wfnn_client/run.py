@@ -45,6 +45,7 @@ from wfnn_io.persist import (
     load_weights,
     make_directory,
     save_experiences,
+    save_figure,
     save_weights,
     to_jsonable,
     writable,
@@ -613,6 +614,5 @@ def plot(metrics: dict[str, Any], path: Path) -> None:
     where = "in-process" if metrics["following"] == "local" else f"server {metrics['following'] or '-'}"
     ax.set_title(f"{metrics['sim']}: {metrics['experiences_learned']} experiences, thinking {where}")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -8,6 +8,7 @@ format or a newer version is refused with `PersistError`.
 from __future__ import annotations
 
 import errno
+import io
 import json
 import os
 import stat
@@ -190,15 +191,30 @@ def make_directory(path: Path, what: str) -> None:
 
 
 def writable(path: Path) -> None:
-    """Raise OSError now if file `path` cannot be written (its folder is made if missing)."""
+    """Raise OSError now if file `path` cannot be written later (its missing folders made then).
+
+    Nothing is made now: a run refused after this check (a bad option) leaves no folder behind.
+    The nearest folder that exists is where the probe file goes.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     _check_replaceable(path)
+    existing = path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():  # a file where a folder is needed
+        raise FileExistsError(errno.EEXIST, "a file is in the way (a folder is needed there)", str(existing))
     try:
-        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=f".{path.name}.", suffix=".probe"):
             pass
     except OSError as exc:
         raise _about(exc, path) from exc
+
+
+def save_figure(fig: Any, path: Path, dpi: int) -> None:
+    """Write a matplotlib figure as a PNG atomically (the old picture or the new one, never a torn one)."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    atomic_write_bytes(Path(path), buffer.getvalue())
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -62,7 +62,11 @@ class ServerProcess:
         env = {**os.environ, "COLUMNS": "160", "PYTHONUNBUFFERED": "1"}
         with open(self.log, "ab") as log:
             self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-        wait_listening(self.port)
+        try:
+            wait_listening(self.port)
+        except BaseException:  # not listening in time, or the caller stopped (Ctrl-C, SIGTERM) meanwhile:
+            self.stop()  # the caller never gets this server to stop, so it would outlive it
+            raise
         return self
 
     def kill(self) -> None:

@@ -598,3 +598,42 @@ def test_bench_safety_measures_what_survives(tmp_path):
     assert set(data["goals"]) == {"logs_bytes_changed", "restart_experiences_missing",
                                   "storm_longest_without_weights_s", "huge_frames_overruns"}  # fmt: skip
     assert p.stat().st_size > 10_000
+
+
+def test_a_benchmark_stopped_by_sigterm_stops_its_servers_and_leaves_no_files(tmp_path):
+    """`kill` of a benchmark left its think server running, and its temporary files behind."""
+    import signal
+    import time
+
+    (tmp_path / "tmp").mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp_path / "tmp")}
+    bench = subprocess.Popen([BIN / "wfnn-bench", "transport", "--experiences", "1000", "--seconds", "1",
+                              "--outage-seconds", "0", "--no-busy"], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    deadline, server = time.monotonic() + 60, None
+    while server is None and time.monotonic() < deadline:
+        children = subprocess.run(["ps", "-o", "pid=,args=", "--ppid", str(bench.pid)], capture_output=True,
+                                  text=True).stdout.splitlines()  # fmt: skip
+        server = next((int(c.split()[0]) for c in children if "wfnn-server" in c), None)
+        time.sleep(0.05)
+    assert server is not None, "the benchmark started no server"
+    bench.send_signal(signal.SIGTERM)
+    output, _ = bench.communicate(timeout=60)
+    assert bench.returncode == 128 + signal.SIGTERM, output
+    with pytest.raises(ProcessLookupError):
+        os.kill(server, 0)
+    assert list((tmp_path / "tmp").iterdir()) == []
+
+
+def test_a_server_that_was_starting_when_its_starter_stopped_is_stopped(tmp_path, monkeypatch):
+    """The starter never got the server to stop: it outlived the benchmark or test that made it."""
+    import wfnn_server.spawn as spawn
+
+    def interrupted(port, timeout_s=30.0):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(spawn, "wait_listening", interrupted)
+    server = spawn.ServerProcess(tmp_path / "srv", spawn.free_port())
+    with pytest.raises(KeyboardInterrupt):
+        server.start()
+    assert server.proc is not None and server.proc.poll() is not None

@@ -83,3 +83,30 @@ def test_an_output_path_through_a_file_is_said_so_in_one_line(tmp_path, monkeypa
     assert ended.value.code == 2
     said = f"error: {tmp_path / 'afile'}: a file is in the way (a directory is needed there)\n"
     assert capsys.readouterr().err == said
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["cartpole", "--json", "{d}/x.png", "--plot", "{d}/x.png"],
+        ["cartpole", "--json", "{d}/x.png", "--plot", "{d}/sub/../x.png"],
+        ["hydra", "--json", "{d}/r_cameras.png", "--plot", "{d}/r.png"],  # the plot's camera pictures
+    ],
+)
+def test_two_outputs_in_one_file_are_refused_before_the_run(tmp_path, monkeypatch, capsys, argv):
+    """The last written replaced the other: a JSON result lost under its own plot."""
+    main = importlib.import_module("wfnn_bench.cli").main
+    monkeypatch.setattr("sys.argv", ["wfnn-bench", *(a.format(d=tmp_path) for a in argv)])
+    with pytest.raises(SystemExit) as ended:
+        main()
+    assert ended.value.code == 2 and "would be written to one file" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_benchmark_makes_no_output_folder(tmp_path, monkeypatch, capsys):
+    main = importlib.import_module("wfnn_bench.cli").main
+    argv = ["wfnn-bench", "boat", "--mode", "bogus", "--json", str(tmp_path / "a/b/x.json")]
+    monkeypatch.setattr("sys.argv", argv)
+    with pytest.raises(SystemExit):
+        main()
+    assert list(tmp_path.iterdir()) == []

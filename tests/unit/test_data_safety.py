@@ -713,3 +713,31 @@ def test_a_damaged_client_json_is_named_when_a_keyed_journals_frames_fail_their_
     assert summary.experiences == 0 and summary.refused["auth"] == 1
     assert any("client.json cannot be read" in r.getMessage() for r in caplog.records)
     assert (tmp_path / "j" / "client.json").read_bytes() == b"\xff\xfe"  # reading changed nothing
+
+
+# --------------------------------------------------------------------------- figures and output checks
+def test_a_figure_that_fails_while_written_leaves_the_old_picture(tmp_path):
+    """Pictures were written in place: a full disk left a torn PNG where a good one was."""
+    from wfnn_io.persist import save_figure
+
+    class Failing:
+        def savefig(self, out, format, dpi):
+            out.write(b"\x89PNG half a picture")
+            raise OSError(27, "File too large")
+
+    (tmp_path / "plot.png").write_bytes(b"the old picture")
+    with pytest.raises(OSError, match="File too large"):
+        save_figure(Failing(), tmp_path / "plot.png", dpi=100)
+    assert (tmp_path / "plot.png").read_bytes() == b"the old picture"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plot.png"]
+
+
+def test_checking_that_an_output_can_be_written_makes_nothing(tmp_path):
+    """A run refused after the check (a bad option) left the output's folders behind."""
+    from wfnn_io.persist import writable
+
+    writable(tmp_path / "a" / "b" / "x.json")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(FileExistsError, match="a file is in the way"):
+        writable(tmp_path / "afile" / "b" / "x.json")

@@ -94,6 +94,23 @@ def test_a_diverged_runs_huge_scores_are_reported_not_drawn(tmp_path, recwarn):
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 
+def test_a_report_is_never_written_over_what_it_reads(tmp_path):
+    """`--out speed.json` replaced the benchmark's result with the page about it."""
+    (tmp_path / "speed.json").write_text('{"benchmark": "speed", "act_p99_us": 3.5}')
+    (tmp_path / "speed.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    for out in ("speed.json", "speed.png"):
+        with pytest.raises(ReportError, match="the report is HTML"):
+            run(ReportConfig(path=tmp_path / "speed.json", out=tmp_path / out))
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.json").write_text('{"scores": [1, 2, 3]}')
+    (tmp_path / "run" / "learning_curve.png").write_bytes(b"\x89PNG\r\n\x1a\ncurve")
+    with pytest.raises(ReportError, match=r"would replace learning_curve\.png"):
+        run(ReportConfig(path=tmp_path / "run", out=tmp_path / "run" / "learning_curve.html"))
+    assert (tmp_path / "run" / "learning_curve.png").read_bytes().endswith(b"curve")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+
+
 def test_a_deep_runs_report_shows_the_deep_learners_settings_not_the_thesis_ones():
     from tests.fakes import small_config
     from wfnn_common.config import settings

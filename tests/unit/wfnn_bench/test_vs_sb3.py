@@ -103,3 +103,18 @@ def test_bad_vs_sb3_configs_are_refused(kw, message):
     with pytest.raises(ValueError, match=message):
         VsSb3Config(**kw)
     assert VsSb3Config(seed=1 << 32, algorithms=("wfnn",)).seed == 1 << 32  # WFNN alone takes more
+
+
+@pytest.mark.parametrize(
+    ("field", "names"),
+    [
+        ("tasks", ("Pendulum-v1", "Pendulum-v1")),
+        ("algorithms", ("wfnn", "wfnn")),
+        ("learners", ("thesis", "thesis")),
+    ],
+)
+def test_a_name_given_twice_is_refused(field, names):
+    """Each is a key of the results: every run was made and all but the last of a name's lost."""
+    steps = {"steps": (1, 2)} if field == "tasks" else {"tasks": ("Pendulum-v1",), "steps": (1,)}
+    with pytest.raises(ValueError, match=f"{field} named twice"):
+        VsSb3Config(**{field: names}, **steps)
