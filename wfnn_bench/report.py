@@ -104,15 +104,22 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+SCALARS_DEPTH = 4
+"""How deep nested objects are followed: vs-sb3's figures sit at tasks.<task>.<learner>.<figure>."""
+MAX_ROWS = 500
+"""Most figures a benchmark's table shows (a note says how many more there are)."""
+
+
 def _scalars(data: dict[str, Any], prefix: str = "", depth: int = 0) -> list[tuple[str, str]]:
     """The plain figures of a JSON object: numbers, strings and booleans.
 
-    Nested objects are followed one level deep; lists are left out.
+    Nested objects are followed SCALARS_DEPTH levels deep, but for the configs, machine facts and
+    traces they hold; lists are left out.
     """
     rows: list[tuple[str, str]] = []
     for key, value in data.items():
         name = f"{prefix}{key}"
-        if isinstance(value, dict) and depth < 1 and key not in ("config", "machine", "trace"):
+        if isinstance(value, dict) and depth < SCALARS_DEPTH and key not in ("config", "machine", "trace"):
             rows += _scalars(value, f"{name}.", depth + 1)
         elif isinstance(value, int | float | str | bool) or value is None:
             rows.append((name, _fmt(value)))
@@ -300,7 +307,10 @@ def _bench_section(path: Path) -> Section:
     machine = data.get("machine")
     if isinstance(machine, dict):
         notes.append("measured on: " + ", ".join(f"{k} {v}" for k, v in machine.items()))
-    return Section(path.stem, _scalars(data), images, notes)
+    rows = _scalars(data)
+    if len(rows) > MAX_ROWS:
+        notes.append(f"the first {MAX_ROWS} of {len(rows)} figures; the JSON holds them all")
+    return Section(path.stem, rows[:MAX_ROWS], images, notes)
 
 
 def run(config: ReportConfig) -> Path:

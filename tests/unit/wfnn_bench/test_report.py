@@ -49,6 +49,17 @@ def test_benchmark_reports_show_scalars_and_the_benchmarks_plot(tmp_path):
     assert "<h2>b</h2>" in both and "<h2>c</h2>" in both
 
 
+def test_a_benchmarks_nested_figures_are_shown_but_not_its_configs(tmp_path):
+    """vs-sb3's figures sit three objects deep: only its name and machine were shown."""
+    result = {"tasks": {"Pendulum-v1": {"deep": {"final_return_median": -121.5, "config": {"gamma": 0.99}}}},
+              "config": {"seeds": 5}, "wide": {f"f{i}": i for i in range(600)}}  # fmt: skip
+    (tmp_path / "v.json").write_text(json.dumps(result))
+    html = run(ReportConfig(path=tmp_path / "v.json")).read_text()
+    assert "<td>tasks.Pendulum-v1.deep.final_return_median</td><td>-121.5</td>" in html
+    assert "gamma" not in html and "seeds" not in html
+    assert "the first 500 of 601 figures" in html and "wide.f498" in html and "wide.f499" not in html
+
+
 def test_unusable_input_is_refused_with_the_reason(tmp_path):
     with pytest.raises(ReportError, match="give a run directory"):
         run(ReportConfig(path=tmp_path / "missing"))
