@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.base import Transition
+from wfnn_common.config import MAX_ACTION_DIM, MAX_STATE_DIM
 
 FloatArray = NDArray[np.float64]
 MEASURED_MARGIN = 1e6
@@ -73,9 +74,12 @@ def control_rate(env: gym.Env[Any, Any]) -> float:
 
 def _space_problem(env: gym.Env[Any, Any]) -> str:
     """Why the task's spaces cannot be learned here, or ""."""
-    for what, space in (("observation", env.observation_space), ("action", env.action_space)):
+    for what, space, most in (("observation", env.observation_space, MAX_STATE_DIM),
+                              ("action", env.action_space, MAX_ACTION_DIM)):  # fmt: skip
         if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
             return f"the {what} space must be a 1-D Box, got {space}"
+        if space.shape[0] > most:  # before a probe of its ranges, whose memory grows with it
+            return f"at most {most} {what} variables, got {space.shape[0]}"
     act = env.action_space
     assert isinstance(act, gym.spaces.Box)
     if not np.issubdtype(act.dtype, np.floating):  # whole numbers would truncate the actions learned
@@ -109,8 +113,9 @@ class GymVec:
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
             low, high = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
-        constant = ~(high > low)  # declared so: an observation that never changes (range 1 around it)
-        low, high = np.where(constant, low - 0.5, low), np.where(constant, high + 0.5, high)
+        constant = ~(high > low)  # declared so: an observation that never changes (range 1 around it,
+        half = np.maximum(0.5, 0.5e-6 * np.abs(low))  # or wider far from 0, as for a still one above)
+        low, high = np.where(constant, low - half, low), np.where(constant, high + half, high)
         self.state_low = tuple(float(v) for v in low)
         self.state_high = tuple(float(v) for v in high)
         self.state_names = tuple(f"obs_{i}" for i in range(len(low)))
@@ -146,7 +151,9 @@ class GymVec:
         p1, p99 = np.zeros(data.shape[1]), np.zeros(data.shape[1])
         if finite.any():
             p1[finite], p99[finite] = np.nanpercentile(data[:, finite], [1, 99], axis=0)
-        span = np.where(p99 - p1 < STILL, 1.0, p99 - p1)
+        # A still one gets a width of 1, or more beyond 1e6: scaling needs a width that float64
+        # resolves at its value (`LearnerConfig`'s MIN_HALF_RANGE).
+        span = np.where(p99 - p1 < STILL, np.maximum(1.0, 1e-6 * np.abs(0.5 * (p1 + p99))), p99 - p1)
         measured_low, measured_high = p1 - 0.5 * span, p99 + 0.5 * span
         return (
             np.where(np.isfinite(low), low, measured_low),

@@ -6,7 +6,6 @@ import dataclasses
 import json
 import logging
 import math
-import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -43,7 +42,7 @@ from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
-from wfnn_io.cli_errors import Terminated, guarded, log_printably, path_given
+from wfnn_io.cli_errors import guarded, log_printably, path_given
 from wfnn_io.persist import to_jsonable, writable
 
 MAX_POPULATION = 100_000
@@ -626,25 +625,8 @@ def faults(
         faults_bench.plot(result, plot_path)
 
 
-_guarded = guarded(app)
-
-
-def main() -> None:
-    """The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`).
-
-    SIGTERM (`kill`, a supervisor's stop) ends a benchmark as Ctrl-C does: the servers it started
-    are stopped and its temporary directories removed, where they were left running and behind.
-    """
-    previous = signal.signal(signal.SIGTERM, _terminate)
-    try:
-        _guarded()
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-def _terminate(signum: int, frame: object) -> None:
-    raise Terminated(signum)
-
+main = guarded(app)
+"""The console entry point: bad input ends in one line and a nonzero exit (`wfnn_io.cli_errors`)."""
 
 if __name__ == "__main__":
     main()

@@ -241,12 +241,12 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
     return sections, figure
 
 
-def _run_pictures(directory: Path) -> set[Path]:
-    """The pictures a run directory holds of its own (its curve and its cameras'), resolved."""
-    pictures = [directory / "learning_curve.png"]
-    if (directory / "cameras").is_dir():
-        pictures += (directory / "cameras").glob("*.png")
-    return {p.resolve() for p in pictures}
+def _a_results_picture(png: Path) -> bool:
+    """Whether `png` is a benchmark's plot (a JSON of its name beside it) or a run's own picture."""
+    png = png.resolve()
+    run = png.parent.parent if png.parent.name == "cameras" else png.parent
+    ours = png.name == "learning_curve.png" or png.parent.name == "cameras"
+    return png.with_suffix(".json").exists() or (ours and (run / "metrics.json").exists())
 
 
 PICTURE_LIMIT = 16 << 20
@@ -340,8 +340,8 @@ def run(config: ReportConfig) -> Path:
         raise ReportError(f"{out}: a report is never written into an experience log; give --out elsewhere")
     if out.suffix.lower() not in (".html", ".htm"):  # never over a benchmark's JSON or PNG it reads
         raise ReportError(f"--out {out}: the report is HTML; name a .html file")
-    if figure is not None and out.with_suffix(".png").resolve() in _run_pictures(path):
-        raise ReportError(f"--out {out}: its figure would replace {out.with_suffix('.png').name} of the run")
+    if figure is not None and _a_results_picture(out.with_suffix(".png")):
+        raise ReportError(f"--out {out}: its figure would replace {out.with_suffix('.png')} (a result's)")
     html = TEMPLATE.render(title=title, subtitle=f"from {path.resolve()}", sections=sections)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, html)  # a report being rewritten is never seen half-written

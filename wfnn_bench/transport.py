@@ -204,28 +204,32 @@ def outage(cfg: TransportBenchConfig, work: Path, progress: Progress) -> dict[st
         sim="boat", episodes=10**6, duration_s=cfg.outage_seconds, rate_hz=cfg.rate_hz,
         server=(server.endpoint,), controller=CONTROLLER, out=work / "client3", seed=cfg.seed,
     )  # fmt: skip
-    outcome: dict[str, Any] = {}
+    stop, failed = threading.Event(), []
 
-    def loop() -> None:
+    def outage_now() -> None:
         try:
-            outcome["metrics"] = run_client(client)
+            if stop.wait(cfg.outage_seconds * 0.3):
+                return
+            server.kill()
+            if not stop.wait(cfg.outage_down_s):
+                server.start()
         except BaseException as exc:  # reported below, in the benchmark's thread
-            outcome["error"] = exc
+            failed.append(exc)
 
-    thread = threading.Thread(target=loop, name="wfnn-bench-client")
-    thread.start()
+    # The client in this thread, the outage in a helper: Ctrl-C or SIGTERM reach the client's own
+    # handlers, which end it at once (in a thread of its own it ran on, and wrote its files into
+    # the temporary folder after that was removed).
+    helper = threading.Thread(target=outage_now, name="wfnn-bench-outage")
+    helper.start()
     try:
-        time.sleep(cfg.outage_seconds * 0.3)
-        server.kill()
-        time.sleep(cfg.outage_down_s)
-        server.start()
-        thread.join(timeout=cfg.outage_seconds + 120)
+        metrics = run_client(client)
     finally:
+        stop.set()
+        helper.join(timeout=60)
         server.stop()
     progress(int(cfg.outage_seconds))
-    if "error" in outcome:
-        raise RuntimeError("the client failed during the outage phase") from outcome["error"]
-    metrics = outcome["metrics"]
+    if failed:
+        raise RuntimeError("the server's restart failed during the outage phase") from failed[0]
     client_id = json.loads((work / "client3" / "journal" / "client.json").read_text())["client"]
     store = ExperienceStore(work / "srv3" / "store", "check")
     stored = store.stored_through.get(client_id, -1) + 1

@@ -305,7 +305,7 @@ def client(
     )
     refused = int(metrics.get("learn/rejected", 0))  # in-process: what the learner's sanity checks refused
     # C/S: where no server took any (all of another task, say), the journal holds them all.
-    unacked = " (none acknowledged by a server)" if metrics.get("uplink/acked_through_max", 0) < 0 else ""
+    unacked = " (none acknowledged by a server)" if metrics.get("uplink/acked_by_any", 0) < 0 else ""
     console.print(
         f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences{unacked}"
         f"{f' ({refused} refused as not finite or out of range)' if refused else ''}, following "

@@ -258,10 +258,12 @@ class RemoteBrain:
         }
         with self.table.lock:
             acked = [v.acked for v in self.table.views.values() if v.alive]
+            acked_by_any = max((v.acked for v in self.table.views.values()), default=-1)
             followed = self.table.views.get(self.following)
             if followed is not None:
                 out.update({f"server/{k}": v for k, v in followed.metrics.items()})
         out["uplink/acked_through_max"] = float(max(acked)) if acked else -1.0
+        out["uplink/acked_by_any"] = float(acked_by_any)  # live or gone since: whether any server took any
         for name, values in (("downlink/snapshot_latency_ms", self.apply_latency_ms),
                              ("weights/staleness_s", self.staleness_s)):  # fmt: skip
             if values:

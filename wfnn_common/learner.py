@@ -33,6 +33,8 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 """Largest finite float32: the deep learner trains in float32, where anything larger is infinite."""
+MAX_INDICES = 1 << 22
+"""Most replay indices a minibatch think draws at once (64 MiB with their random numbers)."""
 MAX_REWARD = 1e30
 """Largest reward magnitude learned. The deep learner trains in float32 (largest 3.4e38): its
 values reach max |r| / (1 - gamma), its targets add n-step returns, and the loss's gradient
@@ -407,14 +409,25 @@ class WFNN:
         else:
             from wfnn_common.torch_update import minibatch_think  # torch only where needed
 
-            idx = self.buffer.sample_indices(self._replay_rng, n * cfg.batch_size)
-            idx = idx.reshape(self.population, n, cfg.batch_size).transpose(1, 0, 2)
-            q, td = minibatch_think(
-                self.params, self.rates, self.buffer.arrays(), idx, active,
-                n_wires=cfg.n_wires, gamma=cfg.gamma, advantage_k=cfg.advantage_k,
-                c=cfg.smoothing_c, eps=cfg.eps, exact=cfg.derivatives == "exact",
-                squash=cfg.squash_reward, bc_weight=cfg.bc_weight, dtype=cfg.minibatch_dtype,
-            )  # fmt: skip
+            # The indices of at most MAX_INDICES experiences at once: n x batch_size of them, drawn
+            # together, took gigabytes for an accepted config (100,000 thinks of 4,096).
+            per_call = max(1, MAX_INDICES // (cfg.batch_size * self.population))
+            parts: list[tuple[int, NDArray[np.float64], NDArray[np.float64]]] = []
+            for start in range(0, n, per_call):
+                k = min(per_call, n - start)
+                idx = self.buffer.sample_indices(self._replay_rng, k * cfg.batch_size)
+                idx = idx.reshape(self.population, k, cfg.batch_size).transpose(1, 0, 2)
+                q, td = minibatch_think(
+                    self.params, self.rates, self.buffer.arrays(), idx, active,
+                    n_wires=cfg.n_wires, gamma=cfg.gamma, advantage_k=cfg.advantage_k,
+                    c=cfg.smoothing_c, eps=cfg.eps, exact=cfg.derivatives == "exact",
+                    squash=cfg.squash_reward, bc_weight=cfg.bc_weight, dtype=cfg.minibatch_dtype,
+                )  # fmt: skip
+                parts.append((k, q, td))
+            if len(parts) > 1:  # the means over every experience used, as one call gives them
+                weights = np.array([k for k, _, _ in parts], dtype=np.float64)[:, None] / n
+                q = (weights * np.array([pq for _, pq, _ in parts])).sum(axis=0)
+                td = (weights * np.array([ptd for _, _, ptd in parts])).sum(axis=0)
             self.thinks += active * n
             stats = UpdateStats(q, td)
         self.last_think = stats

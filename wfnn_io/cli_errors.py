@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -135,6 +137,13 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
 
     def main() -> None:
         _terminated.clear()  # a signal that ended an earlier run in this process is not this one's
+        # SIGTERM (`kill`, a supervisor's stop) ends a tool as Ctrl-C does, so that what it does on
+        # the way out is done: the servers a benchmark started stopped, a log being written removed.
+        # A tool that serves installs its own handler meanwhile; an ignored SIGTERM stays ignored.
+        previous = None
+        if threading.current_thread() is threading.main_thread():
+            if signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:
+                previous = signal.signal(signal.SIGTERM, _terminate)
         try:
             _invoke(app)
         except KeyboardInterrupt:
@@ -146,8 +155,15 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
             if _usage_error(exc):
                 return
             _report(exc, 1)
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
 
     return main
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated(signum)
 
 
 def _invoke(app: Callable[[], Any]) -> None:

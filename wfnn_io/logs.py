@@ -51,7 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text
+from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text, sync_dir
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
@@ -488,33 +488,45 @@ def write_log(
 ) -> int:
     """Write batches as a new log (refuses a directory that already holds one); -> experiences.
 
-    A write that fails (a source that cannot be read, say) removes what it wrote, so that the
-    directory is as it was and the same command can be run again.
+    The log is written in a hidden folder beside `directory` (`.NAME.partial-*`), made durable,
+    and only then given its name: a write cut short by anything (a full disk, a signal, a crash
+    or a power cut) never leaves what looks like the whole log, and the same command can be run
+    again. A write that fails removes its folder; one killed leaves it, by its name incomplete.
+    Into a folder that exists (and holds no log), the finished log's files are moved last.
     """
     directory = Path(directory)
     _check_new(directory)
-    existed = directory.exists()
-    there = set(directory.iterdir()) if directory.is_dir() else set()
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = directory.parent / f".{directory.name}.partial-{secrets.token_hex(4)}"
     codec = Codec(sender)
-    out = ExperienceLog(directory, config, fsync="never")
     written = 0
     try:
-        for batch in batches:
-            out.append(codec.encode(batch))
-            written += len(batch)
+        # No fsync per record: each segment is made durable when it is full and the last at the end.
+        out = ExperienceLog(staging, config, fsync="interval", fsync_interval_s=float("inf"))
+        try:
+            for batch in batches:
+                out.append(codec.encode(batch))
+                written += len(batch)
+            out.sync()
+        finally:
+            out.close()
+        _move_into(staging, directory)
     except BaseException:
-        out.close()
-        if not existed:
-            shutil.rmtree(directory, ignore_errors=True)
-        else:
-            for made in set(directory.iterdir()) - there:
-                if made.is_dir() and not made.is_symlink():
-                    shutil.rmtree(made, ignore_errors=True)
-                else:
-                    made.unlink(missing_ok=True)
+        shutil.rmtree(staging, ignore_errors=True)
         raise
-    out.close()
     return written
+
+
+def _move_into(staging: Path, directory: Path) -> None:
+    """Give a finished log (folder `staging`) its name `directory`: renamed, or into an existing folder."""
+    if not directory.exists():
+        os.rename(staging, directory)
+    else:  # a folder of other files: the log's files beside them, its description last
+        names = sorted(p.name for p in staging.iterdir())
+        for name in sorted(names, key=lambda n: n == LOG_JSON):
+            os.rename(staging / name, directory / name)
+        staging.rmdir()
+    sync_dir(directory.parent)
 
 
 def _check_new(directory: Path) -> None:
@@ -641,7 +653,15 @@ def split(
         done += len(batch)
     for name in groups:  # all checked before any is written, so that a refusal writes nothing
         _check_new(Path(out) / name)
-    return {name: write_log(Path(out) / name, batches, config) for name, batches in groups.items()}
+    written: dict[str, int] = {}
+    try:
+        for name, batches in groups.items():
+            written[name] = write_log(Path(out) / name, batches, config)
+    except BaseException:  # all or nothing: the parts written are removed, and the split can be run again
+        for name in written:
+            shutil.rmtree(Path(out) / name, ignore_errors=True)
+        raise
+    return written
 
 
 def _directory_name(label: str, taken: set[str]) -> str:

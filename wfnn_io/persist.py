@@ -199,7 +199,7 @@ def writable(path: Path) -> None:
     path = Path(path)
     _check_replaceable(path)
     existing = path.parent
-    while not existing.exists() and existing != existing.parent:
+    while not os.path.lexists(existing) and existing != existing.parent:  # a dangling link is in the way
         existing = existing.parent
     if not existing.is_dir():  # a file where a folder is needed
         raise FileExistsError(errno.EEXIST, "a file is in the way (a folder is needed there)", str(existing))

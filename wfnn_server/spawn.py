@@ -2,15 +2,36 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 BIN = Path(sys.executable).parent
+
+
+@contextlib.contextmanager
+def _signals_noted() -> Iterator[list[int]]:
+    """SIGTERM and SIGINT only noted meanwhile (in the main thread; elsewhere none arrives) -> those noted."""
+    noted: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield noted
+        return
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGINT)}
+    for signum, handler in previous.items():
+        if handler is not signal.SIG_IGN:
+            signal.signal(signum, lambda n, _frame: noted.append(n))
+    try:
+        yield noted
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 def free_port() -> int:
@@ -60,9 +81,14 @@ class ServerProcess:
         ]  # fmt: skip
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
         env = {**os.environ, "COLUMNS": "160", "PYTHONUNBUFFERED": "1"}
-        with open(self.log, "ab") as log:
+        with _signals_noted() as noted, open(self.log, "ab") as log:
+            # A signal raised inside Popen, after the fork, would leave a server nobody can stop.
             self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
+            if noted:  # the server stopped first: the caller's own handler, now restored, may end the process
+                self.stop()
+                signal.raise_signal(noted[0])
+                raise InterruptedError(f"signal {noted[0]} while the server started")
             wait_listening(self.port)
         except BaseException:  # not listening in time, or the caller stopped (Ctrl-C, SIGTERM) meanwhile:
             self.stop()  # the caller never gets this server to stop, so it would outlive it

@@ -637,3 +637,54 @@ def test_a_server_that_was_starting_when_its_starter_stopped_is_stopped(tmp_path
     with pytest.raises(KeyboardInterrupt):
         server.start()
     assert server.proc is not None and server.proc.poll() is not None
+
+
+def test_a_server_its_starter_is_stopped_from_while_it_forks_is_stopped(tmp_path, monkeypatch):
+    """SIGTERM inside Popen, after the fork: the server's process was never known, never stopped."""
+    import signal
+
+    import wfnn_server.spawn as spawn
+    from wfnn_io.cli_errors import Terminated
+
+    real, started = spawn.subprocess.Popen, []
+
+    def popen_then_sigterm(*args, **kwargs):
+        started.append(real(*args, **kwargs))
+        os.kill(os.getpid(), signal.SIGTERM)  # as if it came before Popen returned
+        return started[-1]
+
+    def terminate(signum, frame):
+        raise Terminated(signum)
+
+    monkeypatch.setattr(spawn.subprocess, "Popen", popen_then_sigterm)
+    previous = signal.signal(signal.SIGTERM, terminate)  # as `guarded` installs it
+    try:
+        server = spawn.ServerProcess(tmp_path / "srv", spawn.free_port())
+        with pytest.raises(Terminated):
+            server.start()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert started and started[0].poll() is not None
+
+
+def test_a_benchmark_stopped_in_its_outage_phase_ends_at_once_and_leaves_no_files(tmp_path):
+    """Its client ran in a thread of its own, which the signal never reached: it ran on to its end
+    and wrote its files after the temporary folder was removed."""
+    import signal
+    import time
+
+    (tmp_path / "tmp").mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp_path / "tmp")}
+    bench = subprocess.Popen([BIN / "wfnn-bench", "transport", "--experiences", "1000", "--seconds", "1",
+                              "--outage-seconds", "20", "--no-busy"], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not list((tmp_path / "tmp").glob("*/client3/journal")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    bench.send_signal(signal.SIGTERM)
+    stopped = time.monotonic()
+    output, _ = bench.communicate(timeout=60)
+    assert bench.returncode == 128 + signal.SIGTERM, output
+    assert time.monotonic() - stopped < 15  # the outage phase had 19 s to go
+    assert list((tmp_path / "tmp").iterdir()) == []

@@ -741,3 +741,7 @@ def test_checking_that_an_output_can_be_written_makes_nothing(tmp_path):
     (tmp_path / "afile").write_text("x")
     with pytest.raises(FileExistsError, match="a file is in the way"):
         writable(tmp_path / "afile" / "b" / "x.json")
+    # A link to a folder that is not there (a disk not mounted): refused now, not after the run.
+    (tmp_path / "results").symlink_to(tmp_path / "not_mounted" / "results")
+    with pytest.raises(FileExistsError, match="a file is in the way"):
+        writable(tmp_path / "results" / "x.json")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sims.gym import MEASURED_MARGIN, GymVec
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import MAX_ACTION_DIM, MAX_STATE_DIM, LearnerConfig
 from wfnn_common.learners import make_learner
 
 
@@ -160,6 +160,30 @@ def test_action_spaces_that_cannot_be_learned_are_refused_naming_the_task(space,
     with pytest.raises(ValueError, match=message) as refused:
         GymVec(_register(f"Act{len(message)}", action_space=space))
     assert "WfnnTestAct" in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_a_task_with_more_variables_than_a_learner_takes_is_refused_before_its_ranges_are_probed():
+    """The probe kept every observation: 100,000 unbounded ones took 4 GB and 19 s to refuse."""
+    wide = gym.spaces.Box(-np.inf, np.inf, (MAX_STATE_DIM + 1,), np.float64)
+    with pytest.raises(ValueError, match=f"at most {MAX_STATE_DIM} observation variables"):
+        GymVec(_register("Wide", observation_space=wide))
+    many = gym.spaces.Box(-1.0, 1.0, (MAX_ACTION_DIM + 1,), np.float32)
+    with pytest.raises(ValueError, match=f"at most {MAX_ACTION_DIM} action variables"):
+        GymVec(_register("ManyActions", action_space=many))
+
+
+class _StillFarOut(_Spaces):
+    def _obs(self):
+        return np.array([self.np_random.normal(), 1e12, 7.5e13])
+
+
+def test_a_still_observation_far_from_zero_gets_a_range_a_learner_can_scale():
+    """Given a width of 1 at 1e12, the range was refused as too narrow to scale."""
+    gym.register("WfnnTestStillFarOut-v0", entry_point=_StillFarOut, max_episode_steps=50)
+    task = GymVec("WfnnTestStillFarOut-v0")
+    assert task.state_low[1] < 1e12 < task.state_high[1] and task.state_low[2] < 7.5e13 < task.state_high[2]
+    LearnerConfig.for_task(task)  # accepted
+    task.close()
 
 
 def test_a_constant_declared_observation_gets_a_range_and_a_gymnasium_tasks_rewards_may_be_positive():

@@ -116,9 +116,14 @@ def test_a_report_is_never_written_over_what_it_reads(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "metrics.json").write_text('{"scores": [1, 2, 3]}')
     (tmp_path / "run" / "learning_curve.png").write_bytes(b"\x89PNG\r\n\x1a\ncurve")
-    with pytest.raises(ReportError, match=r"would replace learning_curve\.png"):
-        run(ReportConfig(path=tmp_path / "run", out=tmp_path / "run" / "learning_curve.html"))
+    for out in (tmp_path / "run" / "learning_curve.html", tmp_path / "speed.html"):  # a run's, a plot
+        with pytest.raises(ReportError, match=r"would replace .*\.png \(a result's\)"):
+            run(ReportConfig(path=tmp_path / "run", out=out))
     assert (tmp_path / "run" / "learning_curve.png").read_bytes().endswith(b"curve")
+    run(ReportConfig(path=tmp_path / "run", out=tmp_path / "elsewhere.html"))
+    assert (tmp_path / "elsewhere.png").read_bytes().startswith(b"\x89PNG")
+    (tmp_path / "elsewhere.html").unlink()
+    (tmp_path / "elsewhere.png").unlink()
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
 
 

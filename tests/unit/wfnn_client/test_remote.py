@@ -895,3 +895,25 @@ def test_a_declared_loss_names_from_where_it_declares(tmp_path):
         assert declared.flags[0] & EXP_AFTER_LOSS and declared.lost_from == 5 and declared.first_seq == 10
     finally:
         brain.stop()
+
+
+def test_what_a_server_acknowledged_is_counted_after_it_is_gone(tmp_path):
+    """Counted over live servers only, a run whose server acknowledged everything, then stopped,
+    ended saying that no server acknowledged any experience."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    server = make_server(tmp_path, hub, cfg).start()
+    brain = remote(tmp_path, hub, cfg, status_timeout_s=0.5)
+    brain.start()
+    try:
+        assert wait(lambda: brain.following == "s1")
+        rng = np.random.default_rng(0)
+        for _ in range(20):
+            x = rng.uniform(-1, 1, 3)
+            acted = brain.act(x)
+            brain.learn(Experience(x, acted.result.action, rng.uniform(-1, 1, 3), -0.5), acted)
+        assert wait(lambda: brain.all_acked(), timeout=10)
+    finally:
+        server.stop()
+    assert wait(lambda: brain.metrics()["uplink/acked_through_max"] == -1.0)  # no live server
+    brain.stop()
+    assert brain.metrics()["uplink/acked_by_any"] == 19.0

@@ -341,3 +341,25 @@ def test_a_population_of_one_thinks_exactly_as_the_population_kernel_does():
     np.testing.assert_array_equal(results[0][0], results[1][0])
     assert not np.array_equal(results[0][0], learner.params.flat)  # the weights did change
     np.testing.assert_array_equal(results[0][1], results[1][1])
+
+
+def test_many_minibatch_thinks_draw_their_indices_in_parts_and_learn_the_same(monkeypatch):
+    """All n x batch_size indices were drawn at once: gigabytes for an accepted config."""
+    import wfnn_common.learner as learner_module
+
+    cfg = small_config(update="minibatch", batch_size=16)
+    exp = random_experiences(np.random.default_rng(4), 50, 3, 2)
+    whole, parts = WFNN(cfg), WFNN(cfg)
+    for model in (whole, parts):
+        model.learn_many(exp.state, exp.action, exp.next_state, exp.reward, exp.terminal)
+    drawn = []
+    real = learner_module.ReplayBuffer.sample_indices
+    monkeypatch.setattr(learner_module.ReplayBuffer, "sample_indices",
+                        lambda self, r, n: drawn.append(n) or real(self, r, n))  # fmt: skip
+    expected = whole.think(10)
+    monkeypatch.setattr(learner_module, "MAX_INDICES", 64)  # 4 updates of 16 at a time
+    stats = parts.think(10)
+    assert drawn == [160, 64, 64, 32]
+    np.testing.assert_array_equal(parts.params.flat, whole.params.flat)
+    np.testing.assert_allclose(stats.q, expected.q, rtol=1e-12)
+    np.testing.assert_allclose(stats.td_abs, expected.td_abs, rtol=1e-12)

@@ -54,3 +54,29 @@ def test_a_run_ended_by_sigterm_exits_143_and_a_later_ctrl_c_in_the_process_stil
         with pytest.raises(SystemExit) as stopped:
             guarded(app)()
         assert stopped.value.code == code and said in capsys.readouterr().err
+
+
+def test_sigterm_ends_a_tool_as_ctrl_c_does_and_its_handler_is_restored_after(capsys):
+    """Killed by the default action, a tool left what it was writing, and a benchmark its servers."""
+    import os
+    import signal
+    import time
+
+    import pytest
+
+    from wfnn_io.cli_errors import guarded
+
+    cleaned = []
+
+    def app() -> None:
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises here
+        finally:
+            cleaned.append(True)
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as stopped:
+        guarded(app)()
+    assert stopped.value.code == 143 and "terminated" in capsys.readouterr().err and cleaned
+    assert signal.getsignal(signal.SIGTERM) is before

@@ -207,6 +207,57 @@ def test_a_merge_that_fails_leaves_no_log_behind_and_can_be_run_again(tmp_path):
     assert [p.name for p in (tmp_path / "mine").iterdir()] == ["log.json"]
 
 
+def test_a_log_being_written_never_has_its_name_until_it_is_whole(tmp_path, monkeypatch):
+    """A merge cut short (SIGTERM, a crash) left a log that looked complete: read without damage."""
+    record(tmp_path / "log")
+    seen = []
+    real = logs.ExperienceLog.append
+
+    def append(self, frame):
+        seen.append((self.directory.name, (tmp_path / "out").exists()))
+        if len(seen) == 3:
+            raise KeyboardInterrupt  # as Ctrl-C, or SIGTERM through `guarded`
+        return real(self, frame)
+
+    monkeypatch.setattr(logs.ExperienceLog, "append", append)
+    with pytest.raises(KeyboardInterrupt):
+        logs.merge([tmp_path / "log"], tmp_path / "out")
+    assert all(name.startswith(".out.partial-") and not named for name, named in seen)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log"]
+
+
+def test_a_split_that_fails_in_a_later_part_leaves_none(tmp_path, monkeypatch):
+    """The parts written before were left: the output looked like a split missing parts, and the
+    same command was then refused."""
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
+    real, calls = logs.write_log, []
+
+    def write_log(directory, batches, config, sender="wfnn-logs"):
+        calls.append(directory)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        return real(directory, batches, config, sender)
+
+    monkeypatch.setattr(logs, "write_log", write_log)
+    with pytest.raises(OSError, match="No space"):
+        logs.split(tmp_path / "both", tmp_path / "parts")
+    assert list((tmp_path / "parts").iterdir()) == []
+    monkeypatch.setattr(logs, "write_log", real)
+    assert logs.split(tmp_path / "both", tmp_path / "parts") == {"robot1": 300, "robot2": 300}
+
+
+def test_a_merge_that_fills_the_disk_leaves_neither_its_output_nor_a_full_disk(tmp_path):
+    from tests.mounts import tmpfs
+
+    record(tmp_path / "log", n=30000)
+    with tmpfs(tmp_path / "small", "2m") as small:
+        with pytest.raises(OSError, match="No space left"):
+            logs.merge([tmp_path / "log"], small / "out")
+        assert list(small.iterdir()) == []
+
+
 def test_split_reads_a_log_whose_description_is_unreadable_as_the_others_do(tmp_path, caplog):
     record(tmp_path / "log")
     (tmp_path / "log" / "log.json").write_text("{not json")
