@@ -410,7 +410,8 @@ class WFNN:
             from wfnn_common.torch_update import minibatch_think  # torch only where needed
 
             # The indices of at most MAX_INDICES experiences at once: n x batch_size of them, drawn
-            # together, took gigabytes for an accepted config (100,000 thinks of 4,096).
+            # together, took gigabytes for an accepted config (100,000 thinks of 4,096). Drawn in
+            # parts, one learner's are those of one draw; a population's are other uniform ones.
             per_call = max(1, MAX_INDICES // (cfg.batch_size * self.population))
             parts: list[tuple[int, NDArray[np.float64], NDArray[np.float64]]] = []
             for start in range(0, n, per_call):

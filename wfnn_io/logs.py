@@ -69,7 +69,17 @@ from wfnn_io.protocol import (
     controller_key,
     decode,
 )
-from wfnn_io.segments import Damage, FsyncPolicy, Position, ReadReport, SegmentLog, check_free, read_records
+from wfnn_io.segments import (
+    LOCK,
+    Damage,
+    FsyncPolicy,
+    Position,
+    ReadReport,
+    SegmentLog,
+    check_free,
+    read_records,
+    take_lock,
+)
 
 log = logging.getLogger(__name__)
 
@@ -488,20 +498,26 @@ def write_log(
 ) -> int:
     """Write batches as a new log (refuses a directory that already holds one); -> experiences.
 
-    The log is written in a hidden folder beside `directory` (`.NAME.partial-*`), made durable,
-    and only then given its name: a write cut short by anything (a full disk, a signal, a crash
-    or a power cut) never leaves what looks like the whole log, and the same command can be run
-    again. A write that fails removes its folder; one killed leaves it, by its name incomplete.
-    Into a folder that exists (and holds no log), the finished log's files are moved last.
+    The output's lock is held throughout (a second writer of it is refused), and the log is
+    written in a hidden folder inside it (`.partial-*`), made durable, and only then moved into
+    place, its description last: a write cut short by anything (a full disk, a signal, a crash
+    or a power cut) never leaves what reads as a log there, and the same command can be run
+    again. A write that fails removes what it made; what a killed one left is removed by the next.
     """
     directory = Path(directory)
     _check_new(directory)
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    staging = directory.parent / f".{directory.name}.partial-{secrets.token_hex(4)}"
+    existed = directory.exists()
+    directory.mkdir(parents=True, exist_ok=True)
+    there = set(directory.iterdir())
+    lock = take_lock(directory)
+    staging = directory / f"{PARTIAL}{secrets.token_hex(4)}"
     codec = Codec(sender)
     written = 0
     try:
-        # No fsync per record: each segment is made durable when it is full and the last at the end.
+        _check_new(directory)  # again, now that no other writer can make one here
+        for left in directory.glob(f"{PARTIAL}*"):  # by a write that was killed: no one writes it now
+            shutil.rmtree(left, ignore_errors=True)
+        # No fsync per record: each segment is made durable when it is full, and the last at the end.
         out = ExperienceLog(staging, config, fsync="interval", fsync_interval_s=float("inf"))
         try:
             for batch in batches:
@@ -510,23 +526,37 @@ def write_log(
             out.sync()
         finally:
             out.close()
-        _move_into(staging, directory)
+        names = sorted(p.name for p in staging.iterdir() if p.name != LOCK)
+        for name in sorted(names, key=lambda n: n == LOG_JSON):
+            if name == LOG_JSON:
+                sync_dir(directory)  # the segments in place, durably, before the description
+            os.rename(staging / name, directory / name)
+        shutil.rmtree(staging)
+        sync_dir(directory)
+        sync_dir(directory.parent)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
+        _remove_made(directory, existed, there)
         raise
+    finally:
+        os.close(lock)
     return written
 
 
-def _move_into(staging: Path, directory: Path) -> None:
-    """Give a finished log (folder `staging`) its name `directory`: renamed, or into an existing folder."""
-    if not directory.exists():
-        os.rename(staging, directory)
-    else:  # a folder of other files: the log's files beside them, its description last
-        names = sorted(p.name for p in staging.iterdir())
-        for name in sorted(names, key=lambda n: n == LOG_JSON):
-            os.rename(staging / name, directory / name)
-        staging.rmdir()
-    sync_dir(directory.parent)
+PARTIAL = ".partial-"
+"""The name a log being written has, in a hidden folder inside its output, until it is whole."""
+
+
+def _remove_made(directory: Path, existed: bool, there: set[Path]) -> None:
+    """Remove what a failed write made in `directory`: all of it if it made the folder."""
+    if not existed:
+        shutil.rmtree(directory, ignore_errors=True)
+        return
+    for made in set(directory.iterdir()) - there:
+        if made.is_dir() and not made.is_symlink():
+            shutil.rmtree(made, ignore_errors=True)
+        else:
+            made.unlink(missing_ok=True)
 
 
 def _check_new(directory: Path) -> None:
@@ -653,13 +683,15 @@ def split(
         done += len(batch)
     for name in groups:  # all checked before any is written, so that a refusal writes nothing
         _check_new(Path(out) / name)
+    parts = {name: Path(out) / name for name in groups}
+    before = {name: (p.is_dir(), set(p.iterdir()) if p.is_dir() else set()) for name, p in parts.items()}
     written: dict[str, int] = {}
     try:
         for name, batches in groups.items():
-            written[name] = write_log(Path(out) / name, batches, config)
+            written[name] = write_log(parts[name], batches, config)
     except BaseException:  # all or nothing: the parts written are removed, and the split can be run again
         for name in written:
-            shutil.rmtree(Path(out) / name, ignore_errors=True)
+            _remove_made(parts[name], *before[name])
         raise
     return written
 

@@ -260,7 +260,7 @@ def _in_use(directory: Path) -> LogError:
     return LogError(f"{directory}: in use by another writer (a run, server or merge has it open)")
 
 
-def _take_lock(directory: Path) -> int:
+def take_lock(directory: Path) -> int:
     """Lock `directory`'s LOCK file for this log's lifetime -> its descriptor; LogError if held."""
     fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -314,7 +314,7 @@ class SegmentLog:
             raise ValueError(f"fsync must be always, interval or never, got {fsync!r}")
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._lock = _take_lock(self.directory)
+        self._lock = take_lock(self.directory)
         try:
             self._open(segment_bytes, fsync, fsync_interval_s, marker)
         except BaseException:

@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 BIN = Path(sys.executable).parent
 
@@ -30,8 +31,17 @@ def _signals_noted() -> Iterator[list[int]]:
     try:
         yield noted
     finally:
-        for signum, handler in previous.items():
+        _restore(list(previous.items()))
+
+
+def _restore(handlers: list[tuple[int, Any]]) -> None:
+    """Put signal handlers back, each even where a signal raises while an earlier one is put back."""
+    if handlers:
+        (signum, handler), rest = handlers[0], handlers[1:]
+        try:
             signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+        finally:
+            _restore(rest)
 
 
 def free_port() -> int:
@@ -81,10 +91,11 @@ class ServerProcess:
         ]  # fmt: skip
         self.data_dir.parent.mkdir(parents=True, exist_ok=True)
         env = {**os.environ, "COLUMNS": "160", "PYTHONUNBUFFERED": "1"}
-        with _signals_noted() as noted, open(self.log, "ab") as log:
-            # A signal raised inside Popen, after the fork, would leave a server nobody can stop.
-            self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        self.proc = None
         try:
+            with _signals_noted() as noted, open(self.log, "ab") as log:
+                # A signal raised inside Popen, after the fork, would leave a server nobody can stop.
+                self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
             if noted:  # the server stopped first: the caller's own handler, now restored, may end the process
                 self.stop()
                 signal.raise_signal(noted[0])

@@ -66,14 +66,25 @@ def test_a_server_restarted_empty_under_the_same_id_ends_with_every_experience(t
 def test_a_hole_damage_left_in_a_servers_store_is_re_sent_by_the_client(tmp_path):
     """Acknowledged experiences damaged on the server's disk: the restarted server asks for them
     (its acks stop before the hole) and the client's journal re-sends them."""
+    from wfnn_io.segments import read_records
+
     port = free_port()
     server = ServerProcess(tmp_path / "a", port).start()
     try:
         proc = _streaming_client(port, tmp_path)
+        # Records enough that one in the middle can be damaged (a slow start streams fewer in 4 s,
+        # and damage to the last record is a torn tail, not a hole).
+        deadline = time.monotonic() + 60
+        while len(list(read_records(tmp_path / "a" / "store"))) < 4 and time.monotonic() < deadline:
+            time.sleep(0.2)
         server.stop()
+        records = list(read_records(tmp_path / "a" / "store"))
+        assert len(records) >= 4
         (segment,) = sorted((tmp_path / "a" / "store").glob("*.seg"))
         raw = bytearray(segment.read_bytes())
-        raw[len(raw) // 2 : len(raw) // 2 + 3] = b"\x00\x00\x00"
+        position, frame = records[len(records) // 2]  # a record with records after it
+        middle = position.offset + len(frame) // 2
+        raw[middle : middle + 3] = bytes(b ^ 0xFF for b in raw[middle : middle + 3])
         segment.write_bytes(bytes(raw))
         store = ExperienceStore(tmp_path / "a" / "store", "check")
         damaged = store.missing()

@@ -7,7 +7,7 @@ from sims.boat import BoatVec
 from sims.cartpole import CartPoleVec
 from wfnn_client.brain import Experience, Recorder
 from wfnn_common.config import LearnerConfig
-from wfnn_io import logs
+from wfnn_io import logs, segments
 from wfnn_io.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
 
 
@@ -207,14 +207,14 @@ def test_a_merge_that_fails_leaves_no_log_behind_and_can_be_run_again(tmp_path):
     assert [p.name for p in (tmp_path / "mine").iterdir()] == ["log.json"]
 
 
-def test_a_log_being_written_never_has_its_name_until_it_is_whole(tmp_path, monkeypatch):
+def test_a_log_being_written_never_reads_as_a_log_until_it_is_whole(tmp_path, monkeypatch):
     """A merge cut short (SIGTERM, a crash) left a log that looked complete: read without damage."""
     record(tmp_path / "log")
     seen = []
     real = logs.ExperienceLog.append
 
     def append(self, frame):
-        seen.append((self.directory.name, (tmp_path / "out").exists()))
+        seen.append((self.directory.name, logs.is_log(tmp_path / "out")))
         if len(seen) == 3:
             raise KeyboardInterrupt  # as Ctrl-C, or SIGTERM through `guarded`
         return real(self, frame)
@@ -222,8 +222,44 @@ def test_a_log_being_written_never_has_its_name_until_it_is_whole(tmp_path, monk
     monkeypatch.setattr(logs.ExperienceLog, "append", append)
     with pytest.raises(KeyboardInterrupt):
         logs.merge([tmp_path / "log"], tmp_path / "out")
-    assert all(name.startswith(".out.partial-") and not named for name, named in seen)
+    assert all(name.startswith(logs.PARTIAL) and not a_log for name, a_log in seen)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["log"]
+    # What a killed write leaves (its hidden folder) is no log, and the next write clears it.
+    monkeypatch.setattr(logs.ExperienceLog, "append", real)
+    (tmp_path / "out" / f"{logs.PARTIAL}dead" / "00000000.seg").parent.mkdir(parents=True)
+    assert not logs.is_log(tmp_path / "out")
+    assert logs.merge([tmp_path / "log"], tmp_path / "out") == 300
+    assert not list((tmp_path / "out").glob(f"{logs.PARTIAL}*"))
+    assert logs.summarise(tmp_path / "out").experiences == 300
+
+
+def test_a_second_writer_of_one_output_is_refused(tmp_path, monkeypatch):
+    """Each wrote a hidden folder of its own and renamed it into place: one replaced the other."""
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    real = logs.ExperienceLog.append
+    second = []
+
+    def append(self, frame):
+        if not second:
+            with pytest.raises(segments.LogError, match="in use by another writer"):
+                logs.merge([tmp_path / "b"], tmp_path / "out")
+            second.append(True)
+        return real(self, frame)
+
+    monkeypatch.setattr(logs.ExperienceLog, "append", append)
+    assert logs.merge([tmp_path / "a"], tmp_path / "out") == 300 and second
+    assert set(logs.summarise(tmp_path / "out").clients) == {"robot1"}
+
+
+def test_a_log_is_written_into_a_mount_point(tmp_path):
+    """Written beside its output and renamed, it crossed devices into a file system's root."""
+    from tests.mounts import tmpfs
+
+    record(tmp_path / "log")
+    with tmpfs(tmp_path / "disk", "4m") as disk:
+        assert logs.merge([tmp_path / "log"], disk) == 300
+        assert logs.summarise(disk).experiences == 300
 
 
 def test_a_split_that_fails_in_a_later_part_leaves_none(tmp_path, monkeypatch):
@@ -246,6 +282,19 @@ def test_a_split_that_fails_in_a_later_part_leaves_none(tmp_path, monkeypatch):
     assert list((tmp_path / "parts").iterdir()) == []
     monkeypatch.setattr(logs, "write_log", real)
     assert logs.split(tmp_path / "both", tmp_path / "parts") == {"robot1": 300, "robot2": 300}
+
+
+def test_a_failed_split_leaves_what_was_in_its_output_before(tmp_path):
+    """It removed the whole folder of each part written, with the notes a user kept there."""
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
+    (tmp_path / "parts" / "robot1").mkdir(parents=True)
+    (tmp_path / "parts" / "robot1" / "notes.txt").write_text("mine")
+    (tmp_path / "parts" / "robot2").write_text("a file where the second part goes")
+    with pytest.raises(FileExistsError):
+        logs.split(tmp_path / "both", tmp_path / "parts")
+    assert sorted(p.name for p in (tmp_path / "parts" / "robot1").iterdir()) == ["notes.txt"]
 
 
 def test_a_merge_that_fills_the_disk_leaves_neither_its_output_nor_a_full_disk(tmp_path):

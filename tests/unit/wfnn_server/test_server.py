@@ -780,3 +780,26 @@ def test_a_relayed_status_announces_the_weights_version_published_since(tmp_path
         assert [s.weights_version for s in listener.statuses] == [0, 3]
     finally:
         server.store.close()
+
+
+def test_a_signal_while_a_starters_handlers_are_put_back_leaves_none_behind(monkeypatch):
+    """One raised while SIGTERM's handler was put back left SIGINT's only noted: Ctrl-C did nothing."""
+    import signal
+
+    import wfnn_server.spawn as spawn
+
+    real, calls = signal.signal, []
+
+    def put_back(signum, handler):
+        calls.append(signum)
+        previous = real(signum, handler)
+        if len(calls) == 3:  # the first handler put back: a SIGTERM arrives then
+            raise KeyboardInterrupt
+        return previous
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(spawn.signal, "signal", put_back)
+    with pytest.raises(KeyboardInterrupt), spawn._signals_noted():
+        pass
+    monkeypatch.setattr(spawn.signal, "signal", real)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before and len(calls) == 4
