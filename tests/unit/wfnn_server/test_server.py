@@ -797,9 +797,15 @@ def test_a_signal_while_a_starters_handlers_are_put_back_leaves_none_behind(monk
             raise KeyboardInterrupt
         return previous
 
-    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
-    monkeypatch.setattr(spawn.signal, "signal", put_back)
-    with pytest.raises(KeyboardInterrupt), spawn._signals_noted():
-        pass
-    monkeypatch.setattr(spawn.signal, "signal", real)
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before and len(calls) == 4
+    # Python's own SIGINT handler, as in a terminal (a run started with & inherits it ignored).
+    inherited = real(signal.SIGINT, signal.default_int_handler)
+    try:
+        before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        monkeypatch.setattr(spawn.signal, "signal", put_back)
+        with pytest.raises(KeyboardInterrupt), spawn._signals_noted():
+            pass
+        monkeypatch.setattr(spawn.signal, "signal", real)
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+        assert len(calls) == 4
+    finally:
+        real(signal.SIGINT, inherited)
