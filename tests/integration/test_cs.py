@@ -9,7 +9,7 @@ import pytest
 from tests.integration.procs import ServerProcess, client, endpoint, finish, free_port
 from wfnn_io.bus import NetConfig, ZenohBus
 from wfnn_io.persist import load_weights
-from wfnn_io.protocol import Codec, ExperienceBatch, Keys, ServerStatus, WeightSnapshot
+from wfnn_io.protocol import ClientStatus, Codec, ExperienceBatch, Keys, ServerStatus, WeightSnapshot
 from wfnn_server.spawn import ServerProcess as _ServerProcess
 from wfnn_server.store import ExperienceStore
 
@@ -19,6 +19,23 @@ KEYS = Keys("it")
 
 def metrics(path):
     return json.loads(path.read_text())
+
+
+def wait_following(port, server_id, proc, timeout_s=120.0):
+    """Until the client's status says it follows `server_id` (its weights came), as a real observer
+    hears it: a fixed wait was too short on a busy machine (no weights yet, no outage to measure)."""
+    codec, following = Codec("test"), []
+    bus = ZenohBus(NetConfig(connect=(endpoint(port),)))
+    try:
+        bus.subscribe(
+            KEYS.client_status("*"), lambda k, d: following.append(codec.decode(d, ClientStatus)[1].following)
+        )
+        deadline = time.monotonic() + timeout_s
+        while server_id not in following:
+            assert time.monotonic() < deadline and proc.poll() is None, following[-5:]
+            time.sleep(0.05)
+    finally:
+        bus.close()
 
 
 def test_boat_learned_over_zenoh_matches_the_single_process_learner(tmp_path):
@@ -52,10 +69,11 @@ def test_server_killed_mid_run_loses_no_experience(tmp_path):
     server = ServerProcess(tmp_path / "srv", port, "--checkpoint-period", "1").start()
     out = tmp_path / "client"
     stats_path = tmp_path / "stats.json"
-    proc = client("--sim", "boat", "--episodes", "1000", "--duration", "14", "--rate-hz", "50",
+    proc = client("--sim", "boat", "--episodes", "1000", "--duration", "30", "--rate-hz", "50",
                   "--server", endpoint(port), "--out", str(out), "--json-stats", str(stats_path))  # fmt: skip
     try:
-        time.sleep(4.0)
+        wait_following(port, "srv", proc)
+        time.sleep(1.0)
         server.kill()
         killed = time.time()
         time.sleep(3.0)
@@ -73,7 +91,7 @@ def test_server_killed_mid_run_loses_no_experience(tmp_path):
     assert stats["client/tick_jitter_ms_p99_outage"] < 20.0
     # Counted by sequence numbers, everything the client produced is in the restarted server's store.
     produced = int(stats["uplink/produced_through"])
-    assert produced > 14 * 50 * 0.9
+    assert produced > 30 * 50 * 0.9
     store = ExperienceStore(tmp_path / "srv" / "store", "check")
     client_id = json.loads((out / "journal" / "client.json").read_text())["client"]
     assert store.stored_through[client_id] == produced and store.count == produced + 1
@@ -90,10 +108,11 @@ def test_client_fails_over_to_the_other_server_within_two_seconds(tmp_path):
         ServerProcess(tmp_path / "b", p2, server_id="b"),
     ):
         stats = tmp_path / "stats.json"
-        proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "9", "--rate-hz", "30",
+        proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "20", "--rate-hz", "30",
                       "--server", endpoint(p1), "--server", endpoint(p2), "--out", str(tmp_path / "c"),
                       "--json-stats", str(stats))  # fmt: skip
-        time.sleep(4.0)
+        wait_following(p1, "a", proc)
+        time.sleep(1.0)
         a.kill()  # the longest-alive server, followed until now
         killed = time.time()
         finish(proc, timeout=60)
