@@ -129,12 +129,12 @@ def test_snapshots_without_the_key_are_never_applied(tmp_path):
     key.write_text("0123456789abcdef0123456789abcdef")
     stats = tmp_path / "stats.json"
     with ServerProcess(tmp_path / "srv", port, "--key-file", str(key)):
-        proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "6", "--rate-hz", "30",
+        proc = client("--sim", "positioning", "--episodes", "1000", "--duration", "12", "--rate-hz", "30",
                       "--server", endpoint(port), "--key-file", str(key), "--out", str(tmp_path / "c"),
                       "--json-stats", str(stats))  # fmt: skip
         rogue = ZenohBus(NetConfig(connect=(endpoint(port),)))
         try:
-            time.sleep(1.0)
+            wait_following(port, "srv", proc)  # listening to the weights key: a slow start missed frames
             forged = Codec("srv")  # the right name, no key
             n_params = 2 * 10 + 10 + 9 * 2 * 10 + 9 * 2  # positioning: S=2, H=10, 9 wires x (A + 1)
             deadline = time.monotonic() + 4.0
