@@ -15,10 +15,9 @@ import dataclasses
 import json
 import logging
 import signal
-import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -40,7 +39,7 @@ from wfnn_common.config import (
 )
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
-from wfnn_io.cli_errors import Terminated
+from wfnn_io.cli_errors import Terminated, handling, terminate
 from wfnn_io.persist import (
     load_weights,
     make_directory,
@@ -158,40 +157,13 @@ def run(
             close()
 
 
-def _interrupt(signum: int, frame: Any) -> None:
-    raise Terminated(signum)
-
-
-@contextlib.contextmanager
-def _handling(
-    handler: Callable[[int, Any], None], *signums: int, keep_ignored: bool = False
-) -> Iterator[None]:
-    """`handler` for `signums` meanwhile, then the handlers before put back.
-
-    Only the main thread can set a handler; elsewhere (an embedding program's thread) the signals
-    are left as they are. With `keep_ignored`, an ignored signal stays ignored.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous: dict[int, Any] = {}
-    try:
-        for signum in signums:
-            if not (keep_ignored and signal.getsignal(signum) is signal.SIG_IGN):
-                previous[signum] = signal.signal(signum, handler)
-        yield
-    finally:
-        for signum, before in previous.items():
-            signal.signal(signum, before if before is not None else signal.SIG_DFL)
-
-
 def _terminated_as_interrupted() -> contextlib.AbstractContextManager[None]:
     """SIGTERM (`kill`, a service manager's stop) ends the run as Ctrl-C does, cleanly (`Terminated`).
 
     By default it ends the process at once: the journal was not closed, so the next run took it
     for a crash and declared the numbers reserved for it lost.
     """
-    return _handling(_interrupt, signal.SIGTERM)
+    return handling(terminate, signal.SIGTERM)
 
 
 def _stop_brains(brains: _Brains) -> int:
@@ -203,7 +175,7 @@ def _stop_brains(brains: _Brains) -> int:
     SIGINT (a job started with &) stays ignored.
     """
     noted: list[int] = []
-    with _handling(
+    with handling(
         lambda signum, frame: noted.append(signum), signal.SIGTERM, signal.SIGINT, keep_ignored=True
     ):
         brains.stop()

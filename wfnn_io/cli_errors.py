@@ -13,6 +13,7 @@ a damaged file's bytes) shown without the control characters that drive a termin
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -20,7 +21,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -140,30 +141,57 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
         # SIGTERM (`kill`, a supervisor's stop) ends a tool as Ctrl-C does, so that what it does on
         # the way out is done: the servers a benchmark started stopped, a log being written removed.
         # A tool that serves installs its own handler meanwhile; an ignored SIGTERM stays ignored.
-        previous = None
-        if threading.current_thread() is threading.main_thread():
-            if signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:
-                previous = signal.signal(signal.SIGTERM, _terminate)
-        try:
-            _invoke(app)
-        except KeyboardInterrupt:
-            print("terminated" if _terminated else "interrupted", file=sys.stderr)
-            sys.exit(_exit_code(130))
-        except (OSError, ValueError) as exc:
-            _report(exc, 2)
-        except Exception as exc:
-            if _usage_error(exc):
-                return
-            _report(exc, 1)
-        finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+        with handling(terminate, signal.SIGTERM, keep_ignored=True):
+            try:
+                _invoke(app)
+            except KeyboardInterrupt:
+                print("terminated" if _terminated else "interrupted", file=sys.stderr)
+                sys.exit(_exit_code(130))
+            except (OSError, ValueError) as exc:
+                _report(exc, 2)
+            except Exception as exc:
+                if _usage_error(exc):
+                    return
+                _report(exc, 1)
 
     return main
 
 
-def _terminate(signum: int, frame: object) -> None:
+def terminate(signum: int, frame: object) -> None:
+    """A signal handler: the signal ends the run as Ctrl-C does, cleanly (`Terminated`)."""
     raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def handling(
+    handler: Callable[[int, Any], None], *signums: int, keep_ignored: bool = False
+) -> Iterator[None]:
+    """`handler` for `signums` meanwhile, then the handlers before put back.
+
+    Only the main thread can set a handler; elsewhere (an embedding program's thread) the signals
+    are left as they are. With `keep_ignored`, an ignored signal stays ignored. Each handler is
+    put back even where a signal raises while an earlier one is (one left only noted a Ctrl-C).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous: list[tuple[int, Any]] = []
+    try:
+        for signum in signums:
+            if not (keep_ignored and signal.getsignal(signum) is signal.SIG_IGN):
+                previous.append((signum, signal.signal(signum, handler)))
+        yield
+    finally:
+        _put_back(previous)
+
+
+def _put_back(handlers: list[tuple[int, Any]]) -> None:
+    if handlers:
+        (signum, handler), rest = handlers[0], handlers[1:]
+        try:
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+        finally:
+            _put_back(rest)
 
 
 def _invoke(app: Callable[[], Any]) -> None:

@@ -8,40 +8,23 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+
+from wfnn_io.cli_errors import handling
 
 BIN = Path(sys.executable).parent
 
 
 @contextlib.contextmanager
 def _signals_noted() -> Iterator[list[int]]:
-    """SIGTERM and SIGINT only noted meanwhile (in the main thread; elsewhere none arrives) -> those noted."""
+    """SIGTERM and SIGINT only noted meanwhile (an ignored one stays ignored) -> those noted."""
     noted: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
+    with handling(
+        lambda signum, _frame: noted.append(signum), signal.SIGTERM, signal.SIGINT, keep_ignored=True
+    ):
         yield noted
-        return
-    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGINT)}
-    for signum, handler in previous.items():
-        if handler is not signal.SIG_IGN:
-            signal.signal(signum, lambda n, _frame: noted.append(n))
-    try:
-        yield noted
-    finally:
-        _restore(list(previous.items()))
-
-
-def _restore(handlers: list[tuple[int, Any]]) -> None:
-    """Put signal handlers back, each even where a signal raises while an earlier one is put back."""
-    if handlers:
-        (signum, handler), rest = handlers[0], handlers[1:]
-        try:
-            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
-        finally:
-            _restore(rest)
 
 
 def free_port() -> int:
