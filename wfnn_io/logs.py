@@ -619,12 +619,12 @@ def merged(
                 raise LogFormatError(
                     f"{directory}: experiences of learner spec {batch.spec_hash}, not {spec}"
                 )
-            widths = (batch.state.shape[1], batch.action.shape[1])
-            dims = dims or widths
-            if widths != dims:
+            have = (batch.state.shape[1], batch.action.shape[1])
+            dims = dims or have
+            if have != dims:
                 raise LogFormatError(
                     f"{directory}: experiences {batch.first_seq}-{batch.last_seq} of client {batch.client!r} "
-                    f"have {widths[0]} state and {widths[1]} action variables; their learner spec has "
+                    f"have {have[0]} state and {have[1]} action variables; their learner spec has "
                     f"{dims[0]} and {dims[1]}"
                 )
             seen = through.setdefault(batch.client, set())
@@ -645,10 +645,10 @@ def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
     check_outside(out, sources)
     config = common_config(sources)
-    return write_log(out, merged(sources, key, dims=_dims(config)), config)
+    return write_log(out, merged(sources, key, dims=widths(config)), config)
 
 
-def _dims(config: LearnerConfig | None) -> tuple[int, int] | None:
+def widths(config: LearnerConfig | None) -> tuple[int, int] | None:
     """A config's state and action widths (None without a config)."""
     return None if config is None else (config.state_dim, config.action_dim)
 
@@ -713,7 +713,7 @@ def _directory_name(label: str, taken: set[str]) -> str:
 
 def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     """The experiences of logs (merged) as flat numpy arrays [N, ...] with their numbering."""
-    batches = list(merged(sources, key, dims=_dims(common_config(sources))))
+    batches = list(merged(sources, key, dims=widths(common_config(sources))))
     if not batches:
         raise LogFormatError(f"no experiences in {', '.join(map(str, sources))}")
     clients = sorted({b.client for b in batches})

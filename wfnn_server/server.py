@@ -36,7 +36,7 @@ from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
 from wfnn_io.cli_errors import log_failure
-from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside
+from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside, widths
 from wfnn_io.persist import (
     PersistError,
     atomic_write_text,
@@ -85,13 +85,13 @@ THINK_CALL_S = 0.1
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 MAX_LISTED = 256
-LOSS_LOG_S = 10.0
-"""Shortest interval between two logged loss declarations of one client: without a key, anyone
-can send them as fast as frames go (each is counted in `ingest/declared_lost` all the same)."""
 """Clients whose experience numbers a snapshot or status lists: the most recently heard. Every
 client the store ever held would outgrow the frames a robot accepts (and the status's limit)
 on a long-lived server, or under forged ids; a client missing from one is heard again at its
 next heartbeat or batch (and its acknowledgements come on their own)."""
+LOSS_LOG_S = 10.0
+"""Shortest interval between two logged loss declarations of one client: without a key, anyone
+can send them as fast as frames go (each is counted in `ingest/declared_lost` all the same)."""
 MAX_CAMERAS = 16
 """Clients whose newest camera picture is kept for the dashboard (the most recent ones)."""
 MAX_HEARD = 4096
@@ -357,8 +357,7 @@ class ThinkServer:
                 f"the logs were recorded for learner spec {described.spec_hash()}, this server's is {spec}"
             )
         spec = spec or (described.spec_hash() if described is not None else "")
-        config = known or described
-        dims = (config.state_dim, config.action_dim) if config is not None else None
+        dims = widths(known or described)
         counts = ReadCounts()
         offered = sum(len(b) for b in merged(directories, self._key, spec, counts, dims))
         if counts.damage:
