@@ -41,6 +41,7 @@ from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
 from wfnn_io.cli_errors import Terminated, handling, terminate
 from wfnn_io.persist import (
+    PersistError,
     load_weights,
     make_directory,
     save_experiences,
@@ -409,14 +410,13 @@ def _run(
         params = sk.learner.params if config.local else (current.params if current is not None else None)
         meta = {"sim": config.sim, "episodes": len(scores), "following": sk.brain.following,
                 "behaviour": sk.name}  # fmt: skip
-        if params is not None and not np.isfinite(params.flat).all():
-            # Diverged past what the monitor reset (the run ended first): a file of them would
-            # be refused by every reader, so none is written.
-            log.error("%s: the weights are not finite at the end of the run; weights file not written",
-                      sk.name or config.sim)  # fmt: skip
-        elif params is not None:
-            save_weights(out / f"{_named('weights', sk.name)}.npz", sk.lcfg, params, meta)
-            weights_saved.append(f"{_named('weights', sk.name)}.npz")
+        name = f"{_named('weights', sk.name)}.npz"
+        try:
+            if params is not None:
+                save_weights(out / name, sk.lcfg, params, meta)
+                weights_saved.append(name)
+        except PersistError as exc:  # weights diverged past what the monitor reset (the run ended first)
+            log.error("%s at the end of the run", exc)
         if config.local and config.learn:
             save_experiences(
                 out / f"{_named('experiences', sk.name)}.npz", sk.lcfg, sk.learner.buffer.contents(0)
