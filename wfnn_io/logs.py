@@ -34,6 +34,8 @@ are). This module also summarises, merges, splits and exports logs (`wfnn-logs`)
 from __future__ import annotations
 
 import bisect
+import contextlib
+import errno
 import json
 import logging
 import os
@@ -42,7 +44,7 @@ import secrets
 import shutil
 import time
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard, cast
@@ -99,8 +101,9 @@ class LogFormatError(ValueError):
 
 
 def is_log(directory: Path) -> bool:
-    """Whether `directory` holds segment files."""
-    return Path(directory).is_dir() and any(Path(directory).glob("*.seg"))
+    """Whether `directory` holds segment files of a whole log (none still being moved into place)."""
+    directory = Path(directory)
+    return directory.is_dir() and any(directory.glob("*.seg")) and not _unfinished(directory)
 
 
 def new_log_id() -> str:
@@ -289,6 +292,11 @@ def read_batches(
 ) -> Iterator[ExperienceBatch]:
     """Every experience batch in a log, oldest first (see `read_entries`); read-only."""
     if not is_log(directory):
+        if _unfinished(directory):
+            raise LogFormatError(
+                f"{directory}: not a whole log: a write of it is under way, or was cut short (run that "
+                "write again: what it left is removed then)"
+            )
         raise LogFormatError(f"{directory}: no experience log here (no .seg files)")
     for _, _, batch in read_entries(directory, key, counts):
         yield batch
@@ -498,59 +506,172 @@ def write_log(
 ) -> int:
     """Write batches as a new log (refuses a directory that already holds one); -> experiences.
 
-    The output's lock is held throughout (a second writer of it is refused), and the log is
-    written in a hidden folder inside it (`.partial-*`), made durable, and only then moved into
-    place, its description last: a write cut short by anything (a full disk, a signal, a crash
-    or a power cut) never leaves what reads as a log there, and the same command can be run
-    again. A write that fails removes what it made; what a killed one left is removed by the next.
+    See `_write_logs`: a write cut short by anything (a full disk, a signal, a crash or a power
+    cut) never leaves what reads as a log there, and the same command can be run again.
     """
-    directory = Path(directory)
-    _check_new(directory)
-    existed = directory.exists()
-    directory.mkdir(parents=True, exist_ok=True)
-    there = set(directory.iterdir())
-    lock = take_lock(directory)
-    staging = directory / f"{PARTIAL}{secrets.token_hex(4)}"
-    codec = Codec(sender)
-    written = 0
-    try:
-        _check_new(directory)  # again, now that no other writer can make one here
-        for left in directory.glob(f"{PARTIAL}*"):  # by a write that was killed: no one writes it now
-            shutil.rmtree(left, ignore_errors=True)
-        # No fsync per record: each segment is made durable when it is full, and the last at the end.
-        out = ExperienceLog(staging, config, fsync="interval", fsync_interval_s=float("inf"))
-        try:
-            for batch in batches:
-                out.append(codec.encode(batch))
-                written += len(batch)
-            out.sync()
-        finally:
-            out.close()
-        names = sorted(p.name for p in staging.iterdir() if p.name != LOCK)
-        for name in sorted(names, key=lambda n: n == LOG_JSON):
-            if name == LOG_JSON:
-                sync_dir(directory)  # the segments in place, durably, before the description
-            os.rename(staging / name, directory / name)
-        shutil.rmtree(staging)
-        sync_dir(directory)
-        sync_dir(directory.parent)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        _remove_made(directory, existed, there)
-        raise
-    finally:
-        os.close(lock)
-    return written
+    return _write_logs(Path(directory), {"": batches}, config, sender)[""]
 
 
 PARTIAL = ".partial-"
-"""The name a log being written has, in a hidden folder inside its output, until it is whole."""
+"""The name of the hidden folder, inside a write's output, where it writes until all is whole."""
+MOVING = "moving.json"
+"""In a `.partial-*` folder: the files (paths under the folder's parent) being moved out of it
+into place, and the folders made for them. While it is there none of them is part of a log; a
+write cut short then (killed, a power cut) is undone by the next write there."""
+_NAME = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}")
+"""A path component that a `moving.json` may name (as `_directory_name` makes them, or a log's
+own files): no way out of the folder it is in."""
+
+
+def _write_logs(
+    root: Path, parts: Mapping[str, Iterable[ExperienceBatch]], config: LearnerConfig | None, sender: str
+) -> dict[str, int]:
+    """Write each part's batches as a new log at root / part ("": root itself), all or none.
+
+    The outputs' locks are held throughout (a second writer is refused). The logs are written in
+    a hidden folder inside root (`.partial-*`) and made durable; the list of their files
+    (`moving.json`) is written there, the files are moved into place, and the list is removed
+    last. A write that fails removes what it made; what a killed one left (its folder, and the
+    files its list names that it had moved) is removed by the next write there, and readers
+    meanwhile take none of it for a log.
+    """
+    targets = [root / name if name else root for name in parts]
+    for target in targets:  # all checked before any is written, so that a refusal writes nothing
+        _check_new(target)
+        if target.exists() and not target.is_dir():
+            raise FileExistsError(
+                errno.EEXIST, "a file is in the way (a folder is needed there)", str(target)
+            )
+    before = {t: (t.exists(), set(t.iterdir()) if t.is_dir() else set()) for t in [root, *targets]}
+    root.mkdir(parents=True, exist_ok=True)
+    locks = [take_lock(root)]
+    staging = root / f"{PARTIAL}{secrets.token_hex(4)}"
+    codec = Codec(sender)
+    written: dict[str, int] = {}
+    try:
+        locks += [take_lock(t) for t in targets if t != root and t.is_dir()]
+        _undo_unfinished(root, targets)
+        for target in targets:
+            _check_new(target)  # again, now that no other writer can make one there
+        files: list[str] = []
+        for name, batches in parts.items():
+            where = staging / name if name else staging
+            # No fsync per record: each segment is made durable when it is full, and the last at the end.
+            out = ExperienceLog(where, config, fsync="interval", fsync_interval_s=float("inf"))
+            written[name] = 0
+            try:
+                for batch in batches:
+                    out.append(codec.encode(batch))
+                    written[name] += len(batch)
+                out.sync()
+            finally:
+                out.close()
+            files += sorted(f"{name}/{p.name}" if name else p.name for p in where.iterdir() if p.name != LOCK)
+        _publish(root, staging, files)
+        shutil.rmtree(staging)
+        sync_dir(root)
+        sync_dir(root.parent)
+    except BaseException:
+        _undo(root, staging)
+        for target, (existed, there) in sorted(before.items(), key=lambda kv: -len(kv[0].parts)):
+            _remove_made(target, existed, there)
+        raise
+    finally:
+        for fd in locks:
+            os.close(fd)
+    return written
+
+
+def _publish(root: Path, staging: Path, files: list[str]) -> None:
+    """Move staged files (paths under `staging`) to the same paths under `root`, all or none.
+
+    The list of them is made durable first and removed last: the logs are whole once it is gone.
+    """
+    made = sorted({f.split("/")[0] for f in files if "/" in f and not (root / f.split("/")[0]).exists()})
+    atomic_write_text(staging / MOVING, json.dumps({"files": files, "made": made}))
+    sync_dir(staging)
+    for part in made:
+        (root / part).mkdir()
+    for name in files:
+        os.rename(staging / name, root / name)
+    for folder in sorted({(root / name).parent for name in files}, key=lambda p: -len(p.parts)):
+        sync_dir(folder)  # the files in place (and the folders made, in root: the last) durably
+    (staging / MOVING).unlink()
+    sync_dir(staging)
+
+
+def _moving(marker: Path) -> tuple[list[str], list[str]]:
+    """A `moving.json`'s (files, folders made), those with safe names only; ([], []) if unreadable."""
+    try:
+        data = json.loads(read_regular_text(marker))
+    except (OSError, ValueError, RecursionError):
+        return [], []
+
+    def safe(names: object) -> list[str]:
+        if not isinstance(names, list):
+            return []
+        return [n for n in names if isinstance(n, str) and 1 <= len(n.split("/")) <= 2
+                and all(_NAME.fullmatch(c) for c in n.split("/"))]  # fmt: skip
+
+    if not isinstance(data, dict):
+        return [], []
+    return safe(data.get("files")), safe(data.get("made"))
+
+
+def _unfinished(directory: Path) -> bool:
+    """Whether files in `directory` are listed as being moved into place by a write not yet whole.
+
+    By a write into it, or a split into its parent: one at work now, or one cut short.
+    """
+    directory = Path(directory)
+    if any(directory.glob(f"{PARTIAL}*/{MOVING}")):
+        return True
+    if not directory.name:
+        return False
+    return any(
+        any(f.split("/")[0] == directory.name for f in _moving(marker)[0])
+        for marker in directory.parent.glob(f"{PARTIAL}*/{MOVING}")
+    )
+
+
+def _undo(root: Path, staging: Path) -> None:
+    """Remove a write's hidden folder, and the files its list says it had moved into place."""
+    marker = staging / MOVING
+    if marker.exists():
+        files, made = _moving(marker)
+        for name in files:
+            if not (staging / name).exists():  # moved: it is in place, and goes
+                (root / name).unlink(missing_ok=True)
+        for folder in made:
+            with contextlib.suppress(OSError):  # only where it is empty: nothing else is lost
+                (root / folder).rmdir()
+        sync_dir(root)  # the files gone durably before the list that names them
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+def _undo_unfinished(root: Path, targets: list[Path]) -> None:
+    """Undo what killed writes left in root and the targets (whose locks are held).
+
+    And what a killed split into root's parent left, where it named root (under the parent's lock).
+    """
+    for folder in [root, *(t for t in targets if t != root)]:
+        for left in folder.glob(f"{PARTIAL}*"):  # by a write that was killed: no one writes it now
+            _undo(folder, left)
+    if _unfinished(root):
+        lock = take_lock(root.parent)
+        try:
+            for left in root.parent.glob(f"{PARTIAL}*"):
+                _undo(root.parent, left)
+        finally:
+            os.close(lock)
 
 
 def _remove_made(directory: Path, existed: bool, there: set[Path]) -> None:
     """Remove what a failed write made in `directory`: all of it if it made the folder."""
     if not existed:
         shutil.rmtree(directory, ignore_errors=True)
+        return
+    if not directory.is_dir():
         return
     for made in set(directory.iterdir()) - there:
         if made.is_dir() and not made.is_symlink():
@@ -560,7 +681,13 @@ def _remove_made(directory: Path, existed: bool, there: set[Path]) -> None:
 
 
 def _check_new(directory: Path) -> None:
-    """Refuse to write a log where one is (its segments, or only its description)."""
+    """Refuse to write a log where one is (its segments, or only its description).
+
+    What a write cut short while moving its files into place left is no log: the next write
+    removes it (`_undo_unfinished`).
+    """
+    if _unfinished(directory):
+        return
     if is_log(directory) or (directory / LOG_JSON).exists():
         raise LogFormatError(f"{directory} already holds a log; write to a new directory")
 
@@ -681,19 +808,7 @@ def split(
             names[label] = _directory_name(label, set(names.values()))
         groups.setdefault(names[label], []).append(batch)
         done += len(batch)
-    for name in groups:  # all checked before any is written, so that a refusal writes nothing
-        _check_new(Path(out) / name)
-    parts = {name: Path(out) / name for name in groups}
-    before = {name: (p.is_dir(), set(p.iterdir()) if p.is_dir() else set()) for name, p in parts.items()}
-    written: dict[str, int] = {}
-    try:
-        for name, batches in groups.items():
-            written[name] = write_log(parts[name], batches, config)
-    except BaseException:  # all or nothing: the parts written are removed, and the split can be run again
-        for name in written:
-            _remove_made(parts[name], *before[name])
-        raise
-    return written
+    return _write_logs(Path(out), groups, config, "wfnn-logs") if groups else {}
 
 
 def _directory_name(label: str, taken: set[str]) -> str:

@@ -97,7 +97,16 @@ def serve(
     publish_period: Annotated[float, typer.Option(help="Snapshot period (s).")] = 0.25,
     checkpoint_period: Annotated[float, typer.Option(help="Checkpoint period (s).")] = 30.0,
     think: Annotated[str, typer.Option(help="budget (thinks per action) or continuous.")] = "budget",
-    fsync: Annotated[str, typer.Option(help="always, interval or never.")] = "interval",
+    fsync: Annotated[
+        str,
+        typer.Option(
+            help=(
+                "When acknowledged experiences are fsynced: always, interval (an acknowledgement waits at "
+                "most 20 ms for its fsync) or never (acknowledged once the OS has them: they survive a "
+                "server crash, not a power cut)."
+            )
+        ),
+    ] = "interval",
     replay_only: Annotated[
         list[Path] | None,
         typer.Option(

@@ -112,6 +112,9 @@ class ServerConfig:
     """Niceness of the thinking thread (Linux): thinking is any-time work and yields the CPU
     to real-time work on the same machine, as the thesis runs `think` at a lower priority."""
     fsync: FsyncPolicy = "interval"
+    """When the store fsyncs, and so what an acknowledgement promises: `always` and `interval` acknowledge
+    experiences once fsynced; `never` once written to the OS (they survive the server's crash, not a
+    power cut)."""
     fsync_interval_s: float = 0.02
     """With fsync `interval`: acknowledgements wait at most this long for an fsync."""
     segment_bytes: int = 64 << 20

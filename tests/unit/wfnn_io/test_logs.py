@@ -122,7 +122,7 @@ def test_split_writes_only_under_its_directory_whatever_the_log_names(tmp_path):
     assert sum(by_client.values()) == 20 * (len(HOSTILE_SOURCES) + 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*before, "out", "out_clients"])
     for out, names in ((tmp_path / "out", parts), (tmp_path / "out_clients", by_client)):
-        assert sorted(p.name for p in out.iterdir()) == sorted(names)
+        assert sorted(p.name for p in out.iterdir() if p.name != ".lock") == sorted(names)
         for name in names:
             assert not name.startswith(".") and len(name) <= 64 and "/" not in name
             assert logs.summarise(out / name).experiences == names[name]
@@ -268,20 +268,95 @@ def test_a_split_that_fails_in_a_later_part_leaves_none(tmp_path, monkeypatch):
     record(tmp_path / "a", client="robot1")
     record(tmp_path / "b", client="robot2", seed=1)
     logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
-    real, calls = logs.write_log, []
+    real, made = logs.ExperienceLog.__init__, []
 
-    def write_log(directory, batches, config, sender="wfnn-logs"):
-        calls.append(directory)
-        if len(calls) == 2:
+    def opened(self, directory, *args, **kwargs):
+        made.append(directory)
+        if len(made) == 2:
             raise OSError(28, "No space left on device")
-        return real(directory, batches, config, sender)
+        real(self, directory, *args, **kwargs)
 
-    monkeypatch.setattr(logs, "write_log", write_log)
+    monkeypatch.setattr(logs.ExperienceLog, "__init__", opened)
     with pytest.raises(OSError, match="No space"):
         logs.split(tmp_path / "both", tmp_path / "parts")
-    assert list((tmp_path / "parts").iterdir()) == []
-    monkeypatch.setattr(logs, "write_log", real)
+    assert not (tmp_path / "parts").exists()
+    monkeypatch.setattr(logs.ExperienceLog, "__init__", real)
     assert logs.split(tmp_path / "both", tmp_path / "parts") == {"robot1": 300, "robot2": 300}
+
+
+KILLED_AT_RENAME = """
+import os, sys
+from pathlib import Path
+from wfnn_io import logs
+
+real, moves = os.rename, []
+
+def rename(source, target):  # killed (no handler runs) as the k-th file is moved into place
+    if logs.PARTIAL not in str(target):
+        moves.append(target)
+        if len(moves) == int(sys.argv[1]):
+            os._exit(9)
+    return real(source, target)
+
+os.rename = rename
+if sys.argv[2] == "merge":
+    logs.merge([Path(sys.argv[3])], Path(sys.argv[4]))
+else:
+    logs.split(Path(sys.argv[3]), Path(sys.argv[4]))
+"""
+
+
+def _killed_at_rename(k, command, source, out):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    done = subprocess.run([sys.executable, "-c", KILLED_AT_RENAME, str(k), command, str(source), str(out)],
+                          cwd=root, capture_output=True, timeout=120)  # fmt: skip
+    assert done.returncode == 9, done.stderr.decode()[-2000:]
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_a_merge_killed_while_moving_its_files_into_place_leaves_no_log_and_runs_again(tmp_path, k):
+    """Killed between its renames, it left segments without log.json: read as a whole log, and
+    the same merge was refused ("already holds a log")."""
+    record(tmp_path / "log")
+    _killed_at_rename(k, "merge", tmp_path / "log", tmp_path / "out")
+    assert not logs.is_log(tmp_path / "out")
+    with pytest.raises(logs.LogFormatError, match="not a whole log"):
+        logs.summarise(tmp_path / "out")
+    assert logs.merge([tmp_path / "log"], tmp_path / "out") == 300
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [".lock", "00000000.seg", "log.json"]
+    assert logs.summarise(tmp_path / "out").experiences == 300
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4])
+def test_a_split_killed_while_moving_its_parts_into_place_leaves_none_and_runs_again(tmp_path, k):
+    """Killed between two parts, it left the first whole: a split missing parts, then refused."""
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
+    _killed_at_rename(k, "split", tmp_path / "both", tmp_path / "parts")
+    for part in ("robot1", "robot2"):
+        assert not logs.is_log(tmp_path / "parts" / part)
+    with pytest.raises(logs.LogFormatError, match="not a whole log"):
+        logs.summarise(tmp_path / "parts" / "robot1")
+    assert logs.split(tmp_path / "both", tmp_path / "parts") == {"robot1": 300, "robot2": 300}
+    assert sorted(p.name for p in (tmp_path / "parts").iterdir()) == [".lock", "robot1", "robot2"]
+    assert logs.summarise(tmp_path / "parts" / "robot2").experiences == 300
+
+
+def test_a_merge_into_a_part_of_a_killed_split_undoes_the_whole_split(tmp_path):
+    """A split is all or none: a later write into one of its parts removes the others' files too."""
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
+    _killed_at_rename(3, "split", tmp_path / "both", tmp_path / "parts")
+    assert logs.merge([tmp_path / "b"], tmp_path / "parts" / "robot1") == 300
+    assert set(logs.summarise(tmp_path / "parts" / "robot1").clients) == {"robot2"}
+    assert not (tmp_path / "parts" / "robot2").exists()
+    assert not list((tmp_path / "parts").glob(f"{logs.PARTIAL}*"))
 
 
 def test_a_failed_split_leaves_what_was_in_its_output_before(tmp_path):
