@@ -513,14 +513,18 @@ def write_log(
 
 
 PARTIAL = ".partial-"
-"""The name of the hidden folder, inside a write's output, where it writes until all is whole."""
+"""The name of a write's hidden folders (one inside each of its outputs) until all is whole."""
 MOVING = "moving.json"
-"""In a `.partial-*` folder: the files (paths under the folder's parent) being moved out of it
-into place, and the folders made for them. While it is there none of them is part of a log; a
-write cut short then (killed, a power cut) is undone by the next write there."""
+"""In a write's hidden folder in its root: the files (paths under the root) being moved into place,
+and the part folders made for them. While it is there none of them is part of a log; a write cut
+short then (killed, a power cut) is undone by the next write there."""
+PART_OF = "part-of"
+"""In a split part's hidden folder: the path of its split's `moving.json` (the part is no whole
+log while that is there)."""
 _NAME = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}")
-"""A path component that a `moving.json` may name (as `_directory_name` makes them, or a log's
-own files): no way out of the folder it is in."""
+"""A path component that a `moving.json` may name (as `_directory_name` makes them)."""
+_LOG_FILE = re.compile(r"[0-9]{1,20}\.seg|log\.json")
+"""The only files an undo removes: a log's own (a hostile list cannot name others)."""
 
 
 def _write_logs(
@@ -528,36 +532,42 @@ def _write_logs(
 ) -> dict[str, int]:
     """Write each part's batches as a new log at root / part ("": root itself), all or none.
 
-    The outputs' locks are held throughout (a second writer is refused). The logs are written in
-    a hidden folder inside root (`.partial-*`) and made durable; the list of their files
-    (`moving.json`) is written there, the files are moved into place, and the list is removed
-    last. A write that fails removes what it made; what a killed one left (its folder, and the
-    files its list names that it had moved) is removed by the next write there, and readers
-    meanwhile take none of it for a log.
+    Each output is locked throughout (a second writer is refused), and each log is written in a
+    hidden folder inside its output (`.partial-*`, on the output's file system) and made
+    durable. Then the list of the files (`moving.json`, in root's hidden folder) is made durable,
+    they are moved into place, and the list is removed last. A write that fails removes only
+    what it made; what a killed one left (its folders, and the files its list names that it had
+    moved) is removed by the next write there, and readers meanwhile take none of it for a log.
     """
-    targets = [root / name if name else root for name in parts]
-    for target in targets:  # all checked before any is written, so that a refusal writes nothing
+    targets = {name: root / name if name else root for name in parts}
+    for target in targets.values():  # all checked before any is written: a refusal writes nothing
         _check_new(target)
         if target.exists() and not target.is_dir():
             raise FileExistsError(
                 errno.EEXIST, "a file is in the way (a folder is needed there)", str(target)
             )
-    before = {t: (t.exists(), set(t.iterdir()) if t.is_dir() else set()) for t in [root, *targets]}
-    root.mkdir(parents=True, exist_ok=True)
-    locks = [take_lock(root)]
-    staging = root / f"{PARTIAL}{secrets.token_hex(4)}"
+    token = f"{PARTIAL}{secrets.token_hex(4)}"
+    made: list[Path] = []
+    """Folders this write made, and lock files (unmade if it fails)."""
+    locks: list[int] = []
     codec = Codec(sender)
     written: dict[str, int] = {}
     try:
-        locks += [take_lock(t) for t in targets if t != root and t.is_dir()]
-        _undo_unfinished(root, targets)
-        for target in targets:
+        for folder in dict.fromkeys([root, *targets.values()]):
+            if not folder.is_dir():
+                folder.mkdir(parents=True)
+                made.append(folder)
+            if not (folder / LOCK).exists():
+                made.append(folder / LOCK)
+            locks.append(take_lock(folder))
+        _undo_unfinished(root, list(targets.values()))
+        for target in targets.values():
             _check_new(target)  # again, now that no other writer can make one there
         files: list[str] = []
         for name, batches in parts.items():
-            where = staging / name if name else staging
+            staging = targets[name] / token
             # No fsync per record: each segment is made durable when it is full, and the last at the end.
-            out = ExperienceLog(where, config, fsync="interval", fsync_interval_s=float("inf"))
+            out = ExperienceLog(staging, config, fsync="interval", fsync_interval_s=float("inf"))
             written[name] = 0
             try:
                 for batch in batches:
@@ -566,15 +576,18 @@ def _write_logs(
                 out.sync()
             finally:
                 out.close()
-            files += sorted(f"{name}/{p.name}" if name else p.name for p in where.iterdir() if p.name != LOCK)
-        _publish(root, staging, files)
-        shutil.rmtree(staging)
-        sync_dir(root)
-        sync_dir(root.parent)
+            files += sorted(
+                f"{name}/{p.name}" if name else p.name for p in staging.iterdir() if p.name != LOCK
+            )
+        _publish(root, token, targets, files, [name for name, t in targets.items() if name and t in made])
     except BaseException:
-        _undo(root, staging)
-        for target, (existed, there) in sorted(before.items(), key=lambda kv: -len(kv[0].parts)):
-            _remove_made(target, existed, there)
+        if (root / token / MOVING).exists():
+            _undo(root, root / token)
+        for folder in dict.fromkeys([root, *targets.values()]):
+            shutil.rmtree(folder / token, ignore_errors=True)
+        for thing in reversed(made):  # a folder only where it is empty again: nothing else is lost
+            with contextlib.suppress(OSError):
+                thing.rmdir() if thing.name != LOCK else thing.unlink()
         raise
     finally:
         for fd in locks:
@@ -582,22 +595,36 @@ def _write_logs(
     return written
 
 
-def _publish(root: Path, staging: Path, files: list[str]) -> None:
-    """Move staged files (paths under `staging`) to the same paths under `root`, all or none.
+def _staged(root: Path, token: str, name: str) -> Path:
+    """Where a write whose hidden folders are `token` staged file `name` (a path under root)."""
+    part, _, leaf = name.rpartition("/")
+    return (root / part if part else root) / token / leaf
 
-    The list of them is made durable first and removed last: the logs are whole once it is gone.
+
+def _publish(root: Path, token: str, targets: dict[str, Path], files: list[str], made: list[str]) -> None:
+    """Move staged files (see `_staged`) to their paths under root, all or none.
+
+    The list of them is made durable, with each part's pointer to it and the folders holding
+    them, before the first move; the list is removed last, once the moves are durable.
     """
-    made = sorted({f.split("/")[0] for f in files if "/" in f and not (root / f.split("/")[0]).exists()})
-    atomic_write_text(staging / MOVING, json.dumps({"files": files, "made": made}))
-    sync_dir(staging)
-    for part in made:
-        (root / part).mkdir()
+    listing = root / token
+    atomic_write_text(listing / MOVING, json.dumps({"files": files, "made": made}))
+    sync_dir(listing)
+    for name, target in targets.items():
+        if name:
+            atomic_write_text(target / token / PART_OF, os.path.realpath(listing / MOVING))
+            sync_dir(target / token)
+            sync_dir(target)
+    sync_dir(root)
     for name in files:
-        os.rename(staging / name, root / name)
+        os.rename(_staged(root, token, name), root / name)
     for folder in sorted({(root / name).parent for name in files}, key=lambda p: -len(p.parts)):
-        sync_dir(folder)  # the files in place (and the folders made, in root: the last) durably
-    (staging / MOVING).unlink()
-    sync_dir(staging)
+        sync_dir(folder)
+    (listing / MOVING).unlink()
+    sync_dir(listing)  # the logs are whole from here
+    for target in dict.fromkeys([root, *targets.values()]):
+        shutil.rmtree(target / token, ignore_errors=True)
+    sync_dir(root)
 
 
 def _moving(marker: Path) -> tuple[list[str], list[str]]:
@@ -618,66 +645,87 @@ def _moving(marker: Path) -> tuple[list[str], list[str]]:
     return safe(data.get("files")), safe(data.get("made"))
 
 
+def _listing_of_part(hidden: Path) -> Path | None:
+    """The split's `moving.json` that a part's hidden folder points to, while it is there."""
+    try:
+        listed = Path(read_regular_text(hidden / PART_OF).strip())
+    except (OSError, ValueError):
+        return None
+    if listed.name != MOVING or listed.parent.name != hidden.name or not listed.is_file():
+        return None
+    return listed
+
+
 def _unfinished(directory: Path) -> bool:
     """Whether files in `directory` are listed as being moved into place by a write not yet whole.
 
-    By a write into it, or a split into its parent: one at work now, or one cut short.
+    By a write into it, or a split of which it is a part: one at work now, or one cut short.
     """
-    directory = Path(directory)
-    if any(directory.glob(f"{PARTIAL}*/{MOVING}")):
-        return True
-    if not directory.name:
-        return False
-    return any(
-        any(f.split("/")[0] == directory.name for f in _moving(marker)[0])
-        for marker in directory.parent.glob(f"{PARTIAL}*/{MOVING}")
-    )
+    for hidden in Path(os.path.realpath(directory)).glob(f"{PARTIAL}*"):
+        if (hidden / MOVING).exists() or _listing_of_part(hidden) is not None:
+            return True
+    return False
 
 
-def _undo(root: Path, staging: Path) -> None:
-    """Remove a write's hidden folder, and the files its list says it had moved into place."""
-    marker = staging / MOVING
-    if marker.exists():
-        files, made = _moving(marker)
-        for name in files:
-            if not (staging / name).exists():  # moved: it is in place, and goes
-                (root / name).unlink(missing_ok=True)
-        for folder in made:
-            with contextlib.suppress(OSError):  # only where it is empty: nothing else is lost
-                (root / folder).rmdir()
-        sync_dir(root)  # the files gone durably before the list that names them
-    shutil.rmtree(staging, ignore_errors=True)
+def _undo(root: Path, listing: Path) -> None:
+    """Remove a write's hidden folders (`listing` is root's), and the files its list says it moved."""
+    token = listing.name
+    files, made = _moving(listing / MOVING) if (listing / MOVING).exists() else ([], [])
+    gone: set[Path] = set()
+    for name in files:
+        staged = _staged(root, token, name)
+        if _LOG_FILE.fullmatch(staged.name) and staged.parent.is_dir() and not staged.exists():
+            (root / name).unlink(missing_ok=True)  # moved: it is in place, and goes
+            gone.add((root / name).parent)
+    for folder in gone:
+        sync_dir(folder)  # the files gone durably before the list that names them
+    for part in {name.split("/")[0] for name in files if "/" in name}:
+        shutil.rmtree(root / part / token, ignore_errors=True)
+    for part in made:
+        _unmake(root / part)
+    sync_dir(root)
+    shutil.rmtree(listing, ignore_errors=True)
+    sync_dir(root)
+
+
+def _unmake(folder: Path) -> None:
+    """Remove a folder a cut-short write made, where nothing but its lock file is in it (unheld)."""
+    try:
+        lock = take_lock(folder)
+    except OSError:  # in use, or gone
+        return
+    try:
+        if [p.name for p in folder.iterdir()] == [LOCK]:
+            (folder / LOCK).unlink()
+            folder.rmdir()
+    except OSError:
+        pass
+    finally:
+        os.close(lock)
 
 
 def _undo_unfinished(root: Path, targets: list[Path]) -> None:
     """Undo what killed writes left in root and the targets (whose locks are held).
 
-    And what a killed split into root's parent left, where it named root (under the parent's lock).
+    And what a killed split of which a target is a part left (under the split root's lock).
     """
-    for folder in [root, *(t for t in targets if t != root)]:
-        for left in folder.glob(f"{PARTIAL}*"):  # by a write that was killed: no one writes it now
-            _undo(folder, left)
-    if _unfinished(root):
-        lock = take_lock(root.parent)
-        try:
-            for left in root.parent.glob(f"{PARTIAL}*"):
-                _undo(root.parent, left)
-        finally:
-            os.close(lock)
-
-
-def _remove_made(directory: Path, existed: bool, there: set[Path]) -> None:
-    """Remove what a failed write made in `directory`: all of it if it made the folder."""
-    if not existed:
-        shutil.rmtree(directory, ignore_errors=True)
-        return
-    if not directory.is_dir():
-        return
-    for made in set(directory.iterdir()) - there:
-        if made.is_dir() and not made.is_symlink():
-            shutil.rmtree(made, ignore_errors=True)
-        else:
-            made.unlink(missing_ok=True)
+    held = {os.path.realpath(root)}
+    for folder in dict.fromkeys([root, *targets]):
+        for hidden in sorted(folder.glob(f"{PARTIAL}*")):
+            if not hidden.exists():  # undone with its split's root above
+                continue
+            listing = _listing_of_part(hidden)
+            if listing is None:
+                _undo(folder, hidden)
+                continue
+            split_root = listing.parent.parent
+            lock = None if os.path.realpath(split_root) in held else take_lock(split_root)
+            try:
+                _undo(split_root, listing.parent)
+            finally:
+                if lock is not None:
+                    os.close(lock)
+            shutil.rmtree(hidden, ignore_errors=True)
 
 
 def _check_new(directory: Path) -> None:

@@ -1,5 +1,7 @@
 """Experience logs: recording, summary, merge, split, export, and refusing what does not fit."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -357,6 +359,115 @@ def test_a_merge_into_a_part_of_a_killed_split_undoes_the_whole_split(tmp_path):
     assert set(logs.summarise(tmp_path / "parts" / "robot1").clients) == {"robot2"}
     assert not (tmp_path / "parts" / "robot2").exists()
     assert not list((tmp_path / "parts").glob(f"{logs.PARTIAL}*"))
+
+
+def _two_clients(tmp_path):
+    record(tmp_path / "a", client="robot1")
+    record(tmp_path / "b", client="robot2", seed=1)
+    logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "both")
+    return tmp_path / "both"
+
+
+def test_a_killed_split_part_reads_as_no_log_by_any_name(tmp_path, monkeypatch):
+    """Through "." or a link to it, a part was judged by the wrong parent: read as whole."""
+    both = _two_clients(tmp_path)
+    _killed_at_rename(1, "split", both, tmp_path / "parts")
+    (tmp_path / "link").symlink_to(tmp_path / "parts" / "robot1")
+    assert not logs.is_log(tmp_path / "link")
+    monkeypatch.chdir(tmp_path / "parts" / "robot1")
+    assert not logs.is_log(Path("."))
+    with pytest.raises(logs.LogFormatError, match="not a whole log"):
+        logs.summarise(Path("."))
+
+
+def test_a_failed_split_removes_only_what_it_made(tmp_path, monkeypatch):
+    """It removed its output folder, or all that appeared in it meanwhile: another's merged log."""
+    both = _two_clients(tmp_path)
+    real, opened = logs.ExperienceLog.__init__, []
+
+    def open_log(self, directory, *args, **kwargs):
+        opened.append(directory)
+        if len(opened) == 2:  # meanwhile another tool writes beside the parts, then the disk fills
+            logs.merge([tmp_path / "a"], tmp_path / "parts" / "extra")
+            raise OSError(28, "No space left on device")
+        real(self, directory, *args, **kwargs)
+
+    monkeypatch.setattr(logs.ExperienceLog, "__init__", open_log)
+    with pytest.raises(OSError, match="No space"):
+        logs.split(both, tmp_path / "parts")
+    monkeypatch.setattr(logs.ExperienceLog, "__init__", real)
+    assert sorted(p.name for p in (tmp_path / "parts").iterdir()) == ["extra"]
+    assert logs.summarise(tmp_path / "parts" / "extra").experiences == 300
+
+
+def test_a_write_into_a_part_of_a_split_at_work_is_refused_and_changes_nothing(tmp_path, monkeypatch):
+    """Refused on the split's lock, it removed the files the split had moved into that part."""
+    both = _two_clients(tmp_path)
+    real, refused, moves = logs.os.rename, [], []
+
+    def rename(source, target):
+        moves.extend([target] if logs.PARTIAL not in str(target) else [])
+        if len(moves) == 2 and not refused:  # robot1's first file is in place
+            with pytest.raises(segments.LogError, match="in use"):
+                logs.merge([tmp_path / "a"], tmp_path / "parts" / "robot1")
+            refused.append(True)
+        return real(source, target)
+
+    monkeypatch.setattr(logs.os, "rename", rename)
+    assert logs.split(both, tmp_path / "parts") == {"robot1": 300, "robot2": 300} and refused
+    assert logs.summarise(tmp_path / "parts" / "robot1").experiences == 300
+
+
+def test_a_split_part_may_be_a_link_to_another_file_system(tmp_path):
+    """All parts were staged in the output's folder, and moving one across devices failed."""
+    from tests.mounts import tmpfs
+
+    both = _two_clients(tmp_path)
+    with tmpfs(tmp_path / "disk", "4m") as disk:
+        (tmp_path / "parts").mkdir()
+        (tmp_path / "parts" / "robot1").symlink_to(disk)
+        assert logs.split(both, tmp_path / "parts") == {"robot1": 300, "robot2": 300}
+        assert logs.summarise(disk).experiences == 300
+
+
+def test_the_files_list_is_durable_before_a_move_and_the_moves_before_it_goes(tmp_path, monkeypatch):
+    """A power cut could keep moved files and lose the list (or the undo's unlinks and not the
+    list's removal) on a file system that does not keep metadata changes in order."""
+    both = _two_clients(tmp_path)
+    events = []
+    real_sync, real_rename, real_unlink = logs.sync_dir, logs.os.rename, Path.unlink
+    monkeypatch.setattr(logs, "sync_dir", lambda d: (events.append(("sync", Path(d))), real_sync(d))[1])
+    monkeypatch.setattr(
+        logs.os, "rename", lambda a, b: (events.append(("move", Path(b))), real_rename(a, b))[1]
+    )
+    monkeypatch.setattr(Path, "unlink", lambda p, **k: (events.append(("unlink", p)), real_unlink(p, **k))[1])
+    logs.split(both, tmp_path / "parts")
+    moves = [i for i, (kind, _) in enumerate(events) if kind == "move"]
+    [gone] = [i for i, (kind, p) in enumerate(events) if kind == "unlink" and p.name == logs.MOVING]
+    before = {p for kind, p in events[: moves[0]] if kind == "sync"}
+    hidden = {p for kind, p in events if kind == "sync" and p.name.startswith(logs.PARTIAL)}
+    assert {tmp_path / "parts", tmp_path / "parts" / "robot1", tmp_path / "parts" / "robot2"} <= before
+    assert len(hidden) == 3 and hidden <= before  # the list's folder and each part's pointer's
+    synced = {p for kind, p in events[moves[-1] : gone] if kind == "sync"}
+    assert {tmp_path / "parts" / "robot1", tmp_path / "parts" / "robot2"} <= synced
+    assert ("sync", next(p for p in hidden if p.parent == tmp_path / "parts")) in events[gone:]
+
+
+def test_an_undo_makes_its_removals_durable_before_the_list_goes(tmp_path, monkeypatch):
+    both = _two_clients(tmp_path)
+    _killed_at_rename(2, "split", both, tmp_path / "parts")  # robot1's first file moved
+    events = []
+    real_sync, real_rmtree = logs.sync_dir, logs.shutil.rmtree
+    monkeypatch.setattr(logs, "sync_dir", lambda d: (events.append(("sync", Path(d))), real_sync(d))[1])
+    monkeypatch.setattr(
+        logs.shutil, "rmtree", lambda p, **k: (events.append(("rmtree", Path(p))), real_rmtree(p, **k))[1]
+    )
+    logs.merge([tmp_path / "b"], tmp_path / "parts" / "robot2")
+    [listing] = [
+        i for i, (kind, p) in enumerate(events) if kind == "rmtree" and p.parent == tmp_path / "parts"
+    ]
+    assert ("sync", tmp_path / "parts" / "robot1") in events[:listing]
+    assert not (tmp_path / "parts" / "robot1").exists()  # made by the split, and empty again
 
 
 def test_a_failed_split_leaves_what_was_in_its_output_before(tmp_path):
