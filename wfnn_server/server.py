@@ -1097,8 +1097,10 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
                     shown = server.view.last_status
                     on_status(shown)
         finally:
-            server.stop()  # a second signal meanwhile must not cut the final checkpoint short
-            bus.close()
+            try:
+                server.stop()  # a second signal meanwhile must not cut the final checkpoint short
+            finally:
+                bus.close()  # also where the final checkpoint failed: an open session held the process
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)

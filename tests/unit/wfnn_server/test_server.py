@@ -809,3 +809,37 @@ def test_a_signal_while_a_starters_handlers_are_put_back_leaves_none_behind(monk
         assert len(calls) == 4
     finally:
         real(signal.SIGINT, inherited)
+
+
+def test_a_server_whose_final_checkpoint_fails_still_closes_its_session(tmp_path, monkeypatch):
+    """The failed checkpoint's error skipped closing the Zenoh session, which held the process
+    alive (still listening on its port) after its one error line."""
+    from wfnn_server import server as served
+
+    closed = []
+
+    class Bus:
+        def close(self):
+            closed.append(True)
+
+    class FailingServer:
+        error = None
+
+        def __init__(self, config, bus):
+            pass
+
+        def start(self):
+            pass
+
+        def wait(self, timeout):
+            return True  # its thread ended (as when a periodic checkpoint failed)
+
+        def stop(self):
+            raise IsADirectoryError(21, "is a directory, not a file", "checkpoint.prev.npz")
+
+    monkeypatch.setattr(served, "OfflineBus", Bus)
+    monkeypatch.setattr(served, "ThinkServer", FailingServer)
+    config = ServerConfig(data_dir=tmp_path, offline=True, replay_only=True)
+    with pytest.raises(IsADirectoryError):
+        served.run(config)
+    assert closed == [True]
