@@ -240,8 +240,9 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
 
 
 MAX_INFLATION_BYTES = 64 << 20
-"""How much larger than stored a member of an archive may unpack: this project writes its arrays
-uncompressed, and a small file whose members inflate to gigabytes is not one of its files."""
+"""How much larger than stored the members of an archive may unpack, all together: this project
+writes its arrays uncompressed, and a small file whose members inflate to gigabytes is not one of
+its files (64 members of 64 MiB each made a 3.7 MB file take 4 GB)."""
 MAX_MEMBERS = 64
 """Most members an archive read here may have."""
 
@@ -258,14 +259,12 @@ def _members(path: Path, f: BinaryIO) -> list[str]:
         # a member's comment is what a damaged comment length makes of the members after it.
         raise PersistError(f"{path}: a member carries a comment, which no version writes: damaged, "
                            "or not a file of this project")  # fmt: skip
-    names = []
-    for info in infos:
-        if info.file_size > info.compress_size + MAX_INFLATION_BYTES:
-            raise PersistError(f"{path}: member {info.filename[:60]!r} would unpack from "
-                               f"{info.compress_size:,} to {info.file_size:,} bytes (this project "
-                               "stores its arrays uncompressed)")  # fmt: skip
-        names.append(info.filename.removesuffix(".npy"))
-    return names
+    stored = sum(info.compress_size for info in infos)
+    unpacked = sum(info.file_size for info in infos)
+    if unpacked > stored + MAX_INFLATION_BYTES:
+        raise PersistError(f"{path}: its members would unpack from {stored:,} to {unpacked:,} bytes (this "
+                           "project stores its arrays uncompressed)")  # fmt: skip
+    return [info.filename.removesuffix(".npy") for info in infos]
 
 
 def _check_manifest(path: Path, names: list[str], manifest: Any) -> None:
@@ -357,16 +356,19 @@ WEIGHTS_MEMBERS = ("config", "spec_hash", "meta", "params")
 
 
 def load_weights(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any]]:
-    """Inverse of `save_weights` -> (config, params, meta)."""
-    config, params, meta, _ = load_checkpoint(path)
+    """Inverse of `save_weights` -> (config, params, meta); the training state is never unpacked."""
+    config, params, meta, _ = load_checkpoint(path, training=False)
     return config, params, meta
 
 
-def load_checkpoint(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any], dict[str, NDArray[Any]]]:
-    """Inverse of `save_weights` -> (config, params, meta, training state)."""
+def load_checkpoint(
+    path: Path, training: bool = True
+) -> tuple[LearnerConfig, Weights, dict[str, Any], dict[str, NDArray[Any]]]:
+    """Inverse of `save_weights` -> (config, params, meta, training state: {} unless `training`)."""
     arrays = _open(
-        path, WEIGHTS_FORMAT, lambda name: name in WEIGHTS_MEMBERS or name.startswith(TRAINING_PREFIX)
-    )
+        path, WEIGHTS_FORMAT,
+        lambda name: name in WEIGHTS_MEMBERS or (training and name.startswith(TRAINING_PREFIX)),
+    )  # fmt: skip
     try:
         config = LearnerConfig.from_json(str(arrays["config"]), f"{path}: its config")
         meta = json.loads(str(arrays["meta"]))
@@ -388,12 +390,12 @@ def load_checkpoint(path: Path) -> tuple[LearnerConfig, Weights, dict[str, Any],
         raise PersistError(f"{path}: params {flat.shape} do not fit the config ({size} per net)")
     if not np.isfinite(flat).all():
         raise PersistError(f"{path}: params contain non-finite values")
-    training = {k[len(TRAINING_PREFIX) :]: v for k, v in arrays.items() if k.startswith(TRAINING_PREFIX)}
+    state = {k[len(TRAINING_PREFIX) :]: v for k, v in arrays.items() if k.startswith(TRAINING_PREFIX)}
     try:
         weights = weights_from_flat(config, flat)
     except (ValueError, IndexError, TypeError) as exc:
         raise PersistError(f"{path}: params do not make the config's network ({exc})") from exc
-    return config, weights, meta, training
+    return config, weights, meta, state
 
 
 def save_experiences(path: Path, config: LearnerConfig, exp: Experiences) -> None:

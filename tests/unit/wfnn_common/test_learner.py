@@ -281,6 +281,59 @@ def test_an_archive_whose_members_would_unpack_to_far_more_than_they_hold_is_ref
         load_weights(tmp_path / "w.npz")
 
 
+def test_members_that_each_inflate_a_little_are_refused_together_and_weights_skip_the_training_state(
+    tmp_path, monkeypatch
+):
+    """57 listed members each just under the per-member limit made a 3.7 MB weights file take
+    4 GB; and loading weights unpacked the training state, only to drop it."""
+    import zipfile
+
+    from wfnn_io import persist
+    from wfnn_io.persist import MANIFEST, atomic_savez
+
+    cfg = small_config()
+    learner = WFNN(cfg)
+    save_weights(tmp_path / "w.npz", cfg, learner.params, training={"extra": np.zeros(3)})
+    monkeypatch.setattr(persist, "MAX_INFLATION_BYTES", 1 << 20)  # the same rule, at a test's size
+    unpacked = []
+    real = persist.np.load
+
+    class Recorded:  # np.load's archive, noting each member unpacked
+        def __init__(self, data):
+            self.data = data
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.data.close()
+
+        def __getitem__(self, name):
+            unpacked.append(name)
+            return self.data[name]
+
+    def load(f, **kwargs):
+        return Recorded(real(f, **kwargs))
+
+    monkeypatch.setattr(persist.np, "load", load)
+    assert np.array_equal(load_weights(tmp_path / "w.npz")[1].flat, learner.params.flat)
+    assert "train/extra" not in unpacked and "params" in unpacked
+    monkeypatch.setattr(persist.np, "load", real)
+    with np.load(tmp_path / "w.npz") as npz:
+        members = {name: npz[name] for name in npz.files if name != MANIFEST}
+    names = [f"train/x{i}" for i in range(4)]
+    atomic_savez(tmp_path / "w.npz", {**members, **{n: np.zeros(1) for n in names}})
+    with zipfile.ZipFile(tmp_path / "w.npz") as archive:
+        kept = {i.filename: archive.read(i) for i in archive.infolist() if i.filename[:-4] not in names}
+    with zipfile.ZipFile(tmp_path / "w.npz", "w") as archive:
+        for name, data in kept.items():
+            archive.writestr(name, data)
+        for name in names:  # each inflates by 0.3 MiB, under the limit alone: 1.2 MiB together
+            archive.writestr(name + ".npy", bytes(300 << 10), compress_type=zipfile.ZIP_DEFLATED)
+    with pytest.raises(PersistError, match="would unpack"):
+        load_weights(tmp_path / "w.npz")
+
+
 @pytest.mark.slow
 def test_learns_a_one_step_task_to_the_best_action():
     """Terminal experiences, reward -(u - 0.5 x)^2: the best wire must move to u = 0.5 x."""
