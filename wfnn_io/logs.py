@@ -834,7 +834,8 @@ def split(
     """Split a log into new logs under `out`; -> experiences per new log.
 
     One log per client (`by="client"`) or per behaviour policy (`by="behaviour"`), or chunks of
-    about `every` experiences (`by="count"`; whole batches).
+    about `every` experiences (`by="count"`; whole batches). The log is read as `merged` reads
+    it: each client's experiences once, and batches that do not fit its spec refused.
     """
     if by not in ("client", "behaviour", "count"):
         raise ValueError(f"split by client, behaviour or count, not {by!r}")
@@ -845,7 +846,8 @@ def split(
     groups: dict[str, list[ExperienceBatch]] = {}
     names: dict[str, str] = {}
     done = 0
-    for batch in read_batches(source, key):
+    # Read as merge and export read it: each experience once, and widths that fit their spec.
+    for batch in merged([source], key, dims=widths(config)):
         if by == "client":
             label = batch.client
         elif by == "behaviour":

@@ -470,6 +470,25 @@ def test_an_undo_makes_its_removals_durable_before_the_list_goes(tmp_path, monke
     assert not (tmp_path / "parts" / "robot1").exists()  # made by the split, and empty again
 
 
+def test_split_reads_a_log_as_merge_does(tmp_path):
+    """It copied a duplicated segment twice and batches of other widths, which merge, export and
+    --replay-only deduplicate or refuse: its parts then failed in those tools."""
+    import shutil
+
+    record(tmp_path / "log")
+    shutil.copy(tmp_path / "log" / "00000000.seg", tmp_path / "log" / "00000001.seg")
+    assert logs.summarise(tmp_path / "log").experiences == 600
+    assert logs.split(tmp_path / "log", tmp_path / "parts") == {"robot1": 300}
+    assert logs.summarise(tmp_path / "parts" / "robot1").clients["robot1"].duplicates == 0
+    record(tmp_path / "cart", task_type=CartPoleVec, client="robot2")
+    with segments.SegmentLog(tmp_path / "log", marker=logs.MAGIC) as log_:
+        for _, frame, _ in logs.read_entries(tmp_path / "cart"):
+            log_.append(frame)
+    with pytest.raises(logs.LogFormatError, match="learner spec"):  # a boat's log, a cart-pole's batches
+        logs.split(tmp_path / "log", tmp_path / "mixed")
+    assert not (tmp_path / "mixed").exists()
+
+
 def test_a_failed_split_leaves_what_was_in_its_output_before(tmp_path):
     """It removed the whole folder of each part written, with the notes a user kept there."""
     record(tmp_path / "a", client="robot1")
