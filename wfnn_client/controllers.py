@@ -117,5 +117,8 @@ def _saved(path: Path, learner_spec: str) -> Policy:
         raise ValueError(
             f"behaviour policy weights:{path} is for learner spec {cfg.spec_hash()}, not {learner_spec}"
         )
-    saved = make_learner(cfg, params=params)
+    try:
+        saved = make_learner(cfg, params=params)
+    except ValueError as exc:  # weights that make no learner of their config (several networks, say)
+        raise ValueError(f"behaviour policy weights:{path}: {exc}") from exc
     return lambda state: saved.act(state, explore=False).action

@@ -126,7 +126,7 @@ def prepare(config: ClientConfig) -> list[str]:
     learners and the weights they start from are known to fit the task.
     """
     make_directory(config.out, "--out names a run directory")
-    for path in (config.json_stats, config.out / "learning_curve.png"):
+    for path in (config.json_stats, config.out / "learning_curve.png", config.out / "metrics.json"):
         if path is not None:
             writable(path)  # now, not when the run is over
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
@@ -225,7 +225,10 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
                     if kind != lcfg.learner and same_task else "")  # fmt: skip
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
                              f"this task needs {lcfg.spec_hash()}{hint}")  # fmt: skip
-        learner = make_learner(lcfg, params=params)
+        try:
+            learner = make_learner(lcfg, params=params)
+        except ValueError as exc:  # weights that make no learner of their config (several networks, say)
+            raise ValueError(f"{path}: {exc}") from exc
     return lcfg, learner
 
 
@@ -248,6 +251,10 @@ def _run(
     controllers: Controllers | None = None
     try:
         learners = [(name, *_learner(config, name, behaviours.ranges(name))) for name in behaviours.names]
+        for name in behaviours.names:  # what the run writes at its end: refused now, not then
+            writable(Path(config.out) / f"{_named('weights', name)}.npz")
+            if config.local and config.learn:
+                writable(Path(config.out) / f"{_named('experiences', name)}.npz")
         if config.behaviour_policy:
             handcoded = spec.handcoded(task) if spec.handcoded is not None else None
             controllers = Controllers(

@@ -1,3 +1,5 @@
+import re
+
 import pytest
 
 from sims.hydra import HydraConfig
@@ -177,3 +179,37 @@ def test_a_zenoh_config_that_is_not_a_regular_file_is_refused_without_waiting(tm
         path.mkdir()
     with pytest.raises(NetError, match="Zenoh config"):
         zenoh_config(NetConfig(zenoh_config=str(path)))
+
+
+@pytest.mark.parametrize("blocked", ["weights.npz", "experiences.npz", "metrics.json"])
+def test_a_run_whose_end_cannot_be_written_is_refused_before_it_starts(tmp_path, blocked):
+    """A folder where the run writes at its end: the run learned every episode, then lost its
+    weights and metrics, with config.json already the new run's."""
+    from wfnn_client.run import run
+
+    out = tmp_path / "run"
+    (out / blocked).mkdir(parents=True)
+    with pytest.raises(IsADirectoryError, match=re.escape(blocked)):
+        run(ClientConfig(sim="positioning", episodes=1, rate_hz=0.0, out=out))
+    assert sorted(p.name for p in out.iterdir()) == [blocked]  # nothing written, no journal opened
+
+
+def test_weights_that_make_no_learner_are_refused_naming_their_file(tmp_path):
+    import numpy as np
+
+    from wfnn_client.run import run
+    from wfnn_common.learners import make_learner
+    from wfnn_io.persist import save_weights
+
+    run(ClientConfig(sim="positioning", episodes=1, rate_hz=0.0, out=tmp_path / "a"))
+    with np.load(tmp_path / "a" / "weights.npz", allow_pickle=False) as npz:
+        saved = {k: npz[k] for k in npz.files}
+    from wfnn_common.config import LearnerConfig
+
+    config = LearnerConfig.from_json(str(saved["config"]))
+    several = make_learner(config, population=3) if config.learner == "thesis" else None
+    assert several is not None
+    save_weights(tmp_path / "three.npz", config, several.params)
+    with pytest.raises(ValueError, match=r"three\.npz"):
+        run(ClientConfig(sim="positioning", episodes=1, rate_hz=0.0, out=tmp_path / "b", learn=False,
+                         weights=tmp_path / "three.npz"))  # fmt: skip

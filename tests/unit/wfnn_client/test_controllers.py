@@ -65,6 +65,10 @@ def test_a_controller_the_task_lacks_or_weights_of_another_task_are_refused(tmp_
         _controllers(f"weights:{tmp_path / 'other.npz'}")
     with pytest.raises(ValueError, match="cannot load"):
         _controllers(f"weights:{tmp_path / 'missing.npz'}")
+    boat = learner_config(BoatVec(1), ClientConfig(sim="boat"))
+    save_weights(tmp_path / "three.npz", boat, WFNN(boat, population=3).params, {})
+    with pytest.raises(ValueError, match=r"weights:.*three\.npz: params hold 3 networks"):
+        _controllers(f"weights:{tmp_path / 'three.npz'}")
     with pytest.raises(SetupError, match="no hand-coded"):
         run(ClientConfig(sim="cartpole", rate_hz=0, episodes=1, behaviour_policy=parse_mix("handcoded"),
                          out=tmp_path / "c"))  # fmt: skip
