@@ -1041,6 +1041,7 @@ def prepare(config: ServerConfig) -> list[str]:
     """
     from wfnn_io.bus import check_exposure
 
+    _check_apart(config)
     make_directory(config.data_dir, "--data-dir")
     keyed = load_key(str(config.key_file) if config.key_file else None) is not None
     warnings = check_exposure(config.net, keyed, config.insecure)
@@ -1050,6 +1051,22 @@ def prepare(config: ServerConfig) -> list[str]:
         log.warning(warnings[-1])
     check_free(config.data_dir / "store")  # a server already on this data directory keeps its record
     return warnings
+
+
+def _check_apart(config: ServerConfig) -> None:
+    """Refuse a data directory that is (or is in) a log being replayed, or beside one but its store.
+
+    Reading data never changes it: the server writes its checkpoint, records and store there, and
+    its learner config beside its store, where a log's own config is read too (`log_config`).
+    """
+    data = config.data_dir.resolve()
+    for source in config.replay:
+        src = Path(source).resolve()
+        if data == src or src in data.parents or (src.parent == data and src.name != "store"):
+            raise LogFormatError(
+                f"--data-dir {config.data_dir} would write into (or beside) the log {source} being "
+                "replayed; use another data directory"
+            )
 
 
 def record(config: ServerConfig) -> None:

@@ -843,3 +843,26 @@ def test_a_server_whose_final_checkpoint_fails_still_closes_its_session(tmp_path
     with pytest.raises(IsADirectoryError):
         served.run(config)
     assert closed == [True]
+
+
+def test_a_data_directory_in_or_beside_a_log_being_replayed_is_refused_before_anything_is_written(tmp_path):
+    """--data-dir LOG --replay-only LOG wrote a checkpoint, records and a store into the log it read."""
+    from tests.mounts import files
+    from tests.unit.wfnn_io.test_logs import record
+    from wfnn_io.logs import LogFormatError
+    from wfnn_server.server import prepare
+
+    record(tmp_path / "runs" / "log")
+    before = files(tmp_path / "runs")
+    for data_dir in (tmp_path / "runs" / "log", tmp_path / "runs" / "log" / "d", tmp_path / "runs"):
+        config = ServerConfig(
+            data_dir=data_dir, offline=True, replay_only=True, replay=(tmp_path / "runs" / "log",)
+        )
+        with pytest.raises(LogFormatError, match="being replayed"):
+            prepare(config)
+    assert files(tmp_path / "runs") == before and not (tmp_path / "runs" / "log" / "d").exists()
+    (tmp_path / "d").mkdir()
+    own = ServerConfig(
+        data_dir=tmp_path / "d", offline=True, replay_only=True, replay=(tmp_path / "d" / "store",)
+    )
+    prepare(own)  # its own store: what it would write beside it is its own config
