@@ -27,6 +27,7 @@ from typing import Annotated, Any
 import jinja2
 import numpy as np
 import typer
+from numpy.typing import NDArray
 
 from wfnn_common.config import check_fields, settings
 from wfnn_io.cli_errors import guarded, path_given
@@ -137,6 +138,28 @@ def _drawable(scores: list[Any]) -> np.ndarray:
     return np.where(np.abs(values) <= DRAWABLE, values, np.nan)
 
 
+MAX_POLICIES = 8
+"""Behaviour policies drawn apart in a run's figure (the most frequent); the rest are drawn as one."""
+
+
+def _policy_groups(policies: list[str]) -> list[tuple[str, NDArray[np.int64]]]:
+    """(name, episode indices) of the MAX_POLICIES most frequent policies, then the others together.
+
+    One pass over the episodes: a metrics.json of 6,000 distinct names took minutes, a series and
+    a legend entry each.
+    """
+    rows: dict[str, list[int]] = {}
+    for i, name in enumerate(policies):
+        rows.setdefault(name, []).append(i)
+    ranked = sorted(rows, key=lambda name: (-len(rows[name]), name))
+    groups = [(name, np.array(rows[name])) for name in sorted(ranked[:MAX_POLICIES])]
+    rest = ranked[MAX_POLICIES:]
+    if rest:
+        others = np.sort(np.concatenate([np.array(rows[name]) for name in rest]))
+        groups.append((f"{len(rest)} other policies", others))
+    return groups
+
+
 def _run_figure(metrics: dict[str, Any]) -> bytes:
     """Learning curve (with a running median) and box plots of the first and last episodes."""
     import matplotlib
@@ -149,9 +172,8 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [3, 1]})
     policies = _policies(metrics, len(scores))
     if policies and len(set(policies)) > 1:
-        for name in sorted(set(policies)):
-            mask = np.array([p == name for p in policies])
-            a.scatter(episodes[mask], scores[mask], s=14, label=f"driven by {name}")
+        for name, rows in _policy_groups(policies):
+            a.scatter(episodes[rows], scores[rows], s=14, label=f"driven by {name}")
     else:
         a.plot(episodes, scores, marker="o", ms=3, lw=0.8, label="episode")
     window = max(1, min(10, len(scores) // 4))
@@ -199,8 +221,20 @@ def _read_json(path: Path) -> Any:
         raise ReportError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from exc
 
 
+def _outside(directory: Path, path: Path) -> str:
+    """Why `path` is not read into a report ("" where it lies inside `directory`).
+
+    A report is shared, and a link in a folder someone else made could point at any file (a key).
+    """
+    if path.resolve().is_relative_to(directory.resolve()):
+        return ""
+    return f"a link out of {directory} ({path.resolve()}) is not read into a report"
+
+
 def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
     path = directory / "metrics.json"
+    if _outside(directory, path):
+        raise ReportError(f"{path}: {_outside(directory, path)}")
     metrics = _read_json(path)
     if not isinstance(metrics, dict) or "scores" not in metrics:
         raise ReportError(f"{path} is not a client run's metrics (no scores)")
@@ -226,7 +260,7 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
         )
     policies = _policies(metrics, len(metrics["scores"]))
     if policies and len(set(policies)) > 1:
-        counts = {p: policies.count(p) for p in sorted(set(policies))}
+        counts = {name: len(rows) for name, rows in _policy_groups(policies)}
         sections[0].notes.append("episodes driven by: " + ", ".join(f"{p} {n}" for p, n in counts.items()))
     for journal in sorted(directory.glob("journal*")):
         sections.append(_journal_section(journal))
@@ -327,7 +361,8 @@ def run(config: ReportConfig) -> Path:
         found = sorted(p for p in path.glob("*.json") if not p.name.startswith("."))
         if not found:
             raise ReportError(f"{path} holds neither metrics.json (a run) nor benchmark JSON files")
-        sections = [_bench_section(p) for p in found]
+        sections = [Section(p.stem, [], [], [f"not shown: {_outside(path, p)}"]) if _outside(path, p)
+                    else _bench_section(p) for p in found]  # fmt: skip
         title, out = f"wfnn benchmarks in {path}", config.out or path / "report.html"
     elif path.suffix == ".json" and path.exists():
         sections = [_bench_section(path)]

@@ -159,3 +159,36 @@ def test_pictures_that_are_not_the_runs_own_pngs_are_named_not_embedded(tmp_path
     html = done[0].read_text()
     assert "a.png not shown: a link out of the run directory" in html and "z.png not shown" in html
     assert "the key" not in html and "dGhlIGtleX" not in html  # nor its base64
+
+
+def test_json_that_links_out_of_the_folder_is_not_read_into_a_report(tmp_path):
+    """Pictures linking out were refused, JSON was not: a shared report carried a secret file."""
+    (tmp_path / "secret").mkdir()
+    (tmp_path / "secret" / "creds.json").write_text(json.dumps({"password": "hunter2"}))
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "b.json").write_text(json.dumps({"score": 0.25}))
+    (tmp_path / "bench" / "zz.json").symlink_to(tmp_path / "secret" / "creds.json")
+    html = run(ReportConfig(path=tmp_path / "bench")).read_text()
+    assert "hunter2" not in html and "0.25" in html and "a link out of" in html
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.json").symlink_to(tmp_path / "secret" / "creds.json")
+    with pytest.raises(ReportError, match="a link out of"):
+        run(ReportConfig(path=tmp_path / "run"))
+
+
+def test_a_run_of_thousands_of_behaviour_policies_is_drawn_as_a_few_groups(tmp_path):
+    """One series and legend entry per name: 6,000 names took over a minute and 400 MB."""
+    from wfnn_bench.report import MAX_POLICIES, _policy_groups
+
+    policies = [f"weights:w{i}.npz" for i in range(6000)] + ["wfnn"] * 10
+    groups = _policy_groups(policies)
+    assert len(groups) == MAX_POLICIES + 1 and groups[-1][0] == f"{6001 - MAX_POLICIES} other policies"
+    assert sorted(i for _, rows in groups for i in rows) == list(range(6010))
+    assert dict((name, len(rows)) for name, rows in groups)["wfnn"] == 10
+    (tmp_path / "run").mkdir()
+    scores = list(range(len(policies)))
+    (tmp_path / "run" / "metrics.json").write_text(
+        json.dumps({"scores": scores, "episode_policies": policies})
+    )
+    html = run(ReportConfig(path=tmp_path / "run")).read_text()
+    assert "wfnn 10" in html and "other policies" in html
