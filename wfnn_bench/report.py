@@ -263,7 +263,9 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
         counts = {name: len(rows) for name, rows in _policy_groups(policies)}
         sections[0].notes.append("episodes driven by: " + ", ".join(f"{p} {n}" for p, n in counts.items()))
     for journal in sorted(directory.glob("journal*")):
-        sections.append(_journal_section(journal))
+        outside = _outside(directory, journal)
+        sections.append(Section(f"Experience log {journal.name}", [], [], [f"not shown: {outside}"])
+                        if outside else _journal_section(journal))  # fmt: skip
     learner = metrics.get("config", {}).get("learner")
     if isinstance(learner, dict) and learner:
         sections.append(Section("Learner config", [(k, _fmt(v)) for k, v in settings(learner)], [], []))

@@ -549,6 +549,9 @@ def _write_logs(
     token = f"{PARTIAL}{secrets.token_hex(4)}"
     made: list[Path] = []
     """Folders this write made, and lock files (unmade if it fails)."""
+    above = root.parent
+    while not above.is_dir() and above != above.parent:  # the folder that holds what it makes
+        above = above.parent
     locks: list[int] = []
     codec = Codec(sender)
     written: dict[str, int] = {}
@@ -560,6 +563,9 @@ def _write_logs(
             if not (folder / LOCK).exists():
                 made.append(folder / LOCK)
             locks.append(take_lock(folder))
+        for folder in reversed([root.parent, *root.parent.parents]):  # new folders' entries durable
+            if folder == above or above in folder.parents:
+                sync_dir(folder)
         _undo_unfinished(root, list(targets.values()))
         for target in targets.values():
             _check_new(target)  # again, now that no other writer can make one there
@@ -646,14 +652,20 @@ def _moving(marker: Path) -> tuple[list[str], list[str]]:
 
 
 def _listing_of_part(hidden: Path) -> Path | None:
-    """The split's `moving.json` that a part's hidden folder points to, while it is there."""
+    """The split's `moving.json` that a part's hidden folder points to, while it is there.
+
+    Where the split wrote it (the path its pointer names: a part may be a link to another file
+    system), or beside the part where its folders are now (moved, or mounted elsewhere, since).
+    """
     try:
-        listed = Path(read_regular_text(hidden / PART_OF).strip())
+        written = Path(read_regular_text(hidden / PART_OF).strip())
     except (OSError, ValueError):
         return None
-    if listed.name != MOVING or listed.parent.name != hidden.name or not listed.is_file():
-        return None
-    return listed
+    here = Path(os.path.realpath(hidden)).parent.parent / hidden.name / MOVING
+    for listed in (here, written):
+        if listed.name == MOVING and listed.parent.name == hidden.name and listed.is_file():
+            return listed
+    return None
 
 
 def _unfinished(directory: Path) -> bool:

@@ -259,7 +259,7 @@ def _members(path: Path, f: BinaryIO) -> list[str]:
         # a member's comment is what a damaged comment length makes of the members after it.
         raise PersistError(f"{path}: a member carries a comment, which no version writes: damaged, "
                            "or not a file of this project")  # fmt: skip
-    stored = sum(info.compress_size for info in infos)
+    stored = os.fstat(f.fileno()).st_size  # what the members declare they hold may lie
     unpacked = sum(info.file_size for info in infos)
     if unpacked > stored + MAX_INFLATION_BYTES:
         raise PersistError(f"{path}: its members would unpack from {stored:,} to {unpacked:,} bytes (this "

@@ -36,7 +36,7 @@ from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
 from wfnn_io.cli_errors import log_failure
-from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, set_aside, widths
+from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, read_log_json, set_aside, widths
 from wfnn_io.persist import (
     PersistError,
     atomic_write_text,
@@ -1054,19 +1054,33 @@ def prepare(config: ServerConfig) -> list[str]:
 
 
 def _check_apart(config: ServerConfig) -> None:
-    """Refuse a data directory that is (or is in) a log being replayed, or beside one but its store.
+    """Refuse a data directory that is (or is in) a log being replayed, or that a log beside it reads.
 
     Reading data never changes it: the server writes its checkpoint, records and store there, and
-    its learner config beside its store, where a log's own config is read too (`log_config`).
+    its learner config beside its store, where a log whose own description names no config reads
+    one too (`log_config`; the server's own store aside).
     """
     data = config.data_dir.resolve()
     for source in config.replay:
         src = Path(source).resolve()
-        if data == src or src in data.parents or (src.parent == data and src.name != "store"):
+        if (
+            data == src
+            or src in data.parents
+            or (src.parent == data and src.name != "store" and _config_beside(src))
+        ):
             raise LogFormatError(
                 f"--data-dir {config.data_dir} would write into (or beside) the log {source} being "
                 "replayed; use another data directory"
             )
+
+
+def _config_beside(log_dir: Path) -> bool:
+    """Whether a log's learner config is read beside it (its own description names none)."""
+    try:
+        info = read_log_json(log_dir)
+    except LogFormatError:
+        return True
+    return info is None or info.get("learner_config") is None
 
 
 def record(config: ServerConfig) -> None:

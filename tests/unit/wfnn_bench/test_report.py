@@ -170,6 +170,14 @@ def test_json_that_links_out_of_the_folder_is_not_read_into_a_report(tmp_path):
     (tmp_path / "bench" / "zz.json").symlink_to(tmp_path / "secret" / "creds.json")
     html = run(ReportConfig(path=tmp_path / "bench")).read_text()
     assert "hunter2" not in html and "0.25" in html and "a link out of" in html
+    (tmp_path / "ok").mkdir()
+    (tmp_path / "ok" / "metrics.json").write_text(json.dumps({"scores": [1, 2, 3]}))
+    from tests.unit.wfnn_io.test_logs import record
+
+    record(tmp_path / "secret" / "journal", n=123)
+    (tmp_path / "ok" / "journal").symlink_to(tmp_path / "secret" / "journal")
+    html = run(ReportConfig(path=tmp_path / "ok")).read_text()
+    assert "123" not in html and "a link out of" in html
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "metrics.json").symlink_to(tmp_path / "secret" / "creds.json")
     with pytest.raises(ReportError, match="a link out of"):

@@ -9,7 +9,14 @@ from wfnn_common.learner import WFNN, DivergenceMonitor
 from wfnn_common.learners import make_learner
 from wfnn_common.network import forward, split_wires
 from wfnn_common.replay import ReplayBuffer
-from wfnn_io.persist import PersistError, load_experiences, load_weights, save_experiences, save_weights
+from wfnn_io.persist import (
+    PersistError,
+    load_checkpoint,
+    load_experiences,
+    load_weights,
+    save_experiences,
+    save_weights,
+)
 
 
 def test_act_is_the_best_wire_in_physical_units():
@@ -332,6 +339,38 @@ def test_members_that_each_inflate_a_little_are_refused_together_and_weights_ski
             archive.writestr(name + ".npy", bytes(300 << 10), compress_type=zipfile.ZIP_DEFLATED)
     with pytest.raises(PersistError, match="would unpack"):
         load_weights(tmp_path / "w.npz")
+
+
+def test_a_member_that_declares_a_huge_stored_size_lifts_no_limit(tmp_path, monkeypatch):
+    """The allowance was the members' declared sizes: one member never unpacked that declared
+    4 GB stored let a 0.6 MB file unpack 600 MB."""
+    import struct
+    import zipfile
+
+    from wfnn_io import persist
+    from wfnn_io.persist import MANIFEST, atomic_savez
+
+    cfg = small_config()
+    save_weights(tmp_path / "w.npz", cfg, WFNN(cfg).params)
+    with np.load(tmp_path / "w.npz") as npz:
+        members = {name: npz[name] for name in npz.files if name != MANIFEST}
+    atomic_savez(tmp_path / "w.npz", {**members, "train/big": np.zeros(1), "train/pad": np.zeros(1)})
+    with zipfile.ZipFile(tmp_path / "w.npz") as archive:
+        kept = {i.filename: archive.read(i) for i in archive.infolist()}
+    with zipfile.ZipFile(tmp_path / "w.npz", "w") as archive:
+        for name, data in kept.items():
+            if name == "train/big.npy":  # inflates by 2 MiB
+                archive.writestr(name, data[:128] + bytes(2 << 20), compress_type=zipfile.ZIP_DEFLATED)
+            else:
+                archive.writestr(name, data)
+    raw = bytearray((tmp_path / "w.npz").read_bytes())
+    at = raw.rfind(b"train/pad.npy")  # its entry in the central directory, which zipfile believes
+    assert raw[at - 46 : at - 42] == b"PK\x01\x02"
+    struct.pack_into("<I", raw, at - 46 + 20, 0xF0000000)  # declares 3.75 GiB stored
+    (tmp_path / "w.npz").write_bytes(bytes(raw))
+    monkeypatch.setattr(persist, "MAX_INFLATION_BYTES", 1 << 20)
+    with pytest.raises(PersistError, match="would unpack"):
+        load_checkpoint(tmp_path / "w.npz")
 
 
 @pytest.mark.slow

@@ -489,6 +489,28 @@ def test_split_reads_a_log_as_merge_does(tmp_path):
     assert not (tmp_path / "mixed").exists()
 
 
+def test_a_killed_split_moved_elsewhere_still_reads_as_no_log_and_runs_again(tmp_path):
+    """Each part pointed to its split's list by where it was: moved, a part read as whole."""
+    both = _two_clients(tmp_path)
+    _killed_at_rename(2, "split", both, tmp_path / "parts")
+    (tmp_path / "parts").rename(tmp_path / "moved")
+    assert not logs.is_log(tmp_path / "moved" / "robot1")
+    assert logs.split(both, tmp_path / "moved") == {"robot1": 300, "robot2": 300}
+
+
+def test_a_new_output_folder_is_durable_when_the_write_returns(tmp_path, monkeypatch):
+    """The folders a merge or split made (and so all in them) could vanish in a power cut."""
+    both = _two_clients(tmp_path)
+    synced = []
+    real = logs.sync_dir
+    monkeypatch.setattr(logs, "sync_dir", lambda d: (synced.append(Path(d)), real(d))[1])
+    logs.merge([tmp_path / "a"], tmp_path / "results" / "new" / "merged")
+    assert {tmp_path, tmp_path / "results", tmp_path / "results" / "new"} <= set(synced)
+    synced.clear()
+    logs.split(both, tmp_path / "results" / "parts")
+    assert {tmp_path / "results", tmp_path / "results" / "parts"} <= set(synced)
+
+
 def test_a_failed_split_leaves_what_was_in_its_output_before(tmp_path):
     """It removed the whole folder of each part written, with the notes a user kept there."""
     record(tmp_path / "a", client="robot1")

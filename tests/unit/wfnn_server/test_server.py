@@ -849,18 +849,26 @@ def test_a_data_directory_in_or_beside_a_log_being_replayed_is_refused_before_an
     """--data-dir LOG --replay-only LOG wrote a checkpoint, records and a store into the log it read."""
     from tests.mounts import files
     from tests.unit.wfnn_io.test_logs import record
+    from wfnn_io import logs
     from wfnn_io.logs import LogFormatError
     from wfnn_server.server import prepare
 
     record(tmp_path / "runs" / "log")
+    record(tmp_path / "runs" / "bare")  # a log whose description names no config: read beside it
+    info = json.loads((tmp_path / "runs" / "bare" / "log.json").read_text())
+    (tmp_path / "runs" / "bare" / "log.json").write_text(json.dumps({**info, "learner_config": None}))
     before = files(tmp_path / "runs")
-    for data_dir in (tmp_path / "runs" / "log", tmp_path / "runs" / "log" / "d", tmp_path / "runs"):
+    for data_dir, log in ((tmp_path / "runs" / "log", "log"), (tmp_path / "runs" / "log" / "d", "log"),
+                          (tmp_path / "runs", "bare")):  # fmt: skip
         config = ServerConfig(
-            data_dir=data_dir, offline=True, replay_only=True, replay=(tmp_path / "runs" / "log",)
+            data_dir=data_dir, offline=True, replay_only=True, replay=(tmp_path / "runs" / log,)
         )
         with pytest.raises(LogFormatError, match="being replayed"):
             prepare(config)
     assert files(tmp_path / "runs") == before and not (tmp_path / "runs" / "log" / "d").exists()
+    logs.merge([tmp_path / "runs" / "log"], tmp_path / "runs" / "merged")  # its own log.json names its config
+    prepare(ServerConfig(data_dir=tmp_path / "runs", offline=True, replay_only=True,
+                         replay=(tmp_path / "runs" / "merged",)))  # fmt: skip
     (tmp_path / "d").mkdir()
     own = ServerConfig(
         data_dir=tmp_path / "d", offline=True, replay_only=True, replay=(tmp_path / "d" / "store",)
