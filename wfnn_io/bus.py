@@ -26,10 +26,8 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
-import os
 import queue
 import re
-import stat
 import threading
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -38,6 +36,7 @@ from enum import Enum
 from typing import Any, Generic, Literal, Protocol, TypeVar
 
 from wfnn_common.config import check_fields
+from wfnn_io.persist import read_regular_text
 from wfnn_io.protocol import MAX_FRAME
 
 log = logging.getLogger(__name__)
@@ -310,17 +309,53 @@ def check_exposure(net: NetConfig, keyed: bool, insecure: bool) -> list[str]:
     return [warning]
 
 
+MAX_ZENOH_CONFIG_BYTES = 1 << 20
+MAX_ZENOH_CONFIG_DEPTH = 64
+"""A Zenoh config file's largest size and nesting: Zenoh's parser took 4 GB for a 50 MB file and
+overflowed its stack (the process crashed without a word) at 50,000 levels."""
+
+
+def nesting(text: str) -> int:
+    """The deepest nesting of objects and arrays in JSON5 text (outside strings and comments)."""
+    depth = deepest = i = 0
+    n = len(text)
+    while i < n:
+        c = text[i]
+        if c in "\"'":  # a string: up to the same quote not escaped
+            i += 1
+            while i < n and text[i] != c:
+                i += 2 if text[i] == "\\" else 1
+        elif text.startswith("//", i):
+            i = text.find("\n", i)
+            i = n if i < 0 else i
+        elif text.startswith("/*", i):
+            i = text.find("*/", i + 2)
+            i = n if i < 0 else i + 1
+        elif c in "{[":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in "}]":
+            depth -= 1
+        i += 1
+    return deepest
+
+
 def zenoh_config(net: NetConfig) -> Any:
     """A `zenoh.Config` for `net`."""
     import zenoh
 
-    if net.zenoh_config:  # Zenoh opens it to read: a FIFO there would hold the tool for good
+    if net.zenoh_config:  # checked before Zenoh reads it (a FIFO there would hold the tool for good)
         try:
-            regular = stat.S_ISREG(os.stat(net.zenoh_config).st_mode)
-        except OSError as exc:
-            raise NetError(f"Zenoh config {net.zenoh_config}: {exc.strerror or exc}") from None
-        if not regular:
-            raise NetError(f"Zenoh config {net.zenoh_config}: not a regular file")
+            text = read_regular_text(net.zenoh_config, MAX_ZENOH_CONFIG_BYTES)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise NetError(
+                f"Zenoh config {net.zenoh_config}: {getattr(exc, 'strerror', None) or exc}"
+            ) from None
+        depth = nesting(text)
+        if depth > MAX_ZENOH_CONFIG_DEPTH:
+            raise NetError(
+                f"Zenoh config {net.zenoh_config}: nested {depth} deep, more than {MAX_ZENOH_CONFIG_DEPTH}"
+            )
     try:
         conf = zenoh.Config.from_file(net.zenoh_config) if net.zenoh_config else zenoh.Config()
     except zenoh.ZError as exc:

@@ -181,6 +181,21 @@ def test_a_zenoh_config_that_is_not_a_regular_file_is_refused_without_waiting(tm
         zenoh_config(NetConfig(zenoh_config=str(path)))
 
 
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [("{a:" * 50000 + "1" + "}" * 50000, "nested 50000 deep"), ("[" * 100 + "]" * 100, "nested 100 deep"),
+     ('{x:"' + "a" * (2 << 20) + '"}', "larger than")],
+)  # fmt: skip
+def test_a_zenoh_config_too_deep_or_too_large_is_refused_before_zenoh_reads_it(tmp_path, text, reason):
+    """50,000 levels crashed Zenoh's parser (the process died without a word), and 50 MB took 4 GB."""
+    from wfnn_io.bus import NetError, nesting, zenoh_config
+
+    (tmp_path / "zenoh.json5").write_text(text)
+    with pytest.raises(NetError, match=reason):
+        zenoh_config(NetConfig(zenoh_config=str(tmp_path / "zenoh.json5")))
+    assert nesting('{a: ["}", {b: 1}], // [[[\n c: /* {{{ */ 2, d: "\\"["}') == 3
+
+
 @pytest.mark.parametrize("blocked", ["weights.npz", "experiences.npz", "metrics.json"])
 def test_a_run_whose_end_cannot_be_written_is_refused_before_it_starts(tmp_path, blocked):
     """A folder where the run writes at its end: the run learned every episode, then lost its
