@@ -75,7 +75,15 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
     if config.exploration is not None:
         extra["exploration"] = config.exploration
     base = LearnerConfig.for_task(task, learner=config.learner, seed=config.seed, **extra)
-    return config.overrides.apply(base)
+    chosen = config.overrides.apply(base)
+    for what, given, task_has in (("state", chosen.state_dim, base.state_dim),
+                                  ("action", chosen.action_dim, base.action_dim)):  # fmt: skip
+        if given != task_has:  # the task's widths are fixed: a learner of others fails at its first step
+            raise ValueError(
+                f"the learner options give {given} {what} variables; {config.env or config.sim} has "
+                f"{task_has}"
+            )
+    return chosen
 
 
 def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> Brain:

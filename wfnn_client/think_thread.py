@@ -163,7 +163,9 @@ class ActLearnThinkMT:
                     last_publish = now
         except BaseException as exc:  # surfaced to the robot side; act keeps the last weights
             self.error = exc
-            log.exception("think thread stopped")
+            # One line: the run ends on it with its own error line (--verbose shows where).
+            log.error("think thread stopped: %s", exc)
+            log.debug("think thread stopped", exc_info=True)
 
     def _publish(self) -> None:
         self._snapshot = self.learner.snapshot()  # one reference swap: atomic for readers

@@ -241,8 +241,17 @@ _ENDPOINT = re.compile(r"(?P<proto>[a-z0-9-]+)/(?P<address>[^?#]+)(?P<rest>[?#].
 _HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:\[\]]+)):(?P<port>\d{1,5})")
 
 
+MAX_ENDPOINT = 1024
+"""The longest endpoint taken (a host name has at most 253 characters; a socket's path, options and
+all fit well within this): endpoints are logged, and a 30 KB one took seconds to wrap."""
+
+
 def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
     """A Zenoh endpoint -> (protocol, host) (host None for a local socket); ValueError if malformed."""
+    if isinstance(endpoint, str) and len(endpoint) > MAX_ENDPOINT:
+        raise ValueError(
+            f"endpoint {endpoint[:60]!r}... is {len(endpoint)} characters, more than {MAX_ENDPOINT}"
+        )
     m = _ENDPOINT.fullmatch(endpoint.strip()) if isinstance(endpoint, str) else None
     if m is None:
         raise ValueError(

@@ -11,6 +11,11 @@ from wfnn_io.bus import NetConfig
 from wfnn_io.protocol import check_id
 from wfnn_io.segments import MAX_SEGMENT_BYTES, FsyncPolicy
 
+MIN_PERIOD_S = 1e-3
+"""The shortest period of a server's loops (snapshots, statuses, checkpoints, fsyncs)."""
+MAX_HOST = 253
+"""The longest host name (DNS's limit); longer is no interface."""
+
 
 @dataclass(frozen=True, kw_only=True)
 class DashboardConfig:
@@ -41,6 +46,10 @@ class DashboardConfig:
         if not self.host.strip() or self.host != self.host.strip():  # "" binds every interface, silently
             raise ValueError(
                 f"dashboard host must name an interface (127.0.0.1 by default), got {self.host!r}"
+            )
+        if len(self.host) > MAX_HOST:  # logged in warnings, where 100 KB took a minute to wrap
+            raise ValueError(
+                f"dashboard host is {len(self.host)} characters, more than a name has ({MAX_HOST})"
             )
 
     @property
@@ -169,8 +178,8 @@ class ServerConfig:
         for client in self.allow_clients:
             check_id(client, "allowed client id")
         for name in ("publish_period_s", "status_period_s", "checkpoint_period_s", "fsync_interval_s"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+            if not getattr(self, name) >= MIN_PERIOD_S:  # 1e-300 published without a pause, NaN too
+                raise ValueError(f"{name} must be at least {MIN_PERIOD_S:g} s, got {getattr(self, name)}")
         if self.think_batch < 1:
             raise ValueError(f"think_batch must be >= 1, got {self.think_batch}")
         if not 1 <= self.segment_bytes <= MAX_SEGMENT_BYTES:

@@ -228,3 +228,13 @@ def test_weights_that_make_no_learner_are_refused_naming_their_file(tmp_path):
     with pytest.raises(ValueError, match=r"three\.npz"):
         run(ClientConfig(sim="positioning", episodes=1, rate_hz=0.0, out=tmp_path / "b", learn=False,
                          weights=tmp_path / "three.npz"))  # fmt: skip
+
+
+def test_learner_options_of_other_widths_than_the_task_are_refused_before_the_run(tmp_path):
+    """The boat's 2 actions given 1 range: the think thread failed an episode in, with a traceback."""
+    from wfnn_client.run import run
+
+    options = '{"action_low": [-1], "action_high": [1]}'
+    with pytest.raises(ValueError, match="give 1 action variables; boat has 2"):
+        run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "run", learner_options=options))
+    assert not (tmp_path / "run" / "journal").exists()

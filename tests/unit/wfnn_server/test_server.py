@@ -384,8 +384,9 @@ def test_weights_gone_non_finite_while_thinking_on_stored_experiences_are_reset(
 
 @pytest.mark.parametrize(
     "bad",
-    [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}, {"bc_weight": -1}, {"alpha": 0}],
-)
+    [{"publish_period_s": 0}, {"server_id": "a/b"}, {"fsync": "sometimes"}, {"bc_weight": -1}, {"alpha": 0},
+     {"publish_period_s": 1e-300}, {"checkpoint_period_s": float("nan")}],
+)  # fmt: skip
 def test_server_config_is_checked(tmp_path, bad):
     with pytest.raises(ValueError):
         ServerConfig(**{"data_dir": tmp_path, **bad})
@@ -874,3 +875,15 @@ def test_a_data_directory_in_or_beside_a_log_being_replayed_is_refused_before_an
         data_dir=tmp_path / "d", offline=True, replay_only=True, replay=(tmp_path / "d" / "store",)
     )
     prepare(own)  # its own store: what it would write beside it is its own config
+
+
+def test_host_names_and_endpoints_longer_than_any_are_refused():
+    """A 100 KB --dashboard-host took a minute to wrap in its warning, and held off SIGTERM."""
+    from wfnn_io.bus import NetConfig
+    from wfnn_server.config import DashboardConfig
+
+    with pytest.raises(ValueError, match="more than a name has"):
+        DashboardConfig(port=0, host="a" * 100_000)
+    with pytest.raises(ValueError, match="characters, more than"):
+        NetConfig(connect=("tcp/" + "a" * 30_000 + ":1",))
+    DashboardConfig(port=0, host="a" * 253)
