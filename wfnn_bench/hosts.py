@@ -5,8 +5,11 @@ with addresses only inside the namespaces (10.241.<i>.1 on the hub's end of link
 host's). Nothing is routed between links: every host talks only to the hub, as robots and think
 servers talk only to their Zenoh router. Processes started with `Hosts.start` run inside a
 host's namespace; leaving the context stops them by PID and removes every namespace and link,
-also when the code inside failed. Namespaces left by a process that died are removed by the
-next `Hosts` (their names carry the owner's PID).
+also when the code inside failed or SIGTERM stopped it. Namespaces left by a process that died
+are removed by the next `Hosts`: each run holds a lock on a file of its own (`OWNERS`, named as
+its namespaces' random tag) while they exist, and only namespaces with such a file that nobody
+holds are removed (a namespace this tool did not make, or one whose owner runs in another PID
+namespace, is left alone).
 
 Faults on a host's link, in both directions, with iptables and tc inside the two namespaces:
 - `partition`: every packet dropped (as a cable pulled behind a switch: no error, only silence);
@@ -20,8 +23,11 @@ It needs root, `ip`, `iptables` and `tc`; `unavailable()` says what is missing.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
+import secrets
 import shutil
 import signal
 import subprocess
@@ -32,10 +38,14 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
+from wfnn_io.cli_errors import handling, terminate
+
 log = logging.getLogger(__name__)
 
 PREFIX = "wfnn"
-"""Namespaces are named wfnn<owner pid>-<host>."""
+"""Namespaces are named wfnn<random tag>-<host>: random, as PIDs repeat across PID namespaces."""
+OWNERS = Path("/run/wfnn-hosts")
+"""Where each run's lock file (<tag>.lock) says its namespaces are in use (held while they are)."""
 BIN = Path(sys.executable).parent
 PARTITION_RULE = ("INPUT", "-i", "{dev}", "-m", "comment", "--comment", "partition", "-j", "DROP")
 
@@ -49,7 +59,11 @@ def unavailable() -> str | None:
     missing = [tool for tool in ("ip", "iptables", "tc") if shutil.which(tool) is None]
     if missing:
         return f"{', '.join(missing)} not found (Debian: iproute2, iptables)"
-    probe = f"{PREFIX}{os.getpid()}-probe"
+    try:
+        OWNERS.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot make {OWNERS}, where runs note their namespaces: {exc.strerror or exc}"
+    probe = f"{PREFIX}{secrets.token_hex(4)}-probe"
     made = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
     if made.returncode != 0:
         return f"cannot create a network namespace: {made.stderr.strip()}"
@@ -70,22 +84,51 @@ def _sh(*argv: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return done
 
 
+def _own(tag: str) -> int | None:
+    """Lock `tag`'s file in OWNERS -> its descriptor (held while the namespaces exist); None if taken."""
+    OWNERS.mkdir(parents=True, exist_ok=True)
+    fd = os.open(OWNERS / f"{tag}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
 def sweep_stale() -> list[str]:
-    """Remove the namespaces of owners that no longer run; -> their names."""
+    """Remove the namespaces this tool made whose owners no longer run; -> their names.
+
+    A namespace's owner held its tag's lock file while it ran: a file nobody holds is a dead
+    owner's, and no file at all is no namespace of this tool's (left alone).
+    """
     listed = _sh("ip", "netns", "list", check=False).stdout.split("\n")
-    removed = []
+    tags: dict[str, list[str]] = {}
     for line in listed:
         name = line.split(" ")[0]
-        if not name.startswith(PREFIX) or "-" not in name:
+        if name.startswith(PREFIX) and "-" in name:
+            tags.setdefault(name.split("-")[0], []).append(name)
+    removed = []
+    for tag, names in tags.items():
+        if not (OWNERS / f"{tag}.lock").is_file():
             continue
-        owner = name[len(PREFIX) :].split("-")[0]
-        if not owner.isdigit() or Path(f"/proc/{owner}").exists():
+        fd = _own(tag)
+        if fd is None:  # its owner runs
             continue
-        for pid in _sh("ip", "netns", "pids", name, check=False).stdout.split():
-            _kill(int(pid))
-        _sh("ip", "netns", "del", name, check=False)
-        removed.append(name)
+        try:
+            for name in names:
+                for pid in _sh("ip", "netns", "pids", name, check=False).stdout.split():
+                    _kill(int(pid))
+                _sh("ip", "netns", "del", name, check=False)
+                removed.append(name)
+            (OWNERS / f"{tag}.lock").unlink(missing_ok=True)
+        finally:
+            os.close(fd)
     return removed
+
+
+def _noted(signum: int, frame: object) -> None:
+    log.warning("signal %d while the hosts are removed: removing them first", signum)
 
 
 def _kill(pid: int) -> None:
@@ -130,7 +173,9 @@ class Hosts:
         if len(set((*hosts, hub))) != len(hosts) + 1:
             raise ValueError("host names must differ")
         self.hub, self.hosts = hub, hosts
-        self.tag = f"{PREFIX}{os.getpid()}"
+        self.tag = f"{PREFIX}{secrets.token_hex(4)}"
+        self._owner: int | None = None
+        self._signals = contextlib.ExitStack()
         self.logs = logs
         self.links: dict[str, Link] = {}
         self.procs: list[subprocess.Popen[bytes]] = []
@@ -143,8 +188,14 @@ class Hosts:
         return f"{self.tag}-{host}"
 
     def __enter__(self) -> Hosts:
-        sweep_stale()
+        # SIGTERM (a CI's cancel, `timeout`) ends the run as Ctrl-C does, through `close`: by
+        # default it ended the process with its namespaces and servers left running.
+        self._signals.enter_context(handling(terminate, signal.SIGTERM))
         try:
+            self._owner = _own(self.tag)
+            if self._owner is None:
+                raise RuntimeError(f"{self.tag}: taken by another run")
+            sweep_stale()
             self._make()
         except BaseException:
             self.close()
@@ -293,7 +344,15 @@ class Hosts:
         return int(proc.returncode)
 
     def close(self) -> None:
-        """Stop every process (by PID), then remove the namespaces and their links."""
+        """Stop every process (by PID), then remove the namespaces and their links.
+
+        A SIGTERM meanwhile is only logged: the cleanup it asked for is under way.
+        """
+        with handling(_noted, signal.SIGTERM):
+            self._close()
+        self._signals.close()
+
+    def _close(self) -> None:
         for proc in reversed(self.procs):
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
@@ -309,3 +368,7 @@ class Hosts:
                 _kill(int(pid))
             _sh("ip", "netns", "del", ns, check=False)  # removing a namespace removes its veth ends
         self._made.clear()
+        if self._owner is not None:  # its namespaces are gone: no lock file left to sweep
+            (OWNERS / f"{self.tag}.lock").unlink(missing_ok=True)
+            os.close(self._owner)
+            self._owner = None

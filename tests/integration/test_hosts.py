@@ -91,6 +91,64 @@ def test_hosts_are_removed_when_the_code_inside_fails(tmp_path):
     assert not any(n in namespaces() for n in names)
 
 
+def test_only_namespaces_of_owners_that_are_gone_are_swept(tmp_path):
+    """A namespace of the project's name pattern was removed whenever no process had the PID in its
+    name here: another tool's, or a live run's in another PID namespace, its processes killed."""
+    import os
+
+    tags = {kind: f"{hosts.PREFIX}{os.urandom(4).hex()}" for kind in ("foreign", "live", "dead")}
+    made = [f"{tag}-x" for tag in tags.values()]
+    live = None
+    try:
+        for name in made:
+            subprocess.run(["ip", "netns", "add", name], check=True, capture_output=True)
+        live = hosts._own(tags["live"])  # held here, as by a run elsewhere
+        dead = hosts._own(tags["dead"])
+        assert live is not None and dead is not None
+        os.close(dead)  # its owner died: the lock file is left, held by nobody
+        swept = hosts.sweep_stale()
+        assert f"{tags['dead']}-x" in swept and not (hosts.OWNERS / f"{tags['dead']}.lock").exists()
+        assert f"{tags['foreign']}-x" in namespaces() and f"{tags['live']}-x" in namespaces()
+    finally:
+        for name in made:
+            subprocess.run(["ip", "netns", "del", name], capture_output=True)
+        if live is not None:
+            (hosts.OWNERS / f"{tags['live']}.lock").unlink(missing_ok=True)
+            os.close(live)
+
+
+HELD = """
+import sys, time
+from pathlib import Path
+from wfnn_bench import hosts
+with hosts.Hosts(("robot",)) as h:
+    h.start("robot", [sys.executable, "-c", "import time; time.sleep(60)"])
+    print(h.ns("robot"), flush=True)
+    time.sleep(60)
+"""
+
+
+def test_sigterm_removes_the_hosts_and_stops_their_processes(tmp_path):
+    """SIGTERM (a CI's cancel) ended the run with its namespaces and servers left running."""
+    import signal
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen([sys.executable, "-c", HELD], cwd=root, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        name = proc.stdout.readline().strip()
+        assert name in namespaces()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert name not in namespaces()
+    tag = name.split("-")[0]
+    assert not (hosts.OWNERS / f"{tag}.lock").exists()
+
+
 SHORT = {"warmup_s": 4.0, "impair_s": 6.0, "partition_s": 5.0, "router_down_s": 3.0, "rate_limit_s": 8.0,
          "after_s": 8.0}  # fmt: skip
 
