@@ -32,13 +32,14 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import IO
 
-from wfnn_io.cli_errors import handling, terminate
+from wfnn_io.cli_errors import Terminated, handling, terminate
 
 log = logging.getLogger(__name__)
 
@@ -63,17 +64,19 @@ def unavailable() -> str | None:
         OWNERS.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         return f"cannot make {OWNERS}, where runs note their namespaces: {exc.strerror or exc}"
-    probe = f"{PREFIX}{secrets.token_hex(4)}-probe"
-    made = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
-    if made.returncode != 0:
-        return f"cannot create a network namespace: {made.stderr.strip()}"
+    tag, owner = _new_owner()  # a probe left by a kill is swept as a run's namespaces are
+    probe = f"{tag}-probe"
     try:
+        made = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
+        if made.returncode != 0:
+            return f"cannot create a network namespace: {made.stderr.strip()}"
         rule = ["ip", "netns", "exec", probe, "iptables", "-A", "INPUT", "-i", "lo", "-j", "ACCEPT"]
         ipt = subprocess.run(rule, capture_output=True, text=True)
         if ipt.returncode != 0:
             return f"iptables does not work in a namespace: {ipt.stderr.strip()}"
     finally:
         subprocess.run(["ip", "netns", "del", probe], capture_output=True)
+        _disown(tag, owner)
     return None
 
 
@@ -84,10 +87,36 @@ def _sh(*argv: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return done
 
 
-def _own(tag: str) -> int | None:
-    """Lock `tag`'s file in OWNERS -> its descriptor (held while the namespaces exist); None if taken."""
+def _new_owner() -> tuple[str, int]:
+    """A fresh random tag and its lock file in OWNERS, locked -> (tag, descriptor).
+
+    Locked before it takes its name, so that no sweep ever sees it unheld.
+    """
     OWNERS.mkdir(parents=True, exist_ok=True)
-    fd = os.open(OWNERS / f"{tag}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    tag = f"{PREFIX}{secrets.token_hex(4)}"
+    fd, staged = tempfile.mkstemp(dir=OWNERS, prefix=".new-")
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.rename(staged, OWNERS / f"{tag}.lock")
+    except BaseException:
+        os.close(fd)
+        Path(staged).unlink(missing_ok=True)
+        raise
+    return tag, fd
+
+
+def _disown(tag: str, fd: int) -> None:
+    """Remove and unlock `tag`'s lock file (its namespaces are gone)."""
+    (OWNERS / f"{tag}.lock").unlink(missing_ok=True)
+    os.close(fd)
+
+
+def _own(tag: str) -> int | None:
+    """Lock an existing lock file of `tag` -> its descriptor; None where it is held (or gone)."""
+    try:
+        fd = os.open(OWNERS / f"{tag}.lock", os.O_RDWR)
+    except FileNotFoundError:
+        return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -99,36 +128,28 @@ def _own(tag: str) -> int | None:
 def sweep_stale() -> list[str]:
     """Remove the namespaces this tool made whose owners no longer run; -> their names.
 
-    A namespace's owner held its tag's lock file while it ran: a file nobody holds is a dead
-    owner's, and no file at all is no namespace of this tool's (left alone).
+    A run holds its tag's lock file while its namespaces exist: a file nobody holds is a dead
+    run's (its namespaces, if any, and the file go), and a namespace with no file at all is no
+    namespace of this tool's (left alone).
     """
     listed = _sh("ip", "netns", "list", check=False).stdout.split("\n")
-    tags: dict[str, list[str]] = {}
-    for line in listed:
-        name = line.split(" ")[0]
-        if name.startswith(PREFIX) and "-" in name:
-            tags.setdefault(name.split("-")[0], []).append(name)
+    names = [line.split(" ")[0] for line in listed if line.startswith(PREFIX)]
     removed = []
-    for tag, names in tags.items():
-        if not (OWNERS / f"{tag}.lock").is_file():
-            continue
+    for lock in sorted(OWNERS.glob(f"{PREFIX}*.lock")) if OWNERS.is_dir() else []:
+        tag = lock.name.removesuffix(".lock")
         fd = _own(tag)
         if fd is None:  # its owner runs
             continue
         try:
             for name in names:
-                for pid in _sh("ip", "netns", "pids", name, check=False).stdout.split():
-                    _kill(int(pid))
-                _sh("ip", "netns", "del", name, check=False)
-                removed.append(name)
-            (OWNERS / f"{tag}.lock").unlink(missing_ok=True)
+                if name.split("-")[0] == tag:
+                    for pid in _sh("ip", "netns", "pids", name, check=False).stdout.split():
+                        _kill(int(pid))
+                    _sh("ip", "netns", "del", name, check=False)
+                    removed.append(name)
         finally:
-            os.close(fd)
+            _disown(tag, fd)
     return removed
-
-
-def _noted(signum: int, frame: object) -> None:
-    log.warning("signal %d while the hosts are removed: removing them first", signum)
 
 
 def _kill(pid: int) -> None:
@@ -173,7 +194,8 @@ class Hosts:
         if len(set((*hosts, hub))) != len(hosts) + 1:
             raise ValueError("host names must differ")
         self.hub, self.hosts = hub, hosts
-        self.tag = f"{PREFIX}{secrets.token_hex(4)}"
+        self.tag = ""
+        """wfnn<random>: its namespaces' names begin with it (made on entering)."""
         self._owner: int | None = None
         self._signals = contextlib.ExitStack()
         self.logs = logs
@@ -192,9 +214,7 @@ class Hosts:
         # default it ended the process with its namespaces and servers left running.
         self._signals.enter_context(handling(terminate, signal.SIGTERM))
         try:
-            self._owner = _own(self.tag)
-            if self._owner is None:
-                raise RuntimeError(f"{self.tag}: taken by another run")
+            self.tag, self._owner = _new_owner()
             sweep_stale()
             self._make()
         except BaseException:
@@ -202,13 +222,17 @@ class Hosts:
             raise
         return self
 
-    def __exit__(self, *exc: type[BaseException] | BaseException | TracebackType | None) -> None:
-        self.close()
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        signum = self.close()
+        if signum is not None and kind is None:  # asked to stop while leaving: stop, as asked
+            raise Terminated(signum)
 
     def _make(self) -> None:
         for host in (self.hub, *self.hosts):
+            self._made.append(self.ns(host))  # first: a signal during `add` must not leave it unknown
             _sh("ip", "netns", "add", self.ns(host))
-            self._made.append(self.ns(host))
             _sh("ip", "-n", self.ns(host), "link", "set", "lo", "up")
         for index, host in enumerate(self.hosts, start=1):
             # Interface names are unique per namespace; both ends start in the hub's namespace.
@@ -343,14 +367,22 @@ class Hosts:
                 proc.wait(timeout=10)
         return int(proc.returncode)
 
-    def close(self) -> None:
+    def close(self) -> int | None:
         """Stop every process (by PID), then remove the namespaces and their links.
 
-        A SIGTERM meanwhile is only logged: the cleanup it asked for is under way.
+        A SIGTERM meanwhile waits for the cleanup it asks for: -> its number, if one came (leaving
+        the context raises it then, unless something else is raised already).
         """
-        with handling(_noted, signal.SIGTERM):
+        noted: list[int] = []
+
+        def note(signum: int, frame: object) -> None:
+            log.warning("signal %d while the hosts are removed: removing them first", signum)
+            noted.append(signum)
+
+        with handling(note, signal.SIGTERM):
             self._close()
         self._signals.close()
+        return noted[0] if noted else None
 
     def _close(self) -> None:
         for proc in reversed(self.procs):
@@ -369,6 +401,5 @@ class Hosts:
             _sh("ip", "netns", "del", ns, check=False)  # removing a namespace removes its veth ends
         self._made.clear()
         if self._owner is not None:  # its namespaces are gone: no lock file left to sweep
-            (OWNERS / f"{self.tag}.lock").unlink(missing_ok=True)
-            os.close(self._owner)
+            _disown(self.tag, self._owner)
             self._owner = None

@@ -241,29 +241,38 @@ _ENDPOINT = re.compile(r"(?P<proto>[a-z0-9-]+)/(?P<address>[^?#]+)(?P<rest>[?#].
 _HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:\[\]]+)):(?P<port>\d{1,5})")
 
 
-MAX_ENDPOINT = 1024
-"""The longest endpoint taken (a host name has at most 253 characters; a socket's path, options and
-all fit well within this): endpoints are logged, and a 30 KB one took seconds to wrap."""
+MAX_ENDPOINT = 1 << 16
+MAX_ADDRESS = 1024
+"""The longest endpoint taken, and its address (a host name has at most 253 characters, a socket's
+path 108; the options after `#` may carry certificates inline, several KB)."""
+SHOWN = 120
+"""Characters of an endpoint that messages show: a 30 KB one took seconds to wrap in a warning."""
+
+
+def shown(endpoint: str) -> str:
+    """An endpoint as messages show it: at most SHOWN characters."""
+    return endpoint if len(endpoint) <= SHOWN else f"{endpoint[:SHOWN]}... ({len(endpoint)} characters)"
 
 
 def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
     """A Zenoh endpoint -> (protocol, host) (host None for a local socket); ValueError if malformed."""
     if isinstance(endpoint, str) and len(endpoint) > MAX_ENDPOINT:
-        raise ValueError(
-            f"endpoint {endpoint[:60]!r}... is {len(endpoint)} characters, more than {MAX_ENDPOINT}"
-        )
+        raise ValueError(f"endpoint {shown(endpoint)!r} is longer than {MAX_ENDPOINT} characters")
     m = _ENDPOINT.fullmatch(endpoint.strip()) if isinstance(endpoint, str) else None
     if m is None:
         raise ValueError(
-            f"endpoint {endpoint!r} is not of the form <protocol>/<address>, e.g. tcp/127.0.0.1:7447"
+            f"endpoint {shown(str(endpoint))!r} is not of the form <protocol>/<address>, e.g. "
+            "tcp/127.0.0.1:7447"
         )
     proto, address = m["proto"], m["address"]
+    if len(address) > MAX_ADDRESS:
+        raise ValueError(f"endpoint {shown(endpoint)!r}: its address is longer than {MAX_ADDRESS} characters")
     if proto.startswith("unixsock") or proto == "unixpipe":
         return proto, None
     hp = _HOST_PORT.fullmatch(address)
     if hp is None or not 0 <= int(hp["port"]) <= 65535:
         raise ValueError(
-            f"endpoint {endpoint!r}: the address must be HOST:PORT (port 0-65535), got {address!r}"
+            f"endpoint {shown(endpoint)!r}: the address must be HOST:PORT (port 0-65535), got {address!r}"
         )
     return proto, hp["v6"] or hp["host"]
 
@@ -301,7 +310,7 @@ def check_exposure(net: NetConfig, keyed: bool, insecure: bool) -> list[str]:
     exposed = [e for e in (*listen, *connect) if not is_loopback(e)]
     if not exposed:
         return []
-    names = ", ".join(exposed)
+    names = ", ".join(shown(e) for e in exposed)
     if not keyed and not insecure:
         raise ValueError(
             f"{names} reach(es) beyond this machine and no --key-file is given: anyone who can reach "
@@ -360,6 +369,10 @@ def zenoh_config(net: NetConfig) -> Any:
             raise NetError(
                 f"Zenoh config {net.zenoh_config}: {getattr(exc, 'strerror', None) or exc}"
             ) from None
+        if "__config__" in text:  # an included file would reach Zenoh's parser unchecked
+            raise NetError(
+                f"Zenoh config {net.zenoh_config}: includes (__config__) are not taken; give one file"
+            )
         depth = nesting(text)
         if depth > MAX_ZENOH_CONFIG_DEPTH:
             raise NetError(

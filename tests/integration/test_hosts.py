@@ -96,25 +96,40 @@ def test_only_namespaces_of_owners_that_are_gone_are_swept(tmp_path):
     name here: another tool's, or a live run's in another PID namespace, its processes killed."""
     import os
 
-    tags = {kind: f"{hosts.PREFIX}{os.urandom(4).hex()}" for kind in ("foreign", "live", "dead")}
-    made = [f"{tag}-x" for tag in tags.values()]
-    live = None
+    foreign = f"{hosts.PREFIX}{os.urandom(4).hex()}"
+    live, live_fd = hosts._new_owner()  # held here, as by a run elsewhere
+    dead, dead_fd = hosts._new_owner()
+    orphan, orphan_fd = hosts._new_owner()  # a run killed before its first namespace
+    os.close(dead_fd)  # their owners died: the lock files are left, held by nobody
+    os.close(orphan_fd)
+    made = [f"{tag}-x" for tag in (foreign, live, dead)]
     try:
         for name in made:
             subprocess.run(["ip", "netns", "add", name], check=True, capture_output=True)
-        live = hosts._own(tags["live"])  # held here, as by a run elsewhere
-        dead = hosts._own(tags["dead"])
-        assert live is not None and dead is not None
-        os.close(dead)  # its owner died: the lock file is left, held by nobody
         swept = hosts.sweep_stale()
-        assert f"{tags['dead']}-x" in swept and not (hosts.OWNERS / f"{tags['dead']}.lock").exists()
-        assert f"{tags['foreign']}-x" in namespaces() and f"{tags['live']}-x" in namespaces()
+        assert f"{dead}-x" in swept and f"{dead}-x" not in namespaces()
+        assert f"{foreign}-x" in namespaces() and f"{live}-x" in namespaces()
+        assert not (hosts.OWNERS / f"{dead}.lock").exists() and not (hosts.OWNERS / f"{orphan}.lock").exists()
+        assert (hosts.OWNERS / f"{live}.lock").exists()
     finally:
         for name in made:
             subprocess.run(["ip", "netns", "del", name], capture_output=True)
-        if live is not None:
-            (hosts.OWNERS / f"{tags['live']}.lock").unlink(missing_ok=True)
-            os.close(live)
+        hosts._disown(live, live_fd)
+
+
+def test_a_sigterm_while_the_hosts_are_removed_stops_the_run_after_the_cleanup(tmp_path, monkeypatch):
+    """It was logged and lost: a benchmark went on to its next case."""
+    import os
+    import signal
+
+    from wfnn_io.cli_errors import Terminated
+
+    with pytest.raises(Terminated), hosts.Hosts(("robot",)) as h:
+        real = h._close
+        monkeypatch.setattr(h, "_close", lambda: (os.kill(os.getpid(), signal.SIGTERM), real())[1])
+        names = [h.ns("router"), h.ns("robot")]
+    assert not any(n in namespaces() for n in names)
+    assert signal.getsignal(signal.SIGTERM) is not hosts.terminate
 
 
 HELD = """

@@ -193,6 +193,9 @@ def test_a_zenoh_config_too_deep_or_too_large_is_refused_before_zenoh_reads_it(t
     (tmp_path / "zenoh.json5").write_text(text)
     with pytest.raises(NetError, match=reason):
         zenoh_config(NetConfig(zenoh_config=str(tmp_path / "zenoh.json5")))
+    (tmp_path / "include.json5").write_text('{plugins: {rest: {__config__: "deep.json5"}}}')
+    with pytest.raises(NetError, match="includes"):  # an included file would go unchecked
+        zenoh_config(NetConfig(zenoh_config=str(tmp_path / "include.json5")))
     assert nesting('{a: ["}", {b: 1}], // [[[\n c: /* {{{ */ 2, d: "\\"["}') == 3
 
 
