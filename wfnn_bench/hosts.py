@@ -39,7 +39,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
-from wfnn_io.cli_errors import Terminated, handling, terminate
+from wfnn_io.cli_errors import Terminated, handling, noting, terminate
 
 log = logging.getLogger(__name__)
 
@@ -373,14 +373,10 @@ class Hosts:
         A SIGTERM meanwhile waits for the cleanup it asks for: -> its number, if one came (leaving
         the context raises it then, unless something else is raised already).
         """
-        noted: list[int] = []
-
-        def note(signum: int, frame: object) -> None:
-            log.warning("signal %d while the hosts are removed: removing them first", signum)
-            noted.append(signum)
-
-        with handling(note, signal.SIGTERM):
+        with noting(signal.SIGTERM) as noted:
             self._close()
+        if noted:
+            log.warning("signal %d while the hosts were removed: stopping now that they are", noted[0])
         self._signals.close()
         return noted[0] if noted else None
 

@@ -233,8 +233,8 @@ def _outside(directory: Path, path: Path) -> str:
 
 def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
     path = directory / "metrics.json"
-    if _outside(directory, path):
-        raise ReportError(f"{path}: {_outside(directory, path)}")
+    if outside := _outside(directory, path):
+        raise ReportError(f"{path}: {outside}")
     metrics = _read_json(path)
     if not isinstance(metrics, dict) or "scores" not in metrics:
         raise ReportError(f"{path} is not a client run's metrics (no scores)")
@@ -363,7 +363,7 @@ def run(config: ReportConfig) -> Path:
         found = sorted(p for p in path.glob("*.json") if not p.name.startswith("."))
         if not found:
             raise ReportError(f"{path} holds neither metrics.json (a run) nor benchmark JSON files")
-        sections = [Section(p.stem, [], [], [f"not shown: {_outside(path, p)}"]) if _outside(path, p)
+        sections = [Section(p.stem, [], [], [f"not shown: {outside}"]) if (outside := _outside(path, p))
                     else _bench_section(p) for p in found]  # fmt: skip
         title, out = f"wfnn benchmarks in {path}", config.out or path / "report.html"
     elif path.suffix == ".json" and path.exists():

@@ -39,7 +39,7 @@ from wfnn_common.config import (
 )
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
-from wfnn_io.cli_errors import Terminated, handling, terminate
+from wfnn_io.cli_errors import Terminated, handling, noting, terminate
 from wfnn_io.persist import (
     PersistError,
     load_weights,
@@ -183,10 +183,7 @@ def _stop_brains(brains: _Brains) -> int:
     are silent) left the journal open and the process hung on the session's threads. An ignored
     SIGINT (a job started with &) stays ignored.
     """
-    noted: list[int] = []
-    with handling(
-        lambda signum, frame: noted.append(signum), signal.SIGTERM, signal.SIGINT, keep_ignored=True
-    ):
+    with noting(signal.SIGTERM, signal.SIGINT, keep_ignored=True) as noted:
         brains.stop()
     return noted[0] if noted else 0
 

@@ -185,6 +185,14 @@ def handling(
         _put_back(previous)
 
 
+@contextlib.contextmanager
+def noting(*signums: int, keep_ignored: bool = False) -> Iterator[list[int]]:
+    """`signums` only noted meanwhile (see `handling`) -> the list of those that came, in order."""
+    noted: list[int] = []
+    with handling(lambda signum, _frame: noted.append(signum), *signums, keep_ignored=keep_ignored):
+        yield noted
+
+
 def _put_back(handlers: list[tuple[int, Any]]) -> None:
     if handlers:
         (signum, handler), rest = handlers[0], handlers[1:]

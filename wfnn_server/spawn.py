@@ -2,29 +2,17 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
-from wfnn_io.cli_errors import handling
+from wfnn_io.cli_errors import noting
 
 BIN = Path(sys.executable).parent
-
-
-@contextlib.contextmanager
-def _signals_noted() -> Iterator[list[int]]:
-    """SIGTERM and SIGINT only noted meanwhile (an ignored one stays ignored) -> those noted."""
-    noted: list[int] = []
-    with handling(
-        lambda signum, _frame: noted.append(signum), signal.SIGTERM, signal.SIGINT, keep_ignored=True
-    ):
-        yield noted
 
 
 def free_port() -> int:
@@ -76,7 +64,10 @@ class ServerProcess:
         env = {**os.environ, "COLUMNS": "160", "PYTHONUNBUFFERED": "1"}
         self.proc = None
         try:
-            with _signals_noted() as noted, open(self.log, "ab") as log:
+            with (
+                noting(signal.SIGTERM, signal.SIGINT, keep_ignored=True) as noted,
+                open(self.log, "ab") as log,
+            ):
                 # A signal raised inside Popen, after the fork, would leave a server nobody can stop.
                 self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
             if noted:  # the server stopped first: the caller's own handler, now restored, may end the process

@@ -788,6 +788,7 @@ def test_a_signal_while_a_starters_handlers_are_put_back_leaves_none_behind(monk
     import signal
 
     import wfnn_server.spawn as spawn
+    from wfnn_io.cli_errors import noting
 
     real, calls = signal.signal, []
 
@@ -803,7 +804,7 @@ def test_a_signal_while_a_starters_handlers_are_put_back_leaves_none_behind(monk
     try:
         before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
         monkeypatch.setattr(spawn.signal, "signal", put_back)
-        with pytest.raises(KeyboardInterrupt), spawn._signals_noted():
+        with pytest.raises(KeyboardInterrupt), noting(signal.SIGTERM, signal.SIGINT, keep_ignored=True):
             pass
         monkeypatch.setattr(spawn.signal, "signal", real)
         assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
