@@ -14,6 +14,7 @@ a damaged file's bytes) shown without the control characters that drive a termin
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import signal
@@ -99,8 +100,10 @@ def path_given(value: str | Path) -> Path:
 
 
 def _one(exc: BaseException) -> str:
-    if isinstance(exc, FileExistsError) and exc.filename is not None and os.path.isfile(exc.filename):
-        # A file where a directory had to be made (an output path through a file): say so.
+    if (isinstance(exc, FileExistsError) and exc.filename is not None and os.path.isfile(exc.filename)
+            and exc.strerror == os.strerror(errno.EEXIST)):  # fmt: skip
+        # The OS's own words where a directory had to be made (an output path through a file): say
+        # so. A refusal of ours to replace a file says why itself.
         return f"{exc.filename}: a file is in the way (a directory is needed there)"
     if isinstance(exc, OSError) and exc.strerror:
         where = f"{exc.filename}: " if exc.filename is not None else ""

@@ -544,7 +544,7 @@ def _write_logs(
         _check_new(target)
         if target.exists() and not target.is_dir():
             raise FileExistsError(
-                errno.EEXIST, "a file is in the way (a folder is needed there)", str(target)
+                errno.EEXIST, "a file is in the way (a directory is needed there)", str(target)
             )
     token = f"{PARTIAL}{secrets.token_hex(4)}"
     made: list[Path] = []
@@ -910,13 +910,21 @@ def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     }  # fmt: skip
 
 
-def export(sources: list[Path], out: Path, key: bytes | None = None) -> int:
-    """Write logs' experiences as one `.npz` of plain arrays (`to_arrays`); -> experiences."""
+def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bool = False) -> int:
+    """Write logs' experiences as one `.npz` of plain arrays (`to_arrays`); -> experiences.
+
+    A file already at `out` is kept (FileExistsError) unless `replace`: it may be another
+    export, or anything else of the user's, and merge and split refuse an output that holds a
+    log in the same way.
+    """
     check_outside(out, sources)
     if Path(out).is_dir():
         raise IsADirectoryError(21, "is a directory (export writes one .npz file)", str(out))
+    if not replace and os.path.lexists(out):  # before the logs are read, which may take long
+        raise FileExistsError(errno.EEXIST, "exists (pass --replace to write over it)", str(out))
     arrays = to_arrays(sources, key)
     config = common_config(sources)
     atomic_savez(out, {"format": np.str_(EXPORT_FORMAT), "format_version": np.int64(1),
-                       "learner_config": np.str_(config.to_json() if config else ""), **arrays})  # fmt: skip
+                       "learner_config": np.str_(config.to_json() if config else ""), **arrays},
+                 replace=replace)  # fmt: skip
     return int(arrays["reward"].shape[0])

@@ -133,12 +133,13 @@ def split(
 @app.command()
 def export(
     sources: Annotated[list[Path], typer.Argument(parser=path_given, help="Logs to export (merged).")],
-    out: Annotated[Path, typer.Option(parser=path_given, help="The .npz file to write.")],
+    out: Annotated[Path, typer.Option(parser=path_given, help="The .npz file to write (a new one).")],
     key_file: KeyOpt = None,
+    replace: Annotated[bool, typer.Option(help="Write over a file already at --out.")] = False,
 ) -> None:
     """Write logs' experiences as plain numpy arrays in one .npz (np.load(..., allow_pickle=False))."""
     try:
-        n = logs.export(sources, out, _key(key_file))
+        n = logs.export(sources, out, _key(key_file), replace)
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
     console.print(f"{n:,} experiences exported to {escape(str(out))}")

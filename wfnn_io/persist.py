@@ -90,16 +90,21 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
-def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous: Path | None = None) -> None:
+def _atomic_write(
+    path: Path, write: Callable[[BinaryIO], object], keep_previous: Path | None = None, replace: bool = True
+) -> None:
     """Write a file so that a crash leaves the old file or the new one, never a torn one.
 
     `write(f)` fills a temporary file beside `path`, which is fsynced and renamed over it. With
     `keep_previous`, the file being replaced is moved there first (a crash between the two
-    renames leaves the previous file and no newest one; readers fall back to it).
+    renames leaves the previous file and no newest one; readers fall back to it). With `replace`
+    false, a file at `path` is never replaced: FileExistsError, before and after the write.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     _check_replaceable(path)
+    if not replace and os.path.lexists(path):
+        raise FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path))
     if keep_previous is not None:
         _check_replaceable(Path(keep_previous))
     try:
@@ -120,7 +125,10 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
             os.fsync(f.fileno())
         if keep_previous is not None and path.exists():
             os.replace(path, keep_previous)
-        os.replace(tmp, path)
+        if replace:
+            os.replace(tmp, path)
+        else:
+            _link_new(Path(tmp), path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
         raise _about(exc, path) from exc
@@ -128,6 +136,27 @@ def _atomic_write(path: Path, write: Callable[[BinaryIO], object], keep_previous
         Path(tmp).unlink(missing_ok=True)
         raise
     sync_dir(path.parent)
+
+
+def _link_new(tmp: Path, path: Path) -> None:
+    """Give `tmp` the name `path` only where nothing has it: a file made there meanwhile is kept.
+
+    A hard link fails where the name exists, in one step; the temporary name is then dropped.
+    File systems without hard links get a check and a rename (a file made between the two would
+    be replaced).
+    """
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path)) from None
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS):
+            raise
+        if os.path.lexists(path):
+            raise FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path)) from None
+        os.replace(tmp, path)
+        return
+    tmp.unlink()
 
 
 def _check_replaceable(path: Path) -> None:
@@ -164,12 +193,14 @@ whose members are not those is damaged (one flipped bit in a zip's central direc
 members after it, and the rest would load without them)."""
 
 
-def atomic_savez(path: Path, arrays: dict[str, Any], keep_previous: Path | None = None) -> None:
+def atomic_savez(
+    path: Path, arrays: dict[str, Any], keep_previous: Path | None = None, replace: bool = True
+) -> None:
     """Write an `.npz` atomically (see `_atomic_write`), its `MANIFEST` first."""
     if MANIFEST in arrays:
         raise ValueError(f"{MANIFEST!r} is the name of the member that lists the others")
     members = {MANIFEST: np.str_(json.dumps(list(arrays))), **arrays}
-    _atomic_write(path, lambda f: np.savez(f, **members), keep_previous)
+    _atomic_write(path, lambda f: np.savez(f, **members), keep_previous, replace)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -202,7 +233,9 @@ def writable(path: Path) -> None:
     while not os.path.lexists(existing) and existing != existing.parent:  # a dangling link is in the way
         existing = existing.parent
     if not existing.is_dir():  # a file where a folder is needed
-        raise FileExistsError(errno.EEXIST, "a file is in the way (a folder is needed there)", str(existing))
+        raise FileExistsError(
+            errno.EEXIST, "a file is in the way (a directory is needed there)", str(existing)
+        )
     try:
         with tempfile.NamedTemporaryFile(dir=existing, prefix=f".{path.name}.", suffix=".probe"):
             pass

@@ -363,6 +363,9 @@ class _Server(ThreadingHTTPServer):
     """
 
     daemon_threads = True
+    # The listen backlog: the standard library's 5 dropped connections made in a burst (a page
+    # opens about 3 at once) before the accepting thread took them.
+    request_queue_size = MAX_CONNECTIONS
 
     def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler]) -> None:
         if ":" in address[0]:

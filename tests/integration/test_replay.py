@@ -80,6 +80,13 @@ def test_wfnn_logs_inspects_merges_and_exports_records(tmp_path):
     assert proc.returncode == 0 and "600 experiences" in proc.stdout
     proc = _run(BIN / "wfnn-logs", "export", tmp_path / "all", "--out", tmp_path / "all.npz")
     assert proc.returncode == 0 and (tmp_path / "all.npz").exists()
+    before = (tmp_path / "all.npz").read_bytes()
+    proc = _run(BIN / "wfnn-logs", "export", tmp_path / "a" / "journal", "--out", tmp_path / "all.npz")
+    assert proc.returncode == 2 and "exists (pass --replace" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and (tmp_path / "all.npz").read_bytes() == before
+    proc = _run(BIN / "wfnn-logs", "export", tmp_path / "a" / "journal", "--out", tmp_path / "all.npz",
+                "--replace")  # fmt: skip
+    assert proc.returncode == 0 and "400 experiences" in proc.stdout
     proc = _run(
         BIN / "wfnn-logs", "inspect", "--json", tmp_path / "missing"
     )  # the error never goes in the JSON

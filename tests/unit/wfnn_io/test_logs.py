@@ -9,7 +9,7 @@ from sims.boat import BoatVec
 from sims.cartpole import CartPoleVec
 from wfnn_client.brain import Experience, Recorder
 from wfnn_common.config import LearnerConfig
-from wfnn_io import logs, segments
+from wfnn_io import logs, persist, segments
 from wfnn_io.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
 
 
@@ -71,6 +71,41 @@ def test_merge_keeps_each_experience_once_and_export_gives_plain_arrays(tmp_path
         np.testing.assert_array_equal(data["state"][robot1], s)
         np.testing.assert_array_equal(data["seq"][robot1], np.arange(200))
         assert str(data["spec_hash"]) == config.spec_hash()
+
+
+def test_export_keeps_a_file_already_at_its_output_unless_told_to_replace_it(tmp_path):
+    """An existing file at --out (another export, or anything of the user's) was silently replaced."""
+    record(tmp_path / "a", n=20)
+    theirs = tmp_path / "all.npz"
+    theirs.write_bytes(b"someone's data")
+    with pytest.raises(FileExistsError, match="pass --replace"):
+        logs.export([tmp_path / "a"], theirs)
+    assert theirs.read_bytes() == b"someone's data"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "all.npz"]  # no temporary left
+    link = tmp_path / "link.npz"
+    link.symlink_to(tmp_path / "nowhere")  # a dangling link is something at --out too
+    with pytest.raises(FileExistsError):
+        logs.export([tmp_path / "a"], link)
+    assert link.is_symlink() and not (tmp_path / "nowhere").exists()
+    assert logs.export([tmp_path / "a"], theirs, replace=True) == 20
+    with np.load(theirs, allow_pickle=False) as data:
+        assert data["state"].shape[0] == 20
+
+
+def test_a_file_made_while_a_new_one_is_written_is_kept(tmp_path, monkeypatch):
+    """The check before the write is not all: the name is taken in one step, or not at all."""
+    target = tmp_path / "out.npz"
+
+    def write(f):
+        target.write_bytes(b"made meanwhile")  # another process, between the check and the rename
+        f.write(b"new")
+
+    with pytest.raises(FileExistsError, match="not replaced"):
+        persist._atomic_write(target, write, replace=False)
+    assert target.read_bytes() == b"made meanwhile"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.npz"]
+    persist._atomic_write(tmp_path / "new.npz", lambda f: f.write(b"new"), replace=False)
+    assert (tmp_path / "new.npz").read_bytes() == b"new" and (tmp_path / "new.npz").stat().st_nlink == 1
 
 
 def test_split_by_client_behaviour_and_count(tmp_path):

@@ -11,6 +11,7 @@ import struct
 import subprocess
 import threading
 import time
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -225,6 +226,22 @@ def test_connections_beyond_the_cap_are_closed(running, monkeypatch):
             s.close()
     # The slots come back as the connections end.
     assert wait_for(lambda: _get(d.port, f"127.0.0.1:{d.port}")[0] == 200, 5)
+
+
+def test_a_burst_of_connections_waits_for_the_accepting_thread_rather_than_being_dropped():
+    """The listen backlog was the standard library's 5: connections made in a burst, before the
+    accepting thread took them, went unanswered (13 to 17 of 64 at once were never served)."""
+    server = dashboard_module._Server(("127.0.0.1", 0), BaseHTTPRequestHandler)  # not accepting yet
+    held: list[socket.socket] = []
+    try:
+        port = server.server_address[1]
+        for _ in range(dashboard_module.MAX_CONNECTIONS):
+            held.append(socket.create_connection(("127.0.0.1", port), timeout=1.0))
+    finally:
+        for s in held:
+            s.close()
+        server.server_close()
+    assert len(held) == dashboard_module.MAX_CONNECTIONS
 
 
 def test_a_page_gone_mid_response_prints_nothing(running, capfd):
