@@ -138,13 +138,14 @@ class GymVec:
     ) -> tuple[FloatArray, FloatArray]:
         rng = np.random.default_rng(PROBE_SEED)
         seen = []
-        obs, _ = self.env.reset(seed=PROBE_SEED)
+        obs, _ = self._task("reset", self.env.reset, seed=PROBE_SEED)
         self.env.action_space.seed(PROBE_SEED)  # unseeded, the ranges would differ per run
         for _ in range(steps):
-            seen.append(obs)
-            obs, _, terminated, truncated, _ = self.env.step(self.env.action_space.sample())
+            seen.append(self._observation(obs)[0])
+            sample = self.env.action_space.sample()
+            obs, _, terminated, truncated, _ = self._task("step", self.env.step, sample)
             if terminated or truncated:
-                obs, _ = self.env.reset(seed=int(rng.integers(2**31)))
+                obs, _ = self._task("reset", self.env.reset, seed=int(rng.integers(2**31)))
         data = np.asarray(seen, dtype=np.float64)
         data[~np.isfinite(data)] = np.nan  # a NaN or infinite observation says nothing of the range
         finite = ~np.isnan(data).all(axis=0)  # observations with a finite value in the probe
@@ -176,9 +177,24 @@ class GymVec:
                              f"space has shape {shape}")  # fmt: skip
         return x[None]
 
+    def _reward(self, reward: Any) -> float:
+        """The env's reward as a float; ValueError naming the task where it is not one number."""
+        r = np.asarray(reward) if isinstance(reward, np.ndarray | np.generic | int | float) else None
+        if r is None or r.shape != () or r.dtype.kind not in "biuf":
+            shown = f"array of shape {r.shape}" if r is not None and r.shape != () else repr(reward)[:60]
+            raise ValueError(f"{self.env_id} returned a reward that is not one number: {shown}")
+        return float(r)
+
+    def _task(self, what: str, call: Any, *args: Any, **kwargs: Any) -> Any:
+        """`call(...)` of the env; its own failure as one line naming the task (the cause chained)."""
+        try:
+            return call(*args, **kwargs)
+        except Exception as exc:
+            raise RuntimeError(f"{self.env_id} failed in {what}: {type(exc).__name__}: {exc}") from exc
+
     def reset(self, rng: np.random.Generator) -> FloatArray:
         """A new episode -> states [1, S]."""
-        obs, _ = self.env.reset(seed=int(rng.integers(2**31)))
+        obs, _ = self._task("reset", self.env.reset, seed=int(rng.integers(2**31)))
         self._obs = self._observation(obs)
         self.episode_return = 0.0
         return self.observe()
@@ -190,15 +206,16 @@ class GymVec:
     def step(self, action: FloatArray) -> Transition:
         """One environment step with actions [1, A]; a finished episode restarts at once."""
         u = np.clip(np.asarray(action, dtype=np.float64).reshape(1, -1)[0], self.action_low, self.action_high)
-        obs, reward, terminated, truncated, _ = self.env.step(u.astype(self.env.action_space.dtype))
+        obs, reward, terminated, truncated, _ = self._task("step", self.env.step,
+                                                          u.astype(self.env.action_space.dtype))  # fmt: skip
         next_state = self._observation(obs)
-        self.last_reward = np.array([float(reward)])
-        self.episode_return += float(reward)
+        self.last_reward = np.array([self._reward(reward)])
+        self.episode_return += float(self.last_reward[0])
         if terminated or truncated:
             self.returns.append(self.episode_return)
             self.episodes += 1
             self.episode_return = 0.0
-            self._obs = self._observation(self.env.reset()[0])
+            self._obs = self._observation(self._task("reset", self.env.reset)[0])
         else:
             self._obs = next_state.copy()
         return Transition(

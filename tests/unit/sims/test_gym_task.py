@@ -305,3 +305,65 @@ def test_an_observation_that_does_not_fit_the_space_ends_the_run_naming_the_task
     with pytest.raises(ValueError, match="WfnnTestMisShaped-v0 returned an observation of shape"):
         run(config)
     assert logs.summarise(tmp_path / "run" / "journal").experiences == 4
+
+
+class _OddReward(gym.Env):
+    """A bounded task whose fifth step returns `odd` as its reward."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, odd=None, fail=False):
+        self.odd, self.fail, self.t = odd, fail, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(2), {}
+
+    def step(self, action):
+        self.t += 1
+        if self.t >= 5 and self.fail:
+            raise FloatingPointError("physics exploded")
+        return np.zeros(2), (self.odd if self.t >= 5 else np.float32(-1.0)), False, False, {}
+
+
+@pytest.mark.parametrize(
+    "odd, said",
+    [(np.array([1.0, 2.0]), r"array of shape \(2,\)"), (None, "None"), ("oops", "'oops'"),
+     (1 + 2j, r"\(1\+2j\)"), ([1.0], r"\[1.0\]")],
+)  # fmt: skip
+def test_a_reward_that_is_not_one_number_ends_the_run_naming_the_task(odd, said):
+    """It ended in numpy's or float()'s own words ("only 0-dimensional arrays can be converted")."""
+    gym.register("WfnnTestOddReward-v0", entry_point=_OddReward, kwargs={"odd": odd}, max_episode_steps=50)
+    task = GymVec("WfnnTestOddReward-v0")
+    task.reset(np.random.default_rng(0))
+    for _ in range(4):  # numpy's scalars and Python's numbers are rewards
+        task.step(np.zeros((1, 1)))
+    with pytest.raises(ValueError, match=f"OddReward-v0 returned a reward that is not one number: {said}"):
+        task.step(np.zeros((1, 1)))
+    assert task.last_reward[0] == -1.0  # the last good one stands
+    task.close()
+
+
+def test_a_task_that_fails_in_its_own_step_is_named_with_its_error():
+    gym.register("WfnnTestFailingStep-v0", entry_point=_OddReward, kwargs={"fail": True}, max_episode_steps=9)
+    task = GymVec("WfnnTestFailingStep-v0")
+    task.reset(np.random.default_rng(0))
+    for _ in range(4):
+        task.step(np.zeros((1, 1)))
+    with pytest.raises(RuntimeError, match="FailingStep-v0 failed in step: FloatingPointError: physics") as e:
+        task.step(np.zeros((1, 1)))
+    assert isinstance(e.value.__cause__, FloatingPointError)  # --verbose shows where
+    task.close()
+
+
+class _MisShapedUnbounded(_MisShaped):
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float64)
+
+
+def test_an_observation_that_does_not_fit_the_space_in_the_range_probe_is_named_too():
+    """The probe stacked what it saw: numpy's "inhomogeneous shape" named neither task nor cause."""
+    gym.register("WfnnTestMisShapedProbe-v0", entry_point=_MisShapedUnbounded, max_episode_steps=50)
+    with pytest.raises(ValueError, match=r"MisShapedProbe-v0 returned an observation of shape \(5,\)"):
+        GymVec("WfnnTestMisShapedProbe-v0")
