@@ -18,6 +18,7 @@ from sims.gym import control_rate, make_env
 from sims.hydra import HydraConfig
 from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
+from sims.nomad.config import BEHAVIOURS as NOMAD_BEHAVIOURS
 from sims.nomad.vision import NomadVisionConfig
 from wfnn_client.config import MAX_RATE_HZ, ClientConfig
 from wfnn_client.controllers import LEARNER, parse_mix
@@ -264,6 +265,9 @@ def client(
         vision=VisionConfig(source=vision), **(simulated if sim == "hydra" else {}),  # type: ignore[arg-type]
     )  # fmt: skip
     foraging = behaviour == "forage"
+    if not foraging and behaviour not in NOMAD_BEHAVIOURS:  # the sim's own check knows no forage
+        known = (*NOMAD_BEHAVIOURS, "forage")
+        raise ValueError(f"--behaviour must be one of {known}, got {behaviour[:60]!r}")
     nomad = NomadConfig(
         behaviour="wander" if foraging else behaviour,  # type: ignore[arg-type]
         camera_yaw_deg=camera_yaw, balls=balls,

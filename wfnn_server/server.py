@@ -724,12 +724,15 @@ class ThinkServer:
         now = time.monotonic()
         next_publish = next_status = now
         next_checkpoint = now + cfg.checkpoint_period_s
-        last_status, last_thinks = now, 0
+        # Thinks restored from a checkpoint were not thought in any status period: the count
+        # starts from the learner's own (here, or where one is made below).
+        last_status, last_thinks = now, self._thinks()
         while not self._stop.is_set():
             pending = self._pending_config
             if self.learner is None and pending is not None:
                 try:
                     self._start_learner(pending)
+                    last_thinks = self._thinks()
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
                     self.rejected["config"] += 1
                     self._unusable.add(pending.to_json())
@@ -754,7 +757,7 @@ class ThinkServer:
                     next_checkpoint = now + cfg.checkpoint_period_s
             now = time.monotonic()
             if now >= next_status:
-                thinks = int(learner.thinks[0]) if learner is not None else 0
+                thinks = self._thinks()
                 self._publish_status((thinks - last_thinks) / max(now - last_status, 1e-9))
                 last_status, last_thinks = now, thinks
                 next_status = now + cfg.status_period_s
@@ -762,6 +765,11 @@ class ThinkServer:
                 due = min(next_status, next_publish) if learner is not None else next_status
                 self._wake.wait(timeout=max(0.0, due - time.monotonic()))
                 self._wake.clear()
+
+    def _thinks(self) -> int:
+        """The learner's thinks so far (restored ones included), 0 before there is one."""
+        learner = self.learner
+        return int(learner.thinks[0]) if learner is not None else 0
 
     def _learn_queued(self, learner: Learner) -> None:
         tpa = learner.config.thinks_per_action

@@ -73,6 +73,14 @@ def test_client_truncated_weights_file(tmp_path):
     assert "--learner" not in other.stdout + other.stderr
 
 
+def test_an_unknown_nomad_behaviour_is_refused_naming_every_known_one(tmp_path):
+    """The sim's own check named servo and wander only: forage is the client's."""
+    proc = run(BIN / "wfnn-client", "--sim", "nomad", "--behaviour", "nosuch", "--episodes", "1",
+               "--rate-hz", "0", "--out", tmp_path / "run")  # fmt: skip
+    refused(proc, "--behaviour", "servo", "wander", "forage", "nosuch")
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_refused_start_leaves_the_last_runs_record_as_it_was(tmp_path):
     """Weights that do not fit (another task's, or a damaged file) refuse the start before it writes."""
     proc = client("--thinks", "1", "--out", tmp_path / "run")

@@ -306,7 +306,13 @@ def test_restart_resumes_checkpoint_and_store(tmp_path, learner):
     training = server.learner.training_state()
     version, thinks = server.version, int(server.learner.thinks[0])
     listener.snapshots.clear()
+    listener.statuses.clear()
     with make_server(tmp_path, hub, cfg) as again:
+        assert listener.wait(lambda: len(listener.statuses) >= 2)
+        # The restored thinks were not thought since the start: the first statuses said millions a
+        # second (the restored count over the first status period).
+        rates = [s.metrics["think/thinks_per_s"] for s in listener.statuses[:2]]
+        assert rates == [0.0, 0.0] and listener.statuses[0].metrics["think/thinks"] == thinks
         assert again.incarnation == server.incarnation + 1
         assert again.store.count == 20 and again.learner.buffer.count[0] == 20
         assert int(again.learner.thinks[0]) == thinks and again.budget == 0
