@@ -129,7 +129,11 @@ def client(
     ] = False,
     learn: Annotated[bool, typer.Option(help="--no-learn: act greedily, learn nothing.")] = True,
     weights: Annotated[
-        Path | None, typer.Option(parser=path_given, help="Start from these saved weights.")
+        Path | None,
+        typer.Option(
+            parser=path_given,
+            help="Start from these saved weights (thinking locally: with the training saved).",
+        ),
     ] = None,
     learner: Annotated[
         str,

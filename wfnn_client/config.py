@@ -73,7 +73,9 @@ class ClientConfig:
     learn: bool = True
     """False: act greedily only (no exploration), send and learn nothing."""
     weights: Path | None = None
-    """Start from these saved weights (local: the learner; C/S: until a server's snapshot)."""
+    """Start from these saved weights (local: the learner, resuming the training state saved beside
+    them where there is one: the deep learner's second critic, targets, optimiser and warm-up; the
+    replay memory starts empty. C/S: until a server's snapshot)."""
     server: tuple[str, ...] = ("local",)
     """`local` thinks in-process; otherwise Zenoh endpoints of think servers (or routers). Empty,
     with `net.listen` set: the servers connect to this client."""

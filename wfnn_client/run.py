@@ -42,7 +42,7 @@ from wfnn_io.bus import check_exposure
 from wfnn_io.cli_errors import Terminated, handling, noting, terminate
 from wfnn_io.persist import (
     PersistError,
-    load_weights,
+    load_checkpoint,
     make_directory,
     save_experiences,
     save_figure,
@@ -222,7 +222,9 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
     learner = make_learner(lcfg)
     if config.weights is not None:
         path = config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
-        saved_cfg, params, _ = load_weights(path)
+        # A learner that learns here resumes the training saved with the weights (the deep
+        # learner's second critic, targets, optimiser and warm-up), as a think server does.
+        saved_cfg, params, _, training = load_checkpoint(path, training=config.learn and config.local)
         if saved_cfg.spec_hash() != lcfg.spec_hash():
             kind = saved_cfg.learner
             same_task = _ranges(saved_cfg) == _ranges(lcfg)
@@ -232,6 +234,7 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
                              f"this task needs {lcfg.spec_hash()}{hint}")  # fmt: skip
         try:
             learner = make_learner(lcfg, params=params)
+            learner.load_training_state(training)
         except ValueError as exc:  # weights that make no learner of their config (several networks, say)
             raise ValueError(f"{path}: {exc}") from exc
     return lcfg, learner
@@ -425,7 +428,10 @@ def _run(
         name = f"{_named('weights', sk.name)}.npz"
         try:
             if params is not None:
-                save_weights(out / name, sk.lcfg, params, meta)
+                # A learner that learned here keeps its training state beside the weights (a think
+                # server's is in its own checkpoints), so that --weights resumes it whole.
+                training = sk.learner.training_state() if config.local and config.learn else None
+                save_weights(out / name, sk.lcfg, params, meta, training=training)
                 weights_saved.append(name)
         except PersistError as exc:  # weights diverged past what the monitor reset (the run ended first)
             log.error("%s at the end of the run", exc)

@@ -261,12 +261,17 @@ class DeepWFNN(WFNN):
 
         And the largest reward met, which sizes the divergence threshold (`rewarded`): without
         it, a learner resumed on a task of large rewards judged its own healthy weights diverged.
+        And the explored actions taken (`acted`), where there were any: a learner resumed in its
+        warm-up takes the rest of it. One that never acted (a think server's) leaves it out, and a
+        learner resumed from it counts its warm-up as done, as one made from weights alone does.
         """
         state: dict[str, NDArray[Any]]
         if self._trainer is None:
             state = {"theta": self._theta0.astype(np.float32), "target": self._theta0.astype(np.float32)}
         else:
             state = dict(self._trainer.state())
+        if self.acted > 0:
+            state["acted"] = np.asarray(self.acted, dtype=np.int64)
         return {**state, "reward_scale": np.asarray(self._reward_scale, dtype=np.float64)}
 
     def load_training_state(self, state: dict[str, Any]) -> None:
@@ -297,6 +302,9 @@ class DeepWFNN(WFNN):
         scale = np.asarray(state.get("reward_scale", 0.0))  # absent from checkpoints made before it
         if scale.dtype.kind not in "fiu" or scale.shape != () or not 0.0 <= float(scale) <= MAX_REWARD:
             raise ValueError(f"training state reward_scale is not a reward's size: {str(scale)[:40]!r}")
+        acted = np.asarray(state.get("acted", self.acted))  # absent from checkpoints made before it
+        if acted.dtype.kind not in "iu" or acted.shape != () or not 0 <= int(acted) <= 10**15:
+            raise ValueError(f"training state acted is not a count: {str(acted)[:40]!r}")
         if "adam_step" in state:
             step = np.asarray(state["adam_step"])
             if (
@@ -314,6 +322,7 @@ class DeepWFNN(WFNN):
         self._train().load(state)
         self._sync()
         self.rewarded([float(scale)])
+        self.acted = int(acted)
 
     # ------------------------------------------------------------------ views
     def greedy_values(self, state: Any) -> FloatArray:

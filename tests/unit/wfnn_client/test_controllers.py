@@ -185,3 +185,26 @@ def test_an_ignored_sigint_stays_ignored_while_the_run_stops(tmp_path, monkeypat
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_a_local_deep_run_saves_its_training_and_weights_resume_it(tmp_path):
+    """A local run's weights.npz held the network only: --weights restarted Adam, the targets
+    and the warm-up (counted as done), with no word of it."""
+    from wfnn_io.persist import load_checkpoint
+
+    options = '{"deep": {"hidden": [16, 16], "value_hidden": 8, "warmup": 300}, "batch_size": 32}'
+    common = {"sim": "boat", "rate_hz": 0, "lockstep": True, "episodes": 1, "learner": "deep",
+              "learner_options": options, "thinks_per_action": 1}  # fmt: skip
+    run(ClientConfig(**common, out=tmp_path / "a"))  # one episode: 200 actions, within the warm-up
+    _, params, _, first = load_checkpoint(tmp_path / "a" / "weights.npz")
+    assert int(first["acted"]) == 200 and float(first["adam_step"]) == 200
+    run(ClientConfig(**common, weights=tmp_path / "a" / "weights.npz", out=tmp_path / "b"))
+    _, _, _, second = load_checkpoint(tmp_path / "b" / "weights.npz")
+    assert int(second["acted"]) == 400 and float(second["adam_step"]) == 400
+    assert float(second["reward_scale"]) >= float(first["reward_scale"]) > 0
+    # Acting on them alone reads the network and leaves the training state be.
+    run(ClientConfig(**{**common, "learner_options": options}, weights=tmp_path / "b" / "weights.npz",
+                     learn=False, out=tmp_path / "c"))  # fmt: skip
+    _, greedy, _, none = load_checkpoint(tmp_path / "c" / "weights.npz")
+    assert none == {} and np.array_equal(greedy.flat, load_checkpoint(tmp_path / "b" / "weights.npz")[1].flat)
+    assert params.flat.shape == greedy.flat.shape

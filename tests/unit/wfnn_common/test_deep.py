@@ -667,6 +667,30 @@ def test_warm_up_is_skipped_with_given_weights_and_counts_earlier_experiences():
     assert not bool(fresh.act(x).explored)
 
 
+def test_a_learner_resumed_in_its_warm_up_takes_the_rest_of_it(tmp_path):
+    """A checkpoint taken 30 actions into a warm-up of 50 resumed with the warm-up over."""
+    cfg = with_options(config(deep={"warmup": 50}), {"exploration": {"kind": "none"}})
+    learner, x = DeepWFNN(cfg), np.zeros(2)
+    assert all(bool(learner.act(x).explored) for _ in range(30))
+    state = learner.training_state()
+    assert int(state["acted"]) == 30
+    save_weights(tmp_path / "ck.npz", cfg, learner.params, {}, training=state)
+    ck_cfg, params, _, training = load_checkpoint(tmp_path / "ck.npz")
+    resumed = make_learner(ck_cfg, params=params)
+    resumed.load_training_state(training)
+    assert [bool(resumed.act(x).explored) for _ in range(21)] == [True] * 20 + [False]
+    # A learner that never acted (a think server's) says nothing of it: a learner resumed from
+    # its checkpoint counts its warm-up as done, as one made from weights alone does.
+    server_side = DeepWFNN(cfg)
+    assert "acted" not in server_side.training_state()
+    resumed = make_learner(cfg, params=server_side.params.copy())
+    resumed.load_training_state(server_side.training_state())
+    assert not bool(resumed.act(x).explored)
+    for bad in (np.float64(3.0), np.int64(-1), np.array([3]), np.str_("3")):
+        with pytest.raises(ValueError, match="training state acted"):
+            make_learner(cfg, params=params).load_training_state({**training, "acted": bad})
+
+
 def test_acting_on_a_populations_weights_never_resets_them():
     population = make_population(config(divergence_threshold=-1e9, divergence_patience=1), 2)
     before = population.snapshot().flat
