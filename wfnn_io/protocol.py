@@ -267,10 +267,16 @@ class ExperienceBatch:
                 raise MalformedBody(f"{name}: expected shape {shape}, found {getattr(self, name).shape}")
 
     def non_finite(self) -> NDArray[np.bool_]:
-        """Which experiences hold a NaN or infinite state, action, next state or reward [N]."""
+        """Which experiences hold a NaN or infinite state, action, reward or next state [N].
+
+        The next state of a terminal experience is never used (no value follows it), so a task
+        that reports a failure with a state it cannot measure still has that reward learned, as
+        a learner given the experience directly learns it.
+        """
         return ~(
             np.isfinite(self.state).all(axis=1) & np.isfinite(self.action).all(axis=1)
-            & np.isfinite(self.next_state).all(axis=1) & np.isfinite(self.reward)
+            & (np.isfinite(self.next_state).all(axis=1) | self.terminal.astype(np.bool_))
+            & np.isfinite(self.reward)
         )  # fmt: skip
 
     def learnable(self) -> NDArray[np.bool_]:

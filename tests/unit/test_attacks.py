@@ -19,6 +19,7 @@ from tests.unit.wfnn_client.test_remote import announce, forge, remote
 from tests.unit.wfnn_server.test_server import KEYS, Listener, batch, make_server, send
 from wfnn_client.brain import Experience
 from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
+from wfnn_common.learners import make_learner
 from wfnn_io.bus import NetConfig, check_exposure, endpoints
 from wfnn_io.protocol import EXP_NON_FINITE, Ack, ClientStatus, Codec
 
@@ -349,6 +350,9 @@ def test_non_finite_experiences_are_stored_flagged_and_never_learned(tmp_path):
     b.state[2, 0] = np.nan
     b.reward[5] = np.inf
     b.next_state[7, 1] = -np.inf
+    # A failure the task reports with a state it cannot measure: no value follows a terminal, so
+    # its reward is learned, as a local learner learns it (the server refused it).
+    b.next_state[8, :], b.terminal[8] = np.nan, True
     with make_server(tmp_path, hub, cfg) as server:
         send(hub, b, client="made-up")
         assert listener.wait(lambda: listener.acked("made-up") == 9)
@@ -357,6 +361,10 @@ def test_non_finite_experiences_are_stored_flagged_and_never_learned(tmp_path):
         [stored] = list(server.store.batches())
         assert (np.flatnonzero(stored.flags & EXP_NON_FINITE) == [2, 5, 7]).all()
         assert server.budget + int(server.learner.thinks[0]) <= 7  # thinks owed only for the learnable
+    local = make_learner(cfg)
+    assert local.learn_many(b.state, b.action, b.next_state, b.reward, b.terminal).tolist() == [
+        k not in (2, 5, 7) for k in range(10)
+    ]
 
 
 def test_allow_client_takes_only_the_named_clients(tmp_path):
