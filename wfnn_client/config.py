@@ -63,6 +63,7 @@ class ClientConfig:
     learner, the task's hand-coded controller, random actions or a saved WFNN; the learner
     learns off-policy from whatever drove. Empty: the learner always."""
     think_batch: int = 50
+    """Thinks per call of the think thread (not lock-step), at least 1."""
     exploration: ExplorationConfig | None = None
     """How `act` explores; None: the learner's default."""
     learner: str = "thesis"
@@ -127,6 +128,8 @@ class ClientConfig:
             )
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError(f"duration_s must be > 0 where given, got {self.duration_s}")
+        if self.think_batch < 1:  # 0 never thought, and a negative batch grew what was owed
+            raise ValueError(f"think_batch must be >= 1, got {self.think_batch}")
         BoatConfig(dt=self.boat_dt)  # checked now, not when the boat is first made
         if self.sim == "hydra" and not (self.hydra.joints and self.hydra.axes):
             # The task itself has every subset (its sizes are checked for all 256); a run with no

@@ -322,6 +322,14 @@ def _run(
     next_status = 0.0
     brains.start()
     start = time.perf_counter()
+
+    def out_of_time(due: float) -> bool:
+        """Whether a tick due then would start after the run's duration.
+
+        At a slow rate, waiting for it overran the duration by up to a period (1,000 s at 0.001 Hz).
+        """
+        return config.duration_s is not None and due - start >= config.duration_s
+
     try:
         if config.lockstep and not brains.sync(config.lockstep_timeout_s):  # lock-step acts on weights only
             raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s")
@@ -332,6 +340,8 @@ def _run(
             episode_policies.append(source_name(policy))
             total, steps = 0.0, 0
             for _ in range(episode_steps):
+                if steps and out_of_time(ticker.next_due()):  # not a wait for a tick past the duration
+                    break
                 late = ticker.wait()
                 d = int(behaviours.driving()[0])
                 driver = skills[d].brain
@@ -402,7 +412,7 @@ def _run(
             if on_status is not None:
                 on_status(_status(brains, ticks, safety, rewards, values, episode + 1, scores,
                                   time.perf_counter() - start))  # fmt: skip
-            if config.duration_s is not None and time.perf_counter() - start >= config.duration_s:
+            if out_of_time(ticker.next_due()):
                 break
         wall = time.perf_counter() - start
     except BaseException:

@@ -134,6 +134,13 @@ class Ticker:
         self.deadline = 0.0
         """Scheduled start of the current tick (perf_counter seconds)."""
 
+    def next_due(self) -> float:
+        """When the next tick is due (perf_counter seconds): now, where none is scheduled yet."""
+        now = time.perf_counter()
+        if self._start is None or self.period_s == 0.0:
+            return now
+        return max(now, self._start + self._k * self.period_s)
+
     def wait(self) -> float:
         """Sleep until the next tick is due; returns how late it starts (s)."""
         now = time.perf_counter()

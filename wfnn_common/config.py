@@ -46,10 +46,20 @@ _WHAT = {"int": "an integer", "float": "a finite number", "bool": "true or false
          "tuple[str, ...]": "strings"}  # fmt: skip
 
 
+_CANONICAL: dict[str, Any] = {
+    "int": int, "float": float, "bool": bool,
+    "tuple[float, ...]": lambda v: tuple(float(x) for x in v),
+    "tuple[int, ...]": lambda v: tuple(int(x) for x in v),
+}  # fmt: skip
+"""Each checked kind's one Python type: a whole number in a float field becomes a float, and numpy's
+scalars Python's, so that equal configs have the same JSON (and spec hash): -1 and -1.0 hashed apart."""
+
+
 def check_fields(config: Any) -> None:
     """Check that each int, float, bool or str field (or tuple of them) of a config holds that type.
 
-    Floats must be finite (NaN and infinity are refused); `X | None` fields may also be None.
+    Floats must be finite (NaN and infinity are refused); `X | None` fields may also be None. Each
+    value is then held as its kind's one Python type (`_CANONICAL`).
 
     Called first in each config's `__post_init__`, so a config made from a file, a command line
     or the network is checked the same way; each config then checks its own ranges.
@@ -62,6 +72,8 @@ def check_fields(config: Any) -> None:
             continue
         if not check(value):
             raise ConfigError(f"{type(config).__name__}.{f.name} must be {_WHAT[kind]}, got {value!r}")
+        if kind in _CANONICAL:
+            object.__setattr__(config, f.name, _CANONICAL[kind](value))  # frozen dataclasses too
 
 
 def parse_json(text: str | bytes, what: str, max_bytes: int = 1 << 20) -> Any:

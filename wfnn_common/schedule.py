@@ -64,6 +64,8 @@ class ThinkSchedule:
         Owed ones first, at most `batch`; then, with experiences `stored`, a batch more when
         thinking `continuous`ly or relearning.
         """
+        if batch < 1:  # the configs refuse it; a smaller batch would never think, or grow what is owed
+            raise ValueError(f"a think batch must be at least 1, got {batch}")
         if self.budget > 0:
             n = min(batch, self.budget)
             self.budget -= n

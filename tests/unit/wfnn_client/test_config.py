@@ -27,6 +27,8 @@ def test_local_and_remote_configs():
         ({"rate_hz": 1e18}, "rate_hz"),
         ({"rate_hz": 1e-300}, "rate_hz"),  # a tick's wait would overflow the clock
         ({"duration_s": 0.0}, "duration_s"),
+        ({"think_batch": 0}, "think_batch"),  # never thought
+        ({"think_batch": -5}, "think_batch"),  # grew what was owed
         ({"boat_dt": 1e18}, "dt must be"),
         ({"boat_dt": 0.0}, "dt must be"),
     ],

@@ -55,3 +55,18 @@ def test_a_long_runs_timing_is_kept_in_bounded_memory_and_its_percentiles_hold()
     for v in values[:100]:
         traced.add_lateness(float(v), 1.0)
     assert traced.lateness_s == list(values[:100]) and traced.due_unix == [1.0] * 100
+
+
+def test_a_run_at_a_slow_rate_stops_at_its_duration_not_a_period_after(tmp_path):
+    """At 0.2 Hz with --duration 0.3 the run waited for its second tick, 5 s on (1,000 s at 0.001 Hz)."""
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+
+    ticker = Ticker(5.0)
+    assert ticker.next_due() <= time.perf_counter()  # nothing scheduled yet: due now
+    ticker.wait()
+    assert ticker.next_due() - time.perf_counter() > 4.0
+    t0 = time.perf_counter()
+    result = run(ClientConfig(sim="boat", rate_hz=0.2, duration_s=0.3, episodes=3, out=tmp_path / "run"))
+    assert time.perf_counter() - t0 < 4.0
+    assert len(result["scores"]) == 1 and result["ticks"] == 1

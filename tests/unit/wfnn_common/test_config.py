@@ -1,3 +1,6 @@
+import json
+
+import numpy as np
 import pytest
 
 from tests.fakes import small_config
@@ -69,6 +72,21 @@ def test_roundtrip_and_spec_hash():
     assert small_config(n_hidden=7).spec_hash() != cfg.spec_hash()
     with pytest.raises(ConfigError, match="unknown"):
         LearnerConfig.from_dict({**cfg.to_dict(), "bogus": 1})
+
+
+def test_equal_configs_written_with_whole_numbers_or_numpy_scalars_have_one_json_and_spec():
+    """Ranges written as integers (-1, not -1.0) hashed to another spec: a server given such a
+    config refused the journals and clients of the same task."""
+    floats = small_config()
+    d = floats.to_dict()
+    whole = {**d, "state_low": [int(v) if v == int(v) else v for v in d["state_low"]], "gamma": 0}
+    assert any(isinstance(v, int) for v in whole["state_low"])
+    again = LearnerConfig.from_json(json.dumps(whole))
+    assert again.spec_hash() == floats.spec_hash() and isinstance(again.gamma, float)
+    assert again.to_json() == small_config(gamma=0.0).to_json()
+    numpy = small_config(state_low=tuple(np.float32(v) for v in floats.state_low), n_wires=np.int64(4))
+    assert numpy.to_json() == small_config(n_wires=4).to_json()  # numpy's scalars made JSON fail
+    assert type(numpy.n_wires) is int and all(type(v) is float for v in numpy.state_low)
 
 
 def test_for_task_takes_the_tasks_ranges():
