@@ -178,12 +178,26 @@ class GymVec:
         return x[None]
 
     def _reward(self, reward: Any) -> float:
-        """The env's reward as a float; ValueError naming the task where it is not one number."""
-        r = np.asarray(reward) if isinstance(reward, np.ndarray | np.generic | int | float) else None
-        if r is None or r.shape != () or r.dtype.kind not in "biuf":
-            shown = f"array of shape {r.shape}" if r is not None and r.shape != () else repr(reward)[:60]
+        """The env's reward as a float; ValueError naming the task where it is not one number.
+
+        Gymnasium types a reward as anything `float()` takes (numpy's and Python's numbers, a
+        0-d tensor, a Fraction); text, which float() would parse, and arrays of several numbers
+        are not rewards.
+        """
+        try:
+            shape = np.shape(reward)
+        except Exception:
+            shape = None
+        value: float | None = None
+        if shape == () and not isinstance(reward, str | bytes | np.str_ | np.bytes_):
+            try:
+                value = float(reward)
+            except (TypeError, ValueError, OverflowError):
+                value = None
+        if value is None:
+            shown = f"array of shape {shape}" if shape not in (None, ()) else repr(reward)[:60]
             raise ValueError(f"{self.env_id} returned a reward that is not one number: {shown}")
-        return float(r)
+        return value
 
     def _task(self, what: str, call: Any, *args: Any, **kwargs: Any) -> Any:
         """`call(...)` of the env; its own failure as one line naming the task (the cause chained)."""

@@ -6,6 +6,7 @@ import dataclasses
 import hashlib
 import itertools
 import json
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -15,6 +16,9 @@ import numpy as np
 from wfnn_common.symmetry import Symmetry
 
 ExplorationKind = Literal["none", "uniform", "gaussian", "smooth"]
+log = logging.getLogger(__name__)
+_told_whole: set[str] = set()
+"""Specs whose whole-number ranges were warned of (once each, a few: statuses repeat configs)."""
 
 
 class ConfigError(ValueError):
@@ -46,20 +50,27 @@ _WHAT = {"int": "an integer", "float": "a finite number", "bool": "true or false
          "tuple[str, ...]": "strings"}  # fmt: skip
 
 
+def _python_number(v: Any) -> int | float:
+    """A checked number as Python's own type.
+
+    An integer stays one, as written, so that configs and their spec hashes read as before.
+    """
+    return int(v) if _is_int(v) else float(v)
+
+
 _CANONICAL: dict[str, Any] = {
-    "int": int, "float": float, "bool": bool,
-    "tuple[float, ...]": lambda v: tuple(float(x) for x in v),
+    "int": int, "float": _python_number, "bool": bool,
+    "tuple[float, ...]": lambda v: tuple(_python_number(x) for x in v),
     "tuple[int, ...]": lambda v: tuple(int(x) for x in v),
 }  # fmt: skip
-"""Each checked kind's one Python type: a whole number in a float field becomes a float, and numpy's
-scalars Python's, so that equal configs have the same JSON (and spec hash): -1 and -1.0 hashed apart."""
+"""Each checked kind's values as Python's types, not numpy's (whose scalars made `to_json` fail)."""
 
 
 def check_fields(config: Any) -> None:
     """Check that each int, float, bool or str field (or tuple of them) of a config holds that type.
 
     Floats must be finite (NaN and infinity are refused); `X | None` fields may also be None. Each
-    value is then held as its kind's one Python type (`_CANONICAL`).
+    value is then held as Python's type (`_CANONICAL`).
 
     Called first in each config's `__post_init__`, so a config made from a file, a command line
     or the network is checked the same way; each config then checks its own ranges.
@@ -519,11 +530,20 @@ class LearnerConfig:
                 data["symmetries"] = tuple(
                     s if isinstance(s, Symmetry) else Symmetry.from_dict(s) for s in data["symmetries"]
                 )
-            return cls(**data)
+            config = cls(**data)
         except ConfigError:
             raise
         except (ValueError, TypeError, ArithmeticError, RecursionError) as exc:
             raise ConfigError(f"not a learner config: {type(exc).__name__}: {str(exc)[:200]}") from None
+        whole = [key for key in ("state_low", "state_high", "action_low", "action_high")
+                 if any(_is_int(v) for v in getattr(config, key))]  # fmt: skip
+        if whole and len(_told_whole) < 16 and config.spec_hash() not in _told_whole:
+            _told_whole.add(config.spec_hash())
+            log.warning("learner config %s writes %s with whole numbers (-1, not -1.0): its spec hash "
+                        "differs from the same ranges as a task gives them, so that task's clients, weights "
+                        "and logs are of another spec; write them with a decimal point", config.spec_hash(),
+                        ", ".join(whole))  # fmt: skip
+        return config
 
     @classmethod
     def from_json(cls, text: str | bytes, what: str = "learner config") -> LearnerConfig:

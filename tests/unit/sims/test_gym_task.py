@@ -1,5 +1,8 @@
 """Gymnasium tasks behind the client's task interface."""
 
+from decimal import Decimal
+from fractions import Fraction
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -330,8 +333,8 @@ class _OddReward(gym.Env):
 
 @pytest.mark.parametrize(
     "odd, said",
-    [(np.array([1.0, 2.0]), r"array of shape \(2,\)"), (None, "None"), ("oops", "'oops'"),
-     (1 + 2j, r"\(1\+2j\)"), ([1.0], r"\[1.0\]")],
+    [(np.array([1.0, 2.0]), r"array of shape \(2,\)"), (None, "None"), ("oops", "'oops'"), ("0.5", "'0.5'"),
+     (1 + 2j, r"\(1\+2j\)"), ([1.0], r"array of shape \(1,\)"), (b"1", "b'1'")],
 )  # fmt: skip
 def test_a_reward_that_is_not_one_number_ends_the_run_naming_the_task(odd, said):
     """It ended in numpy's or float()'s own words ("only 0-dimensional arrays can be converted")."""
@@ -343,6 +346,20 @@ def test_a_reward_that_is_not_one_number_ends_the_run_naming_the_task(odd, said)
     with pytest.raises(ValueError, match=f"OddReward-v0 returned a reward that is not one number: {said}"):
         task.step(np.zeros((1, 1)))
     assert task.last_reward[0] == -1.0  # the last good one stands
+    task.close()
+
+
+@pytest.mark.parametrize("number", [Fraction(1, 2), Decimal("0.5"), 10**20, True, np.float16(0.5)])
+def test_a_reward_that_float_takes_is_one_number_whatever_its_type(number):
+    """Gymnasium's rewards are SupportsFloat: a check for numpy's and Python's types refused these."""
+    gym.register(
+        "WfnnTestNumberReward-v0", entry_point=_OddReward, kwargs={"odd": number}, max_episode_steps=50
+    )
+    task = GymVec("WfnnTestNumberReward-v0")
+    task.reset(np.random.default_rng(0))
+    for _ in range(5):
+        task.step(np.zeros((1, 1)))
+    assert task.last_reward[0] == float(number)
     task.close()
 
 
