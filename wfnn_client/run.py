@@ -14,6 +14,8 @@ import contextlib
 import dataclasses
 import json
 import logging
+import os
+import re
 import signal
 import time
 from collections import deque
@@ -134,6 +136,11 @@ def prepare(config: ClientConfig) -> list[str]:
     learners and the weights they start from are known to fit the task.
     """
     make_directory(config.out, "--out names a run directory")
+    if config.json_stats is not None and _the_runs_own(Path(config.out), Path(config.json_stats)):
+        raise ValueError(
+            f"--json-stats {config.json_stats} is one of the run's own files or folders in "
+            "--out (journal, weights, experiences, config, metrics, plot, cameras): name another"
+        )
     for path in (config.json_stats, config.out / "learning_curve.png", config.out / "metrics.json"):
         if path is not None:
             writable(path)  # now, not when the run is over
@@ -205,6 +212,31 @@ class Skill:
     lcfg: LearnerConfig
     learner: Learner
     brain: Brain
+
+
+_OWN_FILE = re.compile(
+    r"(config\.json|metrics\.json|learning_curve\.png|(weights|experiences)(_[^/]*)?\.npz)"
+)
+
+
+def _the_runs_own(out: Path, path: Path) -> bool:
+    """Whether `path` is, or is inside, something a run writes in `out` (by any name: links too).
+
+    The run's own files there would be replaced by the stats (a journal segment or weights.npz
+    written over with JSON), or the stats by them.
+    """
+    try:
+        inside = Path(os.path.realpath(path)).relative_to(os.path.realpath(out))
+    except ValueError:
+        return False
+    if not inside.parts:
+        return True
+    first = inside.parts[0]
+    return (
+        first.startswith("journal")
+        or first == "cameras"
+        or (len(inside.parts) == 1 and _OWN_FILE.fullmatch(first) is not None)
+    )
 
 
 def _named(base: str, behaviour: str, sep: str = "_") -> str:

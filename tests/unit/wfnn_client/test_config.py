@@ -243,3 +243,20 @@ def test_learner_options_of_other_widths_than_the_task_are_refused_before_the_ru
     with pytest.raises(ValueError, match="give 1 action variables; boat has 2"):
         run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "run", learner_options=options))
     assert not (tmp_path / "run" / "journal").exists()
+
+
+def test_json_stats_naming_one_of_the_runs_own_files_is_refused_before_the_run(tmp_path):
+    """--json-stats r/journal/00000000.seg wrote JSON over the journal (its experiences gone), and
+    --json-stats r/weights.npz over the weights the run had just said it saved."""
+    from wfnn_client.run import prepare
+
+    out = tmp_path / "r"
+    (out / "journal").mkdir(parents=True)
+    (tmp_path / "link").symlink_to(out)
+    for own in ("journal/00000000.seg", "journal", "weights.npz", "weights_servo.npz", "experiences.npz",
+                "metrics.json", "config.json", "learning_curve.png", "cameras/x.json", "."):  # fmt: skip
+        for base in (out, tmp_path / "link"):
+            with pytest.raises(ValueError, match="one of the run's own"):
+                prepare(ClientConfig(sim="boat", out=out, json_stats=base / own))
+    for fine in (out / "stats.json", tmp_path / "stats.json", out / "weights.json"):
+        prepare(ClientConfig(sim="boat", out=out, json_stats=fine))
