@@ -19,6 +19,7 @@ import base64
 import io
 import json
 import logging
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +33,13 @@ from numpy.typing import NDArray
 from wfnn_common.config import check_fields, settings
 from wfnn_io.cli_errors import guarded, path_given
 from wfnn_io.logs import is_log
-from wfnn_io.persist import atomic_write_bytes, atomic_write_text, read_regular_bytes, read_regular_text
+from wfnn_io.persist import (
+    atomic_write_bytes,
+    atomic_write_text,
+    read_regular_bytes,
+    read_regular_text,
+    writable,
+)
 from wfnn_io.protocol import PNG_SIGNATURE
 
 log = logging.getLogger(__name__)
@@ -377,13 +384,20 @@ def run(config: ReportConfig) -> Path:
         raise ReportError(f"{out}: a report is never written into an experience log; give --out elsewhere")
     if out.suffix.lower() not in (".html", ".htm"):  # never over a benchmark's JSON or PNG it reads
         raise ReportError(f"--out {out}: the report is HTML; name a .html file")
-    if figure is not None and _a_results_picture(out.with_suffix(".png")):
-        raise ReportError(f"--out {out}: its figure would replace {out.with_suffix('.png')} (a result's)")
+    png = out.with_suffix(".png")
+    if figure is not None and _a_results_picture(png):
+        raise ReportError(f"--out {out}: its figure would replace {png} (a result's)")
+    if figure is not None and os.path.lexists(png) and not os.path.lexists(out):
+        # A report's figure has its report beside it; any other picture there is someone's own.
+        raise ReportError(f"--out {out}: its figure would replace {png}, which is no report's (no "
+                          f"{out.name} beside it); give another --out")  # fmt: skip
+    for target in (out, png) if figure is not None else (out,):
+        writable(target)  # both, before either is written: a refusal leaves the old report whole
     html = TEMPLATE.render(title=title, subtitle=f"from {path.resolve()}", sections=sections)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, html)  # a report being rewritten is never seen half-written
     if figure is not None:
-        atomic_write_bytes(out.with_suffix(".png"), figure)
+        atomic_write_bytes(png, figure)
+    atomic_write_text(out, html)  # a report being rewritten is never seen half-written
     log.info("wrote %s", out)
     return out
 

@@ -127,6 +127,29 @@ def test_a_report_is_never_written_over_what_it_reads(tmp_path):
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
 
 
+def test_a_reports_figure_replaces_no_picture_but_its_own_and_a_refusal_writes_nothing(tmp_path):
+    """--out pics/photo.html replaced the user's photo.png with the run's figure; and a report
+    refused for its figure's place (a FIFO there) had already replaced the HTML."""
+    import os
+
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.json").write_text('{"scores": [1, 2, 3]}')
+    (tmp_path / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\nmine")
+    with pytest.raises(ReportError, match=r"photo.png, which is no report's"):
+        run(ReportConfig(path=tmp_path / "run", out=tmp_path / "photo.html"))
+    assert (tmp_path / "photo.png").read_bytes().endswith(b"mine") and not (tmp_path / "photo.html").exists()
+    (tmp_path / "keep.html").write_text("OLD REPORT")
+    os.mkfifo(tmp_path / "keep.png")
+    with pytest.raises(OSError, match="not a regular file"):
+        run(ReportConfig(path=tmp_path / "run", out=tmp_path / "keep.html"))
+    assert (tmp_path / "keep.html").read_text() == "OLD REPORT"
+    # A report's own pair is rewritten as a whole.
+    run(ReportConfig(path=tmp_path / "run", out=tmp_path / "r.html"))
+    first = (tmp_path / "r.png").read_bytes()
+    run(ReportConfig(path=tmp_path / "run", out=tmp_path / "r.html"))
+    assert (tmp_path / "r.png").read_bytes() == first and "<h2>Run</h2>" in (tmp_path / "r.html").read_text()
+
+
 def test_a_deep_runs_report_shows_the_deep_learners_settings_not_the_thesis_ones():
     from tests.fakes import small_config
     from wfnn_common.config import settings
