@@ -31,7 +31,7 @@ import typer
 from numpy.typing import NDArray
 
 from wfnn_common.config import check_fields, settings
-from wfnn_io.cli_errors import guarded, path_given
+from wfnn_io.cli_errors import guarded, one_line, path_given
 from wfnn_io.logs import is_log
 from wfnn_io.persist import (
     atomic_write_bytes,
@@ -424,7 +424,7 @@ def report(
     except ReportError as exc:
         typer.echo(f"error: {' '.join(str(exc).split())}", err=True)
         raise typer.Exit(2) from exc
-    typer.echo(f"wrote {written}")
+    typer.echo(f"wrote {one_line(str(written))}")
 
 
 main = guarded(app)

@@ -27,7 +27,7 @@ from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, path_given
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, one_line, path_given
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
@@ -295,7 +295,7 @@ def client(
         safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                             max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
     )  # fmt: skip
-    console.print(f"[bold]wfnn-client[/] {escape(config.summary())}", soft_wrap=True)
+    console.print(f"[bold]wfnn-client[/] {escape(one_line(config.summary()))}", soft_wrap=True)
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))
     fresh = not Path(out).exists()
@@ -326,7 +326,7 @@ def client(
     saved = ("weights, " if metrics.get("weights_saved") else "") + "metrics.json and learning_curve.png"
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
-    console.print(f"saved {saved} in {escape(str(out))}/", soft_wrap=True)
+    console.print(f"saved {saved} in {escape(one_line(str(out)))}/", soft_wrap=True)
 
 
 main = guarded(app)

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 _CONTROLS = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0)) if chr(c) not in "\n\t"}
+_ONE_LINE = {**_CONTROLS, ord("\n"): "\\n"}
 
 
 def printable(text: str) -> str:
@@ -39,15 +40,24 @@ def printable(text: str) -> str:
     return text.translate(_CONTROLS)
 
 
+def one_line(text: str) -> str:
+    """`printable`, with newlines shown as escapes too: what is printed as one line stays one.
+
+    A path or name holding a newline (any file name may) printed as it is would start a line of
+    its own choosing, such as a forged `error:` line or log record.
+    """
+    return text.translate(_ONE_LINE)
+
+
 class _Printable(logging.Filter):
-    """Log records rendered with `printable` (their arguments may come from anywhere)."""
+    """Log records rendered with `one_line` (their arguments may come from anywhere)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         try:
             message = record.getMessage()
         except Exception:  # a call whose arguments do not fit: the handler reports it, as without us
             return True
-        clean = printable(message)
+        clean = one_line(message)
         if clean != message:
             record.msg, record.args = clean, None
         return True

@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from wfnn_io import logs
-from wfnn_io.cli_errors import describe, guarded, log_printably, path_given, printable
+from wfnn_io.cli_errors import describe, guarded, log_printably, one_line, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import load_key
 
@@ -33,7 +33,7 @@ def _key(path: Path | None) -> bytes | None:
 
 def _shown(text: str) -> str:
     """Text from a log or the network as the console prints it: no markup, no control characters."""
-    return escape(printable(text))
+    return escape(one_line(text))
 
 
 def _fail(exc: Exception) -> typer.Exit:
@@ -108,7 +108,7 @@ def merge(
         n = logs.merge(sources, out, _key(key_file))
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
-    console.print(f"{n:,} experiences merged into {escape(str(out))}")
+    console.print(f"{n:,} experiences merged into {_shown(str(out))}")
 
 
 @app.command()
@@ -142,7 +142,7 @@ def export(
         n = logs.export(sources, out, _key(key_file), replace)
     except (logs.LogFormatError, ValueError, OSError) as exc:
         raise _fail(exc) from exc
-    console.print(f"{n:,} experiences exported to {escape(str(out))}")
+    console.print(f"{n:,} experiences exported to {_shown(str(out))}")
 
 
 main = guarded(app)

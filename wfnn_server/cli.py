@@ -15,7 +15,7 @@ from rich.markup import escape
 from rich.status import Status
 
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, path_given
+from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, one_line, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import ServerStatus
 from wfnn_server.config import DashboardConfig, ServerConfig
@@ -159,7 +159,7 @@ def serve(
         dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
                    if dashboard is not None else None),
     )  # fmt: skip
-    console.print(f"[bold]wfnn-server[/] {escape(config.summary())}", soft_wrap=True)
+    console.print(f"[bold]wfnn-server[/] {escape(one_line(config.summary()))}", soft_wrap=True)
     if verbose:  # the whole config (also in the data directory's server_config.json)
         console.print_json(json.dumps(to_jsonable(dataclasses.asdict(config))))
 
@@ -180,9 +180,10 @@ def serve(
         with Status("starting", console=console) as line:
             figures = run(config, lambda status: line.update(status_line(status)), started)
     if config.replay_only:
+        weights = escape(one_line(str(config.data_dir / "checkpoint.npz")))
         console.print(
             f"replay-only: {figures['imported']} experiences imported, {figures['experiences']} stored, "
-            f"{figures['thinks']} thinks; weights in {config.data_dir / 'checkpoint.npz'}",
+            f"{figures['thinks']} thinks; weights in {weights}",
             soft_wrap=True,
         )
 

@@ -670,9 +670,26 @@ def test_log_records_reach_a_tools_handlers_with_their_control_characters_escape
         logging.getLogger("wfnn.test").error("client %s says %s", "c1", "\x1b[2Jhi\rthere\n")
     finally:
         root.removeHandler(handler)
-    assert stream.getvalue() == "client c1 says \\x1b[2Jhi\\x0dthere\n\n"
+    # One record, one line: a newline in a name would start a line of the name's choosing.
+    assert stream.getvalue() == "client c1 says \\x1b[2Jhi\\x0dthere\\n\n"
     assert len(handler.filters) == 1
     assert handler.filters[0].filter(logging.LogRecord("x", logging.ERROR, "f", 1, "%s %s", ("one",), None))
+
+
+def test_a_newline_in_a_path_never_starts_a_line_of_its_own(tmp_path):
+    """A name like 'x<newline>error: FORGED' printed a forged error line after the tool's own."""
+    from typer.testing import CliRunner
+
+    from wfnn_io.logs_cli import app
+
+    record(tmp_path / "log", n=20)
+    out = tmp_path / "x\nerror: FORGED.npz"
+    result = CliRunner().invoke(
+        app, ["export", str(tmp_path / "log"), "--out", str(out)], env={"COLUMNS": "300"}
+    )
+    assert result.exit_code == 0 and out.exists(), result.output
+    assert not any(line.startswith("error:") for line in result.output.splitlines())
+    assert "x\\nerror: FORGED.npz" in result.output
 
 
 @pytest.mark.parametrize("version", [True, 1.0, "1", None])
