@@ -165,7 +165,7 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
             except Exception as exc:
                 if _usage_error(exc):
                     return
-                _report(exc, 1)
+                _report(exc, 2 if _symlink_loop(exc) else 1)
 
     return main
 
@@ -244,6 +244,14 @@ def _usage_error(exc: Exception) -> bool:
         message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
         print(f"error: {' '.join(message.split())} (--help lists the options)", file=sys.stderr)
     sys.exit(int(getattr(exc, "exit_code", 2)))
+
+
+def _symlink_loop(exc: BaseException) -> bool:
+    """A path given that loops through symbolic links: bad input, as any path that cannot be used.
+
+    Python 3.11's `Path.resolve` says so with a RuntimeError (later Pythons with an OSError, ELOOP).
+    """
+    return isinstance(exc, RuntimeError) and str(exc).startswith("Symlink loop from ")
 
 
 def _report(exc: BaseException, code: int) -> None:

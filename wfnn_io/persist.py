@@ -108,7 +108,7 @@ def _atomic_write(
     if keep_previous is not None:
         _check_replaceable(Path(keep_previous))
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_short(path.name), suffix=".tmp")
     except OSError as exc:  # named by the file asked for, not the temporary one beside it
         raise _about(exc, path) from exc
     try:
@@ -136,6 +136,15 @@ def _atomic_write(
         Path(tmp).unlink(missing_ok=True)
         raise
     sync_dir(path.parent)
+
+
+def _short(name: str, most: int = 200) -> str:
+    """A file's name cut to `most` bytes, to start a temporary name beside it.
+
+    A name of 240 to 255 bytes is legal, and with the random part and suffix added, its whole
+    length made the temporary file's name too long: the write was refused.
+    """
+    return name.encode(errors="surrogateescape")[:most].decode(errors="ignore")
 
 
 def _link_new(tmp: Path, path: Path) -> None:
@@ -237,7 +246,7 @@ def writable(path: Path) -> None:
             errno.EEXIST, "a file is in the way (a directory is needed there)", str(existing)
         )
     try:
-        with tempfile.NamedTemporaryFile(dir=existing, prefix=f".{path.name}.", suffix=".probe"):
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=f".{_short(path.name)}.", suffix=".probe"):
             pass
     except OSError as exc:
         raise _about(exc, path) from exc

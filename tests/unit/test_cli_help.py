@@ -110,3 +110,18 @@ def test_a_refused_benchmark_makes_no_output_folder(tmp_path, monkeypatch, capsy
     with pytest.raises(SystemExit):
         main()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_path_that_loops_through_symbolic_links_is_bad_input_said_in_one_line(
+    tmp_path, monkeypatch, capsys
+):
+    """Python 3.11's Path.resolve says so with a RuntimeError: it ended as an internal error, exit 1."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    main = importlib.import_module("wfnn_bench.cli").main
+    monkeypatch.setattr("sys.argv", ["wfnn-bench", "speed", "--json", str(tmp_path / "a" / "x.json")])
+    with pytest.raises(SystemExit) as ended:
+        main()
+    said = capsys.readouterr().err
+    assert ended.value.code == 2 and said.startswith("error: ") and len(said.splitlines()) == 1
+    assert "--verbose" not in said and "ymbolic link" in said
