@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -298,12 +299,13 @@ def client(
     console.print(f"[bold]wfnn-client[/] {escape(one_line(config.summary()))}", soft_wrap=True)
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))
-    fresh = not Path(out).exists()
+    new_folders = _to_be_made(Path(out))
     try:
         metrics = _run_showing_progress(config, sim, episodes)
     except BaseException:
-        if fresh and Path(out).is_dir() and not any(Path(out).iterdir()):
-            Path(out).rmdir()  # a refused start leaves no empty run directory of its own making
+        for folder in new_folders:  # a refused start leaves no empty folder of its own making (nor parents)
+            if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
+                folder.rmdir()
         raise
     scores = metrics["scores"]
     trend = (
@@ -327,6 +329,15 @@ def client(
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
     console.print(f"saved {saved} in {escape(one_line(str(out)))}/", soft_wrap=True)
+
+
+def _to_be_made(folder: Path) -> list[Path]:
+    """The folders of `folder`'s path that do not exist yet, deepest first (what a run makes)."""
+    missing = []
+    while not os.path.lexists(folder) and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
 
 
 main = guarded(app)

@@ -60,6 +60,9 @@ def test_client_truncated_weights_file(tmp_path):
     (tmp_path / "w.npz").write_bytes(weights[: len(weights) // 2])
     refused(client("--weights", tmp_path / "w.npz", "--out", tmp_path / "b"), "w.npz", "npz")
     assert not (tmp_path / "b").exists()  # the refused start made no run directory it leaves behind
+    # Nor the folders above one it had to make (x/ and x/y/ of --out x/y/z were left).
+    refused(client("--weights", tmp_path / "w.npz", "--out", tmp_path / "x" / "y" / "z"), "w.npz")
+    assert not (tmp_path / "x").exists()
     # Weights of the other learner: the error says which learner they are for.
     proc = client("--learner", "deep", "--thinks", "1", "--out", tmp_path / "d")
     assert proc.returncode == 0, proc.stdout + proc.stderr
