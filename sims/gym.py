@@ -189,7 +189,10 @@ class GymVec:
         except Exception:
             shape = None
         value: float | None = None
-        if shape == () and not isinstance(reward, str | bytes | np.str_ | np.bytes_):
+        # Text and bytes, which float() parses, and complex numbers, whose real part numpy's
+        # float() takes with only a warning, are not rewards.
+        odd = str | bytes | complex | np.str_ | np.bytes_ | np.complexfloating
+        if shape == () and not isinstance(reward, odd):
             try:
                 value = float(reward)
             except (TypeError, ValueError, OverflowError):

@@ -200,7 +200,7 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
     b.set_title("episode scores")
     fig.tight_layout()
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
+    fig.savefig(buffer, format="png", dpi=100, metadata={"Software": REPORT_SOFTWARE})
     plt.close(fig)
     return buffer.getvalue()
 
@@ -282,6 +282,19 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
         pictures, notes = _pictures(directory, chosen)
         sections.append(Section("Cameras", [("pictures saved", str(len(cameras)))], pictures, notes))
     return sections, figure
+
+
+REPORT_SOFTWARE = "wfnn report"
+"""The PNG text chunk ("Software") that marks a report's own figure."""
+
+
+def _a_reports_figure(png: Path) -> bool:
+    """Whether `png` is a figure a report wrote (its Software chunk, in the file's first 4 KiB)."""
+    try:
+        head = read_regular_bytes(png, PICTURE_LIMIT)[:4096]
+    except OSError:
+        return False
+    return b"Software\x00" + REPORT_SOFTWARE.encode() in head
 
 
 def _a_results_picture(png: Path) -> bool:
@@ -387,17 +400,19 @@ def run(config: ReportConfig) -> Path:
     png = out.with_suffix(".png")
     if figure is not None and _a_results_picture(png):
         raise ReportError(f"--out {out}: its figure would replace {png} (a result's)")
-    if figure is not None and os.path.lexists(png) and not os.path.lexists(out):
-        # A report's figure has its report beside it; any other picture there is someone's own.
-        raise ReportError(f"--out {out}: its figure would replace {png}, which is no report's (no "
-                          f"{out.name} beside it); give another --out")  # fmt: skip
+    someones = os.path.lexists(png) and not os.path.lexists(out) and not _a_reports_figure(png)
+    if figure is not None and someones:
+        # A report's figure is marked so, or has its report beside it (figures written before
+        # the mark); any other picture there is someone's own.
+        raise ReportError(f"--out {out}: its figure would replace {png}, which is no report's figure; "
+                          "give another --out")  # fmt: skip
     for target in (out, png) if figure is not None else (out,):
         writable(target)  # both, before either is written: a refusal leaves the old report whole
     html = TEMPLATE.render(title=title, subtitle=f"from {path.resolve()}", sections=sections)
     out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, html)  # a report being rewritten is never seen half-written
     if figure is not None:
         atomic_write_bytes(png, figure)
-    atomic_write_text(out, html)  # a report being rewritten is never seen half-written
     log.info("wrote %s", out)
     return out
 

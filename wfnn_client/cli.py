@@ -332,7 +332,13 @@ def client(
 
 
 def _to_be_made(folder: Path) -> list[Path]:
-    """The folders of `folder`'s path that do not exist yet, deepest first (what a run makes)."""
+    """The folders of `folder`'s path that do not exist yet, deepest first (what a run makes).
+
+    Resolved first: spelled `build/../runs` with no `build`, an existing `runs` would be counted
+    as missing (and removed after a refused start). A missing folder named before `..` is not
+    counted, and so is left if made.
+    """
+    folder = Path(os.path.realpath(folder))
     missing = []
     while not os.path.lexists(folder) and folder != folder.parent:
         missing.append(folder)

@@ -223,20 +223,32 @@ def _the_runs_own(out: Path, path: Path) -> bool:
     """Whether `path` is, or is inside, something a run writes in `out` (by any name: links too).
 
     The run's own files there would be replaced by the stats (a journal segment or weights.npz
-    written over with JSON), or the stats by them.
+    written over with JSON), or the stats by them. The run writes by the names under `out`,
+    following links: a journal folder that links to another disk is the run's there too.
     """
-    try:
-        inside = Path(os.path.realpath(path)).relative_to(os.path.realpath(out))
-    except ValueError:
-        return False
-    if not inside.parts:
-        return True
-    first = inside.parts[0]
-    return (
-        first.startswith("journal")
-        or first == "cameras"
-        or (len(inside.parts) == 1 and _OWN_FILE.fullmatch(first) is not None)
-    )
+    target = Path(os.path.realpath(path))
+
+    def own(name: str, whole: bool) -> bool:  # whole: the name is all of the path below `out`
+        return (
+            name.startswith("journal")
+            or name == "cameras"
+            or (whole and _OWN_FILE.fullmatch(name) is not None)
+        )
+
+    for base in {Path(os.path.abspath(out)), Path(os.path.realpath(out))}:
+        for spelled in (Path(os.path.abspath(path)), target):
+            try:
+                inside = spelled.relative_to(base)
+            except ValueError:
+                continue
+            if not inside.parts or own(inside.parts[0], len(inside.parts) == 1):
+                return True
+    for name in os.listdir(out) if os.path.isdir(out) else []:  # where the run's own names lead
+        if own(name, True):
+            where = Path(os.path.realpath(Path(out) / name))
+            if target == where or where in target.parents:
+                return True
+    return False
 
 
 def _named(base: str, behaviour: str, sep: str = "_") -> str:

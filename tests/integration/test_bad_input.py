@@ -63,6 +63,10 @@ def test_client_truncated_weights_file(tmp_path):
     # Nor the folders above one it had to make (x/ and x/y/ of --out x/y/z were left).
     refused(client("--weights", tmp_path / "w.npz", "--out", tmp_path / "x" / "y" / "z"), "w.npz")
     assert not (tmp_path / "x").exists()
+    # And never a folder the user had, however --out spells it (build/../mine, with no build).
+    (tmp_path / "mine").mkdir()
+    refused(client("--weights", tmp_path / "w.npz", "--out", tmp_path / "build" / ".." / "mine"), "w.npz")
+    assert (tmp_path / "mine").is_dir()
     # Weights of the other learner: the error says which learner they are for.
     proc = client("--learner", "deep", "--thinks", "1", "--out", tmp_path / "d")
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -334,7 +334,8 @@ class _OddReward(gym.Env):
 @pytest.mark.parametrize(
     "odd, said",
     [(np.array([1.0, 2.0]), r"array of shape \(2,\)"), (None, "None"), ("oops", "'oops'"), ("0.5", "'0.5'"),
-     (1 + 2j, r"\(1\+2j\)"), ([1.0], r"array of shape \(1,\)"), (b"1", "b'1'")],
+     (1 + 2j, r"\(1\+2j\)"), ([1.0], r"array of shape \(1,\)"), (b"1", "b'1'"),
+     (np.complex128(1 + 2j), r"np.complex128\(1\+2j\)"), (np.complex64(1), r"np.complex64")],
 )  # fmt: skip
 def test_a_reward_that_is_not_one_number_ends_the_run_naming_the_task(odd, said):
     """It ended in numpy's or float()'s own words ("only 0-dimensional arrays can be converted")."""

@@ -135,7 +135,7 @@ def test_a_reports_figure_replaces_no_picture_but_its_own_and_a_refusal_writes_n
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "metrics.json").write_text('{"scores": [1, 2, 3]}')
     (tmp_path / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\nmine")
-    with pytest.raises(ReportError, match=r"photo.png, which is no report's"):
+    with pytest.raises(ReportError, match=r"photo.png, which is no report's figure"):
         run(ReportConfig(path=tmp_path / "run", out=tmp_path / "photo.html"))
     assert (tmp_path / "photo.png").read_bytes().endswith(b"mine") and not (tmp_path / "photo.html").exists()
     (tmp_path / "keep.html").write_text("OLD REPORT")
@@ -148,6 +148,11 @@ def test_a_reports_figure_replaces_no_picture_but_its_own_and_a_refusal_writes_n
     first = (tmp_path / "r.png").read_bytes()
     run(ReportConfig(path=tmp_path / "run", out=tmp_path / "r.html"))
     assert (tmp_path / "r.png").read_bytes() == first and "<h2>Run</h2>" in (tmp_path / "r.html").read_text()
+    # Its figure is marked as a report's: a report cut short before its HTML (or moved away) is
+    # written again, not refused for good.
+    (tmp_path / "r.html").unlink()
+    run(ReportConfig(path=tmp_path / "run", out=tmp_path / "r.html"))
+    assert (tmp_path / "r.html").exists() and (tmp_path / "r.png").read_bytes() == first
 
 
 def test_a_deep_runs_report_shows_the_deep_learners_settings_not_the_thesis_ones():

@@ -260,3 +260,12 @@ def test_json_stats_naming_one_of_the_runs_own_files_is_refused_before_the_run(t
                 prepare(ClientConfig(sim="boat", out=out, json_stats=base / own))
     for fine in (out / "stats.json", tmp_path / "stats.json", out / "weights.json"):
         prepare(ClientConfig(sim="boat", out=out, json_stats=fine))
+    # A journal kept on another disk, linked from the run directory: the run's own there too.
+    linked = tmp_path / "linked"
+    (tmp_path / "disk" / "journal").mkdir(parents=True)
+    linked.mkdir()
+    (linked / "journal").symlink_to(tmp_path / "disk" / "journal")
+    for spelled in (linked / "journal" / "00000000.seg", tmp_path / "disk" / "journal" / "00000000.seg"):
+        with pytest.raises(ValueError, match="one of the run's own"):
+            prepare(ClientConfig(sim="boat", out=linked, json_stats=spelled))
+    prepare(ClientConfig(sim="boat", out=linked, json_stats=tmp_path / "disk" / "stats.json"))
