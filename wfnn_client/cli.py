@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -304,8 +305,9 @@ def client(
         metrics = _run_showing_progress(config, sim, episodes)
     except BaseException:
         for folder in new_folders:  # a refused start leaves no empty folder of its own making (nor parents)
-            if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
-                folder.rmdir()
+            with contextlib.suppress(OSError):  # one filled or gone meanwhile: the refusal is what is said
+                if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
+                    folder.rmdir()
         raise
     scores = metrics["scores"]
     trend = (
