@@ -226,8 +226,9 @@ class GymVec:
         obs, reward, terminated, truncated, _ = self._task("step", self.env.step,
                                                           u.astype(self.env.action_space.dtype))  # fmt: skip
         next_state = self._observation(obs)
-        self.last_reward = np.array([self._reward(reward)])
-        self.episode_return += float(self.last_reward[0])
+        r = self._reward(reward)
+        self.last_reward = np.array([r])
+        self.episode_return += r
         if terminated or truncated:
             self.returns.append(self.episode_return)
             self.episodes += 1

@@ -537,11 +537,12 @@ class LearnerConfig:
             raise ConfigError(f"not a learner config: {type(exc).__name__}: {str(exc)[:200]}") from None
         whole = [key for key in ("state_low", "state_high", "action_low", "action_high")
                  if any(_is_int(v) for v in getattr(config, key))]  # fmt: skip
-        if whole and len(_told_whole) < 16 and config.spec_hash() not in _told_whole:
-            _told_whole.add(config.spec_hash())
+        spec = config.spec_hash() if whole else ""
+        if whole and len(_told_whole) < 16 and spec not in _told_whole:
+            _told_whole.add(spec)
             log.warning("learner config %s writes %s with whole numbers (-1, not -1.0): its spec hash "
                         "differs from the same ranges as a task gives them, so that task's clients, weights "
-                        "and logs are of another spec; write them with a decimal point", config.spec_hash(),
+                        "and logs are of another spec; write them with a decimal point", spec,
                         ", ".join(whole))  # fmt: skip
         return config
 

@@ -104,7 +104,7 @@ def _atomic_write(
     path.parent.mkdir(parents=True, exist_ok=True)
     _check_replaceable(path)
     if not replace and os.path.lexists(path):
-        raise FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path))
+        raise _not_replaced(path)
     if keep_previous is not None:
         _check_replaceable(Path(keep_previous))
     try:
@@ -157,15 +157,20 @@ def _link_new(tmp: Path, path: Path) -> None:
     try:
         os.link(tmp, path)
     except FileExistsError:
-        raise FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path)) from None
+        raise _not_replaced(path) from None
     except OSError as exc:
         if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS):
             raise
         if os.path.lexists(path):
-            raise FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path)) from None
+            raise _not_replaced(path) from None
         os.replace(tmp, path)
         return
     tmp.unlink()
+
+
+def _not_replaced(path: Path) -> FileExistsError:
+    """The refusal of a write that may not replace what is at `path`."""
+    return FileExistsError(errno.EEXIST, "exists (it is not replaced)", str(path))
 
 
 def _check_replaceable(path: Path) -> None:
