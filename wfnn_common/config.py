@@ -170,8 +170,9 @@ class DeepConfig:
     0, or at least n_wires, interpolates all wires. The greedy action (the best wire) is the same
     either way."""
     n_step: int = 1
-    """Returns over this many consecutive experiences (cut at a terminal or where the next
-    experience does not start from the previous one's next state)."""
+    """Returns over this many consecutive experiences: each experience is followed by the first
+    one stored after it that starts exactly from its next state, whichever client sent it; the
+    return is cut at a terminal or where none was stored."""
     warmup: int = 1000
     """Actions of a learner that are uniformly random, before its own choices explore."""
     device: str = "cpu"

@@ -42,6 +42,8 @@ class DeepWFNN(WFNN):
         if population != 1:
             raise ValueError(f"a deep learner is one network (population 1), got {population}")
         super().__init__(config, population, params)  # type: ignore[arg-type]
+        if config.deep.n_step > 1:
+            self.buffer.link_successors()
 
     def _init_network(self, params: Any) -> None:
         """Critic 1 from `params` (critic 2 near it) or both fresh; no torch yet."""
@@ -167,9 +169,10 @@ class DeepWFNN(WFNN):
     def _n_step(self, idx: NDArray[np.int64]) -> dict[str, FloatArray]:
         """Minibatch arrays at buffer indices idx [B], with n-step returns where the data allow.
 
-        An experience continues the one before when it was stored at most 1 + len(symmetries)
-        places after it (mirrored copies are stored between real ones), starts from its next
-        state, and that was not terminal; the return stops at the first break.
+        The return follows each experience's stored successor (the experience stored later that
+        starts exactly from its next state: `ReplayBuffer.link_successors`), whichever client
+        sent it and however the clients' experiences and mirrored images were interleaved; it
+        stops at a terminal, or where no successor is stored.
         """
         cfg, buf = self.config, self.buffer
         gamma = cfg.gamma
@@ -178,27 +181,13 @@ class DeepWFNN(WFNN):
         terminal = flags != 0.0
         discount = np.where(terminal, 0.0, gamma)
         if cfg.deep.n_step > 1:
-            reach = 1 + len(cfg.symmetries)
-            newest = int(buf.added[0]) - 1
-            now = idx.copy()
-            going = ~terminal
+            now, going = idx, ~terminal
             for k in range(1, cfg.deep.n_step):
-                found = np.zeros_like(going)
-                after = now.copy()
-                age = (newest - now) % buf.capacity
-                for offset in range(1, reach + 1):  # the first stored after `now` that continues it
-                    j = (now + offset) % buf.capacity
-                    candidate = buf.take(0, j)
-                    hit = going & ~found & (age >= offset) & (candidate.state == next_state).all(axis=1)
-                    after = np.where(hit, j, after)
-                    found |= hit
-                going = found
+                now, found = buf.continuation(0, now)
+                going = going & found
                 if not going.any():
                     break
-                now = after
-                # With one candidate, `now` is its j wherever the return goes on: its rows are those
-                # (elsewhere the values below are masked out, whatever they are).
-                later = candidate if reach == 1 else buf.take(0, now)
+                later = buf.take(0, now)  # rows where the return stops are masked out below
                 reward = reward + np.where(going, gamma**k * self._reward(later.reward), 0.0)
                 term_j = later.terminal != 0.0
                 next_state = np.where(going[:, None], later.next_state, next_state)

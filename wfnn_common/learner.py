@@ -379,8 +379,8 @@ class WFNN:
             mirrored, mirrored_ok = self._check(*symmetry(s, a, sn, r), term, ok.copy())
             images.append(mirrored)
             kept.append(mirrored_ok)
-        # Stored in the order `learn` stores them, each experience followed by its images: the
-        # deep learner's n-step returns find an experience's successor within 1 + len(symmetries).
+        # Stored in the order `learn` stores them, each experience followed by its images, so that
+        # a block and the same experiences learned one by one fill the buffer alike.
         order = np.stack(kept, axis=1).reshape(-1)  # [N x (1 + len(symmetries))], experience-major
         block = Experiences._make(
             np.stack(fields, axis=1).reshape(-1, *fields[0].shape[1:])[order]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -10,6 +10,9 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 IntArray = NDArray[np.int64]
+
+OPEN_LINKS = 1 << 16
+"""Most experiences per learner waiting for a successor (`ReplayBuffer.link_successors`)."""
 
 
 class Experiences(NamedTuple):
@@ -49,6 +52,25 @@ class ReplayBuffer:
         """Stored experiences per learner (at most capacity)."""
         self.added = np.zeros(population, dtype=np.int64)
         """Experiences ever added per learner (the ring's write position is added % capacity)."""
+        self.successor: IntArray | None = None
+        """Where linking (`link_successors`): per learner and stored experience [P, capacity], the
+        number (in `added`'s count) of the experience that continues it, -1 for none yet."""
+        self._open: list[dict[bytes, int]] = []
+        """Where linking: per learner, the next states of experiences still waiting for their
+        successor (not terminal), as bytes, and those experiences' numbers; oldest first."""
+
+    def link_successors(self) -> None:
+        """From now on, link each stored experience to the one stored later that continues it.
+
+        An experience continues another when it starts exactly from that one's next state, and
+        that was not terminal; the first such experience stored is the one linked. Experiences
+        from several sources (clients, a task's mirrored images) arrive interleaved in any order,
+        and each chain is followed on its own. At most OPEN_LINKS experiences per learner wait for
+        a successor (the oldest gives up first), so the bookkeeping stays bounded.
+        """
+        if self.successor is None:
+            self.successor = np.full((self.population, self.capacity), -1, dtype=np.int64)
+            self._open = [{} for _ in range(self.population)]
 
     @property
     def terminal(self) -> BoolArray:
@@ -71,6 +93,11 @@ class ReplayBuffer:
         self.next_state[rows, pos] = exp.next_state[rows]
         self.reward[rows, pos] = exp.reward[rows]
         self._terminal[rows, pos] = exp.terminal[rows]
+        if self.successor is not None:
+            for learner in rows.tolist():
+                ended = np.asarray(exp.terminal[learner]).reshape(1)
+                self._link(learner, int(self.added[learner]), exp.state[learner][None],
+                           exp.next_state[learner][None], ended)  # fmt: skip
         self.added[rows] += 1
         self.count[rows] = np.minimum(self.added[rows], self.capacity)
 
@@ -89,8 +116,45 @@ class ReplayBuffer:
         self.next_state[learner, pos] = exp.next_state
         self.reward[learner, pos] = exp.reward
         self._terminal[learner, pos] = exp.terminal
+        if self.successor is not None:
+            self._link(learner, int(self.added[learner]), exp.state, exp.next_state, exp.terminal)
         self.added[learner] += n
         self.count[learner] = min(int(self.added[learner]), self.capacity)
+
+    def _link(
+        self, learner: int, first: int, state: FloatArray, next_state: FloatArray, terminal: NDArray[Any]
+    ) -> None:
+        """Link the experiences just stored (rows [n, ...], numbered first, first + 1, ...).
+
+        Each is linked from the experience it continues, and waits for its own successor.
+        """
+        successor, waiting = cast(IntArray, self.successor)[learner], self._open[learner]
+        oldest = first + len(state) - self.capacity  # numbers below this are overwritten by now
+        starts = np.ascontiguousarray(state)
+        ends = np.ascontiguousarray(next_state)
+        ended = np.asarray(terminal).astype(np.bool_)
+        for i in range(len(state)):
+            number = first + i
+            successor[number % self.capacity] = -1  # a new experience in this slot: none yet
+            before = waiting.pop(starts[i].tobytes(), -1)
+            if before >= 0 and before >= oldest:  # still stored: linked
+                successor[before % self.capacity] = number
+            if not ended[i]:
+                key = ends[i].tobytes()
+                waiting.pop(key, None)  # the newest with this next state waits, and is newest in line
+                waiting[key] = number
+                if len(waiting) > OPEN_LINKS:
+                    del waiting[next(iter(waiting))]
+
+    def continuation(self, learner: int, idx: IntArray) -> tuple[IntArray, BoolArray]:
+        """Slots [n] of the experiences that continue those at slots idx [n], and which do.
+
+        Needs `link_successors`; an experience whose successor has been overwritten, or never
+        came, has none (its slot is returned unchanged).
+        """
+        number = cast(IntArray, self.successor)[learner][idx]
+        has = number >= self.added[learner] - self.count[learner]  # -1 never passes
+        return np.where(has, number % self.capacity, idx), has
 
     def sample_indices(self, rng: np.random.Generator, n: int) -> IntArray:
         """Uniform indices [P, n] into each learner's stored experiences (0 where it has none)."""

@@ -358,6 +358,47 @@ def test_n_step_returns_follow_consecutive_experiences_only():
     np.testing.assert_allclose(batch["next_state"][:, 0], np.array([0.4, 0.4, 0.4, 0.0, 0.0, 0.7]) / 1.0)
 
 
+def test_n_step_returns_follow_each_clients_chain_however_the_clients_interleave():
+    """Two clients' experiences reach a server interleaved (one at a time, or in batches of
+    different sizes): each return follows its own client's chain to its full length."""
+    cfg = config(gamma=0.5, deep={"n_step": 3})
+    z = np.zeros(1)
+    a = [((0.1, 0.0), (0.2, 0.0), 1.0), ((0.2, 0.0), (0.3, 0.0), 2.0), ((0.3, 0.0), (0.4, 0.0), 4.0)]
+    b = [((0.0, 0.1), (0.0, 0.2), 8.0), ((0.0, 0.2), (0.0, 0.3), 16.0), ((0.0, 0.3), (0.0, 0.4), 32.0)]
+    one_by_one = DeepWFNN(cfg)
+    for (sa, na, ra), (sb, nb, rb) in zip(a, b, strict=True):
+        one_by_one.learn(np.array(sa), z, np.array(na), ra)
+        one_by_one.learn(np.array(sb), z, np.array(nb), rb)
+    batch = one_by_one._n_step(np.arange(6))  # stored a0 b0 a1 b1 a2 b2
+    np.testing.assert_allclose(batch["reward"], [1 + 1 + 1, 8 + 8 + 8, 2 + 2, 16 + 16, 4, 32])
+    np.testing.assert_allclose(batch["discount"], [0.125, 0.125, 0.25, 0.25, 0.5, 0.5])
+    np.testing.assert_allclose(batch["next_state"], [[0.4, 0], [0, 0.2]] * 3)  # state ranges [1, 2]
+
+    def block(rows):
+        s, sn, r = (np.array([row[i] for row in rows]) for i in range(3))
+        return s, np.zeros((len(rows), 1)), sn, r, np.zeros(len(rows), dtype=bool)
+
+    batched = DeepWFNN(cfg)
+    for rows in ([b[0]], a[:2], b[1:], a[2:]):  # stored b0 a0 a1 b1 b2 a2
+        batched.learn_many(*block(rows))
+    rewards = batched._n_step(np.arange(6))["reward"]
+    np.testing.assert_allclose(rewards, [8 + 8 + 8, 1 + 1 + 1, 2 + 2, 16 + 16, 32, 4])
+
+
+def test_n_step_returns_never_follow_an_overwritten_experience():
+    cfg = config(gamma=0.5, replay_capacity=4, deep={"n_step": 3})
+    learner = DeepWFNN(cfg)
+    z = np.zeros(1)
+    learner.learn(np.array([0.1, 0.0]), z, np.array([0.2, 0.0]), 1.0)
+    for k in range(4):  # elsewhere, filling the ring: the first experience is overwritten
+        learner.learn(np.array([0.5, 0.1 * k]), z, np.array([0.6, 0.1 * k]), 0.0)
+    # Continues the overwritten one (slot 0's tenant now): no return runs on into it.
+    learner.learn(np.array([0.2, 0.0]), z, np.array([0.3, 0.0]), 2.0)  # into slot 1
+    batch = learner._n_step(np.arange(4))
+    np.testing.assert_allclose(batch["discount"], [0.5] * 4)
+    np.testing.assert_allclose(batch["reward"], [0.0, 2.0, 0.0, 0.0])
+
+
 def test_training_state_saves_and_resumes_exactly(tmp_path):
     cfg = config()
     learner = DeepWFNN(cfg)

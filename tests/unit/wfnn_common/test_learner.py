@@ -3,12 +3,13 @@ import pytest
 
 from sims.boat import BoatVec
 from tests.fakes import random_experiences, small_config
+from wfnn_common import replay as replay_module
 from wfnn_common.config import ExplorationConfig, LearnerConfig
 from wfnn_common.exploration import Explorer
 from wfnn_common.learner import WFNN, DivergenceMonitor
 from wfnn_common.learners import make_learner
 from wfnn_common.network import forward, split_wires
-from wfnn_common.replay import ReplayBuffer
+from wfnn_common.replay import Experiences, ReplayBuffer
 from wfnn_io.persist import (
     PersistError,
     load_checkpoint,
@@ -195,6 +196,32 @@ def test_replay_buffer_is_a_bounded_ring_per_learner():
     buf.add(one, np.array([False, True]))  # one experience per learner; learner 0 skips
     assert buf.count.tolist() == [5, 1]
     np.testing.assert_allclose(buf.contents(1).reward, one.reward[1:])
+
+
+def test_replay_links_each_experience_to_its_first_stored_successor_within_bounds(monkeypatch):
+    monkeypatch.setattr(replay_module, "OPEN_LINKS", 3)
+    buf = ReplayBuffer(1, 8, 1, 1)
+    buf.link_successors()
+
+    def one(s, sn, terminal=False):
+        buf.extend(0, Experiences(np.array([[s]]), np.zeros((1, 1)), np.array([[sn]]), np.zeros(1),
+                                  np.array([terminal])))  # fmt: skip
+
+    one(0.0, 1.0)  # 0
+    one(5.0, 6.0, terminal=True)  # 1: terminal, so nothing continues it
+    one(6.0, 7.0)  # 2
+    one(1.0, 2.0)  # 3 continues 0
+    one(1.0, 9.0)  # 4 starts where 0 ended too, but 0 already has its successor
+    one(2.0, 3.0)  # 5 continues 3
+    one(10.0, 11.0)  # 6: four would wait (2, 4, 5, 6): the oldest, 2, gives up
+    one(12.0, 13.0)  # 7: and 4 gives up
+    one(7.0, 8.0)  # 8, in slot 0 (overwriting 0, whose link goes): starts where 2 ended, too late
+    slots, has = buf.continuation(0, np.arange(8))
+    assert has.tolist() == [False, False, False, True, False, False, False, False]
+    assert slots[3] == 5
+    one(13.0, 14.0)  # 9, in slot 1, continues 7
+    slots, has = buf.continuation(0, np.array([7, 1]))
+    assert has.tolist() == [True, False] and slots.tolist() == [1, 1]
 
 
 def test_weights_that_are_not_finite_are_never_saved(tmp_path):
