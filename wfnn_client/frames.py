@@ -8,6 +8,7 @@ falls behind, new views are dropped and counted: the tick is never held up by th
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 from collections.abc import Callable
@@ -59,11 +60,14 @@ class FrameWriter:
             try:
                 if not encoded:
                     raise OSError("PNG encoding failed")
-                path.write_bytes(png)
+                _write_whole(path, png)
                 self.written += 1
             except OSError as exc:
                 self.failed += 1
-                log.warning("could not write camera frame %s: %s", path, exc)
+                # Once, not once a frame: a full disk fails every frame after it (the count is in
+                # the run's stats, and `close` says it again).
+                level = logging.WARNING if self.failed == 1 else logging.DEBUG
+                log.log(level, "could not write camera frame %s: %s", path, exc)
                 continue
             if self.on_png is not None:
                 try:
@@ -75,4 +79,21 @@ class FrameWriter:
         """Write what is queued, stop the thread; returns the counts."""
         self._queue.put(None)
         self._thread.join()
+        if self.failed > 1:
+            log.warning("%d camera frames could not be written (%d were)", self.failed, self.written)
         return {"written": self.written, "dropped": self.dropped, "failed": self.failed}
+
+
+def _write_whole(path: Path, data: bytes) -> None:
+    """Write a file whole or not at all: a write that fails (a full disk) leaves no torn picture.
+
+    Written beside it under a hidden name, then renamed; not synced (a picture is not worth a
+    disk flush a frame, and a crash leaves at worst a hidden temporary file).
+    """
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

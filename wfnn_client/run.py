@@ -41,7 +41,7 @@ from wfnn_common.config import (
 )
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
-from wfnn_io.cli_errors import Terminated, handling, noting, terminate
+from wfnn_io.cli_errors import Terminated, handling, log_failure, noting, terminate
 from wfnn_io.persist import (
     PersistError,
     load_checkpoint,
@@ -320,8 +320,8 @@ def _run(
     except BaseException as exc:
         try:
             _Brains(skills).stop()
-        except BaseException:  # the refusal is what to report
-            log.exception("stopping the brains made before the refusal failed")
+        except BaseException as stop_exc:  # the refusal is what to report
+            log_failure(log, "stopping the brains made before the refusal failed", stop_exc)
         if isinstance(exc, ValueError):  # options that do not fit this task or run directory
             raise SetupError(str(exc)) from exc
         raise
@@ -462,8 +462,8 @@ def _run(
     except BaseException:
         try:
             _stop_brains(brains)  # what was recorded before the failure is kept
-        except Exception:  # the failure that ended the run is what to report
-            log.exception("stopping the brains after the run failed failed too")
+        except Exception as exc:  # the failure that ended the run is what to report
+            log_failure(log, "stopping the brains after the run failed failed too", exc)
         if frames is not None:
             frames.close()
         raise

@@ -53,6 +53,9 @@ class DeepWFNN(WFNN):
         given weights)."""
         if params is not None and not isinstance(params, DeepParams):
             raise ValueError("a deep learner's params must be DeepParams")
+        if params is not None and params.shapes != self.shapes:
+            raise ValueError(f"weights for a network of {params.shapes} do not fit this config's "
+                             f"{self.shapes}")  # fmt: skip
         if params is not None and not (np.abs(params.flat) <= FLOAT32_MAX).all():
             # It trains in float32: larger weights would be infinite there (NaN fails the test too).
             raise ValueError("a deep learner's weights must be finite and within float32's range")

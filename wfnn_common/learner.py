@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from wfnn_common.config import LearnerConfig
 from wfnn_common.exploration import Explorer
 from wfnn_common.kernels import Hyperparameters, act_one, think_incremental, think_incremental_one
-from wfnn_common.network import Params, Scaler, forward, init_params, layer_rates, reinit, split_wires
+from wfnn_common.network import Params, Scaler, Shapes, forward, init_params, layer_rates, reinit, split_wires
 from wfnn_common.replay import Experiences, ReplayBuffer
 from wfnn_common.update import UpdateStats, squash_reward, wfnn_update
 from wfnn_common.wirefit import wirefit_q
@@ -146,6 +146,9 @@ class WFNN:
     def _init_network(self, params: Params | None) -> None:
         """The thesis' network: given weights or fresh ones, and its compiled `act` loaded."""
         config, population = self.config, self.population
+        if params is not None and params.shapes != Shapes.of(config):
+            raise ValueError(f"weights for a network of {params.shapes} do not fit this config's "
+                             f"{Shapes.of(config)}")  # fmt: skip
         self.params = params if params is not None else init_params(config, population, self._weights_rng)
         if self.params.population != population:
             raise ValueError(f"params hold {self.params.population} networks, expected {population}")

@@ -2,7 +2,8 @@
 
 Each tool's entry point is `guarded(app)`: a file that cannot be read or written, a port in
 use, a malformed endpoint or config (OSError, ValueError and their kinds) ends the run with
-`error: <what>` and exit code 2; anything else with exit code 1 and the same one line.
+`error: <what>` and exit code 2, as does an error raised from an OSError (a record that a full
+disk stopped); anything else with exit code 1 and the same one line.
 `--verbose` adds the traceback for whoever debugs it.
 
 What else the tools share about their console lives here too: how often a status line is
@@ -66,14 +67,23 @@ class _Printable(logging.Filter):
 def log_failure(logger: logging.Logger, message: str, exc: BaseException) -> None:
     """Log what ended a tool's thread.
 
-    An OSError (a full disk, a lost directory) in one line, its traceback only at debug level
-    (`--verbose`): the tool's one `error:` line follows. Anything else with its traceback.
+    An OSError (a full disk, a lost directory), or an error raised from one, in one line, its
+    traceback only at debug level (`--verbose`): the tool's one `error:` line follows. Anything
+    else with its traceback.
     """
-    if isinstance(exc, OSError):
-        logger.error("%s (%s)", message, exc)
+    if environmental(exc):
+        logger.error("%s (%s)", message, describe(exc))
         logger.debug("where", exc_info=exc)
     else:
         logger.error(message, exc_info=exc)
+
+
+def environmental(exc: BaseException) -> bool:
+    """Whether `exc` is an OSError or was raised from one (a record that a full disk stopped).
+
+    Such an error is the machine's, not a fault in the tool: one line and exit code 2.
+    """
+    return isinstance(exc, OSError) or isinstance(exc.__cause__, OSError)
 
 
 def log_printably() -> None:
@@ -165,7 +175,7 @@ def guarded(app: Callable[[], Any]) -> Callable[[], None]:
             except Exception as exc:
                 if _usage_error(exc):
                     return
-                _report(exc, 2 if _symlink_loop(exc) else 1)
+                _report(exc, 2 if _symlink_loop(exc) or environmental(exc) else 1)
 
     return main
 

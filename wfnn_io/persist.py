@@ -186,8 +186,12 @@ def _check_replaceable(path: Path) -> None:
 
 
 def _about(exc: OSError, path: Path) -> OSError:
-    """`exc` naming `path` (what the user asked to write) where it names a temporary file."""
-    if exc.filename is not None and str(exc.filename) != str(path) and exc.strerror:
+    """`exc` naming `path` (what the user asked to write) where it names another file or none.
+
+    A temporary file's name means nothing to the user; and a write or close that failed (a full
+    disk) names no file, where a run with several outputs must say which one failed.
+    """
+    if str(exc.filename) != str(path) and exc.strerror:
         return type(exc)(exc.errno, exc.strerror, str(path))
     return exc
 
@@ -235,6 +239,10 @@ def make_directory(path: Path, what: str) -> None:
     path.mkdir(parents=True, exist_ok=True)
 
 
+PROBE_BYTES = 64 << 10
+"""What `writable` writes to see that there is room: as much as a run's small outputs take."""
+
+
 def writable(path: Path) -> None:
     """Raise OSError now if file `path` cannot be written later (its missing folders made then).
 
@@ -251,8 +259,12 @@ def writable(path: Path) -> None:
             errno.EEXIST, "a file is in the way (a directory is needed there)", str(existing)
         )
     try:
-        with tempfile.NamedTemporaryFile(dir=existing, prefix=f".{_short(path.name)}.", suffix=".probe"):
-            pass
+        prefix = f".{_short(path.name)}."
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=prefix, suffix=".probe") as probe:
+            # Some bytes, not only a name: a full disk still makes an empty file, and a run told
+            # its output can be written would only find out after all its work.
+            probe.write(bytes(PROBE_BYTES))
+            probe.flush()
     except OSError as exc:
         raise _about(exc, path) from exc
 

@@ -368,11 +368,15 @@ class SegmentLog:
                 break
             except FileExistsError:
                 kept = quarantine / f"{n:08d}-{valid_end:010d}.{k}.torn"
-        with os.fdopen(fd, "wb") as f, open(path, "rb") as torn:
-            torn.seek(valid_end)
-            shutil.copyfileobj(torn, f, 1 << 20)  # in pieces: a tail may be longer than any segment
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            with os.fdopen(fd, "wb") as f, open(path, "rb") as torn:
+                torn.seek(valid_end)
+                shutil.copyfileobj(torn, f, 1 << 20)  # in pieces: a tail may be longer than any segment
+                f.flush()
+                os.fsync(f.fileno())
+        except BaseException:  # a full disk: no partial copy left to pass for the tail (it is still in place)
+            kept.unlink(missing_ok=True)
+            raise
         sync_dir(quarantine)
         log.warning("%s: a torn tail of %d bytes at offset %d moved to %s", path, cut, valid_end, kept)
         with open(path, "r+b") as f:

@@ -1,5 +1,6 @@
 """Rendered vision for HyDrA: template matching, the renderer, and saving what the cameras see."""
 
+import logging
 import threading
 
 import numpy as np
@@ -158,16 +159,37 @@ def test_frame_writer_writes_pngs_and_drops_when_behind(tmp_path, monkeypatch):
     assert image.shape == (12, 32, 3) and image[:, :16].max() == 0 and image[:, 16:].min() == 255
 
     release = threading.Event()
-    real_write = cv2.imwrite
+    real_encode = cv2.imencode
 
-    def slow_write(path, image):
+    def slow_encode(ext, image):
         release.wait(10)
-        return real_write(path, image)
+        return real_encode(ext, image)
 
-    monkeypatch.setattr(frames.cv2, "imwrite", slow_write)
+    monkeypatch.setattr(frames.cv2, "imencode", slow_encode)
     writer = FrameWriter(tmp_path / "b", queue_size=2)
     accepted = [writer.submit(tick, views) for tick in range(6)]
     release.set()
     counts = writer.close()
     assert not all(accepted) and counts["dropped"] == accepted.count(False)
     assert counts["written"] == accepted.count(True) == len(list((tmp_path / "b").glob("*.png")))
+
+
+def test_a_frame_the_disk_cannot_take_leaves_no_torn_picture_and_is_told_once(tmp_path, monkeypatch, caplog):
+    from pathlib import Path
+
+    views = {"left": np.zeros((12, 16, 3), np.uint8)}
+    real_write_bytes = Path.write_bytes
+
+    def full_disk(path, data):  # half the picture lands, then the disk is full
+        real_write_bytes(path, data[: len(data) // 2])
+        raise OSError(28, "No space left on device")
+
+    writer = FrameWriter(tmp_path / "c")
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    with caplog.at_level(logging.WARNING, logger="wfnn_client.frames"):
+        for tick in range(5):
+            assert writer.submit(tick, views)
+        assert writer.close() == {"written": 0, "dropped": 0, "failed": 5}
+    assert list((tmp_path / "c").iterdir()) == []
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 2 and "No space left" in warnings[0] and warnings[1].startswith("5 camera frames")

@@ -1,10 +1,12 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from sims.boat import BoatVec
 from tests.fakes import random_experiences, small_config
 from wfnn_common import replay as replay_module
-from wfnn_common.config import ExplorationConfig, LearnerConfig
+from wfnn_common.config import ExplorationConfig, LearnerConfig, with_options
 from wfnn_common.exploration import Explorer
 from wfnn_common.learner import WFNN, DivergenceMonitor
 from wfnn_common.learners import make_learner
@@ -482,3 +484,17 @@ def test_many_minibatch_thinks_draw_their_indices_in_parts_and_learn_the_same(mo
     np.testing.assert_array_equal(parts.params.flat, whole.params.flat)
     np.testing.assert_allclose(stats.q, expected.q, rtol=1e-12)
     np.testing.assert_allclose(stats.td_abs, expected.td_abs, rtol=1e-12)
+
+
+def test_weights_made_for_another_network_are_refused_by_either_learner():
+    thesis = small_config()
+    wider = replace(thesis, n_wires=thesis.n_wires + 1)
+    with pytest.raises(ValueError, match="do not fit this config"):
+        make_learner(wider, params=make_learner(thesis).params)
+    deep = LearnerConfig.for_task(BoatVec(1), learner="deep")
+    narrower = with_options(deep, {"deep": {"hidden": [16]}})
+    with pytest.raises(ValueError, match="do not fit this config"):
+        make_learner(narrower, params=make_learner(deep).params)
+    # The same network under another config's other fields is fine (a server adopting a config).
+    make_learner(replace(thesis, gamma=0.5), params=make_learner(thesis).params)
+    make_learner(replace(deep, gamma=0.5), params=make_learner(deep).params)

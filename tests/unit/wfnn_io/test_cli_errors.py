@@ -80,3 +80,38 @@ def test_sigterm_ends_a_tool_as_ctrl_c_does_and_its_handler_is_restored_after(ca
         guarded(app)()
     assert stopped.value.code == 143 and "terminated" in capsys.readouterr().err and cleaned
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_an_error_raised_from_a_full_disk_is_the_machines_one_line_and_exit_2(capsys, caplog):
+    import errno
+    import logging
+
+    import pytest
+
+    from wfnn_io.cli_errors import guarded, log_failure
+
+    def recorded() -> None:
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError as exc:
+            raise RuntimeError("writing the experience record failed") from exc
+
+    def faulty() -> None:
+        raise RuntimeError("a fault in the tool")
+
+    for app, code in ((recorded, 2), (faulty, 1)):
+        with pytest.raises(SystemExit) as stopped:
+            guarded(app)()
+        err = capsys.readouterr().err
+        assert stopped.value.code == code and len(err.strip().splitlines()) == 1
+        assert ("--verbose shows where" in err) == (code == 1)
+    logger = logging.getLogger("test_full_disk")
+    with caplog.at_level(logging.INFO, logger="test_full_disk"):
+        for app in (recorded, faulty):
+            try:
+                app()
+            except RuntimeError as exc:
+                log_failure(logger, "stopping failed too", exc)
+    full, fault = caplog.records
+    assert full.exc_info is None and "No space left on device" in full.getMessage()
+    assert fault.exc_info is not None

@@ -515,3 +515,25 @@ def test_the_store_refuses_a_segment_size_readers_would_not_read_whole():
         ServerConfig(
             controller="t", server_id="s", data_dir="d", segment_bytes=segments.MAX_SEGMENT_BYTES + 1
         )
+
+
+def test_a_repair_the_disk_cannot_take_leaves_no_empty_tail_in_quarantine(tmp_path, monkeypatch):
+    with SegmentLog(tmp_path, fsync="always") as log:
+        log.append(b"kept")
+    tail = b"\x05\x00\x00\x00torn"
+    with open(seg_path(tmp_path, 0), "ab") as f:
+        f.write(tail)
+
+    def full_disk(source, target, length=0):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(segments.shutil, "copyfileobj", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        SegmentLog(tmp_path, fsync="always")
+    assert quarantined(tmp_path) == []
+    monkeypatch.undo()  # space again: the tail goes to quarantine under its first name
+    with SegmentLog(tmp_path, fsync="always") as log:
+        assert [p for _, p in log.read()] == [b"kept"]
+    assert [(p.name, p.read_bytes()) for p in quarantined(tmp_path)] == [
+        (f"00000000-{RECORD.size + 4:010d}.torn", tail)
+    ]
