@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -30,6 +28,7 @@ from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import NetConfig
 from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, one_line, path_given
+from wfnn_io.persist import folders_to_be_made, remove_empty_folders
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
 console = Console()
@@ -300,14 +299,11 @@ def client(
     console.print(f"[bold]wfnn-client[/] {escape(one_line(config.summary()))}", soft_wrap=True)
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))
-    new_folders = _to_be_made(Path(out))
+    new_folders = folders_to_be_made(Path(out))
     try:
         metrics = _run_showing_progress(config, sim, episodes)
     except BaseException:
-        for folder in new_folders:  # a refused start leaves no empty folder of its own making (nor parents)
-            with contextlib.suppress(OSError):  # one filled or gone meanwhile: the refusal is what is said
-                if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
-                    folder.rmdir()
+        remove_empty_folders(new_folders)  # a refused start leaves no empty folder of its own making
         raise
     scores = metrics["scores"]
     trend = (
@@ -331,21 +327,6 @@ def client(
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
     console.print(f"saved {saved} in {escape(one_line(str(out)))}/", soft_wrap=True)
-
-
-def _to_be_made(folder: Path) -> list[Path]:
-    """The folders of `folder`'s path that do not exist yet, deepest first (what a run makes).
-
-    Resolved first: spelled `build/../runs` with no `build`, an existing `runs` would be counted
-    as missing (and removed after a refused start). A missing folder named before `..` is not
-    counted, and so is left if made.
-    """
-    folder = Path(os.path.realpath(folder))
-    missing = []
-    while not os.path.lexists(folder) and folder != folder.parent:
-        missing.append(folder)
-        folder = folder.parent
-    return missing
 
 
 main = guarded(app)

@@ -106,6 +106,28 @@ def is_log(directory: Path) -> bool:
     return directory.is_dir() and any(directory.glob("*.seg")) and not _unfinished(directory)
 
 
+def remove_empty_log(directory: Path) -> bool:
+    """Remove a log that holds no record (what a refused start made); -> whether it was removed.
+
+    Only a folder of empty segments, its lock and its `log.json` goes; anything else in it, or one
+    byte in a segment, and it is left whole.
+    """
+    directory = Path(directory)
+    if not directory.is_dir() or directory.is_symlink():
+        return False
+    entries = list(directory.iterdir())
+    own = {LOCK, LOG_JSON}
+    for entry in entries:
+        if entry.is_symlink() or not entry.is_file():
+            return False
+        if entry.name not in own and not (entry.suffix == ".seg" and entry.stat().st_size == 0):
+            return False
+    for entry in entries:
+        entry.unlink()
+    directory.rmdir()
+    return True
+
+
 def new_log_id() -> str:
     """A fresh log identity (16 hex digits)."""
     return secrets.token_hex(8)

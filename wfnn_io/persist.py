@@ -7,6 +7,7 @@ format or a newer version is refused with `PersistError`.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import json
@@ -237,6 +238,32 @@ def make_directory(path: Path, what: str) -> None:
     if path.exists() and not path.is_dir():
         raise NotADirectoryError(20, f"exists and is not a directory ({what})", str(path))
     path.mkdir(parents=True, exist_ok=True)
+
+
+def folders_to_be_made(folder: Path) -> list[Path]:
+    """The folders of `folder`'s path that do not exist yet, deepest first (what a run makes).
+
+    Resolved first: spelled `build/../runs` with no `build`, an existing `runs` would be counted
+    as missing (and removed after a refused start). A missing folder named before `..` is not
+    counted, and so is left if made.
+    """
+    folder = Path(os.path.realpath(folder))
+    missing = []
+    while not os.path.lexists(folder) and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+def remove_empty_folders(folders: list[Path]) -> None:
+    """Remove those of `folders` (deepest first) that are empty folders: what a refused start made.
+
+    One filled or gone meanwhile is left as it is, silently: the refusal is what is said.
+    """
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            if folder.is_dir() and not folder.is_symlink() and not any(folder.iterdir()):
+                folder.rmdir()
 
 
 PROBE_BYTES = 64 << 10

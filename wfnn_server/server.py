@@ -16,6 +16,7 @@ Nothing in the data directory is deleted: a file that cannot be read is set asid
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -36,15 +37,26 @@ from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
 from wfnn_io.cli_errors import log_failure
-from wfnn_io.logs import LogFormatError, ReadCounts, common_config, merged, read_log_json, set_aside, widths
+from wfnn_io.logs import (
+    LogFormatError,
+    ReadCounts,
+    common_config,
+    merged,
+    read_log_json,
+    remove_empty_log,
+    set_aside,
+    widths,
+)
 from wfnn_io.persist import (
     PersistError,
     atomic_write_text,
+    folders_to_be_made,
     load_checkpoint,
     load_weights,
     make_directory,
     read_regular_bytes,
     read_regular_text,
+    remove_empty_folders,
     save_weights,
     write_json,
 )
@@ -1115,6 +1127,9 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    made = folders_to_be_made(config.data_dir)
+    store_made = not os.path.lexists(config.data_dir / "store")
+    serving = False
     try:
         prepare(config)
         bus: Bus = OfflineBus() if config.offline else ZenohBus(config.net)
@@ -1125,6 +1140,7 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
             raise
         try:
             server.start()
+            serving = True
             record(config)  # once it serves: a refused start leaves the last run's record as it was
             if on_started is not None:
                 on_started(server)
@@ -1140,6 +1156,13 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
                 server.stop()  # a second signal meanwhile must not cut the final checkpoint short
             finally:
                 bus.close()  # also where the final checkpoint failed: an open session held the process
+    except BaseException:
+        if not serving:  # a refused start: the store and folders it made go, if still empty
+            if store_made:
+                with contextlib.suppress(OSError):  # the refusal is what is said
+                    remove_empty_log(config.data_dir / "store")
+            remove_empty_folders(made)
+        raise
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)

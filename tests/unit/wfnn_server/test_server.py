@@ -896,3 +896,44 @@ def test_host_names_and_endpoints_longer_than_any_are_refused():
     # Certificates inline after '#' make long endpoints that Zenoh takes: so are they here.
     NetConfig(listen=("tls/127.0.0.1:7447#listen_certificate_base64=" + "A" * 4000,))
     DashboardConfig(port=0, host="a" * 253)
+
+
+@pytest.mark.parametrize("data_dir_there", [False, True])
+def test_a_refused_start_leaves_none_of_the_folders_or_empty_store_it_made(tmp_path, data_dir_there):
+    import socket
+
+    from wfnn_io.bus import NetConfig
+    from wfnn_server.config import DashboardConfig
+    from wfnn_server.server import run
+
+    data = tmp_path / "runs" / "s1"
+    if data_dir_there:
+        data.mkdir(parents=True)
+        (data / "notes.txt").write_text("mine")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        anywhere = NetConfig(listen=("tcp/127.0.0.1:0",))
+        network_port = NetConfig(listen=(f"tcp/127.0.0.1:{port}",))
+        for net, dashboard in ((network_port, None), (anywhere, DashboardConfig(port=port))):
+            config = ServerConfig(controller="t", server_id="s1", data_dir=data, net=net, dashboard=dashboard)
+            with pytest.raises(OSError):
+                run(config)
+            if data_dir_there:
+                assert sorted(p.name for p in data.iterdir()) == ["notes.txt"]
+            else:
+                assert list(tmp_path.iterdir()) == []
+    # A store that was there before is never removed (here: a torn byte, which opening it moves
+    # to quarantine), even where the start is refused.
+    store = data / "store"
+    store.mkdir(parents=True)
+    (store / "00000000.seg").write_bytes(b"x")
+    config = ServerConfig(controller="t", server_id="s1", data_dir=data, net=anywhere,
+                          dashboard=DashboardConfig(port=port))  # fmt: skip
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", port))
+        taken.listen()
+        with pytest.raises((OSError, ValueError)):
+            run(config)
+    assert [p.read_bytes() for p in (store / "quarantine").iterdir()] == [b"x"]
