@@ -235,8 +235,11 @@ def atomic_write_text(path: Path, text: str) -> None:
 def make_directory(path: Path, what: str) -> None:
     """Make directory `path` (and its parents); NotADirectoryError naming `what` if a file is there."""
     path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise NotADirectoryError(20, f"exists and is not a directory ({what})", str(path))
+    if os.path.lexists(path) and not path.is_dir():
+        if path.is_symlink() and not path.exists():  # mkdir would say only "File exists"
+            why = f"is a symbolic link to nowhere (a loop, or a missing target) ({what})"
+            raise NotADirectoryError(errno.ENOTDIR, why, str(path))
+        raise NotADirectoryError(errno.ENOTDIR, f"exists and is not a directory ({what})", str(path))
     path.mkdir(parents=True, exist_ok=True)
 
 

@@ -49,3 +49,21 @@ for attempt in (lambda: writable(out), lambda: atomic_write_text(out, "x" * 100_
     out = str(tmp_path / "results.json")
     assert lines[:2] == [f"refused 27 {out}", f"refused 27 {out}"]
     assert list(tmp_path.iterdir()) == []  # no probe, no temporary file left
+
+
+def test_a_folder_to_make_at_a_link_to_nowhere_is_refused_saying_so(tmp_path):
+    import pytest
+
+    from wfnn_io.persist import make_directory
+
+    (tmp_path / "loop").symlink_to("loop")
+    (tmp_path / "dangling").symlink_to("missing")
+    for name in ("loop", "dangling"):
+        with pytest.raises(NotADirectoryError, match=r"symbolic link to nowhere.*--out"):
+            make_directory(tmp_path / name, "--out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dangling", "loop"]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(NotADirectoryError, match="exists and is not a directory"):
+        make_directory(tmp_path / "file", "--out")
+    make_directory(tmp_path / "a" / "b", "--out")
+    assert (tmp_path / "a" / "b").is_dir()
