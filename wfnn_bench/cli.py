@@ -42,7 +42,7 @@ from wfnn_bench import transport as transport_bench
 from wfnn_bench import vs_sb3 as vs_sb3_bench
 from wfnn_bench.common import write_json
 from wfnn_bench.hosts import unavailable as hosts_unavailable
-from wfnn_io.cli_errors import guarded, log_printably, path_given
+from wfnn_io.cli_errors import file_given, guarded, log_printably, path_given
 from wfnn_io.persist import to_jsonable, writable
 
 MAX_POPULATION = 100_000
@@ -55,10 +55,10 @@ app = typer.Typer(
 console = Console()
 
 JsonOpt = Annotated[
-    Path | None, typer.Option("--json", parser=path_given, help="Write the full result as JSON here.")
+    Path | None, typer.Option("--json", parser=file_given, help="Write the full result as JSON here.")
 ]
 PlotOpt = Annotated[
-    Path | None, typer.Option("--plot", parser=path_given, help="Write the figure as PNG here.")
+    Path | None, typer.Option("--plot", parser=file_given, help="Write the figure as PNG here.")
 ]
 
 

@@ -31,7 +31,7 @@ import typer
 from numpy.typing import NDArray
 
 from wfnn_common.config import check_fields, settings
-from wfnn_io.cli_errors import guarded, one_line, path_given
+from wfnn_io.cli_errors import file_given, guarded, one_line, path_given
 from wfnn_io.logs import is_log
 from wfnn_io.persist import (
     atomic_write_bytes,
@@ -431,7 +431,7 @@ def report(
         Path,
         typer.Argument(parser=path_given, help="A run directory, a benchmark JSON, or a folder of them."),
     ],
-    out: Annotated[Path | None, typer.Option(parser=path_given, help="The HTML file to write.")] = None,
+    out: Annotated[Path | None, typer.Option(parser=file_given, help="The HTML file to write.")] = None,
 ) -> None:
     """Render a self-contained HTML report (and a PNG of a run's curves)."""
     try:

@@ -27,7 +27,15 @@ from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import NetConfig
-from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, one_line, path_given
+from wfnn_io.cli_errors import (
+    STATUS_LINE_EVERY_S,
+    Every,
+    file_given,
+    guarded,
+    log_printably,
+    one_line,
+    path_given,
+)
 from wfnn_io.persist import folders_to_be_made, remove_empty_folders
 
 app = typer.Typer(help="Simulated robot learning by WFNN Q-learning (act-learn-think-MT or -C/S).")
@@ -219,7 +227,7 @@ def client(
         typer.Option("--out", "--record", parser=path_given, help="Run directory (journal, weights...)."),
     ] = Path("runs/latest"),
     json_stats: Annotated[
-        Path | None, typer.Option(parser=path_given, help="Write the final figures as JSON here.")
+        Path | None, typer.Option(parser=file_given, help="Write the final figures as JSON here.")
     ] = None,
     timing_trace: Annotated[
         bool, typer.Option(help="Also write every tick's timing and every applied snapshot into the metrics.")

@@ -119,6 +119,19 @@ def path_given(value: str | Path) -> Path:
     return Path(value)
 
 
+def file_given(value: str | Path) -> Path:
+    """A file to write, from the command line: as `path_given`, and one ending in a slash refused.
+
+    Such a name is a folder's; `Path` would drop the slash unsaid and write a file there.
+    """
+    if isinstance(value, Path):
+        return value  # a default
+    path = path_given(value)
+    if value.endswith(("/", os.sep)):
+        raise ValueError(f"{value}: names a folder (a file's name is needed here)")
+    return path
+
+
 def _one(exc: BaseException) -> str:
     if (isinstance(exc, FileExistsError) and exc.filename is not None and os.path.isfile(exc.filename)
             and exc.strerror == os.strerror(errno.EEXIST)):  # fmt: skip

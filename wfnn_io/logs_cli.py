@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from wfnn_io import logs
-from wfnn_io.cli_errors import describe, guarded, log_printably, one_line, path_given
+from wfnn_io.cli_errors import describe, file_given, guarded, log_printably, one_line, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import load_key
 
@@ -133,7 +133,7 @@ def split(
 @app.command()
 def export(
     sources: Annotated[list[Path], typer.Argument(parser=path_given, help="Logs to export (merged).")],
-    out: Annotated[Path, typer.Option(parser=path_given, help="The .npz file to write (a new one).")],
+    out: Annotated[Path, typer.Option(parser=file_given, help="The .npz file to write (a new one).")],
     key_file: KeyOpt = None,
     replace: Annotated[bool, typer.Option(help="Write over a file already at --out.")] = False,
 ) -> None:

@@ -115,3 +115,21 @@ def test_an_error_raised_from_a_full_disk_is_the_machines_one_line_and_exit_2(ca
     full, fault = caplog.records
     assert full.exc_info is None and "No space left on device" in full.getMessage()
     assert fault.exc_info is not None
+
+
+def test_a_file_to_write_named_with_a_trailing_slash_is_refused_before_anything_runs(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import pytest
+
+    from wfnn_io.cli_errors import file_given
+
+    assert file_given(str(tmp_path / "a.json")) == tmp_path / "a.json"
+    with pytest.raises(ValueError, match="names a folder"):
+        file_given(f"{tmp_path / 'a.json'}/")
+    out = f"{tmp_path / 'speed.json'}/"
+    command = [sys.executable, "-m", "wfnn_bench.cli", "speed", "--json", out]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, cwd=Path(__file__).parents[3])
+    assert done.returncode == 2 and "names a folder" in done.stderr and list(tmp_path.iterdir()) == []
