@@ -29,7 +29,7 @@ import logging
 import queue
 import re
 import threading
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import Enum
@@ -195,6 +195,11 @@ def guarded(target: Callable[[], object], on_error: Callable[[BaseException], ob
             on_error(exc)
 
     return run
+
+
+MAX_PUBLISHERS = 256
+"""Publishers a bus keeps declared (the least recently used goes first): each key published on
+needs one, and acks carry the client's id in their key."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -424,7 +429,8 @@ class ZenohBus:
         self._zenoh = zenoh
         self.net = net
         self.session = self._open()
-        self._publishers: dict[tuple[str, Channel], Any] = {}
+        self._publishers: OrderedDict[tuple[str, Channel], Any] = OrderedDict()
+        """Publishers declared, least recently used first (at most MAX_PUBLISHERS)."""
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._closed = False
@@ -475,6 +481,14 @@ class ZenohBus:
                 reliable = z.Reliability.RELIABLE
                 pub = self.session.declare_publisher(key, reliability=reliable, **options[channel])
                 self._publishers[(key, channel)] = pub
+                if len(self._publishers) > MAX_PUBLISHERS:
+                    # The least recently used goes: acks name their client in the key, and every
+                    # client id a server ever answered (any sender may pick one) kept a publisher.
+                    # Dropped, not undeclared here: a put on another thread may still hold it, and
+                    # Zenoh undeclares a publisher once nothing refers to it.
+                    self._publishers.popitem(last=False)
+            else:
+                self._publishers.move_to_end((key, channel))
             return pub
 
     def put(self, key: str, payload: bytes, channel: Channel) -> None:
