@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Any, NamedTuple, cast
 
 import numpy as np
@@ -55,22 +56,24 @@ class ReplayBuffer:
         self.successor: IntArray | None = None
         """Where linking (`link_successors`): per learner and stored experience [P, capacity], the
         number (in `added`'s count) of the experience that continues it, -1 for none yet."""
-        self._open: list[dict[bytes, int]] = []
-        """Where linking: per learner, the next states of experiences still waiting for their
-        successor (not terminal), as bytes, and those experiences' numbers; oldest first."""
+        self._open: list[OrderedDict[int, int]] = []
+        """Where linking: per learner, the experiences still waiting for their successor (not
+        terminal), by a hash of their next state's bytes (a state of 1,024 numbers would keep
+        8 KiB a row), oldest first."""
 
     def link_successors(self) -> None:
         """From now on, link each stored experience to the one stored later that continues it.
 
         An experience continues another when it starts exactly from that one's next state, and
-        that was not terminal; the first such experience stored is the one linked. Experiences
-        from several sources (clients, a task's mirrored images) arrive interleaved in any order,
-        and each chain is followed on its own. At most OPEN_LINKS experiences per learner wait for
-        a successor (the oldest gives up first), so the bookkeeping stays bounded.
+        that was not terminal; the first such experience stored is the one linked (where several
+        end at one state, the newest of them waits for it). Experiences from several sources
+        (clients, a task's mirrored images) arrive interleaved in any order, and each chain is
+        followed on its own. At most OPEN_LINKS experiences per learner wait for a successor (the
+        oldest gives up first), so the bookkeeping stays bounded.
         """
         if self.successor is None:
             self.successor = np.full((self.population, self.capacity), -1, dtype=np.int64)
-            self._open = [{} for _ in range(self.population)]
+            self._open = [OrderedDict() for _ in range(self.population)]
 
     @property
     def terminal(self) -> BoolArray:
@@ -129,6 +132,7 @@ class ReplayBuffer:
         Each is linked from the experience it continues, and waits for its own successor.
         """
         successor, waiting = cast(IntArray, self.successor)[learner], self._open[learner]
+        ends_stored = self.next_state[learner]
         oldest = first + len(state) - self.capacity  # numbers below this are overwritten by now
         starts = np.ascontiguousarray(state)
         ends = np.ascontiguousarray(next_state)
@@ -136,15 +140,17 @@ class ReplayBuffer:
         for i in range(len(state)):
             number = first + i
             successor[number % self.capacity] = -1  # a new experience in this slot: none yet
-            before = waiting.pop(starts[i].tobytes(), -1)
-            if before >= 0 and before >= oldest:  # still stored: linked
+            start = starts[i].tobytes()
+            before = waiting.pop(hash(start), -1)
+            # Still stored, and truly ending where this starts (not another state of equal hash).
+            if before >= 0 and before >= oldest and ends_stored[before % self.capacity].tobytes() == start:
                 successor[before % self.capacity] = number
             if not ended[i]:
-                key = ends[i].tobytes()
+                key = hash(ends[i].tobytes())
                 waiting.pop(key, None)  # the newest with this next state waits, and is newest in line
                 waiting[key] = number
                 if len(waiting) > OPEN_LINKS:
-                    del waiting[next(iter(waiting))]
+                    waiting.popitem(last=False)
 
     def continuation(self, learner: int, idx: IntArray) -> tuple[IntArray, BoolArray]:
         """Slots [n] of the experiences that continue those at slots idx [n], and which do.

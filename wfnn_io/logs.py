@@ -75,6 +75,7 @@ from wfnn_io.segments import (
     LOCK,
     Damage,
     FsyncPolicy,
+    LogError,
     Position,
     ReadReport,
     SegmentLog,
@@ -110,21 +111,29 @@ def remove_empty_log(directory: Path) -> bool:
     """Remove a log that holds no record (what a refused start made); -> whether it was removed.
 
     Only a folder of empty segments, its lock and its `log.json` goes; anything else in it, or one
-    byte in a segment, and it is left whole.
+    byte in a segment, and it is left whole. So is a log another process has open (its lock is
+    held): one that started beside the refused one and took the folder.
     """
     directory = Path(directory)
     if not directory.is_dir() or directory.is_symlink():
         return False
-    entries = list(directory.iterdir())
-    own = {LOCK, LOG_JSON}
-    for entry in entries:
-        if entry.is_symlink() or not entry.is_file():
-            return False
-        if entry.name not in own and not (entry.suffix == ".seg" and entry.stat().st_size == 0):
-            return False
-    for entry in entries:
-        entry.unlink()
-    directory.rmdir()
+    try:
+        lock = take_lock(directory)  # held while it is removed: no owner can open it meanwhile
+    except LogError:
+        return False
+    try:
+        entries = list(directory.iterdir())
+        own = {LOCK, LOG_JSON}
+        for entry in entries:
+            if entry.is_symlink() or not entry.is_file():
+                return False
+            if entry.name not in own and not (entry.suffix == ".seg" and entry.stat().st_size == 0):
+                return False
+        for entry in entries:
+            entry.unlink()
+        directory.rmdir()
+    finally:
+        os.close(lock)
     return True
 
 
@@ -341,7 +350,12 @@ class ExperienceLog:
         segment_bytes: int = 64 << 20,
     ) -> None:
         self.directory = Path(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        try:
+            self.directory.mkdir(parents=True)
+            self.made = True
+            """Whether opening it made its folder (a new log)."""
+        except FileExistsError:
+            self.made = False
         check_free(self.directory)  # a log in use: refused before its log.json is set aside or rewritten
         try:
             info = read_log_json(self.directory)

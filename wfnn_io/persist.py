@@ -236,11 +236,21 @@ def make_directory(path: Path, what: str) -> None:
     """Make directory `path` (and its parents); NotADirectoryError naming `what` if a file is there."""
     path = Path(path)
     if os.path.lexists(path) and not path.is_dir():
-        if path.is_symlink() and not path.exists():  # mkdir would say only "File exists"
-            why = f"is a symbolic link to nowhere (a loop, or a missing target) ({what})"
-            raise NotADirectoryError(errno.ENOTDIR, why, str(path))
+        _nowhere(path, what)
         raise NotADirectoryError(errno.ENOTDIR, f"exists and is not a directory ({what})", str(path))
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError as exc:  # a folder on the way is a link to nowhere, say
+        if exc.filename is not None:
+            _nowhere(Path(exc.filename), what)
+        raise
+
+
+def _nowhere(path: Path, what: str) -> None:
+    """NotADirectoryError if `path` is a symbolic link to nowhere (mkdir says only "File exists")."""
+    if path.is_symlink() and not path.exists():
+        why = f"is a symbolic link to nowhere (a loop, or a missing target) ({what})"
+        raise NotADirectoryError(errno.ENOTDIR, why, str(path))
 
 
 def folders_to_be_made(folder: Path) -> list[Path]:

@@ -1128,8 +1128,7 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     made = folders_to_be_made(config.data_dir)
-    store_made = not os.path.lexists(config.data_dir / "store")
-    serving = False
+    store_made = serving = False
     try:
         prepare(config)
         bus: Bus = OfflineBus() if config.offline else ZenohBus(config.net)
@@ -1138,6 +1137,7 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
         except BaseException:
             bus.close()  # an open session would hold the process at exit
             raise
+        store_made = server.store.made  # this start made the store's folder itself
         try:
             server.start()
             serving = True
@@ -1158,7 +1158,7 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
                 bus.close()  # also where the final checkpoint failed: an open session held the process
     except BaseException:
         if not serving:  # a refused start: the store and folders it made go, if still empty
-            if store_made:
+            if store_made:  # (and not taken meanwhile by another server: see remove_empty_log)
                 with contextlib.suppress(OSError):  # the refusal is what is said
                     remove_empty_log(config.data_dir / "store")
             remove_empty_folders(made)

@@ -85,6 +85,8 @@ class ExperienceStore:
                                  fsync_interval_s=fsync_interval_s)  # fmt: skip
         self.id = self.log.id
         """The store's identity (announced in acks and status)."""
+        self.made = self.log.made
+        """Whether opening it made its folder (a new store)."""
         self._codec = Codec(server_id)
         self.stored_through: dict[str, int] = {}
         """Per client: its newest experience stored (those before it are stored, but for `holes`)."""

@@ -498,3 +498,19 @@ def test_weights_made_for_another_network_are_refused_by_either_learner():
     # The same network under another config's other fields is fine (a server adopting a config).
     make_learner(replace(thesis, gamma=0.5), params=make_learner(thesis).params)
     make_learner(replace(deep, gamma=0.5), params=make_learner(deep).params)
+
+
+def test_replay_never_links_experiences_whose_states_only_share_a_hash(monkeypatch):
+    """Waiting experiences are keyed by a hash of their next state: a collision must not link."""
+    monkeypatch.setattr(replay_module, "hash", lambda data: 0, raising=False)  # every state collides
+    buf = ReplayBuffer(1, 16, 1, 1)
+    buf.link_successors()
+    rng = np.random.default_rng(3)
+    for k in range(12):  # two chains, a 0 -> 1 -> 2 ... and b 100 -> 101 ..., two steps at a time
+        s = float((k // 4) * 2 + k % 2 + (100 if (k // 2) % 2 else 0))
+        action, reward, terminal = rng.uniform(size=(1, 1)), np.zeros(1), np.array([False])
+        buf.extend(0, Experiences(np.array([[s]]), action, np.array([[s + 1]]), reward, terminal))
+    slots, has = buf.continuation(0, np.arange(12))
+    assert has.any()  # where the newest waiting one is the right one, it is linked
+    for slot in np.flatnonzero(has):
+        assert buf.state[0, slots[slot], 0] == buf.next_state[0, slot, 0]

@@ -58,7 +58,7 @@ def test_a_folder_to_make_at_a_link_to_nowhere_is_refused_saying_so(tmp_path):
 
     (tmp_path / "loop").symlink_to("loop")
     (tmp_path / "dangling").symlink_to("missing")
-    for name in ("loop", "dangling"):
+    for name in ("loop", "dangling", "dangling/run"):
         with pytest.raises(NotADirectoryError, match=r"symbolic link to nowhere.*--out"):
             make_directory(tmp_path / name, "--out")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dangling", "loop"]

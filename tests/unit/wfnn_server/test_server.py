@@ -1,6 +1,7 @@
 import json
 import logging
 import time
+import types
 
 import numpy as np
 import pytest
@@ -834,7 +835,7 @@ def test_a_server_whose_final_checkpoint_fails_still_closes_its_session(tmp_path
         error = None
 
         def __init__(self, config, bus):
-            pass
+            self.store = types.SimpleNamespace(made=False)  # its store was there before
 
         def start(self):
             pass
@@ -937,3 +938,24 @@ def test_a_refused_start_leaves_none_of_the_folders_or_empty_store_it_made(tmp_p
         with pytest.raises((OSError, ValueError)):
             run(config)
     assert [p.read_bytes() for p in (store / "quarantine").iterdir()] == [b"x"]
+
+
+def test_a_refused_start_never_removes_a_store_another_server_has_open(tmp_path):
+    """Spelled through a folder that did not exist yet (`missing/../data`), the store looked new."""
+    from wfnn_io.bus import NetConfig
+    from wfnn_io.logs import ExperienceLog, remove_empty_log
+    from wfnn_server.server import run
+
+    data = tmp_path / "data"
+    serving = ExperienceLog(data / "store")  # another server's store, open and still empty
+    assert serving.made
+    try:
+        config = ServerConfig(controller="t", server_id="s2", data_dir=tmp_path / "missing" / ".." / "data",
+                              net=NetConfig(listen=("tcp/127.0.0.1:0",)))  # fmt: skip
+        with pytest.raises(OSError, match="in use"):
+            run(config)
+        assert not remove_empty_log(data / "store")  # its lock is held
+        assert sorted(p.name for p in (data / "store").iterdir()) == [".lock", "00000000.seg", "log.json"]
+    finally:
+        serving.close()
+    assert remove_empty_log(data / "store") and not (data / "store").exists()
