@@ -193,10 +193,12 @@ class ServerTable:
 
         A message of an earlier start of the store announced now is refused (False): a recorded
         frame replayed, which a MAC does not tell from a fresh one. While that server is alive, a
-        lower incarnation or an earlier start of the same incarnation is earlier; once it is
-        silent, only a start earlier by both (a lower or equal incarnation that started before),
-        so that a restored backup (a lower incarnation started later) and a start after the
-        server's clock was set back (a higher incarnation started "before") are still taken.
+        lower incarnation or an earlier start is earlier (a higher incarnation that started before
+        the one announced now was lost with a disk and is replayed after a backup was restored:
+        taken, it shut the live server out); once it is silent, only a start earlier by both (a
+        lower or equal incarnation that started before), so that a restored backup (a lower
+        incarnation started later) and a start after the server's clock was set back (a higher
+        incarnation started "before") are still taken.
         Another store: with a key, refused unless it started later than the start announced now
         (a server restarted on another data directory starts after the start it replaces; one
         started before is a frame of an earlier store, replayed, which would drive the robot with
@@ -207,10 +209,8 @@ class ServerTable:
         alive.
         """
         if store == view.store:
-            if view.alive:
-                earlier = incarnation < view.incarnation or (
-                    incarnation == view.incarnation and started_ns < view.started_ns
-                )
+            if view.alive:  # a higher incarnation that started before: a lost one, replayed after a restore
+                earlier = incarnation < view.incarnation or started_ns < view.started_ns
             else:
                 earlier = incarnation <= view.incarnation and started_ns < view.started_ns
             if earlier:

@@ -411,6 +411,34 @@ def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path
     brain.stop()
 
 
+def test_a_lost_later_incarnation_replayed_after_a_restore_never_shuts_the_live_server_out(tmp_path):
+    """Incarnations 2 and 3 lost with the disk, the backup of incarnation 1 restored: the live
+    server is incarnation 2 again, started later. Frames of the lost incarnation 3 (higher, and
+    started before it) replayed while it is alive were taken, and its own refused as stale."""
+    hub, cfg = Hub(), small_config()
+    brain, bus = keyed(tmp_path, hub, cfg)
+    codec = server_codec("s1", KEY)
+
+    def status(incarnation, started_ns):
+        return codec.encode(ServerStatus(
+            server="s1", incarnation=incarnation, store="store1", started_ns=started_ns,
+            spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), weights_version=0, stored_through={},
+            rejected={}, metrics={},
+        ))  # fmt: skip
+
+    lost = status(3, 30)  # recorded before the disk was lost
+    bus.declare_token(KEYS.server_alive("s1"))
+    bus.put(KEYS.server_status("s1"), status(2, 40), None)  # the restored server's start
+    bus.put(KEYS.weights("s1"), forge(cfg, version=1, incarnation=2, key=KEY, started_ns=40), None)
+    assert wait(lambda: brain.current is not None and brain.current.incarnation == 2)
+    for n in range(1, 4):
+        bus.put(KEYS.server_status("s1"), lost, None)
+        assert wait(lambda n=n: brain.rejected["status_stale"] == n)
+    view = brain.servers["s1"]
+    assert (view.incarnation, view.started_ns) == (2, 40) and brain.current.incarnation == 2
+    brain.stop()
+
+
 def status_frame(cfg, server="s1", started_ns=1, incarnation=1, store="store1", weights_version=0, key=KEY):
     """A server's status as its codec frames it (numbered after its earlier frames)."""
     status = ServerStatus(
