@@ -188,6 +188,9 @@ class ThinkServer:
             self._set_up(config)
         except BaseException:  # a start refused (bad logs or config): the store closed, unlocked
             self.store.close()
+            if self.store.made:  # and, new and still empty, gone (unless another server took it)
+                with contextlib.suppress(OSError):  # the refusal is what is said
+                    remove_empty_log(self.data_dir / "store")
             raise
 
     def _set_up(self, config: ServerConfig) -> None:

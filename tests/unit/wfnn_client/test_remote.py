@@ -411,7 +411,7 @@ def test_an_earlier_start_replayed_while_the_server_is_alive_is_refused(tmp_path
     brain.stop()
 
 
-def test_a_lost_later_incarnation_replayed_after_a_restore_never_shuts_the_live_server_out(tmp_path):
+def test_a_lost_later_incarnation_replayed_while_the_restored_server_is_alive_is_refused(tmp_path):
     """Incarnations 2 and 3 lost with the disk, the backup of incarnation 1 restored: the live
     server is incarnation 2 again, started later. Frames of the lost incarnation 3 (higher, and
     started before it) replayed while it is alive were taken, and its own refused as stale."""

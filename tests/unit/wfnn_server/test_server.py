@@ -940,6 +940,20 @@ def test_a_refused_start_leaves_none_of_the_folders_or_empty_store_it_made(tmp_p
     assert [p.read_bytes() for p in (store / "quarantine").iterdir()] == [b"x"]
 
 
+def test_a_start_refused_while_setting_up_leaves_none_of_the_folders_or_empty_store_it_made(tmp_path):
+    """Refused after its store was opened (a learner config that is not JSON): as one refused later."""
+    from wfnn_io.bus import NetConfig
+    from wfnn_server.server import run
+
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    data, net = tmp_path / "runs" / "s1", NetConfig(listen=("tcp/127.0.0.1:0",))
+    config = ServerConfig(controller="t", server_id="s1", data_dir=data, learner_config=bad, net=net)
+    with pytest.raises((OSError, ValueError)):
+        run(config)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json"]
+
+
 def test_a_refused_start_never_removes_a_store_another_server_has_open(tmp_path):
     """Spelled through a folder that did not exist yet (`missing/../data`), the store looked new."""
     from wfnn_io.bus import NetConfig
