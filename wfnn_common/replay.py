@@ -134,8 +134,8 @@ class ReplayBuffer:
         successor, waiting = cast(IntArray, self.successor)[learner], self._open[learner]
         ends_stored = self.next_state[learner]
         oldest = first + len(state) - self.capacity  # numbers below this are overwritten by now
-        starts = np.ascontiguousarray(state)
-        ends = np.ascontiguousarray(next_state)
+        starts = np.ascontiguousarray(state, dtype=self.data.dtype)  # as stored: bytes compare alike
+        ends = np.ascontiguousarray(next_state, dtype=self.data.dtype)
         ended = np.asarray(terminal).astype(np.bool_)
         for i in range(len(state)):
             number = first + i

@@ -514,3 +514,15 @@ def test_replay_never_links_experiences_whose_states_only_share_a_hash(monkeypat
     assert has.any()  # where the newest waiting one is the right one, it is linked
     for slot in np.flatnonzero(has):
         assert buf.state[0, slots[slot], 0] == buf.next_state[0, slot, 0]
+
+
+def test_replay_links_experiences_given_in_float32_as_it_stores_them():
+    """The ring holds float64; states given in float32 are compared as stored, not as given."""
+    buf = ReplayBuffer(1, 8, 1, 1)
+    buf.link_successors()
+    f = np.float32
+    for s in (0.1, 0.2):
+        buf.extend(0, Experiences(np.array([[s]], f), np.zeros((1, 1), f), np.array([[s + f(0.1)]], f),
+                                  np.zeros(1, f), np.array([False])))  # fmt: skip
+    slots, has = buf.continuation(0, np.array([0]))
+    assert has.tolist() == [True] and slots.tolist() == [1]
