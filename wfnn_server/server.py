@@ -16,7 +16,6 @@ Nothing in the data directory is deleted: a file that cannot be read is set asid
 from __future__ import annotations
 
 import collections
-import contextlib
 import dataclasses
 import itertools
 import logging
@@ -43,7 +42,6 @@ from wfnn_io.logs import (
     common_config,
     merged,
     read_log_json,
-    remove_empty_log,
     set_aside,
     widths,
 )
@@ -188,9 +186,7 @@ class ThinkServer:
             self._set_up(config)
         except BaseException:  # a start refused (bad logs or config): the store closed, unlocked
             self.store.close()
-            if self.store.made:  # and, new and still empty, gone (unless another server took it)
-                with contextlib.suppress(OSError):  # the refusal is what is said
-                    remove_empty_log(self.data_dir / "store")
+            self.store.remove_if_new()
             raise
 
     def _set_up(self, config: ServerConfig) -> None:
@@ -1131,7 +1127,8 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     made = folders_to_be_made(config.data_dir)
-    store_made = serving = False
+    server: ThinkServer | None = None  # made: a refusal inside removes its own new store
+    serving = False
     try:
         prepare(config)
         bus: Bus = OfflineBus() if config.offline else ZenohBus(config.net)
@@ -1140,7 +1137,6 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
         except BaseException:
             bus.close()  # an open session would hold the process at exit
             raise
-        store_made = server.store.made  # this start made the store's folder itself
         try:
             server.start()
             serving = True
@@ -1161,9 +1157,8 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
                 bus.close()  # also where the final checkpoint failed: an open session held the process
     except BaseException:
         if not serving:  # a refused start: the store and folders it made go, if still empty
-            if store_made:  # (and not taken meanwhile by another server: see remove_empty_log)
-                with contextlib.suppress(OSError):  # the refusal is what is said
-                    remove_empty_log(config.data_dir / "store")
+            if server is not None:
+                server.store.remove_if_new()
             remove_empty_folders(made)
         raise
     finally:

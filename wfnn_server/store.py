@@ -28,13 +28,14 @@ store is known to its clients as another store, and they re-send it everything.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from wfnn_io.logs import ExperienceLog
+from wfnn_io.logs import ExperienceLog, remove_empty_log
 from wfnn_io.protocol import EXP_AFTER_LOSS, Codec, ExperienceBatch
 from wfnn_io.segments import FsyncPolicy
 
@@ -86,7 +87,7 @@ class ExperienceStore:
         self.id = self.log.id
         """The store's identity (announced in acks and status)."""
         self.made = self.log.made
-        """Whether opening it made its folder (a new store)."""
+        """Whether opening it made its folder (a new store: `remove_if_new`)."""
         self._codec = Codec(server_id)
         self.stored_through: dict[str, int] = {}
         """Per client: its newest experience stored (those before it are stored, but for `holes`)."""
@@ -273,6 +274,16 @@ class ExperienceStore:
     def close(self) -> None:
         """Sync and close the log."""
         self.log.close()
+
+    def remove_if_new(self) -> None:
+        """After `close`, for a refused start: the folder this store made goes, if still empty.
+
+        Left as it is where it was there before, holds a record, or another server has opened it
+        meanwhile (`remove_empty_log`); a failure to remove it is not what to report.
+        """
+        if self.made:
+            with contextlib.suppress(OSError):
+                remove_empty_log(self.log.directory)
 
 
 def _size(holes: Iterable[Hole]) -> int:
