@@ -209,7 +209,15 @@ class Journal:
         return self.log.due()
 
     def close(self) -> None:
-        """Sync and close; release the numbers reserved beyond the journal."""
-        self.log.close()
-        if self.reserved_through >= 0:  # numbering goes on after next_seq - 1, as servers were told
-            self._write_meta(self.next_seq - 1, closed=True)
+        """Sync and close; release the numbers reserved beyond the journal.
+
+        The release is written while the journal's lock is still held: written after it, a
+        client started on the same folder in between read the reservation as a crash's, declared
+        the reserved numbers lost, and then had its own client.json overwritten by this one.
+        """
+        try:
+            self.log.sync()  # the records first: "closed" must never describe a journal not on disk
+            if self.reserved_through >= 0:  # numbering goes on after next_seq - 1, as servers were told
+                self._write_meta(self.next_seq - 1, closed=True)
+        finally:
+            self.log.close()

@@ -69,3 +69,45 @@ def test_a_journal_whose_records_end_near_the_last_number_is_refused_before_it_t
     journal.close()
     with pytest.raises(ValueError, match="too near the last number"):
         Journal(tmp_path / "j")
+
+
+def test_closing_releases_the_reserved_numbers_before_the_lock(tmp_path):
+    """A client started on the folder while the last one closes is refused, never misled.
+
+    The closing journal writes its release (closed, numbering from next_seq) while it still holds
+    the lock; released first, a second journal opened in between read the reservation as a
+    crash's and skipped the reserved numbers.
+    """
+    import json
+
+    import pytest
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import CLIENT_JSON, Journal
+    from wfnn_io.segments import LogError
+
+    cfg = small_config()
+    first = Journal(tmp_path / "j", "c1", fsync="never")
+    first.reserve(9)
+    b = batch(cfg, 0, 10)
+    first.append(Codec("c1").encode(b), b.last_seq)
+    tried: list[str] = []
+    write_meta = Journal._write_meta
+
+    def meet_a_second_client(self: Journal, reserved_through: int, closed: bool) -> None:
+        if self is first and closed:
+            with pytest.raises(LogError, match="in use"):
+                Journal(tmp_path / "j", "c1", fsync="never")
+            tried.append("refused")
+        write_meta(self, reserved_through, closed)
+
+    Journal._write_meta = meet_a_second_client  # type: ignore[method-assign]
+    try:
+        first.close()
+    finally:
+        Journal._write_meta = write_meta  # type: ignore[method-assign]
+    assert tried == ["refused"]
+    assert json.loads((tmp_path / "j" / CLIENT_JSON).read_text())["closed"] is True
+    again = Journal(tmp_path / "j", "c1", fsync="never")
+    assert again.next_seq == 10 and again.skipped_at_open == 0
+    again.close()
