@@ -114,7 +114,7 @@ class Dashboard:
         self.cpu_s = 0.0
         """CPU time spent by the dashboard (requests and sampling), seconds."""
         self.requests = 0
-        self._started = time.time()
+        self._started = time.monotonic()  # the page trims by t: it must never run backwards
         self.page = resources.files("wfnn_server").joinpath("static", "dashboard.html").read_bytes()
         self.script = resources.files("wfnn_server").joinpath("static", "dashboard.js").read_bytes()
         self.plotly = _plotly_js()
@@ -167,7 +167,7 @@ class Dashboard:
             if (c := view.clients.get(cid)) is not None
         }
         sample = {
-            "t": round(time.time() - self._started, 3),
+            "t": round(now - self._started, 3),
             **{name: m.get(key) for name, key in SERIES.items()},
             "clients": clients,
         }

@@ -167,3 +167,24 @@ def test_an_ipv6_dashboard_host_may_come_in_brackets():
     assert DashboardConfig(port=8080, host="[::1]").host == "::1"
     assert DashboardConfig(port=8080, host="::1").url == "http://[::1]:8080/"
     assert DashboardConfig(port=8080, host="[::1]").loopback
+
+
+def test_the_samples_time_axis_never_runs_backwards_when_the_wall_clock_is_set_back(tmp_path, monkeypatch):
+    """The page trims each curve by its samples' t, assuming t only grows (as a corrected clock's
+    wall time need not): a step back left the clients' curves growing without bound."""
+    import time
+
+    hub, cfg = Hub(), small_config()
+    with make_server(tmp_path, hub, cfg, dashboard=DashboardConfig(port=0, update_hz=30)) as server:
+        port = server.dashboard.port
+
+        def samples():
+            return json.loads(_get(port, "/api/view")[2])["samples"]
+
+        assert wait_for(lambda: len(samples()) >= 3)
+        before = len(samples())
+        wall = time.time
+        monkeypatch.setattr(time, "time", lambda: wall() - 3600.0)  # the clock set back an hour
+        assert wait_for(lambda: len(samples()) >= before + 3)
+        t = [s["t"] for s in samples()]
+        assert t == sorted(t) and t[0] >= 0.0
