@@ -224,6 +224,7 @@ class Downlink:
                     return
                 view.status_seq = seq
             view.heard, view.gone, view.alive = time.monotonic(), False, True  # as `_refresh` would say
+            view.born = min(view.born, _born(status, view.heard))
             view.spec_hash = status.spec_hash
             new_config = view.learner_config != status.learner_config and bool(status.learner_config)
             view.metrics = status.metrics
@@ -368,10 +369,8 @@ class Downlink:
             views = list(self.table.views.values())
             if self.config.follow is not None:
                 views = [v for v in views if v.server == self.config.follow]
-            # The longest-alive: deterministic for every client, and a restarted server (a new
-            # start time) never takes over from one that kept running.
-            chosen = min((v for v in views if self._healthy(v, now)), key=_age, default=None)
-            relearning = min((v for v in views if self._relearning(v, now)), key=_age, default=None)
+            chosen = _longest_alive([v for v in views if self._healthy(v, now)])
+            relearning = _longest_alive([v for v in views if self._relearning(v, now)])
         self.connected = chosen is not None
         if chosen is None:
             if self.following and self._lost_at is None:
@@ -449,6 +448,31 @@ def config_differences(mine: str, theirs: str) -> list[str]:
     return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in PLACEMENT)
 
 
-def _age(view: ServerView) -> tuple[int, str]:
-    """Sort key: the longest-alive server first (ties by id)."""
-    return view.started_ns, view.server
+AGE_MARGIN_S = 1.0
+"""Servers whose starts this client places within this of each other are as old (`_longest_alive`)."""
+
+
+def _born(status: ServerStatus, heard: float) -> float:
+    """When the start that sent `status` (heard at `heard`) began, on this host's monotonic clock.
+
+    A server of protocol version 5 or earlier tells no uptime: its wall-clock start against this
+    host's wall clock then, as before.
+    """
+    if status.uptime_ms >= 0:
+        return heard - status.uptime_ms / 1000.0
+    return heard - (time.time_ns() - status.started_ns) / 1e9
+
+
+def _longest_alive(views: list[ServerView]) -> ServerView | None:
+    """The server alive longest, by the uptimes its statuses tell (None among none).
+
+    Every client follows the same one, and a restarted server never takes over from one that
+    kept running, whatever the servers' wall clocks say. Starts this client places within
+    AGE_MARGIN_S of the earliest (each estimate is late by its status's delay, which differs
+    between clients and statuses) are told apart by their announced `started_ns`, then by id:
+    numbers every client reads alike, so near-simultaneous starts are ordered the same everywhere.
+    """
+    if not views:
+        return None
+    first = min(v.born for v in views)
+    return min((v for v in views if v.born <= first + AGE_MARGIN_S), key=lambda v: (v.started_ns, v.server))

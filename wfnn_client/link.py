@@ -9,6 +9,7 @@ is known of each server (`ServerTable`), read and written under its lock.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 from collections.abc import Iterator
@@ -107,6 +108,10 @@ class ServerView:
     gone: bool = False
     """Its liveliness token disappeared after its latest status."""
     started_ns: int = 0
+    born: float = math.inf
+    """When its announced start began, as time.monotonic() here: the earliest of now - its uptime
+    over its statuses (each estimate late by its status's delay). What "longest alive" compares:
+    its `started_ns` is its own wall clock's, which may be set back or differ from other hosts'."""
     spec_hash: str = ""
     learner_config: str = ""
     """The learner config it announces that it learns with (JSON), overrides applied."""
@@ -231,6 +236,7 @@ class ServerTable:
                         store, view.store)  # fmt: skip
         view.acked, view.window_end, view.last_resend = -1, -1, 0.0
         view.store, view.incarnation, view.started_ns = store, incarnation, started_ns
+        view.born = math.inf  # the new start's age is told by its own statuses
         view.latest, view.asked = None, False
         view.status_seq, view.snapshot_seq = -1, -1
         return True

@@ -39,11 +39,12 @@ from numpy.typing import NDArray
 log = logging.getLogger(__name__)
 
 MAGIC = b"WFNN"
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 """Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`; version 3 the
 server's effective learner config to `ServerStatus`; version 4 the start (`started_ns`) to `Ack`
 and `WeightSnapshot`; version 5 the optional `lost_from` to `ExperienceBatch` (a version 4 reader
-would refuse a declaration carrying it as malformed: it is told of the version instead)."""
+would refuse a declaration carrying it as malformed: it is told of the version instead); version
+6 the optional `uptime_ms` to `ServerStatus`."""
 FLAG_MAC = 0x01
 HEADER = struct.Struct("<4sBBBB16sQI")
 """magic, version, type, flags, reserved, sender, seq, body_len."""
@@ -356,6 +357,14 @@ class ServerStatus:
     rejected: dict[str, int]
     """Frames rejected, by reason."""
     metrics: dict[str, float]
+    uptime_ms: int = field(default=-1, metadata=_OPTIONAL)
+    """Milliseconds since this start, by the server's monotonic clock (-1: not told). How long a
+    server has been alive is told by this, not by `started_ns`: wall clocks are set back and differ
+    between hosts."""
+
+    def __post_init__(self) -> None:
+        if self.uptime_ms < -1:
+            raise MalformedBody(f"uptime_ms must be -1 or at least 0, got {self.uptime_ms}")
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

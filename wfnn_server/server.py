@@ -196,6 +196,8 @@ class ThinkServer:
         """This start's number: counted in the file `incarnation` by `start` (a start refused
         before it serves leaves the count as it was)."""
         self.started_ns = time.time_ns()
+        self._started_monotonic = time.monotonic()
+        """This start by the monotonic clock: statuses tell the uptime it gives (`ServerStatus.uptime_ms`)."""
         self.rejected: Counter[str] = Counter()
         """Frames rejected, by reason (protocol errors, spec, no_config, sender)."""
         self.counters: Counter[str] = Counter()
@@ -970,7 +972,7 @@ class ThinkServer:
             server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
             spec_hash=self.spec_hash, learner_config=self._config_json, weights_version=self.version,
             stored_through=self._listed(self.store.durable_through), rejected=dict(self.rejected),
-            metrics=metrics,
+            metrics=metrics, uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0),
         )  # fmt: skip
         self.view.last_status = status
         self._status_sent = time.monotonic()

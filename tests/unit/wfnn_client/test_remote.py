@@ -101,6 +101,46 @@ def test_follows_longest_alive_and_fails_over_within_two_seconds(tmp_path):
         second.stop()
 
 
+def test_a_server_restarted_with_its_clock_set_back_does_not_take_over(tmp_path, monkeypatch):
+    """Longest alive by the uptimes the statuses tell: by the servers' wall-clock starts, s2
+    restarted while its clock was an hour behind took over from s1, which kept running."""
+    import wfnn_server.server as server_module
+    from wfnn_client.downlink import AGE_MARGIN_S
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    s1 = make_server(tmp_path, hub, cfg, server_id="s1").start()
+    s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    try:
+        assert wait(lambda: brain.following == "s1")
+        time.sleep(AGE_MARGIN_S + 0.2)  # restarted later than that after s1's start: younger, not as old
+        s2.stop()
+        s2.bus.close()
+        wall = time.time_ns
+
+        class SetBack:  # the server module's clock only: an hour behind
+            def __getattr__(self, name):
+                return getattr(time, name)
+
+            @staticmethod
+            def time_ns():
+                return wall() - 3_600 * 10**9
+
+        monkeypatch.setattr(server_module, "time", SetBack())
+        s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
+        monkeypatch.undo()
+        restarted = brain.table.views["s2"]
+        assert wait(lambda: restarted.started_ns == s2.started_ns and restarted.alive)
+        assert s2.started_ns < brain.table.views["s1"].started_ns
+        time.sleep(0.5)  # statuses and snapshots of both, several times over
+        assert brain.following == "s1" and not brain.failovers
+    finally:
+        brain.stop()
+        s1.stop()
+        s2.stop()
+
+
 def test_a_pinned_server_is_followed(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg, server_id="s1"), make_server(tmp_path, hub, cfg, server_id="s2"):

@@ -762,3 +762,18 @@ def test_lost_from_travels_only_where_a_batch_declares_from_where_and_is_checked
     body = {**to_body(plain), "lost_since": 4}  # any other name is still refused
     with pytest.raises(MalformedBody, match="unexpected"):
         decode(raw_frame(msgpack.packb(body, use_bin_type=True)))
+
+
+def test_a_servers_uptime_travels_in_its_status_and_is_checked():
+    """Clients order servers by how long they have been alive, which wall clocks cannot tell."""
+    plain = make_server_status()
+    assert "uptime_ms" not in to_body(plain) and plain.uptime_ms == -1  # a version 5 server's
+    frame = raw_frame(msgpack.packb(to_body(plain), use_bin_type=True), msg_type=MsgType.SERVER_STATUS,
+                      version=5)  # fmt: skip
+    assert decode(frame).message.uptime_ms == -1
+    told = dataclasses.replace(plain, uptime_ms=90_061)
+    assert decode(Codec("srv1", KEY).encode(told), KEY).message.uptime_ms == 90_061
+    for bad in (-2, "5", 1.5):
+        body = {**to_body(plain), "uptime_ms": bad}
+        with pytest.raises(MalformedBody, match="uptime_ms"):
+            decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.SERVER_STATUS))
