@@ -8,6 +8,7 @@ import itertools
 import json
 import logging
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -261,6 +262,11 @@ MIN_EPS = 1e-20
 """Smallest wire-fitting epsilon: the float32 updates divide by it (1 / eps bounds a wire's weight),
 and an eps that float32 rounds to 0 made the first update's weights NaN where an action lay on a
 wire; 1e-20 leaves the weights times the values far below float32's largest number."""
+MIN_DEEP_EPS = 1e-12
+"""Smallest wire-fitting epsilon of the deep learner: torch differentiates its weights 1 / d through
+their square, which in float32 overflowed (to infinity, then NaN in every weight after one update)
+for an action exactly on the best wire once 1 / eps passed about 1.8e19; at 1e-12 the square stays
+below 1e24."""
 MAX_SEED = (1 << 62) - 1
 """Largest seed: numpy and torch take it, and benchmarks add a seed number to it."""
 """Upper limits of a learner config: a config also arrives from the network, and one that asks
@@ -415,6 +421,9 @@ class LearnerConfig:
                                   f"update ({self.short_repr()})")  # fmt: skip
         if self.learner == "deep":
             d, widths = self.deep, (len(s_lo), *self.deep.hidden)
+            if self.eps < MIN_DEEP_EPS:
+                raise ConfigError(f"eps must be in [{MIN_DEEP_EPS:g}, 1] for the deep learner, whose float32 "
+                                  f"gradient squares 1 / eps (config: {self.short_repr()})")  # fmt: skip
             # Exactly `deep_net.DeepShapes.n_params`: the trunk, the wire head, the value head.
             size = sum(a * b + b for a, b in itertools.pairwise(widths))
             size += (widths[-1] + 1) * self.n_wires * len(a_lo)
@@ -561,11 +570,17 @@ class LearnerConfig:
 
         Two learners with the same spec hash can exchange weights and experiences.
         """
+
+        def ranges(values: tuple[float, ...]) -> list[float]:
+            # -0.0 as 0.0: equal configs (numpy's negation writes -0.0) must share a spec. Only
+            # the float zero: whole numbers keep their own, older hash (`from_dict` warns of them).
+            return [0.0 if isinstance(v, float) and v == 0.0 else v for v in values]
+
         spec = {
-            "state_low": self.state_low,
-            "state_high": self.state_high,
-            "action_low": self.action_low,
-            "action_high": self.action_high,
+            "state_low": ranges(self.state_low),
+            "state_high": ranges(self.state_high),
+            "action_low": ranges(self.action_low),
+            "action_high": ranges(self.action_high),
             "n_hidden": self.n_hidden,
             "n_wires": self.n_wires,
         }
@@ -663,14 +678,21 @@ class LearnerOverrides:
         check_fields(self)
         if self.options and not isinstance(parse_json(self.options, "learner options"), dict):
             raise ConfigError("learner options must be a JSON object of learner config fields")
-        for learner in LEARNERS:  # each value where a config can hold it, by the config's own rules
+        # Each value by the config's own rules, for whichever learner it will meet (not known
+        # yet: a server adopts its clients' config). A value one learner can hold is taken (a
+        # thesis alpha of 2 is no deep lr); the config it is applied to then checks it again.
+        refusals: list[str] = []
+        for learner in LEARNERS:
             lo, hi = (-1.0,), (1.0,)
             probe = LearnerConfig(state_low=lo, state_high=hi, action_low=lo, action_high=hi,
                                   learner=learner)  # type: ignore[arg-type]  # fmt: skip
             try:
                 with_options(probe, self._changes(probe))
             except ConfigError as exc:  # the probe's own figures would only confuse
-                raise ConfigError(f"learner override: {str(exc).split(' (config: ')[0]}") from None
+                refusals.append(re.split(r" \((?:deep )?config: ", str(exc))[0])
+        if len(refusals) == len(LEARNERS):
+            said = list(dict.fromkeys(refusals))  # one rule broken for both learners is said once
+            raise ConfigError(f"learner override: {'; '.join(said)}")
 
     def __bool__(self) -> bool:
         return any(getattr(self, f.name) not in (None, "") for f in dataclasses.fields(self))

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common import deep_net
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import MAX_SEED, LearnerConfig
 from wfnn_common.deep_net import DeepParams, DeepShapes
 from wfnn_common.learner import FLOAT32_MAX, MAX_REWARD, WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
@@ -376,7 +376,9 @@ class _Counts:
 class DeepPopulation:
     """P independent deep learners with a population's interface (for benchmarks of P controllers).
 
-    Member i has the config's seed + i. Arrays in and out are [P, ...] as for `WFNN`.
+    Member i has the config's seed + i, wrapped past MAX_SEED to 0 (so that every seed a config
+    takes makes a population, as the thesis' learner's does). Arrays in and out are [P, ...] as
+    for `WFNN`.
     """
 
     def __init__(self, config: LearnerConfig, population: int) -> None:
@@ -384,7 +386,8 @@ class DeepPopulation:
             raise ValueError(f"population must be >= 1, got {population}")
         self.config = config
         self.population = population
-        self.members = [DeepWFNN(replace(config, seed=config.seed + i)) for i in range(population)]
+        self.members = [DeepWFNN(replace(config, seed=(config.seed + i) % (MAX_SEED + 1)))
+                        for i in range(population)]  # fmt: skip
         self.buffer = _Counts(self.members)
 
     def _stack(self, name: str) -> NDArray[Any]:

@@ -105,6 +105,14 @@ def test_for_task_takes_the_tasks_ranges():
     assert cfg.thinks_per_action == 3 and cfg.gamma == 0.8
 
 
+def test_a_range_written_minus_zero_is_the_same_spec():
+    """-0.0 == 0.0, so the configs are equal and must share weights, logs and servers."""
+    plus = small_config(state_low=(0.0, -1.0, -1.0), state_high=(1.0, 0.0, 1.0))
+    minus = small_config(state_low=(-0.0, -1.0, -1.0), state_high=(1.0, -0.0, 1.0))
+    assert plus == minus and plus.spec_hash() == minus.spec_hash()
+    assert LearnerConfig.from_json(minus.to_json()).spec_hash() == plus.spec_hash()
+
+
 def test_overrides_set_only_the_fields_given_and_options_come_last():
     from wfnn_common.config import LearnerOverrides
 
@@ -116,6 +124,21 @@ def test_overrides_set_only_the_fields_given_and_options_come_last():
     assert out.n_hidden == base.n_hidden and out.advantage_k == base.advantage_k
     deep = LearnerOverrides(learning_rate=1e-3).apply(small_config(learner="deep"))
     assert deep.deep.lr == 1e-3 and deep.alpha == small_config(learner="deep").alpha
+
+
+def test_a_learning_rate_one_learner_can_hold_is_taken_and_checked_by_the_config_it_meets():
+    """A thesis alpha of 2 (allowed up to 10) is no deep Adam step (up to 1): a server that adopts
+    its clients' config does not know which it will meet, so it refused such an alpha before."""
+    from wfnn_common.config import ConfigError, LearnerOverrides
+
+    overrides = LearnerOverrides(learning_rate=2.0)
+    assert overrides.apply(small_config()).alpha == 2.0
+    with pytest.raises(ConfigError, match=r"deep\.lr must be in \(0, 1\]") as info:
+        overrides.apply(small_config(learner="deep"))
+    with pytest.raises(ConfigError) as info:  # neither learner: both rules, neither probe's figures
+        LearnerOverrides(learning_rate=20.0)
+    assert "alpha must be in (0, 10]" in str(info.value) and "deep.lr must be in (0, 1]" in str(info.value)
+    assert "config:" not in str(info.value)
 
 
 def test_options_may_name_the_learner_they_are_for_but_not_another():

@@ -12,7 +12,7 @@ import torch
 
 from wfnn_common import config as config_module
 from wfnn_common import deep_net
-from wfnn_common.config import ConfigError, DeepConfig, LearnerConfig, with_options
+from wfnn_common.config import MAX_SEED, ConfigError, DeepConfig, LearnerConfig, with_options
 from wfnn_common.deep import DeepWFNN
 from wfnn_common.deep_torch import (
     SEPARATION_EPS,
@@ -517,6 +517,12 @@ def test_an_invalid_state_is_acted_on_from_the_last_valid_one():
     assert batch.action[0] == pytest.approx(good.action)
 
 
+def test_a_population_takes_every_seed_a_config_takes():
+    """Members' seeds wrap past MAX_SEED, where seed + i was refused (the thesis' population took it)."""
+    population = make_population(config(seed=MAX_SEED), 2)
+    assert [m.config.seed for m in population.members] == [MAX_SEED, 0]
+
+
 def test_a_population_of_deep_learners_behaves_as_its_members():
     cfg = config(seed=4)
     population = make_population(cfg, 3)
@@ -871,3 +877,31 @@ def test_the_loss_holds_the_best_wire_still_only_when_asked():
     for name in ("Vh", "Vu", "bv", "vo", "bo"):  # separation never reaches the value head
         start, end, _ = critics.slices[name]
         assert change[:, start:end].abs().max() == 0.0
+
+
+def test_the_smallest_eps_the_deep_learner_accepts_keeps_its_weights_finite_on_a_wire():
+    """An action exactly on the best wire (wires saturated at a bound, the action clipped there):
+    below MIN_DEEP_EPS torch's float32 gradient of 1 / d overflowed and one update made every
+    weight NaN, so such an eps is refused."""
+    from wfnn_common.config import MIN_DEEP_EPS
+    from wfnn_common.deep_net import DeepParams
+    from wfnn_common.learners import make_learner
+
+    def config(eps: float) -> LearnerConfig:
+        return LearnerConfig(state_low=(-1.0,), state_high=(1.0,), action_low=(-1.0,), action_high=(1.0,),
+                             learner="deep", eps=eps, batch_size=1,
+                             deep=DeepConfig(hidden=(8,), value_hidden=8, warmup=0))  # fmt: skip
+
+    with pytest.raises(ConfigError, match="deep learner"):
+        config(MIN_DEEP_EPS / 2)
+    cfg = config(MIN_DEEP_EPS)
+    fresh = make_learner(cfg)
+    flat = fresh.params.flat.copy()
+    a, b, _ = fresh.shapes.slices()["bw"]
+    flat[0, a:b] = 20.0  # every wire at tanh(20), which float32 rounds to the bound 1
+    learner = make_learner(cfg, params=DeepParams(flat, fresh.shapes))
+    x = np.array([0.3])
+    learner.learn(x, np.array([1.0]), x, -1.0)
+    learner.think(1)
+    assert np.isfinite(learner.params.flat).all()
+    assert not learner.act(x, explore=False).diverged and int(learner.resets[0]) == 0

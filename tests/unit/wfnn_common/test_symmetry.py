@@ -28,6 +28,31 @@ def test_a_symmetry_is_a_signed_permutation():
     np.testing.assert_array_equal(SWAP.actions(np.array([[0.5, 0.25]])), [[-0.25, 0.5]])
 
 
+@pytest.mark.parametrize("field, value", [
+    ("state_index", [0.9, 1.7, 2]), ("state_index", [True, False, 2]), ("state_index", ["1", "0", "2"]),
+    ("state_sign", ["-1", 1, 1]), ("state_sign", [True, True, True]), ("action_index", 10),
+    ("name", 7),
+])  # fmt: skip
+def test_a_symmetry_from_json_is_taken_as_written_or_refused(field, value):
+    """Entries of the wrong type were converted (index 1.7 became 1, true 1, the sign "-1" -1):
+    another symmetry than the one written, or, through the Python API, an error only at learn."""
+    data = {"name": "swap", "state_index": [1, 0, 2], "state_sign": [1, -1, 1], "action_index": [1, 0],
+            "action_sign": [-1.0, 1.0], field: value}  # fmt: skip
+    with pytest.raises(ConfigError, match="not a symmetry"):
+        LearnerConfig.from_dict({**small_config().to_dict(), "symmetries": [data]})
+    with pytest.raises(ValueError, match=field.split("_")[-1]):  # and through the Python API, at once
+        Symmetry(**{**data, field: tuple(value) if isinstance(value, list) else value})
+
+
+def test_a_symmetrys_whole_numbers_are_kept_as_plain_ints_and_floats():
+    taken = Symmetry(name="swap", state_index=(np.int64(1), 0, 2), state_sign=(1, -1, np.float32(1.0)),
+                     action_index=[1, 0], action_sign=(-1.0, 1.0))  # fmt: skip
+    assert taken == SWAP.__class__(name="swap", state_index=(1, 0, 2), state_sign=(1.0, -1.0, 1.0),
+                                   action_index=(1, 0), action_sign=(-1.0, 1.0))  # fmt: skip
+    assert {type(i) for i in taken.state_index + taken.action_index} == {int}
+    assert {type(x) for x in taken.state_sign + taken.action_sign} == {float}
+
+
 def test_symmetries_travel_in_the_learner_config_and_must_fit_the_task():
     cfg = small_config(symmetries=(SWAP,))
     again = LearnerConfig.from_dict(json.loads(cfg.to_json()))
