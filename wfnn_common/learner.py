@@ -87,6 +87,32 @@ class DivergenceMonitor:
             self.run[diverged] = 0
         return diverged
 
+    def first_diverged(self, values: FloatArray) -> int:
+        """`observe` one learner's (population 1) chosen-action values [T], in order, in one pass.
+
+        Returns the index of the first value at which it is judged diverged (the run restarts
+        there, and the values after it are not observed: they came from the weights a reset
+        replaces), or -1 where none is, as T calls of `observe` would.
+        """
+        v = np.asarray(values, dtype=np.float64).reshape(-1)
+        if v.size == 0:
+            return -1
+        finite = np.isfinite(v)
+        high = ~(v <= self.threshold)  # NaN too
+        # `observe`'s recurrence unrolled: a run restarts at each finite value at or below the
+        # threshold (at 0) and at each non-finite one (at max(patience, 1)), and grows by one a value.
+        index = np.arange(v.size)
+        last = np.maximum.accumulate(np.where(~finite | ~high, index, -1))
+        start = np.where(finite, 0, max(self.patience, 1))
+        run = np.where(last >= 0, start[last] + index - last, self.run[0] + index + 1)
+        if self.patience > 0:
+            hit = np.flatnonzero(run >= self.patience)
+            if hit.size:
+                self.run[0] = 0
+                return int(hit[0])
+        self.run[0] = int(run[-1])
+        return -1
+
 
 def greedy_wires(
     params: Params, x: FloatArray, n_wires: int, action_dim: int

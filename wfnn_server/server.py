@@ -91,6 +91,9 @@ CHECKPOINT = "checkpoint.npz"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 """The checkpoint before the newest: a server that cannot read the newest falls back to it."""
 THINK_CALL_S = 0.1
+LEARN_QUEUE_BYTES = 256 << 20
+"""Stored experiences waiting for the learner thread, at most (their arrays' bytes): beyond it,
+new batches are dropped unstored and come again from their clients' journals."""
 """About the longest one think call runs (`_think`), well inside the status period."""
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
@@ -206,6 +209,10 @@ class ThinkServer:
         self._inbox: Inbox[tuple[str, bytes]] = Inbox()
         """Frames received, waiting for the ingest thread (bounded in bytes: a flood is dropped)."""
         self._to_learn: collections.deque[ExperienceBatch] = collections.deque()
+        """Stored batches waiting for the learner thread, bounded by LEARN_QUEUE_BYTES (`_ingest`)."""
+        self._to_learn_bytes = 0
+        self._to_learn_lock = threading.Lock()
+        """Held while `_to_learn_bytes` changes (the ingest thread adds, the learner thread takes)."""
         self._status_sent = 0.0
         """When a status was last published (monotonic), by either thread."""
         self._threads: list[threading.Thread] = []
@@ -626,6 +633,15 @@ class ThinkServer:
             raise _Refused("sender", f"frame from {sender} carries experiences of {batch.client}")
         self._allowed(batch.client)
         self._check_spec(batch)
+        if self._to_learn_bytes >= LEARN_QUEUE_BYTES:
+            # The learner is behind by that much: this batch is neither stored nor acknowledged,
+            # and its client sends it again from its journal (as one the inbox dropped), so that
+            # what waits for the learner stays bounded and no flood holds the learner thread.
+            if not self.counters["ingest/learner_behind"]:
+                log.warning("the learner is %d MiB of experiences behind: new batches are dropped (and "
+                            "sent again) until it catches up", LEARN_QUEUE_BYTES >> 20)  # fmt: skip
+            self.counters["ingest/learner_behind"] += 1
+            return
         batch, non_finite = mark_non_finite(batch)
         self.counters["ingest/batches"] += 1
         parts = self.store.parts(batch)
@@ -655,6 +671,8 @@ class ThinkServer:
                 self._queued_fills.add((new.client, new.first_seq))  # below what the learner was given
                 self.counters["ingest/holes_filled"] += len(new)
             self.store.append(new, part.lost)
+            with self._to_learn_lock:
+                self._to_learn_bytes += _nbytes(new)
             self._to_learn.append(new)
         self._recent = _noted(self._recent, batch.client, 2 * MAX_LISTED)
         self._wake.set()
@@ -758,8 +776,8 @@ class ThinkServer:
             learner = self.learner
             thought = False
             if learner is not None:
-                self._learn_queued(learner)
-                thought = self._think(learner)
+                behind = self._learn_queued(learner)
+                thought = self._think(learner) or behind  # more to do: no waiting
                 caught_up = self._advance_learned(learner)
                 now = time.monotonic()
                 if now >= next_publish or caught_up:
@@ -784,10 +802,19 @@ class ThinkServer:
         learner = self.learner
         return int(learner.thinks[0]) if learner is not None else 0
 
-    def _learn_queued(self, learner: Learner) -> None:
+    def _learn_queued(self, learner: Learner) -> bool:
+        """Learn waiting stored batches (one at least, for about THINK_CALL_S); whether some still wait.
+
+        Bounded in time as `_think` is: while clients send faster than the learner takes their
+        experiences in, a loop until the queue was empty never ended, and the server stopped
+        thinking, publishing snapshots and checkpointing (its clients left it as dead).
+        """
         tpa = learner.config.thinks_per_action
+        deadline = time.monotonic() + THINK_CALL_S
         while self._to_learn:
             batch = self._to_learn.popleft()
+            with self._to_learn_lock:
+                self._to_learn_bytes -= _nbytes(batch)
             key = (batch.client, batch.first_seq)
             fill = key in self._queued_fills
             self._queued_fills.discard(key)
@@ -807,6 +834,9 @@ class ThinkServer:
                 self._observe(learner, batch)
             queued = self._queued_through.get(batch.client, -1)
             self._queued_through[batch.client] = max(batch.last_seq, queued)
+            if self._to_learn and time.monotonic() >= deadline:  # one batch a call at least
+                return True
+        return False
 
     def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness.
@@ -826,11 +856,9 @@ class ThinkServer:
         others = {c: v for c, v in self.view.latest_state.items() if c != batch.client and c in self._recent}
         self.view.latest_state = {**others, batch.client: batch.next_state[keep][-1].copy()}
         monitor = learner.monitor
-        for v in values:
-            if monitor.observe(np.array([v]))[0]:
-                self._reset_diverged(learner, f"chosen-action values above {monitor.threshold:.2f} for "
-                                              f"{monitor.patience} experiences")  # fmt: skip
-                break
+        if monitor.first_diverged(values) >= 0:  # in one pass: one call per experience cost most of a batch
+            self._reset_diverged(learner, f"chosen-action values above {monitor.threshold:.2f} for "
+                                          f"{monitor.patience} experiences")  # fmt: skip
 
     def _reset_diverged(self, learner: Learner, why: str) -> None:
         """Fresh weights after a divergence, relearnt from the stored experiences; followers told."""
@@ -1033,6 +1061,12 @@ class ThinkServer:
             meta["thinks"],
             self.store.count,
         )
+
+
+def _nbytes(batch: ExperienceBatch) -> int:
+    """The bytes a batch's arrays hold."""
+    return sum(a.nbytes for a in (batch.state, batch.action, batch.next_state, batch.reward, batch.terminal,
+                                  batch.weights_version, batch.flags))  # fmt: skip
 
 
 def _fits(batch: ExperienceBatch, config: LearnerConfig, spec: str) -> bool:

@@ -121,6 +121,25 @@ def test_a_non_finite_value_is_divergence_at_once():
     assert not DivergenceMonitor(1, threshold=0.5, patience=0).observe(np.array([np.nan])).any()  # disabled
 
 
+def test_a_sequence_of_values_observed_in_one_pass_is_judged_as_one_by_one():
+    """The server observes a batch's values in one pass (a call per value cost most of a batch)."""
+    rng = np.random.default_rng(0)
+    pool = np.array([0.1, 0.4, 0.6, 0.9, np.nan, np.inf, -np.inf])
+    for trial in range(400):
+        patience = int(rng.integers(0, 6))
+        one, many = (DivergenceMonitor(1, threshold=0.5, patience=patience) for _ in range(2))
+        start = int(rng.integers(0, 4))
+        one.run[0] = many.run[0] = start
+        values = rng.choice(pool, size=int(rng.integers(0, 12)), p=[0.2, 0.2, 0.25, 0.25, 0.04, 0.03, 0.03])
+        expected = -1
+        for i, v in enumerate(values):
+            if one.observe(np.array([v]))[0]:
+                expected = i
+                break
+        assert many.first_diverged(values) == expected, (trial, patience, start, values)
+        assert many.run[0] == one.run[0], (trial, patience, start, values)
+
+
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_a_reward_too_large_for_float32_training_is_refused(learner):
     cfg = small_config(state_dim=1, action_dim=1, learner=learner)

@@ -972,3 +972,36 @@ def test_a_refused_start_never_removes_a_store_another_server_has_open(tmp_path)
     finally:
         serving.close()
     assert remove_empty_log(data / "store") and not (data / "store").exists()
+
+
+def test_the_learner_takes_queued_batches_a_bounded_time_at_once_and_the_queue_is_bounded(
+    tmp_path, monkeypatch
+):
+    """Clients sending faster than the learner takes their experiences in held the learner thread
+    in one loop (no thinks, snapshots or checkpoints: clients left the server as dead), and what
+    waited for it grew without bound. Now it learns for THINK_CALL_S at most a call, and beyond
+    LEARN_QUEUE_BYTES waiting, batches are dropped unstored and unacknowledged, to be sent again."""
+    from wfnn_server import server as server_module
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    server = make_server(tmp_path, hub, cfg)  # not started: this thread plays both of its threads
+    try:
+        codec = Codec("c1", None, "t")
+        frames = [codec.encode(batch(cfg, 10 * i, 10)) for i in range(4)]
+        monkeypatch.setattr(server_module, "THINK_CALL_S", 0.0)
+        monkeypatch.setattr(server_module, "LEARN_QUEUE_BYTES", 2 * server_module._nbytes(batch(cfg, 0, 10)))
+        for frame in frames[:3]:
+            server._ingest(frame)
+        assert server.store.count == 20 and server.counters["ingest/learner_behind"] == 1
+        assert len(server._to_learn) == 2
+        learner = server.learner
+        assert server._learn_queued(learner) is True  # one batch, then its time is up
+        assert int(learner.buffer.count[0]) == 10 and len(server._to_learn) == 1
+        server._ingest(frames[2])  # sent again by its client: room now
+        assert server.store.count == 30
+        assert server._learn_queued(learner) is True and server._learn_queued(learner) is False
+        assert int(learner.buffer.count[0]) == 30 and server._to_learn_bytes == 0
+        server._ingest(frames[3])
+        assert server.store.count == 40 and server.counters["ingest/learner_behind"] == 1
+    finally:
+        server.stop()
