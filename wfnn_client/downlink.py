@@ -369,8 +369,8 @@ class Downlink:
             views = list(self.table.views.values())
             if self.config.follow is not None:
                 views = [v for v in views if v.server == self.config.follow]
-            chosen = _longest_alive([v for v in views if self._healthy(v, now)])
-            relearning = _longest_alive([v for v in views if self._relearning(v, now)])
+            chosen = _longest_alive([v for v in views if self._healthy(v, now)], self.following)
+            relearning = _longest_alive([v for v in views if self._relearning(v, now)], self.following)
         self.connected = chosen is not None
         if chosen is None:
             if self.following and self._lost_at is None:
@@ -449,7 +449,8 @@ def config_differences(mine: str, theirs: str) -> list[str]:
 
 
 AGE_MARGIN_S = 1.0
-"""Servers whose starts this client places within this of each other are as old (`_longest_alive`)."""
+"""The server followed is left for a healthy one only if that one started this much earlier
+(`_longest_alive`): estimates of a start are late by a status's delay."""
 
 
 def _born(status: ServerStatus, heard: float) -> float:
@@ -463,16 +464,21 @@ def _born(status: ServerStatus, heard: float) -> float:
     return heard - (time.time_ns() - status.started_ns) / 1e9
 
 
-def _longest_alive(views: list[ServerView]) -> ServerView | None:
+def _longest_alive(views: list[ServerView], following: str) -> ServerView | None:
     """The server alive longest, by the uptimes its statuses tell (None among none).
 
-    Every client follows the same one, and a restarted server never takes over from one that
-    kept running, whatever the servers' wall clocks say. Starts this client places within
-    AGE_MARGIN_S of the earliest (each estimate is late by its status's delay, which differs
-    between clients and statuses) are told apart by their announced `started_ns`, then by id:
-    numbers every client reads alike, so near-simultaneous starts are ordered the same everywhere.
+    A restarted server never takes over from one that kept running, whatever the servers' wall
+    clocks say, and clients that hear the same servers follow the same one: the earliest start
+    (ties by id). Each start is estimated late by its statuses' delay, so the server followed
+    (`following`, where among `views`) is left only for one that started more than
+    AGE_MARGIN_S before it: servers started within about a status's delay of each other may be
+    ordered differently by two clients, but none is left for another over such a difference,
+    and a server not chosen never changes the choice by coming or going.
     """
     if not views:
         return None
-    first = min(v.born for v in views)
-    return min((v for v in views if v.born <= first + AGE_MARGIN_S), key=lambda v: (v.started_ns, v.server))
+    earliest = min(views, key=lambda v: (v.born, v.server))
+    followed = next((v for v in views if v.server == following), None)
+    if followed is not None and earliest.born >= followed.born - AGE_MARGIN_S:
+        return followed
+    return earliest

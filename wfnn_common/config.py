@@ -26,6 +26,10 @@ class ConfigError(ValueError):
     """A configuration value is out of its allowed range or inconsistent."""
 
 
+def _is_minus_zero(value: Any) -> bool:
+    return isinstance(value, float) and value == 0.0 and math.copysign(1.0, value) < 0.0
+
+
 def _is_int(v: Any) -> bool:
     return isinstance(v, int | np.integer) and not isinstance(v, bool | np.bool_)
 
@@ -545,15 +549,17 @@ class LearnerConfig:
             raise
         except (ValueError, TypeError, ArithmeticError, RecursionError) as exc:
             raise ConfigError(f"not a learner config: {type(exc).__name__}: {str(exc)[:200]}") from None
+        # Whole numbers and -0.0 hash as written (a spec's hash must never change under data
+        # written with it), so the same ranges as a task gives them are another spec: said once.
         whole = [key for key in ("state_low", "state_high", "action_low", "action_high")
-                 if any(_is_int(v) for v in getattr(config, key))]  # fmt: skip
+                 if any(_is_int(v) or _is_minus_zero(v) for v in getattr(config, key))]  # fmt: skip
         spec = config.spec_hash() if whole else ""
         if whole and len(_told_whole) < 16 and spec not in _told_whole:
             _told_whole.add(spec)
-            log.warning("learner config %s writes %s with whole numbers (-1, not -1.0): its spec hash "
-                        "differs from the same ranges as a task gives them, so that task's clients, weights "
-                        "and logs are of another spec; write them with a decimal point", spec,
-                        ", ".join(whole))  # fmt: skip
+            log.warning("learner config %s writes %s with whole numbers (-1, not -1.0) or -0.0: its spec "
+                        "hash differs from the same ranges as a task gives them, so that task's clients, "
+                        "weights and logs are of another spec; write them with a decimal point, and 0.0",
+                        spec, ", ".join(whole))  # fmt: skip
         return config
 
     @classmethod
@@ -570,17 +576,11 @@ class LearnerConfig:
 
         Two learners with the same spec hash can exchange weights and experiences.
         """
-
-        def ranges(values: tuple[float, ...]) -> list[float]:
-            # -0.0 as 0.0: equal configs (numpy's negation writes -0.0) must share a spec. Only
-            # the float zero: whole numbers keep their own, older hash (`from_dict` warns of them).
-            return [0.0 if isinstance(v, float) and v == 0.0 else v for v in values]
-
         spec = {
-            "state_low": ranges(self.state_low),
-            "state_high": ranges(self.state_high),
-            "action_low": ranges(self.action_low),
-            "action_high": ranges(self.action_high),
+            "state_low": self.state_low,
+            "state_high": self.state_high,
+            "action_low": self.action_low,
+            "action_high": self.action_high,
             "n_hidden": self.n_hidden,
             "n_wires": self.n_wires,
         }

@@ -9,6 +9,7 @@ from tests.fakes import Hub, small_config
 from tests.fakes import wait_for as wait
 from tests.unit.wfnn_server.test_server import KEYS, Listener, make_server
 from wfnn_client.brain import Experience, LocalBrain
+from wfnn_client.downlink import AGE_MARGIN_S
 from wfnn_client.link import ServerView
 from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_common.config import LearnerConfig
@@ -83,7 +84,7 @@ def test_no_weights_means_no_action(tmp_path):
 def test_follows_longest_alive_and_fails_over_within_two_seconds(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     first = make_server(tmp_path, hub, cfg, server_id="s1").start()
-    time.sleep(0.01)
+    time.sleep(AGE_MARGIN_S + 0.3)  # started so much earlier that every client puts it first
     second = make_server(tmp_path, hub, cfg, server_id="s2").start()
     brain = remote(tmp_path, hub, cfg)
     brain.start()
@@ -105,16 +106,15 @@ def test_a_server_restarted_with_its_clock_set_back_does_not_take_over(tmp_path,
     """Longest alive by the uptimes the statuses tell: by the servers' wall-clock starts, s2
     restarted while its clock was an hour behind took over from s1, which kept running."""
     import wfnn_server.server as server_module
-    from wfnn_client.downlink import AGE_MARGIN_S
 
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     s1 = make_server(tmp_path, hub, cfg, server_id="s1").start()
+    time.sleep(AGE_MARGIN_S + 0.3)
     s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
     brain = remote(tmp_path, hub, cfg)
     brain.start()
     try:
         assert wait(lambda: brain.following == "s1")
-        time.sleep(AGE_MARGIN_S + 0.2)  # restarted later than that after s1's start: younger, not as old
         s2.stop()
         s2.bus.close()
         wall = time.time_ns
@@ -154,16 +154,16 @@ def test_a_pinned_server_is_followed(tmp_path):
 
 def test_a_silent_server_is_left_for_a_live_one(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
-    with (
-        make_server(tmp_path, hub, cfg, server_id="s1") as s1,
-        make_server(tmp_path, hub, cfg, server_id="s2"),
-    ):
+    with make_server(tmp_path, hub, cfg, server_id="s1") as s1:
+        time.sleep(AGE_MARGIN_S + 0.3)
+        s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
         brain = remote(tmp_path, hub, cfg, snapshot_timeout_s=0.5)
         brain.start()
         assert wait(lambda: brain.following == "s1")
         s1.bus.closed = True  # half-open: the token stays, nothing arrives any more
         assert wait(lambda: brain.following == "s2", timeout=2.0)
         brain.stop()
+        s2.stop()
 
 
 _CODECS: dict[tuple[str, bytes | None], Codec] = {}
@@ -985,3 +985,20 @@ def test_what_a_server_acknowledged_is_counted_after_it_is_gone(tmp_path):
     assert wait(lambda: brain.metrics()["uplink/acked_through_max"] == -1.0)  # no live server
     brain.stop()
     assert brain.metrics()["uplink/acked_by_any"] == 19.0
+
+
+def test_the_longest_alive_is_left_only_for_one_started_clearly_earlier_and_never_for_a_bystander():
+    """Estimates of a start are late by a status's delay: the server followed is kept against one
+    placed within AGE_MARGIN_S of it, and a server not chosen changes nothing by coming or going."""
+    from wfnn_client.downlink import _longest_alive
+
+    def view(server: str, born: float) -> ServerView:
+        return ServerView(server=server, born=born)
+
+    a, b, c = view("a", 100.0), view("b", 100.3), view("c", 100.6)
+    assert _longest_alive([], "") is None
+    assert _longest_alive([b, c, a], "") is a  # the earliest, whoever asks
+    assert _longest_alive([a, b, c], "b") is b  # a started within the margin of b: b is kept
+    assert _longest_alive([b, c], "b") is b and _longest_alive([a, b], "b") is b  # c, a come or go
+    assert _longest_alive([view("old", 100.3 - AGE_MARGIN_S - 0.1), b, c], "b").server == "old"
+    assert _longest_alive([a, c], "b") is a  # the one followed is gone: the earliest

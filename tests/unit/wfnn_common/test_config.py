@@ -105,12 +105,17 @@ def test_for_task_takes_the_tasks_ranges():
     assert cfg.thinks_per_action == 3 and cfg.gamma == 0.8
 
 
-def test_a_range_written_minus_zero_is_the_same_spec():
-    """-0.0 == 0.0, so the configs are equal and must share weights, logs and servers."""
+def test_a_range_written_minus_zero_keeps_its_hash_and_is_warned_of(caplog):
+    """-0.0 == 0.0, but a spec's hash must never change under the data written with it (weights,
+    stores, journals): like whole numbers, -0.0 hashes as written, and reading it says so."""
     plus = small_config(state_low=(0.0, -1.0, -1.0), state_high=(1.0, 0.0, 1.0))
     minus = small_config(state_low=(-0.0, -1.0, -1.0), state_high=(1.0, -0.0, 1.0))
-    assert plus == minus and plus.spec_hash() == minus.spec_hash()
-    assert LearnerConfig.from_json(minus.to_json()).spec_hash() == plus.spec_hash()
+    assert plus == minus and plus.spec_hash() != minus.spec_hash()
+    with caplog.at_level("WARNING", logger="wfnn_common.config"):
+        again = LearnerConfig.from_json(minus.to_json())
+    assert again.spec_hash() == minus.spec_hash()
+    said = [r.getMessage() for r in caplog.records if "-0.0" in r.getMessage()]
+    assert len(said) == 1 and "state_low, state_high" in said[0] and minus.spec_hash() in said[0]
 
 
 def test_overrides_set_only_the_fields_given_and_options_come_last():
