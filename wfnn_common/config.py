@@ -383,7 +383,9 @@ class LearnerConfig:
         if len(s_lo) > MAX_STATE_DIM or len(a_lo) > MAX_ACTION_DIM:
             raise ConfigError(f"at most {MAX_STATE_DIM} state and {MAX_ACTION_DIM} action variables, "
                               f"got {len(s_lo)} and {len(a_lo)}")  # fmt: skip
-        row_bytes = 8 * (2 * len(s_lo) + len(a_lo) + 2)
+        # A stored experience: its float64 row, and where n-step returns follow links, its link.
+        linked = self.learner == "deep" and self.deep.n_step > 1
+        row_bytes = 8 * (2 * len(s_lo) + len(a_lo) + 2 + int(linked))
         checks: list[tuple[bool, str]] = [
             (1 <= self.n_hidden <= MAX_HIDDEN, f"n_hidden must be in [1, {MAX_HIDDEN}]"),
             (1 <= self.n_wires <= MAX_WIRES, f"n_wires must be in [1, {MAX_WIRES}]"),

@@ -169,6 +169,19 @@ def test_bad_overrides_are_refused_when_made(kw):
     assert "config:" not in str(info.value)  # the check's own probe config is not the user's
 
 
+def test_the_replay_size_check_counts_the_links_n_step_returns_follow():
+    """A deep learner with n_step > 1 keeps one int64 link a stored experience besides its row."""
+    from wfnn_common.config import MAX_REPLAY_BYTES, DeepConfig
+
+    linked = DeepConfig(hidden=(8, 8), value_hidden=4, n_step=3)
+    row = 8 * (2 * 3 + 2 + 2)  # small_config: 3 state and 2 action variables
+    capacity = MAX_REPLAY_BYTES // row  # the largest a plain row allows
+    small_config(learner="deep", replay_capacity=capacity)
+    with pytest.raises(ConfigError, match="replay_capacity"):
+        small_config(learner="deep", replay_capacity=capacity, deep=linked)
+    small_config(learner="deep", replay_capacity=MAX_REPLAY_BYTES // (row + 8), deep=linked)
+
+
 def test_the_bounds_leave_room_for_every_task_here():
     """The thesis' learner at its largest sizes that still fit, and narrow but real ranges, are taken."""
     small_config(n_hidden=4096, n_wires=64)  # 4096 x 3 + 128 x 4097 parameters
