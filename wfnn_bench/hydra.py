@@ -150,12 +150,22 @@ def _bearing(task: HydraVec) -> FloatArray:
 def evaluate(
     learner: Any, hydra: HydraConfig, episodes: int, seed: int, progress: Progress
 ) -> dict[str, Any]:
-    """Greedy, learning off: traces and the Table 7.1 figures per controller."""
+    """Greedy, learning off: traces and the Table 7.1 figures per controller.
+
+    On a copy of the weights (a divergence seen while evaluating resets nothing), and what acting
+    changed in the learner is put back after (`WFNN.evaluating`).
+    """
+    with learner.evaluating() as frozen:
+        return _evaluate(learner, frozen, hydra, episodes, seed, progress)
+
+
+def _evaluate(
+    learner: Any, frozen: Any, hydra: HydraConfig, episodes: int, seed: int, progress: Progress
+) -> dict[str, Any]:
     n = learner.population
     task = HydraVec(n, hydra, seed=seed)
     rng = np.random.default_rng(seed)
     task.reset(rng)
-    frozen = learner.params  # act on these weights; divergence is not acted on while evaluating
     traces: dict[str, list[FloatArray]] = {
         k: [] for k in ("pixel", "pixel_velocity", "joint", "action", "bearing")
     }

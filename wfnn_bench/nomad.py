@@ -229,8 +229,8 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
     experiences = np.zeros(p)
     evaluations: list[dict[str, Any]] = []
 
-    def greedy(states: FloatArray) -> FloatArray:
-        return learner.act(states, explore=False, params=learner.params).action
+    def greedy(states: FloatArray, params: Any) -> FloatArray:
+        return learner.act(states, explore=False, params=params).action
 
     t0 = time.perf_counter()
     for episode in range(1, cfg.servo_episodes + 1):
@@ -241,7 +241,8 @@ def learn_servo(cfg: NomadBenchConfig, progress: Progress) -> dict[str, Any]:
             learner.think()
             x = tr.state
         if episode % cfg.eval_every == 0 or episode == cfg.servo_episodes:
-            ev = step_responses(greedy, cfg, p, cfg.seed + 1000)
+            with learner.evaluating() as frozen:  # evaluating leaves training as it was
+                ev = step_responses(lambda x, w=frozen: greedy(x, w), cfg, p, cfg.seed + 1000)
             evaluations.append({"episode": episode, "experiences": experiences.copy(),
                                 **{k: v for k, v in ev.items() if k != "traces"}})  # fmt: skip
             last_traces = ev["traces"]
@@ -358,8 +359,8 @@ def forage_servo(
     watched, own = np.zeros(p), np.zeros(p)
     evaluations: list[dict[str, Any]] = []
 
-    def greedy(states: FloatArray) -> FloatArray:
-        return learner.act(states, explore=False, params=learner.params).action
+    def greedy(states: FloatArray, params: Any) -> FloatArray:
+        return learner.act(states, explore=False, params=params).action
 
     def watch(
         state: FloatArray, u: FloatArray, xn: FloatArray, r: FloatArray, term: BoolArray, valid: BoolArray
@@ -408,7 +409,8 @@ def forage_servo(
                 task.scatter_balls(i, rng)
             progress(1)
         if tick % (cfg.forage_eval_minutes * WANDER_EPISODE) == 0:
-            ev = step_responses(greedy, cfg, p, cfg.seed + 1000)
+            with learner.evaluating() as frozen:
+                ev = step_responses(lambda x, w=frozen: greedy(x, w), cfg, p, cfg.seed + 1000)
             evaluations.append({"minutes": tick / WANDER_EPISODE, "experiences": (watched + own).copy(),
                                 **{k: v for k, v in ev.items() if k != "traces"}})  # fmt: skip
     task.close()

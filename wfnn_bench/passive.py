@@ -181,9 +181,14 @@ def evaluate(policy: Callable[[FloatArray], FloatArray], n: int, cfg: PassiveBen
 
 
 def greedy_eval(learner: Any, cfg: PassiveBenchConfig) -> Evaluation:
-    """`evaluate` of each learner's greedy controller, learning off ([P] figures)."""
-    frozen = learner.snapshot()
-    return evaluate(lambda x: learner.act(x, explore=False, params=frozen).action, learner.population, cfg)
+    """`evaluate` of each learner's greedy controller, learning off ([P] figures).
+
+    Training is left as it was (`WFNN.evaluating`).
+    """
+    with learner.evaluating() as frozen:
+        return evaluate(
+            lambda x: learner.act(x, explore=False, params=frozen).action, learner.population, cfg
+        )
 
 
 def greedy_score(learner: Any, cfg: PassiveBenchConfig) -> FloatArray:

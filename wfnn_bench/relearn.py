@@ -91,13 +91,13 @@ def greedy_error(learner: WFNN, cfg: RelearnBenchConfig) -> np.ndarray:
     task = HydraVec(learner.population, FOUR_DOF, seed=cfg.seed + 99)
     rng = np.random.default_rng(cfg.seed + 99)
     task.reset(rng)
-    frozen = learner.params.copy()
     total = np.zeros(learner.population)
-    for _ in range(cfg.eval_episodes):
-        x = task.new_targets(rng)
-        for _ in range(EPISODE):
-            x = task.step(learner.act(x, explore=False, params=frozen).action).state
-            total += task.pixel_error()
+    with learner.evaluating() as frozen:  # evaluating leaves training as it was
+        for _ in range(cfg.eval_episodes):
+            x = task.new_targets(rng)
+            for _ in range(EPISODE):
+                x = task.step(learner.act(x, explore=False, params=frozen).action).state
+                total += task.pixel_error()
     return total / (cfg.eval_episodes * EPISODE)
 
 

@@ -174,10 +174,11 @@ def run_wfnn(
     rng = np.random.default_rng(seed)
     x = task.reset(rng)[0]
 
-    def greedy(obs: FloatArray) -> FloatArray:
-        return learner.act(np.asarray(obs, dtype=np.float64), explore=False).action
+    def greedy(obs: FloatArray, params: Any = None) -> FloatArray:
+        return learner.act(np.asarray(obs, dtype=np.float64), explore=False, params=params).action
 
-    points, returns, lengths, train_s, reported = [], [], [], 0.0, 0
+    points, returns, lengths, reported = [], [], [], 0
+    step_s = np.empty(steps)
     for step in range(1, steps + 1):
         t0 = time.perf_counter()
         u = learner.act(x).action
@@ -185,17 +186,23 @@ def run_wfnn(
         learner.learn(x, u, tr.state[0], tr.reward[0], tr.terminal[0], tr.learnable[0])
         learner.think()
         x = task.observe()[0]
-        train_s += time.perf_counter() - t0
+        step_s[step - 1] = time.perf_counter() - t0
         if step % cfg.eval_every == 0 or step == steps:
             points.append(step)
-            mean_return, mean_length = _evaluate(greedy, env_id, cfg.eval_episodes, 10_000 + seed)
+            with learner.evaluating() as frozen:  # evaluating leaves training as it was
+                mean_return, mean_length = _evaluate(lambda obs, p=frozen: greedy(obs, p), env_id,
+                                                     cfg.eval_episodes, 10_000 + seed)  # fmt: skip
             returns.append(mean_return)
             lengths.append(mean_length)
             progress(step - reported)
             reported = step
     act = _act_us(greedy, x, cfg.act_calls)
     task.close()
-    return {"steps": points, "returns": returns, "lengths": lengths, "s_per_step": train_s / steps,
+    # The slowest step counts as a typical one: it holds the one-off costs (torch.compile's graph,
+    # numba's kernels on a cold cache), which a figure of a run of one or two seeds would carry.
+    one_off = float(step_s.max() - np.median(step_s))
+    return {"steps": points, "returns": returns, "lengths": lengths,
+            "s_per_step": (float(step_s.sum()) - one_off) / steps, "one_off_s": one_off,
             "act_us": act[0], "act_us_p99": act[1], "config": learner.config.to_dict()}  # fmt: skip
 
 

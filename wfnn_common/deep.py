@@ -13,7 +13,9 @@ sampling time from consecutive stored experiences. One network per learner (popu
 
 from __future__ import annotations
 
+import contextlib
 import copy
+from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any, cast
 
@@ -420,6 +422,12 @@ class DeepPopulation:
     def snapshot(self) -> PopulationParams:
         """Copies of the members' weights."""
         return PopulationParams([cast(DeepParams, m.snapshot()) for m in self.members])
+
+    @contextlib.contextmanager
+    def evaluating(self) -> Iterator[PopulationParams]:
+        """`WFNN.evaluating` for every member: copies of their weights, their acting undone after."""
+        with contextlib.ExitStack() as stack:
+            yield PopulationParams([stack.enter_context(m.evaluating()) for m in self.members])
 
     def act(self, state: Any, explore: bool = True, params: PopulationParams | None = None) -> ActResult:
         """Each member's action for its state [P, S] -> ActResult of [P, ...] arrays."""

@@ -16,6 +16,8 @@ them by the declared ranges.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -524,6 +526,21 @@ class WFNN:
     def snapshot(self) -> Params:
         """A copy of the current weights (safe to read while thinking continues)."""
         return self.params.copy()
+
+    @contextlib.contextmanager
+    def evaluating(self) -> Iterator[Any]:
+        """Greedy evaluation beside training: yields a copy of the weights to act on.
+
+        `act(x, explore=False, params=...)` on that copy resets no weights on divergence, and
+        afterwards what acting changed in this learner (the last valid state, which later invalid
+        states fall back on, and the divergence monitor's run) is put back, so that how often a
+        benchmark evaluates does not change what its learners learn.
+        """
+        last_valid, run = self._last_valid.copy(), self.monitor.run.copy()
+        try:
+            yield self.snapshot()
+        finally:
+            self._last_valid, self.monitor.run = last_valid, run
 
     def greedy_values(self, state: ArrayLike) -> FloatArray:
         """Value of the best wire (Q of the action `act` would choose) for states [N, S] -> [P, N]."""

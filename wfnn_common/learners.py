@@ -11,6 +11,7 @@ Nothing here imports torch: the robot side makes learners to act with.
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 from typing import Any, Protocol
 
 import numpy as np
@@ -62,6 +63,9 @@ class Learner(Protocol):
 
     def snapshot(self) -> Any:
         """A copy of the weights `act` uses (`Weights`)."""
+
+    def evaluating(self) -> AbstractContextManager[Any]:
+        """Greedy evaluation beside training: a copy of the weights to act on (`WFNN.evaluating`)."""
 
     def reset_weights(self, which: NDArray[np.bool_]) -> None:
         """Fresh weights for the learners `which` (after divergence); experiences kept."""

@@ -118,3 +118,30 @@ def test_a_name_given_twice_is_refused(field, names):
     steps = {"steps": (1, 2)} if field == "tasks" else {"tasks": ("Pendulum-v1",), "steps": (1,)}
     with pytest.raises(ValueError, match=f"{field} named twice"):
         VsSb3Config(**{field: names}, **steps)
+
+
+def test_seconds_per_step_leave_out_a_one_off_cost_and_evaluating_changes_no_training(monkeypatch):
+    """The first compiled update (or a cold numba cache) once cost 40 ms in a step of 4 ms: a run
+    of one seed reported it in its seconds per step. And how often a run evaluates must not
+    change what it learns (`WFNN.evaluating`)."""
+    import time
+
+    from wfnn_bench.vs_sb3 import run_wfnn
+    from wfnn_common.learner import WFNN
+
+    cfg = VsSb3Config(tasks=("Pendulum-v1",), steps=(40,), algorithms=("wfnn",), eval_every=10,
+                      eval_episodes=1, thinks=1, act_calls=5)  # fmt: skip
+    think, calls = WFNN.think, [0]
+
+    def slow_once(self, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 7:
+            time.sleep(0.5)
+        return think(self, *args, **kwargs)
+
+    monkeypatch.setattr(WFNN, "think", slow_once)
+    result = run_wfnn("Pendulum-v1", 40, 0, cfg)
+    assert result["one_off_s"] >= 0.5 and result["s_per_step"] < 0.5 / 40
+    monkeypatch.setattr(WFNN, "think", think)
+    rarely = run_wfnn("Pendulum-v1", 40, 0, VsSb3Config(**{**cfg.__dict__, "eval_every": 40}))
+    assert rarely["returns"][-1] == result["returns"][-1]

@@ -545,3 +545,28 @@ def test_replay_links_experiences_given_in_float32_as_it_stores_them():
                                   np.zeros(1, f), np.array([False])))  # fmt: skip
     slots, has = buf.continuation(0, np.array([0]))
     assert has.tolist() == [True] and slots.tolist() == [1]
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_evaluating_leaves_the_learner_as_it_was(learner):
+    """A benchmark's greedy evaluations changed training: acting set the last valid state (which
+    later invalid states fall back on) and the divergence monitor's run, and acting on the
+    learner's own weights could reset them."""
+    from wfnn_common.learners import make_population
+
+    cfg = small_config(learner=learner, divergence_threshold=-1e9, divergence_patience=2)
+    model = make_population(cfg, 2)
+    members = getattr(model, "members", [model])
+    last_valid = [m._last_valid.copy() for m in members]
+    run = [m.monitor.run.copy() for m in members]
+    with model.evaluating() as frozen:
+        for x in ([[0.1, 0.2, 0.3], [0.3, 0.2, 0.1]], [[0.5, -0.5, 0.0], [0.0, 0.5, -0.5]]):
+            model.act(np.array(x), explore=False, params=frozen)  # every value "diverged"
+    for m, lv, r in zip(members, last_valid, run, strict=True):
+        np.testing.assert_array_equal(m._last_valid, lv)
+        np.testing.assert_array_equal(m.monitor.run, r)
+    assert int(np.sum(model.resets)) == 0
+    for _ in range(2):  # the same, not evaluating:
+        model.act(np.array([[0.1, 0.2, 0.3], [0.3, 0.2, 0.1]]), explore=False)
+    assert any((m._last_valid != lv).any() for m, lv in zip(members, last_valid, strict=True))
+    assert int(np.sum(model.resets)) > 0  # what evaluating keeps from happening
