@@ -35,3 +35,23 @@ def test_the_pull_and_k_of_the_passive_learners_override_the_options():
 def test_a_bad_setting_is_refused_before_any_log_is_made(fields):
     with pytest.raises((ConfigError, ValueError)):
         PassiveBenchConfig(learner="deep", **fields)
+
+
+def test_references_meet_the_learners_targets_and_last_10_is_the_boat_benchmarks_figure():
+    """The references were evaluated on one boat (targets no learner met), and "last-10" pooled
+    every controller's targets into one median where `wfnn-bench boat` takes the median over
+    controllers of each one's median."""
+    import numpy as np
+
+    from sims.boat import handcoded_boat
+    from wfnn_bench.passive import evaluate, run
+
+    cfg = PassiveBenchConfig(controllers=3, noise=(0.0,), log_boats=1, log_targets=1, passive_thinks=40,
+                             passive_checks=1, online_targets=12, thinks=1, eval_targets=1)  # fmt: skip
+    result = run(cfg)
+    per_boat = result["references"]["handcoded"]["scores"]
+    assert len(per_boat) == cfg.controllers
+    np.testing.assert_allclose(per_boat, evaluate(handcoded_boat, cfg.controllers, cfg).scores)
+    assert result["handcoded_score"] == float(np.median(per_boat))
+    scores = np.asarray(result["online"]["scores"])
+    assert result["online"]["score_last10"] == float(np.median(np.median(scores[:, -10:], axis=1)))
