@@ -130,8 +130,8 @@ def test_a_server_restarted_with_its_clock_set_back_does_not_take_over(tmp_path,
         monkeypatch.setattr(server_module, "time", SetBack())
         s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
         monkeypatch.undo()
-        restarted = brain.table.views["s2"]
-        assert wait(lambda: restarted.started_ns == s2.started_ns and restarted.alive)
+        views = brain.table.views
+        assert wait(lambda: "s2" in views and views["s2"].started_ns == s2.started_ns and views["s2"].alive)
         assert s2.started_ns < brain.table.views["s1"].started_ns
         time.sleep(0.5)  # statuses and snapshots of both, several times over
         assert brain.following == "s1" and not brain.failovers
