@@ -17,6 +17,7 @@ until its next status), and the query for a server's newest weights never waits.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -369,8 +370,8 @@ class Downlink:
             views = list(self.table.views.values())
             if self.config.follow is not None:
                 views = [v for v in views if v.server == self.config.follow]
-            chosen = _longest_alive([v for v in views if self._healthy(v, now)], self.following)
-            relearning = _longest_alive([v for v in views if self._relearning(v, now)], self.following)
+            chosen = _longest_alive([v for v in views if self._healthy(v, now)])
+            relearning = _longest_alive([v for v in views if self._relearning(v, now)])
         self.connected = chosen is not None
         if chosen is None:
             if self.following and self._lost_at is None:
@@ -448,9 +449,9 @@ def config_differences(mine: str, theirs: str) -> list[str]:
     return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in PLACEMENT)
 
 
-AGE_MARGIN_S = 1.0
-"""The server followed is left for a healthy one only if that one started this much earlier
-(`_longest_alive`): estimates of a start are late by a status's delay."""
+CLOCK_TOLERANCE_S = 1.0
+"""A server's announced start counts as on this host's clock while the two differ by at most this
+(`_start_key`): more than a status's delay, less than the clock steps it is there for."""
 
 
 def _born(status: ServerStatus, heard: float) -> float:
@@ -464,21 +465,28 @@ def _born(status: ServerStatus, heard: float) -> float:
     return heard - (time.time_ns() - status.started_ns) / 1e9
 
 
-def _longest_alive(views: list[ServerView], following: str) -> ServerView | None:
-    """The server alive longest, by the uptimes its statuses tell (None among none).
+def _longest_alive(views: list[ServerView]) -> ServerView | None:
+    """The server alive longest: the earliest `_start_key` (ties by id); None among none.
 
-    A restarted server never takes over from one that kept running, whatever the servers' wall
-    clocks say, and clients that hear the same servers follow the same one: the earliest start
-    (ties by id). Each start is estimated late by its statuses' delay, so the server followed
-    (`following`, where among `views`) is left only for one that started more than
-    AGE_MARGIN_S before it: servers started within about a status's delay of each other may be
-    ordered differently by two clients, but none is left for another over such a difference,
-    and a server not chosen never changes the choice by coming or going.
+    One number per server, so a server not chosen never changes the choice by coming or going,
+    and clients whose clocks agree with the servers' follow the same one.
     """
     if not views:
         return None
-    earliest = min(views, key=lambda v: (v.born, v.server))
-    followed = next((v for v in views if v.server == following), None)
-    if followed is not None and earliest.born >= followed.born - AGE_MARGIN_S:
-        return followed
-    return earliest
+    wall, now = time.time_ns(), time.monotonic()
+    return min(views, key=lambda v: (_start_key(v, wall, now), v.server))
+
+
+def _start_key(view: ServerView, wall_ns: int, now: float) -> float:
+    """When a server started, in ns on this host's wall clock (`wall_ns` at monotonic `now`).
+
+    Its announced `started_ns` where that agrees with its uptime (`ServerView.born`, placed on
+    this wall clock) within CLOCK_TOLERANCE_S: exact, so servers started moments apart on one
+    host are ordered as they started. Otherwise the server's clock is off, or was set back since
+    a restart: its uptime says when it started (late by a status's delay), so a restarted server
+    never takes over from one that kept running, whatever its clock says.
+    """
+    born = wall_ns - (now - view.born) * 1e9  # -inf before its first status: not a start
+    if not math.isfinite(born) or abs(born - view.started_ns) <= CLOCK_TOLERANCE_S * 1e9:
+        return float(view.started_ns)
+    return born

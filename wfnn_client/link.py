@@ -110,8 +110,9 @@ class ServerView:
     started_ns: int = 0
     born: float = math.inf
     """When its announced start began, as time.monotonic() here: the earliest of now - its uptime
-    over its statuses (each estimate late by its status's delay). What "longest alive" compares:
-    its `started_ns` is its own wall clock's, which may be set back or differ from other hosts'."""
+    over its statuses (each estimate late by its status's delay). Its `started_ns` is its own wall
+    clock's, which may be set back or differ from this host's: where the two disagree, this says
+    how long it has been alive (`downlink._start_key`)."""
     spec_hash: str = ""
     learner_config: str = ""
     """The learner config it announces that it learns with (JSON), overrides applied."""

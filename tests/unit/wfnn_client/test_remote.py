@@ -9,7 +9,6 @@ from tests.fakes import Hub, small_config
 from tests.fakes import wait_for as wait
 from tests.unit.wfnn_server.test_server import KEYS, Listener, make_server
 from wfnn_client.brain import Experience, LocalBrain
-from wfnn_client.downlink import AGE_MARGIN_S
 from wfnn_client.link import ServerView
 from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_common.config import LearnerConfig
@@ -84,7 +83,7 @@ def test_no_weights_means_no_action(tmp_path):
 def test_follows_longest_alive_and_fails_over_within_two_seconds(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     first = make_server(tmp_path, hub, cfg, server_id="s1").start()
-    time.sleep(AGE_MARGIN_S + 0.3)  # started so much earlier that every client puts it first
+    time.sleep(0.01)
     second = make_server(tmp_path, hub, cfg, server_id="s2").start()
     brain = remote(tmp_path, hub, cfg)
     brain.start()
@@ -109,7 +108,6 @@ def test_a_server_restarted_with_its_clock_set_back_does_not_take_over(tmp_path,
 
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     s1 = make_server(tmp_path, hub, cfg, server_id="s1").start()
-    time.sleep(AGE_MARGIN_S + 0.3)
     s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
     brain = remote(tmp_path, hub, cfg)
     brain.start()
@@ -154,16 +152,16 @@ def test_a_pinned_server_is_followed(tmp_path):
 
 def test_a_silent_server_is_left_for_a_live_one(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=1)
-    with make_server(tmp_path, hub, cfg, server_id="s1") as s1:
-        time.sleep(AGE_MARGIN_S + 0.3)
-        s2 = make_server(tmp_path, hub, cfg, server_id="s2").start()
+    with (
+        make_server(tmp_path, hub, cfg, server_id="s1") as s1,
+        make_server(tmp_path, hub, cfg, server_id="s2"),
+    ):
         brain = remote(tmp_path, hub, cfg, snapshot_timeout_s=0.5)
         brain.start()
         assert wait(lambda: brain.following == "s1")
         s1.bus.closed = True  # half-open: the token stays, nothing arrives any more
         assert wait(lambda: brain.following == "s2", timeout=2.0)
         brain.stop()
-        s2.stop()
 
 
 _CODECS: dict[tuple[str, bytes | None], Codec] = {}
@@ -987,18 +985,24 @@ def test_what_a_server_acknowledged_is_counted_after_it_is_gone(tmp_path):
     assert brain.metrics()["uplink/acked_by_any"] == 19.0
 
 
-def test_the_longest_alive_is_left_only_for_one_started_clearly_earlier_and_never_for_a_bystander():
-    """Estimates of a start are late by a status's delay: the server followed is kept against one
-    placed within AGE_MARGIN_S of it, and a server not chosen changes nothing by coming or going."""
-    from wfnn_client.downlink import _longest_alive
+def test_the_longest_alive_is_the_earliest_start_on_a_clock_that_agrees_with_the_uptimes():
+    """Servers whose clocks agree with their uptimes are ordered by their exact announced starts
+    (servers started moments apart on one host, as they started, whatever the statuses' delays);
+    a server whose clock does not (set back since its restart, or another host's) by its uptime.
+    One number per server: a server not chosen changes nothing by coming or going."""
+    from wfnn_client.downlink import CLOCK_TOLERANCE_S, _longest_alive
 
-    def view(server: str, born: float) -> ServerView:
-        return ServerView(server=server, born=born)
+    wall, now = time.time_ns(), time.monotonic()
 
-    a, b, c = view("a", 100.0), view("b", 100.3), view("c", 100.6)
-    assert _longest_alive([], "") is None
-    assert _longest_alive([b, c, a], "") is a  # the earliest, whoever asks
-    assert _longest_alive([a, b, c], "b") is b  # a started within the margin of b: b is kept
-    assert _longest_alive([b, c], "b") is b and _longest_alive([a, b], "b") is b  # c, a come or go
-    assert _longest_alive([view("old", 100.3 - AGE_MARGIN_S - 0.1), b, c], "b").server == "old"
-    assert _longest_alive([a, c], "b") is a  # the one followed is gone: the earliest
+    def view(server: str, started_s_ago: float, delay_s: float = 0.0, clock_s: float = 0.0) -> ServerView:
+        """A server started `started_s_ago`, its uptime heard `delay_s` late, its clock `clock_s` off."""
+        started_ns = wall - int(started_s_ago * 1e9) + int(clock_s * 1e9)
+        return ServerView(server=server, started_ns=started_ns, born=now - started_s_ago + delay_s)
+
+    a, b = view("a", 100.00, delay_s=0.3), view("b", 99.99)  # a 10 ms earlier, heard 0.3 s late
+    assert _longest_alive([b, a]) is a and _longest_alive([]) is None
+    restarted = view("c", 5.0, clock_s=-3_600.0)  # restarted 5 s ago, its clock an hour behind
+    assert _longest_alive([a, b, restarted]) is a and _longest_alive([b, restarted]) is b
+    ahead = view("d", 100.5, clock_s=2 * CLOCK_TOLERANCE_S)  # the earliest, its clock ahead
+    assert _longest_alive([a, b, restarted, ahead]) is ahead
+    assert _longest_alive([a, ahead]) is ahead and _longest_alive([b, restarted, ahead]) is ahead
