@@ -486,7 +486,7 @@ def _start_key(view: ServerView, wall_ns: int, now: float) -> float:
     a restart: its uptime says when it started (late by a status's delay), so a restarted server
     never takes over from one that kept running, whatever its clock says.
     """
-    born = wall_ns - (now - view.born) * 1e9  # -inf before its first status: not a start
-    if not math.isfinite(born) or abs(born - view.started_ns) <= CLOCK_TOLERANCE_S * 1e9:
-        return float(view.started_ns)
-    return born
+    if not math.isfinite(view.born):  # a start announced (by an ack) but not yet by its status:
+        return math.inf  # its clock is unchecked, so it is not followed before its first status
+    born = wall_ns - (now - view.born) * 1e9
+    return float(view.started_ns) if abs(born - view.started_ns) <= CLOCK_TOLERANCE_S * 1e9 else born

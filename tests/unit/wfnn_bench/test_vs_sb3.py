@@ -120,10 +120,9 @@ def test_a_name_given_twice_is_refused(field, names):
         VsSb3Config(**{field: names}, **steps)
 
 
-def test_seconds_per_step_leave_out_a_one_off_cost_and_evaluating_changes_no_training(monkeypatch):
-    """The first compiled update (or a cold numba cache) once cost 40 ms in a step of 4 ms: a run
-    of one seed reported it in its seconds per step. And how often a run evaluates must not
-    change what it learns (`WFNN.evaluating`)."""
+def test_the_largest_one_off_cost_of_a_run_is_told_beside_its_seconds_per_step(monkeypatch):
+    """The first compiled update (or a cold numba cache) once cost 40 ms in a step of 4 ms, which a
+    run of one or two seeds carries in its seconds per step (as SB3's carry its own)."""
     import time
 
     from wfnn_bench.vs_sb3 import run_wfnn
@@ -141,7 +140,4 @@ def test_seconds_per_step_leave_out_a_one_off_cost_and_evaluating_changes_no_tra
 
     monkeypatch.setattr(WFNN, "think", slow_once)
     result = run_wfnn("Pendulum-v1", 40, 0, cfg)
-    assert result["one_off_s"] >= 0.5 and result["s_per_step"] < 0.5 / 40
-    monkeypatch.setattr(WFNN, "think", think)
-    rarely = run_wfnn("Pendulum-v1", 40, 0, VsSb3Config(**{**cfg.__dict__, "eval_every": 40}))
-    assert rarely["returns"][-1] == result["returns"][-1]
+    assert result["one_off_s"] >= 0.5 and result["s_per_step"] >= 0.5 / 40

@@ -1006,3 +1006,6 @@ def test_the_longest_alive_is_the_earliest_start_on_a_clock_that_agrees_with_the
     ahead = view("d", 100.5, clock_s=2 * CLOCK_TOLERANCE_S)  # the earliest, its clock ahead
     assert _longest_alive([a, b, restarted, ahead]) is ahead
     assert _longest_alive([a, ahead]) is ahead and _longest_alive([b, restarted, ahead]) is ahead
+    # A new start known from an ack, its status not yet heard: its clock is unchecked.
+    unheard = ServerView(server="e", started_ns=wall - 3_600 * 10**9)
+    assert _longest_alive([b, unheard]) is b
