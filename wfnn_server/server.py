@@ -91,10 +91,10 @@ CHECKPOINT = "checkpoint.npz"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 """The checkpoint before the newest: a server that cannot read the newest falls back to it."""
 THINK_CALL_S = 0.1
+"""About the longest one think call runs (`_think`), well inside the status period."""
 LEARN_QUEUE_BYTES = 256 << 20
 """Stored experiences waiting for the learner thread, at most (their arrays' bytes): beyond it,
 new batches are dropped unstored and come again from their clients' journals."""
-"""About the longest one think call runs (`_think`), well inside the status period."""
 CLIENT_TIMEOUT_S = 2.0
 """A client whose heartbeat (twice a second) has not arrived for this long is reported silent."""
 MAX_LISTED = 256
