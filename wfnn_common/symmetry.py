@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wfnn_common.checks import check_fields
+
 FloatArray = NDArray[np.float64]
 
 
@@ -31,24 +33,14 @@ class Symmetry:
     action_sign: tuple[float, ...]
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str):
-            raise ValueError(f"a symmetry's name must be a string, got {type(self.name).__name__}")
-        for what in ("state", "action"):
-            # Integers and real signs as given, never converted: 1.7 or true taken as an index, or
-            # "-1" as a sign, would be another symmetry than the one written (or fail at learn).
-            index, sign = getattr(self, f"{what}_index"), getattr(self, f"{what}_sign")
-            if not isinstance(index, (tuple, list)) or not all(
-                isinstance(i, (int, np.integer)) and not isinstance(i, (bool, np.bool_)) for i in index
-            ):
-                raise ValueError(f"symmetry {self.name!r}: {what}_index must be a list of integers, "
-                                 f"got {index}")  # fmt: skip
-            if not isinstance(sign, (tuple, list)) or not all(
-                isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
-                for x in sign
-            ):
-                raise ValueError(f"symmetry {self.name!r}: {what}_sign must be a list of numbers, got {sign}")
-            object.__setattr__(self, f"{what}_index", tuple(int(i) for i in index))
-            object.__setattr__(self, f"{what}_sign", tuple(float(x) for x in sign))
+        for name in ("state_index", "state_sign", "action_index", "action_sign"):
+            if isinstance(getattr(self, name), list):  # JSON and callers give lists: taken as tuples
+                object.__setattr__(self, name, tuple(getattr(self, name)))
+        # Integers and real signs as given, never converted: 1.7 or true taken as an index, or
+        # "-1" as a sign, would be another symmetry than the one written (or fail at learn).
+        check_fields(self)
+        for what in ("state", "action"):  # signs held as floats, as they always were (spec hashes)
+            object.__setattr__(self, f"{what}_sign", tuple(float(x) for x in getattr(self, f"{what}_sign")))
         for what, index, sign in (("state", self.state_index, self.state_sign),
                                   ("action", self.action_index, self.action_sign)):  # fmt: skip
             if sorted(index) != list(range(len(index))):

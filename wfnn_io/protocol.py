@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import hmac
 import logging
+import os
 import re
 import struct
 from collections import Counter
@@ -769,20 +770,28 @@ class Codec:
 
 
 def load_key(path: str | None) -> bytes | None:
-    """Read a shared key file (at least 16 bytes after stripping whitespace); None for no path."""
+    """Read a shared key file (at least 16 bytes after stripping whitespace); None for no path.
+
+    A leading UTF-8 byte-order mark is not part of the key: an editor that writes one on one host
+    would otherwise make every frame fail its tag against the same key written plainly elsewhere.
+    A key others may read is taken, with a warning (a read-only deployment may hold it so).
+    """
     if not path:
         return None
 
     from wfnn_io.persist import read_regular_bytes  # persist imports the learners: only here
 
     try:
-        key = read_regular_bytes(path).strip()
+        key = read_regular_bytes(path).removeprefix(b"\xef\xbb\xbf").strip()
+        mode = os.stat(path).st_mode
     except OSError as exc:
         raise ValueError(f"key file {path} cannot be read: {exc.strerror or exc}") from None
     if len(key) < 16:
         raise ValueError(
             f"key file {path} holds {len(key)} bytes; use at least 16 (e.g. 32 random hex chars)"
         )
+    if mode & 0o077:
+        log.warning("key file %s can be read by others (mode %o); chmod 600 it", path, mode & 0o777)
     return key
 
 

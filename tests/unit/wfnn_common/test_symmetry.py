@@ -31,7 +31,7 @@ def test_a_symmetry_is_a_signed_permutation():
 @pytest.mark.parametrize("field, value", [
     ("state_index", [0.9, 1.7, 2]), ("state_index", [True, False, 2]), ("state_index", ["1", "0", "2"]),
     ("state_sign", ["-1", 1, 1]), ("state_sign", [True, True, True]), ("action_index", 10),
-    ("name", 7),
+    ("name", 7), ("state_sign", [10**400, 1, 1]), ("action_sign", [float("nan"), 1.0]),
 ])  # fmt: skip
 def test_a_symmetry_from_json_is_taken_as_written_or_refused(field, value):
     """Entries of the wrong type were converted (index 1.7 became 1, true 1, the sign "-1" -1):
@@ -40,8 +40,9 @@ def test_a_symmetry_from_json_is_taken_as_written_or_refused(field, value):
             "action_sign": [-1.0, 1.0], field: value}  # fmt: skip
     with pytest.raises(ConfigError, match="not a symmetry"):
         LearnerConfig.from_dict({**small_config().to_dict(), "symmetries": [data]})
-    with pytest.raises(ValueError, match=field.split("_")[-1]):  # and through the Python API, at once
+    with pytest.raises(ConfigError, match=field.split("_")[-1]) as caught:  # and through the API, at once
         Symmetry(**{**data, field: tuple(value) if isinstance(value, list) else value})
+    assert "\n" not in str(caught.value) and len(str(caught.value)) < 400  # one short line
 
 
 def test_a_symmetrys_whole_numbers_are_kept_as_plain_ints_and_floats():

@@ -38,6 +38,7 @@ from wfnn_io.protocol import (
     crc32c,
     decode,
     encode,
+    load_key,
     peek_type,
     to_body,
 )
@@ -777,3 +778,28 @@ def test_a_servers_uptime_travels_in_its_status_and_is_checked():
         body = {**to_body(plain), "uptime_ms": bad}
         with pytest.raises(MalformedBody, match="uptime_ms"):
             decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.SERVER_STATUS))
+
+
+def test_a_key_file_reads_the_same_with_or_without_a_byte_order_mark(tmp_path, caplog):
+    """An editor's UTF-8 BOM on one host's copy made every frame fail its tag on the other's."""
+    plain, marked = tmp_path / "plain.key", tmp_path / "marked.key"
+    plain.write_bytes(b"0123456789abcdef0123456789abcdef\n")
+    marked.write_bytes(b"\xef\xbb\xbf0123456789abcdef0123456789abcdef\r\n")
+    plain.chmod(0o600)
+    marked.chmod(0o600)
+    with caplog.at_level("WARNING", logger="wfnn_io.protocol"):
+        assert load_key(str(marked)) == load_key(str(plain))
+    assert not caplog.records  # private keys: nothing to warn of
+    short = tmp_path / "short.key"
+    short.write_bytes(b"\xef\xbb\xbf" + b"x" * 14)  # 17 bytes, 14 of them key: refused
+    with pytest.raises(ValueError, match="holds 14 bytes"):
+        load_key(str(short))
+
+
+def test_a_key_file_others_can_read_is_taken_with_a_warning(tmp_path, caplog):
+    path = tmp_path / "shared.key"
+    path.write_bytes(b"0123456789abcdef0123456789abcdef")
+    path.chmod(0o644)
+    with caplog.at_level("WARNING", logger="wfnn_io.protocol"):
+        assert load_key(str(path)) == b"0123456789abcdef0123456789abcdef"
+    assert any("can be read by others (mode 644)" in r.getMessage() for r in caplog.records)
