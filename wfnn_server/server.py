@@ -24,7 +24,7 @@ import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -77,7 +77,7 @@ from wfnn_io.protocol import (
 )
 from wfnn_io.segments import check_free
 from wfnn_server.config import ServerConfig
-from wfnn_server.store import Admission, ExperienceStore
+from wfnn_server.store import ENDLESS, Admission, ExperienceStore, Hole, without
 from wfnn_server.view import ViewModel, kept
 
 if TYPE_CHECKING:
@@ -256,6 +256,12 @@ class ThinkServer:
         """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
+        self._unqueued: dict[str, list[Hole]] = {c: list(h) for c, h in self.store.holes.items()}
+        """Per client: the ranges below `_queued_through` never handed to the learner (holes, and
+        fills still queued). A checkpoint records them: a fill stored after it is owed its thinks."""
+        self._thought_holes: dict[str, list[Hole]] = {}
+        """Per client: holes whose experiences an earlier run's checkpoint had thought (a record
+        damaged since): their fill is learned again, for the replay, but owes no thinks."""
         self._loaded_through: dict[str, int] = {}
         """Per client: the last experience the learner was given from the store when it was built."""
         self._loaded_fills: set[tuple[str, int]] = set()
@@ -445,6 +451,17 @@ class ThinkServer:
         learner.prepare_thinking()  # at construction: before the server's threads run
         atomic_write_text(self.data_dir / LEARNER_JSON, adopted.to_json())
         checkpointed: dict[str, int] = meta.get("stored_through", {})
+        unqueued: dict[str, list[Hole]] = meta.get("unqueued", {})
+        # The store's holes that the checkpoint counts as thought (at or below its mark, not among
+        # the ranges it had not handed over) owe nothing when filled; the others are owed.
+        self._thought_holes, self._unqueued = {}, {}
+        for client, holes in self.store.holes.items():
+            mark = checkpointed.get(client, -1)
+            thought = _less(without(holes, mark + 1, ENDLESS), unqueued.get(client, ()))
+            if thought:
+                self._thought_holes[client] = thought
+            if rest := _less(holes, thought):
+                self._unqueued[client] = rest
         budget = int(meta.get("budget", 0))
         tpa = cfg.thinks_per_action
         loaded = other_spec = 0
@@ -463,8 +480,11 @@ class ThinkServer:
             if batch.last_seq <= through:  # a hole filled after later experiences were stored
                 self._loaded_fills.add((batch.client, batch.first_seq))
             self._loaded_through[batch.client] = max(through, batch.last_seq)
-            # Experiences stored after the checkpoint have not had their thinks yet.
-            after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
+            # Experiences stored after the checkpoint, or in ranges it had not handed to its learner
+            # (holes filled since), have not had their thinks yet.
+            seqs = np.arange(batch.first_seq, batch.last_seq + 1)
+            after = seqs > checkpointed.get(batch.client, -1)
+            after |= _in_ranges(seqs, unqueued.get(batch.client, ()))
             budget += tpa * int(np.count_nonzero(ok & after))
         self.schedule = ThinkSchedule(learned_through=dict(meta.get("learned_through", {})))
         self.schedule.resume(int(learner.thinks[0]), budget, done_through)
@@ -507,6 +527,7 @@ class ThinkServer:
                     numbers = through.values() if isinstance(through, dict) else [None]
                     if not all(v == -1 or _is_count(v) for v in numbers):
                         raise PersistError(f"checkpoint meta {key} is not a map of experience numbers")
+                meta["unqueued"] = _ranges(meta.get("unqueued", {}))
                 learner.thinks[:] = int(meta.get("thinks", 0))
                 learner.resets[:] = int(meta.get("resets", 0))
                 self.version = int(meta.get("version", 0))
@@ -830,13 +851,28 @@ class ThinkServer:
                 self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
             else:
                 ok = self._learn_batch(learner, batch)
+                thought = self._thought_holes.get(batch.client, ())
+                if fill and thought:  # thought before a record of it was damaged: learned, not owed
+                    ok = ok & ~_in_ranges(np.arange(batch.first_seq, batch.last_seq + 1), thought)
                 self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
                 self._observe(learner, batch)
             queued = self._queued_through.get(batch.client, -1)
+            self._hand_over(batch.client, queued, batch.first_seq, batch.last_seq)
             self._queued_through[batch.client] = max(batch.last_seq, queued)
             if self._to_learn and time.monotonic() >= deadline:  # one batch a call at least
                 return True
         return False
+
+    def _hand_over(self, client: str, queued: int, first: int, last: int) -> None:
+        """Record that first..last went to the learner, `queued` being the client's mark before it."""
+        for ranges in (self._unqueued, self._thought_holes):
+            if client in ranges:
+                if left := without(ranges[client], first, last):
+                    ranges[client] = left
+                else:
+                    del ranges[client]
+        if first > queued + 1:  # stored past a declared loss: what lies between was never learned
+            self._unqueued[client] = [*self._unqueued.get(client, ()), (queued + 1, first - 1)]
 
     def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness.
@@ -1046,6 +1082,7 @@ class ThinkServer:
             "version": self.version, "incarnation": self.incarnation, "thinks": int(learner.thinks[0]),
             "resets": int(learner.resets[0]), "budget": self.budget,
             "stored_through": dict(self._queued_through), "learned_through": dict(self.learned_through),
+            "unqueued": {c: [list(h) for h in r] for c, r in self._unqueued.items()},
             "server": self.id,
             # Relearning after a divergence reset still to do: resumed, or a restart would publish
             # weights that were just reset as healthy and stop relearning them.
@@ -1061,6 +1098,33 @@ class ThinkServer:
             meta["thinks"],
             self.store.count,
         )
+
+
+def _in_ranges(seqs: NDArray[np.int64], ranges: Iterable[Hole]) -> NDArray[np.bool_]:
+    """Which of `seqs` [N] lie in one of the inclusive `ranges`."""
+    inside = np.zeros(seqs.shape, dtype=bool)
+    for a, b in ranges:
+        inside |= (seqs >= a) & (seqs <= b)
+    return inside
+
+
+def _less(ranges: Iterable[Hole], taken: Iterable[Hole]) -> list[Hole]:
+    """`ranges` less every range of `taken`."""
+    out = list(ranges)
+    for a, b in taken:
+        out = without(out, a, b)
+    return out
+
+
+def _ranges(value: Any) -> dict[str, list[Hole]]:
+    """A checkpoint's per-client ranges, checked (PersistError for anything else)."""
+    if not isinstance(value, dict) or not all(
+        isinstance(r, list)
+        and all(isinstance(h, list) and len(h) == 2 and all(map(_is_count, h)) and h[0] <= h[1] for h in r)
+        for r in value.values()
+    ):
+        raise PersistError("checkpoint meta unqueued is not a map of experience ranges")
+    return {str(c): [(int(a), int(b)) for a, b in r] for c, r in value.items()}
 
 
 def _nbytes(batch: ExperienceBatch) -> int:

@@ -345,6 +345,90 @@ def test_a_hole_filled_before_the_learner_is_built_is_learned_once(tmp_path, mon
         assert int(again.learner.buffer.count[0]) == 50
 
 
+def _crash(server):
+    """Stop a server's threads as a SIGKILL would: no final checkpoint, the store as it was."""
+    server._stop.set()
+    server._wake.set()
+    for thread in server._threads:
+        thread.join()
+    server.store.close()
+
+
+def _thinks_done(server):
+    return int(server.learner.thinks[0])
+
+
+def test_a_hole_filled_after_the_checkpoint_is_owed_its_thinks_after_a_crash(tmp_path):
+    """The checkpoint's mark reached past the hole, so a fill stored after it (acknowledged) was
+    taken as thought at the next start: learned into the replay, but its thinks were never done."""
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    listener = Listener(hub)
+    first = make_server(tmp_path, hub, cfg, checkpoint_period_s=3600.0).start()
+    for i in range(5):
+        send(hub, batch(cfg, 10 * i, 10))
+        assert listener.wait(lambda i=i: listener.acked() == 10 * i + 9)
+    _crash(first)  # before any checkpoint
+    store = tmp_path / "s1" / "store"
+    overwrite(seg(store), seg(store).stat().st_size // 2, b"\x00\x00\x00")  # 20-29 damaged
+    second = make_server(tmp_path, hub, cfg, checkpoint_period_s=3600.0).start()
+    assert second.store.holes == {"c1": [(20, 29)]}
+    assert listener.wait(lambda: second.budget == 0 and not second._to_learn)
+    second.checkpoint()  # its mark is 49, beyond the hole
+    checkpointed = _thinks_done(second)
+    listener.acks.clear()
+    send(hub, batch(cfg, 20, 10))  # the fill, and a new batch: both acknowledged after the checkpoint
+    send(hub, batch(cfg, 50, 5))
+    assert listener.wait(lambda: listener.acked() == 54 and not second._to_learn)
+    _crash(second)
+    third = make_server(tmp_path, hub, cfg)
+    assert third.store.count == 55 and int(third.learner.buffer.count[0]) == 55
+    assert _thinks_done(third) == checkpointed and third.budget == 3 * (10 + 5)
+    third.store.close()
+
+
+def test_a_fill_imported_below_the_checkpoints_mark_is_owed_its_thinks(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=3, replay_capacity=1000)
+    listener = Listener(hub)
+    journal(tmp_path / "j", cfg)  # c1's 0-199, whole
+    first = make_server(tmp_path, hub, cfg, checkpoint_period_s=3600.0).start()
+    for i in range(5):
+        send(hub, batch(cfg, 10 * i, 10))
+        assert listener.wait(lambda i=i: listener.acked() == 10 * i + 9)
+    _crash(first)
+    store = tmp_path / "s1" / "store"
+    overwrite(seg(store), seg(store).stat().st_size // 2, b"\x00\x00\x00")
+    with make_server(tmp_path, hub, cfg) as second:  # thinks the 40 left; its checkpoint's mark is 49
+        assert listener.wait(lambda: second.budget == 0 and not second._to_learn)
+    third = make_server(tmp_path, hub, cfg, replay=(tmp_path / "j",))
+    assert third.imported == 160 and third.store.holes == {}
+    assert third.budget == 3 * 160  # the 10 filling the hole as well as the 150 after 49
+    third.store.close()
+
+
+def test_a_fill_of_experiences_thought_before_their_record_was_damaged_owes_no_thinks(tmp_path):
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    listener = Listener(hub)
+    sent = _store_with_a_hole(tmp_path, hub, listener, cfg)  # a clean stop first: all 50 thought
+    with make_server(tmp_path, hub, cfg) as again:
+        assert again.store.holes == {"c1": [(20, 29)]} and again.budget == 0
+        before = _thinks_done(again)
+        send(hub, sent[2])
+        assert listener.wait(lambda: listener.acked() == 49 and not again._to_learn)
+        assert int(again.learner.buffer.count[0]) == 50  # in the replay again
+        assert again.budget == 0 and _thinks_done(again) == before  # its thinks are in the weights
+
+
+def test_a_checkpoints_ranges_are_checked():
+    from wfnn_io.persist import PersistError
+    from wfnn_server.server import _ranges
+
+    assert _ranges({"c1": [[20, 29], [40, 40]]}) == {"c1": [(20, 29), (40, 40)]}
+    for bad in ([], {"c1": [[5, 4]]}, {"c1": [[1]]}, {"c1": [[-2, 3]]}, {"c1": [["a", 3]]}, {"c1": 7},
+                {"c1": [[True, 3]]}):  # fmt: skip
+        with pytest.raises(PersistError, match="unqueued"):
+            _ranges(bad)
+
+
 # --------------------------------------------------------------------------- what the key protects
 def test_a_keyed_server_replays_its_own_store_and_a_keyed_clients_journal(tmp_path):
     cfg = small_config(thinks_per_action=1)
