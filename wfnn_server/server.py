@@ -736,7 +736,12 @@ class ThinkServer:
             if heard is not self._heard:  # clients forgotten: they leave the dashboard too
                 self._heard, self._silent = heard, self._silent & set(heard)
                 self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
-        self.view.clients = {**self.view.clients, status.client: kept(status)}
+        said, before = kept(status), self.view.clients.get(status.client)
+        if before is not None and before.produced_through > said.produced_through:
+            # An older status (replayed: a key does not stop that) never lowers what the client is
+            # known to have produced, the bound on the losses it may declare.
+            said = dataclasses.replace(said, produced_through=before.produced_through)
+        self.view.clients = {**self.view.clients, status.client: said}
         if self.learner_config is not None or self._pending_config is not None:
             return
         try:

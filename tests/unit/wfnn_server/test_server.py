@@ -691,6 +691,24 @@ def test_a_loss_declared_beyond_what_the_client_announced_is_refused(tmp_path):
         assert server.store.count == 18
 
 
+def test_a_replayed_older_status_does_not_lower_the_bound_on_declared_losses(tmp_path):
+    from wfnn_io.protocol import EXP_AFTER_LOSS
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg) as server:
+        announce(hub, cfg, produced_through=19)
+        send(hub, batch(cfg, 0, 15))
+        assert listener.wait(lambda: listener.acked() == 14)
+        announce(hub, cfg, produced_through=9)  # an old status, recorded and sent again
+        assert listener.wait(lambda: server.counters["ingest/client_status"] == 2)
+        declared = batch(cfg, 17, 3)  # 15-16 lost from its journal, as a re-send declares
+        declared.flags[:] = EXP_AFTER_LOSS
+        send(hub, declared)
+        assert listener.wait(lambda: listener.acked() == 19)
+        assert server.rejected["declared_beyond_produced"] == 0 and server.store.lost["c1"] == 2
+
+
 def test_declared_losses_are_counted_each_and_logged_once_per_client_in_a_while(tmp_path, caplog):
     """Without a key anyone can declare losses as fast as frames go: the log is not theirs to fill."""
     from wfnn_io.protocol import EXP_AFTER_LOSS
