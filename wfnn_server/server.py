@@ -15,6 +15,7 @@ Nothing in the data directory is deleted: a file that cannot be read is set asid
 
 from __future__ import annotations
 
+import bisect
 import collections
 import dataclasses
 import itertools
@@ -24,7 +25,7 @@ import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -256,12 +257,12 @@ class ThinkServer:
         """Experiences imported from `config.replay` logs (new to the store)."""
         self._queued_through: dict[str, int] = dict(self.store.stored_through)
         """Per client: the last experience handed to the learner (its thinks are owed)."""
-        self._unqueued: dict[str, list[Hole]] = {c: list(h) for c, h in self.store.holes.items()}
-        """Per client: the ranges below `_queued_through` never handed to the learner (holes, and
-        fills still queued). A checkpoint records them: a fill stored after it is owed its thinks."""
+        self._unqueued: dict[str, list[Hole]] = {}
+        """Per client: the store's holes when the learner was built that it has not been handed
+        since (in order). A checkpoint records them: a fill stored after it is owed its thinks."""
         self._thought_holes: dict[str, list[Hole]] = {}
         """Per client: holes whose experiences an earlier run's checkpoint had thought (a record
-        damaged since): their fill is learned again, for the replay, but owes no thinks."""
+        damaged since): their fill is learned again, for the replay, but owes no thinks (in order)."""
         self._loaded_through: dict[str, int] = {}
         """Per client: the last experience the learner was given from the store when it was built."""
         self._loaded_fills: set[tuple[str, int]] = set()
@@ -453,11 +454,12 @@ class ThinkServer:
         checkpointed: dict[str, int] = meta.get("stored_through", {})
         unqueued: dict[str, list[Hole]] = meta.get("unqueued", {})
         # The store's holes that the checkpoint counts as thought (at or below its mark, not among
-        # the ranges it had not handed over) owe nothing when filled; the others are owed.
+        # the ranges it had not handed over) owe nothing when filled; the others are owed. A
+        # checkpoint that does not say (written before it could) counts none as thought.
         self._thought_holes, self._unqueued = {}, {}
-        for client, holes in self.store.holes.items():
-            mark = checkpointed.get(client, -1)
-            thought = _less(without(holes, mark + 1, ENDLESS), unqueued.get(client, ()))
+        for client, holes in list(self.store.holes.items()):  # the ingest thread may be storing
+            mark = checkpointed.get(client, -1) if "unqueued" in meta else -1
+            thought = _less(without(holes, mark + 1, ENDLESS), unqueued.get(client, []))
             if thought:
                 self._thought_holes[client] = thought
             if rest := _less(holes, thought):
@@ -482,9 +484,8 @@ class ThinkServer:
             self._loaded_through[batch.client] = max(through, batch.last_seq)
             # Experiences stored after the checkpoint, or in ranges it had not handed to its learner
             # (holes filled since), have not had their thinks yet.
-            seqs = np.arange(batch.first_seq, batch.last_seq + 1)
-            after = seqs > checkpointed.get(batch.client, -1)
-            after |= _in_ranges(seqs, unqueued.get(batch.client, ()))
+            after = np.arange(batch.first_seq, batch.last_seq + 1) > checkpointed.get(batch.client, -1)
+            after |= _in_ranges(batch.first_seq, batch.last_seq, unqueued.get(batch.client, []))
             budget += tpa * int(np.count_nonzero(ok & after))
         self.schedule = ThinkSchedule(learned_through=dict(meta.get("learned_through", {})))
         self.schedule.resume(int(learner.thinks[0]), budget, done_through)
@@ -527,7 +528,8 @@ class ThinkServer:
                     numbers = through.values() if isinstance(through, dict) else [None]
                     if not all(v == -1 or _is_count(v) for v in numbers):
                         raise PersistError(f"checkpoint meta {key} is not a map of experience numbers")
-                meta["unqueued"] = _ranges(meta.get("unqueued", {}))
+                if "unqueued" in meta:  # absent from checkpoints written before it was recorded
+                    meta["unqueued"] = _ranges(meta["unqueued"])
                 learner.thinks[:] = int(meta.get("thinks", 0))
                 learner.resets[:] = int(meta.get("resets", 0))
                 self.version = int(meta.get("version", 0))
@@ -856,28 +858,26 @@ class ThinkServer:
                 self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
             else:
                 ok = self._learn_batch(learner, batch)
-                thought = self._thought_holes.get(batch.client, ())
+                thought = self._thought_holes.get(batch.client)
                 if fill and thought:  # thought before a record of it was damaged: learned, not owed
-                    ok = ok & ~_in_ranges(np.arange(batch.first_seq, batch.last_seq + 1), thought)
+                    ok = ok & ~_in_ranges(batch.first_seq, batch.last_seq, thought)
                 self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
                 self._observe(learner, batch)
             queued = self._queued_through.get(batch.client, -1)
-            self._hand_over(batch.client, queued, batch.first_seq, batch.last_seq)
+            self._hand_over(batch.client, batch.first_seq, batch.last_seq)
             self._queued_through[batch.client] = max(batch.last_seq, queued)
             if self._to_learn and time.monotonic() >= deadline:  # one batch a call at least
                 return True
         return False
 
-    def _hand_over(self, client: str, queued: int, first: int, last: int) -> None:
-        """Record that first..last went to the learner, `queued` being the client's mark before it."""
-        for ranges in (self._unqueued, self._thought_holes):
-            if client in ranges:
-                if left := without(ranges[client], first, last):
-                    ranges[client] = left
-                else:
-                    del ranges[client]
-        if first > queued + 1:  # stored past a declared loss: what lies between was never learned
-            self._unqueued[client] = [*self._unqueued.get(client, ()), (queued + 1, first - 1)]
+    def _hand_over(self, client: str, first: int, last: int) -> None:
+        """Record that first..last went to the learner."""
+        for holes in (self._unqueued, self._thought_holes):
+            if client in holes:
+                i, j = _overlapping(holes[client], first, last)
+                holes[client][i:j] = without(holes[client][i:j], first, last)
+                if not holes[client]:
+                    del holes[client]
 
     def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness.
@@ -1105,19 +1105,36 @@ class ThinkServer:
         )
 
 
-def _in_ranges(seqs: NDArray[np.int64], ranges: Iterable[Hole]) -> NDArray[np.bool_]:
-    """Which of `seqs` [N] lie in one of the inclusive `ranges`."""
-    inside = np.zeros(seqs.shape, dtype=bool)
-    for a, b in ranges:
-        inside |= (seqs >= a) & (seqs <= b)
+def _overlapping(ranges: list[Hole], first: int, last: int) -> tuple[int, int]:
+    """i, j: ranges[i:j] are those of the ordered, disjoint `ranges` that meet first..last."""
+    return (bisect.bisect_left(ranges, first, key=lambda h: h[1]),
+            bisect.bisect_right(ranges, last, key=lambda h: h[0]))  # fmt: skip
+
+
+def _in_ranges(first: int, last: int, ranges: list[Hole]) -> NDArray[np.bool_]:
+    """Which of first..last [last - first + 1] lie in the ordered, disjoint `ranges`."""
+    inside = np.zeros(last - first + 1, dtype=bool)
+    i, j = _overlapping(ranges, first, last)
+    for a, b in ranges[i:j]:
+        inside[max(a, first) - first : min(b, last) + 1 - first] = True
     return inside
 
 
-def _less(ranges: Iterable[Hole], taken: Iterable[Hole]) -> list[Hole]:
-    """`ranges` less every range of `taken`."""
-    out = list(ranges)
-    for a, b in taken:
-        out = without(out, a, b)
+def _less(ranges: list[Hole], taken: list[Hole]) -> list[Hole]:
+    """The ordered, disjoint `ranges` less the ordered, disjoint `taken`, in one sweep."""
+    out: list[Hole] = []
+    k = 0
+    for a, b in ranges:
+        while k < len(taken) and taken[k][1] < a:  # ends before this range and every later one
+            k += 1
+        start, t = a, k
+        while t < len(taken) and taken[t][0] <= b:
+            if taken[t][0] > start:
+                out.append((start, taken[t][0] - 1))
+            start = max(start, taken[t][1] + 1)
+            t += 1
+        if start <= b:
+            out.append((start, b))
     return out
 
 
@@ -1126,9 +1143,10 @@ def _ranges(value: Any) -> dict[str, list[Hole]]:
     if not isinstance(value, dict) or not all(
         isinstance(r, list)
         and all(isinstance(h, list) and len(h) == 2 and all(map(_is_count, h)) and h[0] <= h[1] for h in r)
+        and all(r[n - 1][1] < r[n][0] for n in range(1, len(r)))  # in order, apart
         for r in value.values()
     ):
-        raise PersistError("checkpoint meta unqueued is not a map of experience ranges")
+        raise PersistError("checkpoint meta unqueued is not a map of ordered experience ranges")
     return {str(c): [(int(a), int(b)) for a, b in r] for c, r in value.items()}
 
 

@@ -277,13 +277,16 @@ def test_a_store_damaged_in_the_middle_loads_every_readable_batch(tmp_path):
     again.store.close()
 
 
-def _store_with_a_hole(tmp_path, hub, listener, cfg):
-    """A server's store of c1's experiences 0-49 (five batches), its middle record then damaged."""
+def _store_with_a_hole(tmp_path, hub, listener, cfg, thought=False):
+    """A server's store of c1's experiences 0-49 (five batches), its middle record then damaged
+    (`thought`: after every experience was thought and a checkpoint says so)."""
     sent = [batch(cfg, 10 * i, 10) for i in range(5)]
-    with make_server(tmp_path, hub, cfg):
+    with make_server(tmp_path, hub, cfg) as server:
         for b in sent:
             send(hub, b)
             assert listener.wait(lambda b=b: listener.acked() == b.last_seq)
+        if thought:
+            assert listener.wait(lambda: server.budget == 0 and server.learned_through.get("c1") == 49)
     store = tmp_path / "s1" / "store"
     overwrite(seg(store), seg(store).stat().st_size // 2, b"\x00\x00\x00")
     listener.acks.clear()
@@ -408,7 +411,7 @@ def test_a_fill_imported_below_the_checkpoints_mark_is_owed_its_thinks(tmp_path)
 def test_a_fill_of_experiences_thought_before_their_record_was_damaged_owes_no_thinks(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=3)
     listener = Listener(hub)
-    sent = _store_with_a_hole(tmp_path, hub, listener, cfg)  # a clean stop first: all 50 thought
+    sent = _store_with_a_hole(tmp_path, hub, listener, cfg, thought=True)
     with make_server(tmp_path, hub, cfg) as again:
         assert again.store.holes == {"c1": [(20, 29)]} and again.budget == 0
         before = _thinks_done(again)
@@ -424,9 +427,59 @@ def test_a_checkpoints_ranges_are_checked():
 
     assert _ranges({"c1": [[20, 29], [40, 40]]}) == {"c1": [(20, 29), (40, 40)]}
     for bad in ([], {"c1": [[5, 4]]}, {"c1": [[1]]}, {"c1": [[-2, 3]]}, {"c1": [["a", 3]]}, {"c1": 7},
-                {"c1": [[True, 3]]}):  # fmt: skip
+                {"c1": [[True, 3]]}, {"c1": [[5, 6], [1, 2]]}, {"c1": [[1, 5], [5, 6]]}):  # fmt: skip
         with pytest.raises(PersistError, match="unqueued"):
             _ranges(bad)
+
+
+def test_the_servers_range_sums_agree_with_sets():
+    """`_less`, `_in_ranges` and `_overlapping` (bisected: a client declaring losses one by one
+    makes thousands of holes) against the same sums done on sets."""
+    from wfnn_server.server import _in_ranges, _less, _overlapping
+    from wfnn_server.store import without
+
+    rng = np.random.default_rng(0)
+
+    def ordered(n):
+        edges = np.sort(rng.choice(60, size=2 * n, replace=False))
+        return [(int(a), int(b)) for a, b in edges.reshape(-1, 2)]
+
+    def seqs(ranges):
+        return {s for a, b in ranges for s in range(a, b + 1)}
+
+    for _ in range(500):
+        ranges, taken = ordered(rng.integers(0, 8)), ordered(rng.integers(0, 8))
+        less = _less(ranges, taken)
+        assert seqs(less) == seqs(ranges) - seqs(taken) and less == sorted(less)
+        first = int(rng.integers(0, 60))
+        last = first + int(rng.integers(0, 10))
+        inside = _in_ranges(first, last, ranges)
+        assert [s for s in range(first, last + 1) if inside[s - first]] == sorted(
+            seqs(ranges) & set(range(first, last + 1))
+        )
+        i, j = _overlapping(ranges, first, last)
+        cut = ranges[:i] + without(ranges[i:j], first, last) + ranges[j:]
+        assert cut == without(ranges, first, last)
+
+
+def test_a_checkpoint_from_before_unqueued_was_recorded_owes_every_refill(tmp_path):
+    """Such a checkpoint cannot tell a hole it had thought from one it never had (an import's):
+    each refill is owed its thinks, as before."""
+    from wfnn_io.persist import load_checkpoint, save_weights
+
+    hub, cfg = Hub(), small_config(thinks_per_action=3)
+    listener = Listener(hub)
+    sent = _store_with_a_hole(tmp_path, hub, listener, cfg, thought=True)
+    path = tmp_path / "s1" / CHECKPOINT
+    ck_cfg, params, meta, training = load_checkpoint(path)
+    del meta["unqueued"]
+    save_weights(path, ck_cfg, params, meta, training=training)
+    with make_server(tmp_path, hub, cfg) as again:
+        assert again.store.holes == {"c1": [(20, 29)]} and again.budget == 0
+        before = _thinks_done(again)
+        send(hub, sent[2])
+        assert listener.wait(lambda: listener.acked() == 49 and not again._to_learn)
+        assert listener.wait(lambda: again.budget == 0 and _thinks_done(again) == before + 3 * 10)
 
 
 # --------------------------------------------------------------------------- what the key protects
