@@ -759,12 +759,17 @@ def test_many_clients_falling_silent_at_once_are_logged_in_bounded_lines(tmp_pat
 
     import wfnn_server.server as server_module
 
-    monkeypatch.setattr(server_module, "CLIENT_TIMEOUT_S", 0.3)
     hub, cfg = Hub(), small_config()
     listener = Listener(hub)
-    with caplog.at_level(logging.INFO), make_server(tmp_path, hub, cfg):
+    with caplog.at_level(logging.INFO), make_server(tmp_path, hub, cfg) as server:
         for n in range(100):
             announce(hub, cfg, client=f"c{n}")
+        # All heard, and each heard longer ago than the timeout set next, so that all fall silent
+        # at one check (on a busy machine, hearing 100 took longer than the timeout, and they fell
+        # silent in two waves of lines).
+        assert listener.wait(lambda: server.counters["ingest/client_status"] == 100)
+        time.sleep(0.5)
+        monkeypatch.setattr(server_module, "CLIENT_TIMEOUT_S", 0.3)
         assert listener.wait(
             lambda: bool(listener.statuses) and listener.statuses[-1].metrics.get("clients/silent") == 100
         )
