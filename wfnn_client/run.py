@@ -53,7 +53,7 @@ from wfnn_io.persist import (
     writable,
     write_json,
 )
-from wfnn_io.protocol import EXP_VETO_PROPOSED, load_key
+from wfnn_io.protocol import EXP_SAFE_ACTION, EXP_VETO_PROPOSED, load_key
 from wfnn_io.segments import check_free
 
 log = logging.getLogger(__name__)
@@ -414,8 +414,11 @@ def _run(
                 decided = Decided(decision.executed[None], proposal[None], np.array([vetoed]))
                 # Every behaviour learns from the executed action, whichever chose it (Section 6.6);
                 # the driver also learns a vetoed proposal (learning twice).
+                # The safe action was no one's choice: recorded as such ("", version 0), never
+                # as the learner's (nor flagged explored by what its proposal had been).
+                chose = None if decision.flags & EXP_SAFE_ACTION else acted
                 pupils = [
-                    Pupil(xs[k][None], to_brain(sk, decision.flags, acted if k == d else None), sk.name,
+                    Pupil(xs[k][None], to_brain(sk, decision.flags, chose if k == d else None), sk.name,
                           partial(behaviours.reward, sk.name) if k == d and twice else None,
                           learn_proposal=to_brain(sk, EXP_VETO_PROPOSED, acted))
                     for k, sk in enumerate(skills)

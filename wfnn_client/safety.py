@@ -103,41 +103,46 @@ class SafetyLayer:
     def decide(self, proposed: FloatArray | None, state: FloatArray, late_s: float) -> Decision:
         """The action to execute for the learner's `proposed` (None: no valid weights) in `state`.
 
-        `late_s` is how long after the tick's deadline the proposal became ready.
+        `late_s` is how long after the tick's deadline the proposal became ready. Without valid
+        weights, with a non-finite proposal or a late one, the safe action stands in for it; the
+        action filter and the veto then apply to whichever it is (a non-zero safe action is still
+        an action: it must not jump, nor drive into what the veto forbids).
         """
-        flags = 0
         out_proposed = None
-        if proposed is None:
-            self.counts["no_weights"] += 1
-            action, flags = self.safe.copy(), EXP_SAFE_ACTION
-        elif not np.isfinite(proposed).all():  # clipping keeps a NaN: it must never reach an actuator
-            self.counts["non_finite"] += 1
-            action, flags = self.safe.copy(), EXP_SAFE_ACTION
+        stand_in = ("no_weights" if proposed is None
+                    else "non_finite" if not np.isfinite(proposed).all()  # clipping keeps a NaN
+                    else "late" if late_s > self.deadline_s else "")  # fmt: skip
+        if stand_in:
+            self.counts[stand_in] += 1
+            action, flags = self._filtered(self.safe.copy(), EXP_SAFE_ACTION)
         else:
-            action = np.clip(proposed, self.low, self.high)
-            if self.max_step is not None:
-                limited = np.clip(action, self.previous - self.max_step, self.previous + self.max_step)
-                if not np.array_equal(limited, action):
-                    self.counts["filtered"] += 1
-                    flags |= EXP_FILTERED
-                    action = limited
-            if self.veto is not None:
-                replacement = self.veto(state, action)
-                if replacement is not None:
-                    self.counts["vetoed"] += 1
-                    now = time.monotonic()
-                    if now - self._last_warning >= 1.0:  # the audible warning, at most once a second
-                        self._last_warning = now
-                        log.warning("veto: proposed action %s replaced by %s (%d vetoes so far)",
-                                    np.round(action, 3), replacement, self.counts["vetoed"])  # fmt: skip
-                    out_proposed = action
-                    action = np.clip(np.asarray(replacement, dtype=np.float64), self.low, self.high)
-                    flags |= EXP_VETO_ACTUAL
-                    if not np.isfinite(action).all():  # a behaviour's veto gone wrong: stop instead
-                        self.counts["non_finite"] += 1
-                        action, flags, out_proposed = self.safe.copy(), EXP_SAFE_ACTION, None
-            if late_s > self.deadline_s:
-                self.counts["late"] += 1
-                action, flags, out_proposed = self.safe.copy(), EXP_SAFE_ACTION, None
+            action, flags = self._filtered(np.clip(np.asarray(proposed), self.low, self.high), 0)
+        if self.veto is not None:
+            replacement = self.veto(state, action)
+            if replacement is not None:
+                self.counts["vetoed"] += 1
+                now = time.monotonic()
+                if now - self._last_warning >= 1.0:  # the audible warning, at most once a second
+                    self._last_warning = now
+                    log.warning("veto: proposed action %s replaced by %s (%d vetoes so far)",
+                                np.round(action, 3), replacement, self.counts["vetoed"])  # fmt: skip
+                # Only the learner's own proposal is learned twice: the safe action is not its choice.
+                out_proposed = None if flags & EXP_SAFE_ACTION else action
+                action = np.clip(np.asarray(replacement, dtype=np.float64), self.low, self.high)
+                flags |= EXP_VETO_ACTUAL
+                if not np.isfinite(action).all():  # a behaviour's veto gone wrong: stop instead
+                    self.counts["non_finite"] += 1
+                    action, flags = self._filtered(self.safe.copy(), EXP_SAFE_ACTION)
+                    out_proposed = None
         self.previous = action
         return Decision(action, out_proposed, flags)
+
+    def _filtered(self, action: FloatArray, flags: int) -> tuple[FloatArray, int]:
+        """`action` [A] moved at most `max_step` from the last one executed, and its flags."""
+        if self.max_step is None:
+            return action, flags
+        limited = np.clip(action, self.previous - self.max_step, self.previous + self.max_step)
+        if np.array_equal(limited, action):
+            return action, flags
+        self.counts["filtered"] += 1
+        return limited, flags | EXP_FILTERED

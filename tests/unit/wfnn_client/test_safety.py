@@ -146,3 +146,46 @@ def test_a_vetoed_tick_is_learned_twice(tmp_path, monkeypatch):
         np.testing.assert_array_equal(a.next_state, p.next_state)  # both led to the observed state
     moving = [(a, p) for a, p in zip(actual, proposed, strict=True) if abs(p.action[0]) > 0.1]
     assert moving and all(p.reward < a.reward for a, p in moving)  # Eq 5.5: the proposal is charged
+
+
+@pytest.mark.parametrize("why, proposed, late_s", [
+    ("no_weights", None, 0.0), ("non_finite", [np.nan, 0.0], 0.0), ("late", [1.0, 2.0], 0.06),
+])  # fmt: skip
+def test_the_safe_action_is_filtered_and_vetoed_like_any_other(why, proposed, late_s):
+    """The safe action stood in for the proposal and went out as it was: a non-zero one jumped past
+    the rate limit and drove into what the veto forbids (a late tick even undid a veto)."""
+    s = layer(period=0.1, safe_action=(1.0, 2.0), max_action_rate=(2.0, 10.0))  # per tick: 0.2 and 1.0
+    given = None if proposed is None else np.array(proposed)
+    d = s.decide(given, np.zeros(2), late_s)  # at the start, the last action is the safe one
+    np.testing.assert_array_equal(d.executed, [1.0, 2.0])
+    assert d.flags == EXP_SAFE_ACTION
+    s.previous = np.array([-1.0, -2.0])
+    d = s.decide(given, np.zeros(2), late_s)
+    np.testing.assert_allclose(d.executed, [-0.8, -1.0])  # at most a step from the last action
+    assert d.flags == EXP_SAFE_ACTION | EXP_FILTERED and s.counts[why] == 2
+
+    def no_positive_first(state, action):
+        return np.array([0.0, action[1]]) if action[0] > 0.0 else None
+
+    s = layer(period=0.1, safe_action=(1.0, 2.0), veto=no_positive_first)
+    d = s.decide(given, np.zeros(2), late_s)
+    np.testing.assert_array_equal(d.executed, [0.0, 2.0])
+    assert d.flags == EXP_SAFE_ACTION | EXP_VETO_ACTUAL and s.counts["vetoed"] == 1
+    assert d.proposed is None  # not the learner's choice: learned once, as executed
+
+
+def test_a_safe_action_is_journaled_as_no_ones_choice(tmp_path):
+    """It was recorded as chosen by the learner's weights (and flagged explored where the
+    discarded proposal had been): a reader would credit the learner with it."""
+    from wfnn_client import run as client_run
+    from wfnn_io.logs import read_batches
+    from wfnn_io.protocol import EXP_EXPLORED
+
+    config = ClientConfig(sim="boat", episodes=1, rate_hz=50, duration_s=1.0, out=tmp_path,
+                          safety=SafetyConfig(act_deadline_fraction=1e-9))  # every command late  # fmt: skip
+    assert client_run.run(config)["safety"]["late"] > 0
+    batches = list(read_batches(tmp_path / "journal"))
+    assert batches and all(b.weights_source == "" for b in batches)
+    for b in batches:
+        assert (b.flags & EXP_SAFE_ACTION).all() and not (b.flags & EXP_EXPLORED).any()
+        assert not b.weights_version.any() and not b.action.any()
