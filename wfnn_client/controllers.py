@@ -10,8 +10,10 @@ with the controller's name as its behaviour policy (`weights_source` in the logs
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,16 +60,34 @@ def parse_mix(text: str) -> tuple[PolicyShare, ...]:
         mix.append(PolicyShare(name, share))
     if not mix:
         raise ValueError("an empty behaviour-policy mix")
-    if len({m.name for m in mix}) != len(mix):
+    if len({_same(m.name) for m in mix}) != len(mix):
         raise ValueError(f"behaviour policy named twice in {text!r}")
     if not np.isfinite(sum(m.share for m in mix)):  # each share is divided by the total
         raise ValueError(f"behaviour-policy shares {text!r} sum beyond the largest number")
     return tuple(mix)
 
 
-def source_name(name: str) -> str:
-    """The behaviour-policy name recorded with the experiences (a saved WFNN: `weights:<file>`)."""
-    return f"weights:{Path(name[len('weights:') :]).name}" if name.startswith("weights:") else name
+def _same(name: str) -> str:
+    """A policy's name with its path written one way (`runs/a/w.npz` is `./runs/a/w.npz`)."""
+    return f"weights:{os.path.normpath(name[len('weights:') :])}" if name.startswith("weights:") else name
+
+
+def source_names(names: Iterable[str]) -> dict[str, str]:
+    """Each behaviour policy's name as recorded with its experiences.
+
+    A saved WFNN is `weights:` and the fewest last parts of its path that tell it from the other
+    saved ones of the mix: every run saves `weights.npz`, and two runs' policies recorded as one
+    name could not be told apart in the logs.
+    """
+    names = list(names)
+    saved = {n: PurePath(_same(n)[len("weights:") :]).parts for n in names if n.startswith("weights:")}
+    out = {n: n for n in names if n not in saved}
+    for n, parts in saved.items():
+        k = 1
+        while k < len(parts) and any(o != n and q[-k:] == parts[-k:] for o, q in saved.items()):
+            k += 1
+        out[n] = f"weights:{PurePath(*parts[-k:])}"
+    return out
 
 
 class Controllers:
@@ -82,6 +102,8 @@ class Controllers:
     ) -> None:  # fmt: skip
         self.mix = mix
         self.rng = rng
+        self.recorded = source_names(m.name for m in mix)
+        """Each controller's name as recorded with its experiences (`source_names`)."""
         self.policies: dict[str, Policy] = {}
         low, high = np.asarray(action_low, dtype=np.float64), np.asarray(action_high, dtype=np.float64)
         for m in mix:
@@ -104,7 +126,7 @@ class Controllers:
         """The action of controller `name` (not the learner) for `state` [S]."""
         action = np.asarray(self.policies[name](state), dtype=np.float64)
         result = ActResult(action, np.float64(np.nan), np.bool_(True), np.bool_(False), np.bool_(False))
-        return Acted(result, source_name(name), 0)
+        return Acted(result, self.recorded[name], 0)
 
 
 def _saved(path: Path, learner_spec: str) -> Policy:
@@ -121,4 +143,7 @@ def _saved(path: Path, learner_spec: str) -> Policy:
         saved = make_learner(cfg, params=params)
     except ValueError as exc:  # weights that make no learner of their config (several networks, say)
         raise ValueError(f"behaviour policy weights:{path}: {exc}") from exc
-    return lambda state: saved.act(state, explore=False).action
+    # On a copy of its weights: acting on its own, the learner's divergence monitor could reset
+    # them to random ones, and the episodes would still be recorded as this file's.
+    frozen = saved.snapshot()
+    return lambda state: saved.act(state, explore=False, params=frozen).action

@@ -30,7 +30,7 @@ import numpy as np
 from sims.base import Behaviours, Ranges, VecTask
 from wfnn_client.brain import Acted, Brain, Experience, LocalBrain
 from wfnn_client.config import ClientConfig
-from wfnn_client.controllers import LEARNER, Controllers, source_name
+from wfnn_client.controllers import LEARNER, Controllers
 from wfnn_client.frames import FrameWriter
 from wfnn_client.safety import SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
@@ -381,7 +381,7 @@ def _run(
         for episode in range(config.episodes):
             spec.new_episode(task, rng)
             policy = controllers.choose() if controllers is not None else LEARNER
-            episode_policies.append(source_name(policy))
+            episode_policies.append(controllers.recorded[policy] if controllers is not None else policy)
             total, steps = 0.0, 0
             for _ in range(episode_steps):
                 if steps and out_of_time(ticker.next_due()):  # not a wait for a tick past the duration

@@ -5,7 +5,7 @@ import pytest
 
 from sims.boat import BoatVec, handcoded_boat
 from wfnn_client.config import ClientConfig
-from wfnn_client.controllers import Controllers, PolicyShare, parse_mix, source_name
+from wfnn_client.controllers import Controllers, PolicyShare, parse_mix, source_names
 from wfnn_client.run import SetupError, learner_config, run
 from wfnn_common.learner import WFNN
 from wfnn_common.learners import make_learner
@@ -23,7 +23,24 @@ def test_a_mix_is_parsed_with_shares_and_bad_ones_are_named():
                           ("weights:", "unknown"), ("wfnn=1e308,random=1e308", "sum beyond")):  # fmt: skip
         with pytest.raises(ValueError, match=message):
             parse_mix(text)
-    assert source_name("weights:/tmp/x/w.npz") == "weights:w.npz" and source_name("random") == "random"
+    with pytest.raises(ValueError, match="twice"):  # one file, written two ways
+        parse_mix("weights:runs/a/w.npz,weights:./runs/a/w.npz")
+
+
+def test_saved_policies_are_recorded_by_names_that_tell_them_apart():
+    """Every run saves weights.npz: two runs' policies were both recorded as weights:weights.npz."""
+    assert source_names(["random", "weights:/tmp/x/w.npz"]) == {
+        "random": "random",
+        "weights:/tmp/x/w.npz": "weights:w.npz",
+    }
+    assert source_names(["weights:runs/a/weights.npz", "weights:runs/b/weights.npz", "weights:c.npz"]) == {
+        "weights:runs/a/weights.npz": "weights:a/weights.npz",
+        "weights:runs/b/weights.npz": "weights:b/weights.npz",
+        "weights:c.npz": "weights:c.npz",
+    }  # fmt: skip
+    assert source_names(["weights:x/a/w.npz", "weights:y/a/w.npz"]) == {
+        "weights:x/a/w.npz": "weights:x/a/w.npz", "weights:y/a/w.npz": "weights:y/a/w.npz"
+    }  # fmt: skip
 
 
 def _controllers(mix, tmp_path=None, handcoded=None, seed=0):
@@ -208,3 +225,18 @@ def test_a_local_deep_run_saves_its_training_and_weights_resume_it(tmp_path):
     _, greedy, _, none = load_checkpoint(tmp_path / "c" / "weights.npz")
     assert none == {} and np.array_equal(greedy.flat, load_checkpoint(tmp_path / "b" / "weights.npz")[1].flat)
     assert params.flat.shape == greedy.flat.shape
+
+
+def test_a_saved_policy_keeps_its_weights_whatever_values_it_sees(tmp_path):
+    """Acting on its own weights, its divergence monitor replaced them with random ones after 50
+    high values, and the episodes were still recorded as the file's."""
+    cfg = learner_config(BoatVec(1), ClientConfig(sim="boat"))
+    learner = make_learner(cfg)
+    learner.params.b2[:] += 1.0  # greedy values above the divergence threshold (0.5), every tick
+    save_weights(tmp_path / "w.npz", cfg, learner.params)
+    mix, _ = _controllers(f"weights:{tmp_path / 'w.npz'}")
+    x = BoatVec(1).reset(np.random.default_rng(1))[0]
+    first = mix.act(f"weights:{tmp_path / 'w.npz'}", x).result.action
+    for _ in range(3 * cfg.divergence_patience):
+        acted = mix.act(f"weights:{tmp_path / 'w.npz'}", x)
+    np.testing.assert_array_equal(acted.result.action, first)
