@@ -232,12 +232,16 @@ class LocalBrain:
         lockstep: bool = False,
         think_batch: int = 50,
         recorder: Recorder | None = None,
+        learns: bool = True,
     ) -> None:
         self.learner = learner
         # Before the control loop and the think thread run: loading torch among them would hold up ticks.
         learner.prepare_thinking()
         self.lockstep = lockstep
-        self.mt = None if lockstep else ActLearnThinkMT(learner, think_batch=think_batch)
+        self.mt = None if lockstep or not learns else ActLearnThinkMT(learner, think_batch=think_batch)
+        self.frozen = None if learns else learner.snapshot()
+        """A run that learns nothing acts on the weights it was given, as they are: acting on the
+        learner's own, its divergence monitor would reset them to random ones (and save those)."""
         self.recorder = recorder
         """Where every experience is recorded (an experience log), if anywhere."""
 
@@ -268,7 +272,9 @@ class LocalBrain:
     def act(self, state: FloatArray, explore: bool = True) -> Acted | None:
         """Best wire of the newest snapshot (lock-step: of the learner itself)."""
         if self.mt is None:
-            return Acted(self.learner.act(state, explore), "local", int(self.learner.thinks[0]))
+            # None: the learner's own weights, or in a run that learns nothing the frozen copy.
+            result = self.learner.act(state, explore, params=self.frozen)
+            return Acted(result, "local", int(self.learner.thinks[0]))
         return Acted(self.mt.act(state, explore), "local", self.mt.version)
 
     def learn(self, experience: Experience, acted: Acted | None) -> None:

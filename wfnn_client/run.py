@@ -100,9 +100,8 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> B
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id,
                           background=True)  # fmt: skip
         try:
-            return LocalBrain(
-                learner, lockstep=config.lockstep, think_batch=config.think_batch, recorder=record
-            )
+            return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch,
+                              recorder=record, learns=config.learn)  # fmt: skip
         except BaseException:
             record.close()
             raise

@@ -240,3 +240,19 @@ def test_a_saved_policy_keeps_its_weights_whatever_values_it_sees(tmp_path):
     for _ in range(3 * cfg.divergence_patience):
         acted = mix.act(f"weights:{tmp_path / 'w.npz'}", x)
     np.testing.assert_array_equal(acted.result.action, first)
+
+
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_a_run_that_learns_nothing_keeps_and_saves_the_weights_it_was_given(tmp_path, lockstep):
+    """Its divergence monitor reset them to random ones, which the run then saved over them."""
+    from wfnn_io.persist import load_weights
+
+    cfg = learner_config(BoatVec(1), ClientConfig(sim="boat"))
+    learner = make_learner(cfg)
+    learner.params.b2[:] += 1.0  # greedy values above the divergence threshold, every tick
+    save_weights(tmp_path / "w.npz", cfg, learner.params)
+    metrics = run(ClientConfig(sim="boat", episodes=3, rate_hz=0, learn=False, lockstep=lockstep,
+                               weights=tmp_path / "w.npz", out=tmp_path / "run"))  # fmt: skip
+    assert metrics["experiences_learned"] == 0
+    _, saved, _ = load_weights(tmp_path / "run" / "weights.npz")
+    np.testing.assert_array_equal(np.asarray(saved.flat), np.asarray(learner.params.flat))
