@@ -93,8 +93,31 @@ def status_line(f: dict[str, Any]) -> str:
     )
 
 
+_FOR_SIMS = {
+    "boat_dt": ("boat",), "joints": ("hydra",), "axes": ("hydra",), "regime": ("hydra",),
+    "vision": ("hydra", "nomad"), "behaviour": ("nomad",), "balls": ("nomad",),
+    "every_second_target": ("nomad",), "camera_yaw": ("nomad",),
+}  # fmt: skip
+"""Options only some sims read: given with another, they would be dropped without a word."""
+_FOR_SERVERS = (
+    "listen", "mode", "zenoh_config", "shared_memory", "controller", "follow", "key_file", "insecure",
+)  # fmt: skip
+"""Options only the C/S client reads: thinking locally, they would be dropped without a word."""
+
+
+def _given(ctx: typer.Context, name: str) -> bool:
+    """Whether option `name` was given (on the command line or by its environment variable)."""
+    source = ctx.get_parameter_source(name)  # typer's own click: its enum is not public
+    return source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")
+
+
+def _option(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
 @app.command()
 def client(
+    ctx: typer.Context,
     sim: Annotated[str, typer.Option(help=f"Simulated task: {', '.join(SIMS)}.")] = "boat",
     episodes: Annotated[int, typer.Option(min=1, help="Episodes (boat: targets).")] = 40,
     duration: Annotated[float | None, typer.Option(min=0.0, help="Stop after this many seconds.")] = None,
@@ -277,7 +300,12 @@ def client(
         joints=_names(joints), axes=_names(axes), regime=regime,  # type: ignore[arg-type]
         vision=VisionConfig(source=vision), **(simulated if sim == "hydra" else {}),  # type: ignore[arg-type]
     )  # fmt: skip
+    for name, sims in _FOR_SIMS.items():
+        if _given(ctx, name) and sim not in sims:
+            raise typer.BadParameter(f"is for --sim {' or '.join(sims)}, not {sim}", param_hint=_option(name))
     foraging = behaviour == "forage"
+    if every_second_target and not foraging:
+        raise typer.BadParameter("needs --behaviour forage", param_hint="--every-second-target")
     if not foraging and behaviour not in NOMAD_BEHAVIOURS:  # the sim's own check knows no forage
         known = (*NOMAD_BEHAVIOURS, "forage")
         raise ValueError(f"--behaviour must be one of {known}, got {behaviour[:60]!r}")
@@ -304,6 +332,11 @@ def client(
         safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                             max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),
     )  # fmt: skip
+    if config.local:
+        for name in _FOR_SERVERS:
+            if _given(ctx, name):
+                raise typer.BadParameter("is for the C/S client (--server ENDPOINT); this run thinks "
+                                         "locally", param_hint=_option(name))  # fmt: skip
     console.print(f"[bold]wfnn-client[/] {escape(one_line(config.summary()))}", soft_wrap=True)
     if verbose:  # the whole config (also in the run directory's config.json)
         console.print_json(json.dumps(jsonable_config(config)))

@@ -269,3 +269,48 @@ def test_json_stats_naming_one_of_the_runs_own_files_is_refused_before_the_run(t
         with pytest.raises(ValueError, match="one of the run's own"):
             prepare(ClientConfig(sim="boat", out=linked, json_stats=spelled))
     prepare(ClientConfig(sim="boat", out=linked, json_stats=tmp_path / "disk" / "stats.json"))
+
+
+@pytest.mark.parametrize("args, option", [
+    (["--sim", "boat", "--behaviour", "forage"], "--behaviour"),
+    (["--sim", "hydra", "--boat-dt", "1"], "--boat-dt"),
+    (["--sim", "boat", "--regime", "static"], "--regime"),
+    (["--sim", "nomad", "--every-second-target"], "--every-second-target"),
+    (["--sim", "boat", "--follow", "s2"], "--follow"),
+    (["--server", "local", "--listen", "tcp/127.0.0.1:7999"], "--listen"),
+    (["--sim", "boat", "--controller", "x"], "--controller"),
+    (["--sim", "boat", "--mode", "router"], "--mode"),
+])  # fmt: skip
+def test_options_this_run_would_not_read_are_refused(tmp_path, monkeypatch, args, option):
+    """They were dropped without a word: a nomad forage option on the boat, a C/S option thinking
+    locally (a run the user believed was following s2)."""
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+
+    monkeypatch.setattr(cli, "prepare", lambda config: pytest.fail("a run started"))
+    result = CliRunner().invoke(cli.app, [*args, "--out", str(tmp_path)])
+    assert result.exit_code != 0 and option in result.output and not (tmp_path / "config.json").exists()
+
+
+def test_options_of_the_run_given_are_taken(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+
+    seen = []
+
+    def built(config):
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "prepare", built)
+    for args in (
+        ["--sim", "nomad", "--behaviour", "forage", "--every-second-target"],
+        ["--sim", "boat", "--boat-dt", "1"],
+        ["--sim", "boat", "--server", "tcp/127.0.0.1:7447", "--follow", "s2", "--controller", "x"],
+    ):
+        result = CliRunner().invoke(cli.app, [*args, "--out", str(tmp_path)])
+        assert result.exit_code == 0, result.output
+    assert seen[0].forage is not None and seen[0].forage.pursue == "every_second"
+    assert seen[1].boat_dt == 1.0 and seen[2].follow == "s2" and seen[2].controller == "x"
