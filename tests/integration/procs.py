@@ -22,8 +22,9 @@ class ServerProcess(_ServerProcess):
 
 
 def client(*args: str) -> subprocess.Popen[str]:
-    """Start `wfnn-client` for the controller `it` with `args`."""
-    cmd = [str(BIN / "wfnn-client"), "--controller", "it", *args]
+    """Start `wfnn-client` for the controller `it` with `args` (thinking locally: no controller)."""
+    local = "local" in args or not {"--server", "--listen"} & set(args)  # refuses C/S options
+    cmd = [str(BIN / "wfnn-client"), *([] if local else ["--controller", "it"]), *args]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=ENV, text=True,
                             preexec_fn=_interruptible)  # fmt: skip
 
