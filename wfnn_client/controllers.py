@@ -11,7 +11,7 @@ with the controller's name as its behaviour policy (`weights_source` in the logs
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 
@@ -60,16 +60,16 @@ def parse_mix(text: str) -> tuple[PolicyShare, ...]:
         mix.append(PolicyShare(name, share))
     if not mix:
         raise ValueError("an empty behaviour-policy mix")
-    if len({_same(m.name) for m in mix}) != len(mix):
+    if len({_same(m.name, os.path.realpath) for m in mix}) != len(mix):  # one file, however written
         raise ValueError(f"behaviour policy named twice in {text!r}")
     if not np.isfinite(sum(m.share for m in mix)):  # each share is divided by the total
         raise ValueError(f"behaviour-policy shares {text!r} sum beyond the largest number")
     return tuple(mix)
 
 
-def _same(name: str) -> str:
+def _same(name: str, way: Callable[[str], str] = os.path.normpath) -> str:
     """A policy's name with its path written one way (`runs/a/w.npz` is `./runs/a/w.npz`)."""
-    return f"weights:{os.path.normpath(name[len('weights:') :])}" if name.startswith("weights:") else name
+    return f"weights:{way(name[len('weights:') :])}" if name.startswith("weights:") else name
 
 
 def source_names(names: Iterable[str]) -> dict[str, str]:

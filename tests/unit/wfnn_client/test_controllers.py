@@ -1,5 +1,7 @@
 """Behaviour policies other than the learner: parsing a mix, drawing per episode, off-policy runs."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -23,8 +25,12 @@ def test_a_mix_is_parsed_with_shares_and_bad_ones_are_named():
                           ("weights:", "unknown"), ("wfnn=1e308,random=1e308", "sum beyond")):  # fmt: skip
         with pytest.raises(ValueError, match=message):
             parse_mix(text)
-    with pytest.raises(ValueError, match="twice"):  # one file, written two ways
-        parse_mix("weights:runs/a/w.npz,weights:./runs/a/w.npz")
+    for two_ways in (
+        "weights:runs/a/w.npz,weights:./runs/a/w.npz",
+        f"weights:x.npz,weights:{Path.cwd() / 'x.npz'}",
+    ):
+        with pytest.raises(ValueError, match="twice"):  # one file, written two ways
+            parse_mix(two_ways)
 
 
 def test_saved_policies_are_recorded_by_names_that_tell_them_apart():
