@@ -457,8 +457,9 @@ class ThinkServer:
         # the ranges it had not handed over) owe nothing when filled; the others are owed. A
         # checkpoint that does not say (written before it could) counts none as thought.
         self._thought_holes, self._unqueued = {}, {}
+        marks = checkpointed if "unqueued" in meta else {}
         for client, holes in list(self.store.holes.items()):  # the ingest thread may be storing
-            mark = checkpointed.get(client, -1) if "unqueued" in meta else -1
+            mark = marks.get(client, -1)
             thought = _less(without(holes, mark + 1, ENDLESS), unqueued.get(client, []))
             if thought:
                 self._thought_holes[client] = thought

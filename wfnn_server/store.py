@@ -170,7 +170,7 @@ class ExperienceStore:
         runs = self._missing(batch.client)
         declared = bool(batch.flags[0] & EXP_AFTER_LOSS) and not allow_gap  # a log's gaps are holes
         start_lost = _declared_from(batch)
-        lost = within(runs, start_lost, f - 1) if declared else 0
+        lost = _within(runs, start_lost, f - 1) if declared else 0
         reached = next(((a, b) for a, b in runs if b >= f and a <= last), None)
         if reached is None:
             return Admission(None, duplicate=True, lost=lost)
@@ -204,7 +204,7 @@ class ExperienceStore:
         """
         holes = self.holes.get(batch.client, [])
         start, end = _declared_from(batch), batch.first_seq - 1
-        lost = within(holes, start, end)
+        lost = _within(holes, start, end)
         if lost:
             self._set_holes(batch.client, without(holes, start, end))
             self.lost[batch.client] = self.lost.get(batch.client, 0) + lost
@@ -223,7 +223,7 @@ class ExperienceStore:
                 raise ValueError(
                     f"batch from {client} declares {start}-{f - 1} lost, its run ends at {through}"
                 )
-            lost = within(holes, start, f - 1) + max(0, f - 1 - through)
+            lost = _within(holes, start, f - 1) + max(0, f - 1 - through)
             holes = without(holes, start, f - 1)
             through = max(through, f - 1)
         if f > through:
@@ -295,7 +295,7 @@ def _declared_from(batch: ExperienceBatch) -> int:
     return batch.lost_from if batch.lost_from >= 0 else 0
 
 
-def within(runs: Iterable[Hole], start: int, end: int) -> int:
+def _within(runs: Iterable[Hole], start: int, end: int) -> int:
     """How many experiences of `runs` lie in start..end."""
     return sum(max(0, min(b, end) - max(a, start) + 1) for a, b in runs)
 
