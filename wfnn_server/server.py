@@ -841,32 +841,37 @@ class ThinkServer:
         tpa = learner.config.thinks_per_action
         deadline = time.monotonic() + THINK_CALL_S
         while self._to_learn:
-            batch = self._to_learn.popleft()
-            with self._to_learn_lock:
-                self._to_learn_bytes -= _nbytes(batch)
-            key = (batch.client, batch.first_seq)
-            fill = key in self._queued_fills
-            self._queued_fills.discard(key)
-            through = self._loaded_through.get(batch.client, -1)
-            if not _fits(batch, learner.config, self.spec_hash):
-                # Queued for a config that made no learner: counted in store/other_spec when this
-                # learner was built from the store, which holds them.
-                pass
-            elif (key in self._loaded_fills) if fill else batch.last_seq <= through:
-                # Stored and queued before the learner was built, which learned it from the store
-                # (its thinks in the budget then): learning the queued copy would learn it twice.
-                self._loaded_fills.discard(key)
-                self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
-            else:
-                ok = self._learn_batch(learner, batch)
-                thought = self._thought_holes.get(batch.client)
-                if fill and thought:  # thought before a record of it was damaged: learned, not owed
-                    ok = ok & ~_in_ranges(batch.first_seq, batch.last_seq, thought)
-                self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
-                self._observe(learner, batch)
-            queued = self._queued_through.get(batch.client, -1)
-            self._hand_over(batch.client, batch.first_seq, batch.last_seq)
-            self._queued_through[batch.client] = max(batch.last_seq, queued)
+            # Left in the queue until learned and its thinks owed, so that an empty queue means
+            # every batch handed over was (`replayed`, which ends a --replay-only run, reads it).
+            batch = self._to_learn[0]
+            try:
+                key = (batch.client, batch.first_seq)
+                fill = key in self._queued_fills
+                self._queued_fills.discard(key)
+                through = self._loaded_through.get(batch.client, -1)
+                if not _fits(batch, learner.config, self.spec_hash):
+                    # Queued for a config that made no learner: counted in store/other_spec when this
+                    # learner was built from the store, which holds them.
+                    pass
+                elif (key in self._loaded_fills) if fill else batch.last_seq <= through:
+                    # Stored and queued before the learner was built, which learned it from the store
+                    # (its thinks in the budget then): learning the queued copy would learn it twice.
+                    self._loaded_fills.discard(key)
+                    self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
+                else:
+                    ok = self._learn_batch(learner, batch)
+                    thought = self._thought_holes.get(batch.client)
+                    if fill and thought:  # thought before a record of it was damaged: learned, not owed
+                        ok = ok & ~_in_ranges(batch.first_seq, batch.last_seq, thought)
+                    self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
+                    self._observe(learner, batch)
+                queued = self._queued_through.get(batch.client, -1)
+                self._hand_over(batch.client, batch.first_seq, batch.last_seq)
+                self._queued_through[batch.client] = max(batch.last_seq, queued)
+            finally:
+                self._to_learn.popleft()  # only this thread takes from the queue
+                with self._to_learn_lock:
+                    self._to_learn_bytes -= _nbytes(batch)
             if self._to_learn and time.monotonic() >= deadline:  # one batch a call at least
                 return True
         return False

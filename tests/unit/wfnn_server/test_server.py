@@ -604,6 +604,25 @@ def test_one_update_longer_than_the_clients_patience_keeps_the_heartbeat_going(t
     assert counters["publish/status_relayed"] > 0
 
 
+def test_a_batch_being_learned_is_not_replayed_yet(tmp_path, monkeypatch):
+    """`replayed` ends a --replay-only run: it read an empty queue as done while the batch taken
+    from it was still being learned, before its thinks were owed."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    seen = []
+    learn_batch = ThinkServer._learn_batch
+
+    def learning(learner, b):
+        seen.append(server.replayed())
+        return learn_batch(learner, b)
+
+    monkeypatch.setattr(ThinkServer, "_learn_batch", staticmethod(learning))
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 10))
+        assert Listener(hub).wait(lambda: server.store.count == 10 and server.replayed())
+        assert int(server.learner.buffer.count[0]) == 10 and int(server.learner.thinks[0]) == 10
+    assert seen == [False]
+
+
 @pytest.mark.parametrize("saved_copy", ["kept", "unreadable", "missing"])
 def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tmp_path, saved_copy):
     """A mistaken --learner-config neither sets the checkpoints aside nor replaces the saved config,
