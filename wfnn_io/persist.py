@@ -46,6 +46,11 @@ def read_regular_bytes(path: Path | str, limit: int = MAX_TEXT_BYTES) -> bytes:
     good) and checked before it is read; OSError for anything that is not a regular file of at
     most `limit` bytes.
     """
+    return read_regular(path, limit)[0]
+
+
+def read_regular(path: Path | str, limit: int = MAX_TEXT_BYTES) -> tuple[bytes, os.stat_result]:
+    """`read_regular_bytes`, with the status of the file it read (one look: the same open file)."""
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     try:
         info = os.fstat(fd)
@@ -67,7 +72,7 @@ def read_regular_bytes(path: Path | str, limit: int = MAX_TEXT_BYTES) -> bytes:
         os.close(fd)
     if len(data) > limit:
         raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
-    return data
+    return data, info
 
 
 def read_regular_text(path: Path | str, limit: int = MAX_TEXT_BYTES) -> str:

@@ -23,7 +23,6 @@ import dataclasses
 import hashlib
 import hmac
 import logging
-import os
 import re
 import struct
 from collections import Counter
@@ -779,11 +778,11 @@ def load_key(path: str | None) -> bytes | None:
     if not path:
         return None
 
-    from wfnn_io.persist import read_regular_bytes  # persist imports the learners: only here
+    from wfnn_io.persist import read_regular  # persist imports the learners: only here
 
     try:
-        key = read_regular_bytes(path).removeprefix(b"\xef\xbb\xbf").strip()
-        mode = os.stat(path).st_mode
+        data, info = read_regular(path)  # the mode of the file read, not of what the path names later
+        key, mode = data.removeprefix(b"\xef\xbb\xbf").strip(), info.st_mode
     except OSError as exc:
         raise ValueError(f"key file {path} cannot be read: {exc.strerror or exc}") from None
     if len(key) < 16:
