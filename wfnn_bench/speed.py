@@ -116,7 +116,8 @@ def run(bench: SpeedBenchConfig, progress: Progress = no_progress) -> dict[str, 
     out.update(_act_latency(deep, states, "_deep"))
     d = deep.config.deep
     out["deep_network"] = {"hidden": list(d.hidden), "value_hidden": d.value_hidden,
-                           "n_wires": deep.config.n_wires, "layer_norm": d.layer_norm}  # fmt: skip
+                           "value_layers": d.value_layers, "n_wires": deep.config.n_wires,
+                           "layer_norm": d.layer_norm}  # fmt: skip
     progress(1)
 
     # incremental thinks/s, one learner (one core).

@@ -63,15 +63,20 @@ class DeepConfig:
 
     Each of two critics is a state trunk (an MLP of `hidden` ReLU layers) with two heads: the
     wire head gives `n_wires` actions (tanh, in the scaled range [-1, 1]); the value head scores
-    each (trunk features, wire action) pair through one ReLU layer of `value_hidden`, so wire
-    values depend on their actions. Q(x, u) is Eq 3.1's wire-fitting interpolation of critic 1's
+    each (trunk features, wire action) pair through `value_layers` ReLU layers of `value_hidden`,
+    so wire values depend on their actions. Q(x, u) is Eq 3.1's wire-fitting interpolation of critic 1's
     wires, with the smoothing term on the wires' values min-max normalised per state.
     """
 
     hidden: tuple[int, ...] = (128, 128)
     """Widths of the state trunk's ReLU layers."""
     value_hidden: int = 64
-    """Width of the value head's ReLU layer, which sees trunk features and one wire action."""
+    """Width of the value head's ReLU layers (the first sees trunk features and one wire action)."""
+    value_layers: int = 1
+    """ReLU layers of the value head. With one, a wire's value is a sum of ridges relu(a(h) + w . u)
+    whose directions w in the action space are the same in every state (only their offsets a(h)
+    follow the state); a second layer lets the shape of Q over actions change with the state, as
+    a critic with the action at its input (TD3's, Q3C's) can."""
     layer_norm: bool = True
     """Normalise the inputs of the trunk's ReLUs (LayerNorm without learned scale)."""
     lr: float = 3e-4
@@ -122,6 +127,7 @@ class DeepConfig:
             (1 <= len(self.hidden) <= 8 and all(1 <= h <= MAX_HIDDEN for h in self.hidden),
              f"deep.hidden must be 1 to 8 widths in [1, {MAX_HIDDEN}]"),
             (1 <= self.value_hidden <= MAX_HIDDEN, f"deep.value_hidden must be in [1, {MAX_HIDDEN}]"),
+            (1 <= self.value_layers <= 8, "deep.value_layers must be in [1, 8]"),
             (0.0 < self.lr <= 1.0, "deep.lr must be in (0, 1]"),
             (0.0 <= self.grad_clip <= 1e6, "deep.grad_clip must be in [0, 1e6]"),
             (0.0 < self.tau <= 1.0, "deep.tau must be in (0, 1]"),
@@ -179,7 +185,7 @@ MAX_PARAMS = 4_000_000
 at most 32 MiB with the rest)."""
 MAX_WORK = 1 << 24
 """Largest batch_size x (numbers each minibatch row keeps through an update): for the deep
-learner state_dim + sum(deep.hidden) + n_wires x (value_hidden + n_wires + action_dim), in the
+learner state_dim + sum(deep.hidden) + n_wires x (value_layers x value_hidden + n_wires + action_dim), in the
 trunk and in the value head (4 bytes each, for both critics, with gradients); for the thesis'
 learner's minibatch update state_dim + 2 n_hidden + n_wires x (5 action_dim + 8), its layers,
 their errors and the interpolation's terms."""
@@ -362,14 +368,15 @@ class LearnerConfig:
             size = sum(a * b + b for a, b in itertools.pairwise(widths))
             size += (widths[-1] + 1) * self.n_wires * len(a_lo)
             size += d.value_hidden * (widths[-1] + len(a_lo) + 2) + 1
+            size += (d.value_layers - 1) * (d.value_hidden + 1) * d.value_hidden
             if size > MAX_PARAMS:
                 raise ConfigError(f"the deep learner's critic would have {size:,} parameters, more than "
                                   f"{MAX_PARAMS:,} (config: {self.short_repr()})")  # fmt: skip
-            row = sum(widths) + self.n_wires * (d.value_hidden + self.n_wires + len(a_lo))
+            row = sum(widths) + self.n_wires * (d.value_layers * d.value_hidden + self.n_wires + len(a_lo))
             if self.batch_size * row > MAX_WORK:
-                raise ConfigError(f"batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_hidden + "
-                                  f"n_wires + action_dim)) = {self.batch_size * row:,} is more than "
-                                  f"{MAX_WORK:,} ({self.short_repr()})")  # fmt: skip
+                raise ConfigError(f"batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_layers x "
+                                  f"value_hidden + n_wires + action_dim)) = {self.batch_size * row:,} is "
+                                  f"more than {MAX_WORK:,} ({self.short_repr()})")  # fmt: skip
         for symmetry in self.symmetries:
             try:
                 symmetry.check_dims(self.state_dim, self.action_dim)
@@ -518,6 +525,8 @@ class LearnerConfig:
             d = self.deep
             spec = {**spec, "learner": "deep", "n_hidden": 0, "hidden": d.hidden,
                     "value_hidden": d.value_hidden, "layer_norm": d.layer_norm}  # fmt: skip
+            if d.value_layers != 1:  # one layer's spec keeps the hash it had before the field existed
+                spec["value_layers"] = d.value_layers
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
 
     def short_repr(self) -> str:
@@ -525,7 +534,8 @@ class LearnerConfig:
         if self.learner == "deep":
             d = self.deep
             return (
-                f"deep S={self.state_dim} A={self.action_dim} hidden={d.hidden} value={d.value_hidden} "
+                f"deep S={self.state_dim} A={self.action_dim} hidden={d.hidden} "
+                f"value={d.value_hidden}x{d.value_layers} "
                 f"wires={self.n_wires} gamma={self.gamma} k={self.advantage_k} lr={d.lr} "
                 f"c={self.smoothing_c} thinks={self.thinks_per_action} batch={self.batch_size} "
                 f"n_step={d.n_step}"

@@ -8,7 +8,9 @@ One critic over a scaled state x [S]:
 
     h = trunk(x)                       ReLU layers `hidden`
     u_i = tanh(W_w h + b_w)_i          n_wires wire actions [N, A], in [-1, 1]
-    q_i = v . relu(V_h h + V_u u_i + b_v) + b_o     wire values [N], conditioned on the action
+    g_i = relu(V_h h + V_u u_i + b_v)              the value head's first layer, per wire
+    g_i = relu(V_k g_i + b_k), k = 1 .. value_layers - 1
+    q_i = v . g_i + b_o                             wire values [N], conditioned on the action
 
 With `layer_norm`, the trunk's ReLU inputs are normalised first (LayerNorm without learned
 scale). Normalising the value head's too kept its units alive on a one-step task but lost
@@ -51,14 +53,14 @@ class DeepShapes:
     value_hidden: int
     n_wires: int
     layer_norm: bool
+    value_layers: int = 1
 
     @classmethod
     def of(cls, config: LearnerConfig) -> DeepShapes:
         """The layout a deep learner config implies."""
         d = config.deep
-        return cls(
-            config.state_dim, config.action_dim, d.hidden, d.value_hidden, config.n_wires, d.layer_norm
-        )
+        return cls(config.state_dim, config.action_dim, d.hidden, d.value_hidden, config.n_wires,
+                   d.layer_norm, d.value_layers)  # fmt: skip
 
     def blocks(self) -> list[tuple[str, tuple[int, ...]]]:
         """(name, shape) of each parameter block, in the flat vector's order."""
@@ -73,9 +75,10 @@ class DeepShapes:
             ("Vh", (hv, fan_in)),
             ("Vu", (hv, self.action_dim)),
             ("bv", (hv,)),
-            ("vo", (hv,)),
-            ("bo", (1,)),
         ]
+        for k in range(1, self.value_layers):
+            out += [(f"V{k}", (hv, hv)), (f"bv{k}", (hv,))]
+        out += [("vo", (hv,)), ("bo", (1,))]
         return out
 
     def slices(self) -> dict[str, tuple[int, int, tuple[int, ...]]]:
@@ -106,6 +109,8 @@ class DeepShapes:
         fan["Ww"] = fan["bw"] = prev
         for name in ("Vh", "Vu", "bv"):
             fan[name] = prev + self.action_dim
+        for k in range(1, self.value_layers):
+            fan[f"V{k}"] = fan[f"bv{k}"] = self.value_hidden
         fan["vo"] = fan["bo"] = self.value_hidden
         return fan
 
@@ -134,6 +139,9 @@ class DeepParams:
         self.shapes = shapes
         self.blocks = {name: flat[0, a:b].reshape(shape) for name, (a, b, shape) in shapes.slices().items()}
         self.trunk = [(self.blocks[f"W{k}"], self.blocks[f"b{k}"]) for k in range(len(shapes.hidden))]
+        self.value_layers = [
+            (self.blocks[f"V{k}"], self.blocks[f"bv{k}"]) for k in range(1, shapes.value_layers)
+        ]
 
     @functools.cached_property
     def act_layout(self) -> tuple[FloatArray, NDArray[np.int64]]:
@@ -171,8 +179,10 @@ def wires(params: DeepParams, x: FloatArray) -> tuple[FloatArray, FloatArray]:
         h = np.maximum(h, 0.0)
     n, a = params.shapes.n_wires, params.shapes.action_dim
     u = np.tanh(h @ b["Ww"].T + b["bw"]).reshape(x.shape[0], n, a)
-    z = (h @ b["Vh"].T + b["bv"])[:, None, :] + u @ b["Vu"].T  # [B, N, Hv]
-    q = np.maximum(z, 0.0) @ b["vo"] + b["bo"][0]
+    g = np.maximum((h @ b["Vh"].T + b["bv"])[:, None, :] + u @ b["Vu"].T, 0.0)  # [B, N, Hv]
+    for V, bias in params.value_layers:
+        g = np.maximum(g @ V.T + bias, 0.0)
+    q = g @ b["vo"] + b["bo"][0]
     return u, q
 
 
@@ -182,8 +192,9 @@ def _act_layout(blocks: dict[str, FloatArray], shapes: DeepShapes) -> tuple[Floa
     In order: per trunk layer its weights and bias, with a LayerNorm layer's mean over units
     taken out, so that its output arrives centred ((W - mean W) h + (b - mean b) = W h + b -
     mean(W h + b)); the wire head and the value head's state part side by side, their biases;
-    the value head's action part [A, Hv]; its output weights [Hv] and bias [1]. dims: state,
-    action, wires, value units, layer_norm (0/1), then the trunk's widths.
+    the value head's action part [A, Hv]; each further value layer's weights [Hv, Hv] and bias;
+    its output weights [Hv] and bias [1]. dims: state, action, wires, value units, layer_norm
+    (0/1), value layers, then the trunk's widths.
     """
     fan = shapes.hidden[-1]
     na = shapes.n_wires * shapes.action_dim
@@ -209,12 +220,15 @@ def _act_layout(blocks: dict[str, FloatArray], shapes: DeepShapes) -> tuple[Floa
     put(1, na)[0] = blocks["bw"]
     put(1, shapes.value_hidden)[0] = blocks["bv"]
     put(shapes.action_dim, shapes.value_hidden)[...] = blocks["Vu"].T
+    for k in range(1, shapes.value_layers):
+        put(shapes.value_hidden, shapes.value_hidden)[...] = blocks[f"V{k}"].T
+        put(1, shapes.value_hidden)[0] = blocks[f"bv{k}"]
     put(1, shapes.value_hidden)[0] = blocks["vo"]
     put(1, 1)[0] = blocks["bo"]
     pack.flags.writeable = False
     dims = np.array(
         [shapes.state_dim, shapes.action_dim, shapes.n_wires, shapes.value_hidden, int(shapes.layer_norm),
-         *shapes.hidden], dtype=np.int64,
+         shapes.value_layers, *shapes.hidden], dtype=np.int64,
     )  # fmt: skip
     return pack, dims
 
@@ -248,7 +262,8 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
     each call's overhead and OpenBLAS's threads (two of them doubled a matrix-vector product
     here) made most of `act`'s time.
     """
-    n_state, n_action, n_wires, n_value, layer_norm = dims[0], dims[1], dims[2], dims[3], dims[4]
+    n_state, n_action, n_wires, n_value = dims[0], dims[1], dims[2], dims[3]
+    layer_norm, n_layers = dims[4], dims[5]
     x = np.empty(n_state)
     u = np.empty((n_wires, n_action))
     q = np.empty(n_wires)
@@ -260,7 +275,7 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
     if not valid:
         return False, x, u, q, -1
     h, at = x, 0
-    for k in range(5, dims.shape[0]):
+    for k in range(6, dims.shape[0]):
         h, at = _affine(pack, at, h, dims[k])
         if layer_norm:  # already centred: only the scale is left
             ss = 0.0
@@ -274,8 +289,10 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
     na = n_wires * n_action
     y, at = _affine(pack, at, h, na + n_value)
     Vu = pack[at : at + n_action * n_value].reshape((n_action, n_value))
-    vo = pack[at + n_action * n_value : at + (n_action + 1) * n_value]
-    bo = pack[at + (n_action + 1) * n_value]
+    deeper = at + n_action * n_value  # where the value head's further layers start
+    at = deeper + (n_layers - 1) * (n_value + 1) * n_value
+    vo = pack[at : at + n_value]
+    bo = pack[at + n_value]
     best = 0
     g = np.empty(n_value)
     for w in range(n_wires):
@@ -285,9 +302,16 @@ def act_one(pack, dims, s, mid, half, limit):  # type: ignore[no-untyped-def]
             row, uwa = Vu[a], u[w, a]
             for i in range(n_value):
                 g[i] += row[i] * uwa
+        for i in range(n_value):
+            g[i] = max(g[i], 0.0)
+        z, layer_at = g, deeper
+        for _ in range(n_layers - 1):
+            z, layer_at = _affine(pack, layer_at, z, n_value)
+            for i in range(n_value):
+                z[i] = max(z[i], 0.0)
         value = bo
         for i in range(n_value):
-            value += max(g[i], 0.0) * vo[i]
+            value += z[i] * vo[i]
         q[w] = value
         if value > q[best]:  # the first wire of the highest value
             best = w

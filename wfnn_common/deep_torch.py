@@ -103,6 +103,10 @@ class Critics:
         # are outer and inner products, which a batched matrix product does several times slower.
         zu = torch.einsum("cbna,cha->cbnh", u, p["Vu"])
         g = tnf.relu(z.unsqueeze(2) + zu)
+        for k in range(1, self.shapes.value_layers):  # [2, B M, Hv] through each further layer
+            flat = g.reshape(2, -1, g.shape[-1])
+            z = torch.baddbmm(p[f"bv{k}"].unsqueeze(1), flat, p[f"V{k}"].transpose(1, 2))
+            g = tnf.relu(z).view(g.shape)
         q = (g * p["vo"].view(2, 1, 1, -1)).sum(dim=-1)
         return q + p["bo"].view(2, 1, 1)
 

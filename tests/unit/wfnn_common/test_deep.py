@@ -51,6 +51,9 @@ def test_config_defaults_round_trip_and_spec_hash():
     assert spec.spec_hash() == "283bc71bbd8b7642"
     hashes = {thesis.spec_hash(), cfg.spec_hash(), with_options(cfg, {"deep": {"hidden": [64]}}).spec_hash()}
     assert len(hashes) == 3
+    # A spec written before value_layers existed (one layer) keeps its hash; more layers are another.
+    assert cfg.spec_hash() == "b776c36b7fd2661e"
+    assert with_options(cfg, {"deep": {"value_layers": 2}}).spec_hash() not in hashes
     # Training-only fields do not change what a snapshot means.
     assert with_options(cfg, {"deep": {"lr": 1e-3}, "gamma": 0.9}).spec_hash() == cfg.spec_hash()
     with pytest.raises(ConfigError, match=r"deep\.n_step"):
@@ -61,9 +64,9 @@ def test_config_defaults_round_trip_and_spec_hash():
         with_options(cfg, {"learner": "other"})
 
 
-@pytest.mark.parametrize("layer_norm", [False, True])
-def test_numpy_and_torch_critics_agree(layer_norm):
-    cfg = config(deep={"layer_norm": layer_norm})
+@pytest.mark.parametrize(("layer_norm", "value_layers"), [(False, 1), (True, 1), (False, 2), (True, 3)])
+def test_numpy_and_torch_critics_agree(layer_norm, value_layers):
+    cfg = config(deep={"layer_norm": layer_norm, "value_layers": value_layers})
     shapes = deep_net.DeepShapes.of(cfg)
     rng = np.random.default_rng(0)
     theta = np.concatenate([deep_net.init_critic(shapes, rng) for _ in range(2)])
@@ -206,7 +209,7 @@ def _loss_args(trainer, seed):
     return (trainer.blocks, trainer.target, *batch)
 
 
-@pytest.mark.parametrize("options", [{}, {"top_k": 3, "tanh_limit": 3.0}])
+@pytest.mark.parametrize("options", [{}, {"top_k": 3, "tanh_limit": 3.0}, {"value_layers": 2}])
 def test_the_gradient_taken_block_by_block_is_the_whole_vectors(options):
     learner = _fed(DeepWFNN(config(deep=options)))
     learner.think(2)  # an earlier gradient is in the vector, and Adam has moved the weights
@@ -243,7 +246,9 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
-@pytest.mark.parametrize("options", [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0}])
+@pytest.mark.parametrize(
+    "options", [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0}, {"value_layers": 2}]
+)
 def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(options):
     trainer = _fed(DeepWFNN(config(deep={"compile": True, **options})))._train()
     args = _loss_args(trainer, seed=5)
@@ -262,12 +267,12 @@ def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(options):
 
 
 @pytest.mark.parametrize(
-    ("hidden", "state_dim", "action_dim", "layer_norm"),
-    [((128, 128), 11, 3, True), ((7,), 1, 1, False), ((40, 9, 33), 5, 2, True)],
+    ("hidden", "state_dim", "action_dim", "layer_norm", "value_layers"),
+    [((128, 128), 11, 3, True, 1), ((7,), 1, 1, False, 2), ((40, 9, 33), 5, 2, True, 3)],
 )
-def test_the_compiled_act_is_the_batch_forward_pass(hidden, state_dim, action_dim, layer_norm):
+def test_the_compiled_act_is_the_batch_forward_pass(hidden, state_dim, action_dim, layer_norm, value_layers):
     """`act_one` (transposed weights, ReLU zeros skipped) gives `wires` of any shape, the first best wire."""
-    shapes = deep_net.DeepShapes(state_dim, action_dim, hidden, 24, 6, layer_norm)
+    shapes = deep_net.DeepShapes(state_dim, action_dim, hidden, 24, 6, layer_norm, value_layers)
     rng = np.random.default_rng(11)
     params = deep_net.DeepParams(deep_net.init_critic(shapes, rng)[None], shapes)
     mid, half = rng.normal(size=state_dim), rng.uniform(0.5, 2.0, state_dim)
@@ -591,14 +596,14 @@ def test_a_deep_config_too_large_for_memory_is_refused(monkeypatch):
     with pytest.raises(ConfigError, match="parameters"):
         with_options(cfg, {"deep": {"hidden": [4096] * 3}})
     # The bound counts exactly the parameters the network has.
-    for hidden in ((7,), (32, 5, 9)):
+    for deep in ({"hidden": [7]}, {"hidden": [32, 5, 9]}, {"hidden": [7], "value_layers": 3}):
         monkeypatch.setattr(config_module, "MAX_PARAMS", 10**9)
-        size = deep_net.DeepShapes.of(with_options(cfg, {"deep": {"hidden": list(hidden)}})).n_params
+        size = deep_net.DeepShapes.of(with_options(cfg, {"deep": deep})).n_params
         monkeypatch.setattr(config_module, "MAX_PARAMS", size)
-        with_options(cfg, {"deep": {"hidden": list(hidden)}})
+        with_options(cfg, {"deep": deep})
         monkeypatch.setattr(config_module, "MAX_PARAMS", size - 1)
         with pytest.raises(ConfigError, match="parameters"):
-            with_options(cfg, {"deep": {"hidden": list(hidden)}})
+            with_options(cfg, {"deep": deep})
 
 
 def test_a_deep_config_whose_trunk_activations_would_not_fit_in_memory_is_refused():
@@ -610,6 +615,11 @@ def test_a_deep_config_whose_trunk_activations_would_not_fit_in_memory_is_refuse
     with_options(
         config(), {"n_wires": 1, "batch_size": 1 << 10, "deep": {"hidden": [4096], "value_hidden": 1}}
     )
+    # Every further value layer keeps [2, B, N, value_hidden] more.
+    wide = {"n_wires": 32, "batch_size": 1 << 12, "deep": {"hidden": [8], "value_hidden": 64}}
+    with_options(config(), wide)
+    with pytest.raises(ConfigError, match="batch_size x"):
+        with_options(config(), {**wide, "deep": {**wide["deep"], "value_layers": 2}})
 
 
 @pytest.mark.parametrize("seed", [-1, 1 << 62, 1 << 64])
