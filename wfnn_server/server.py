@@ -210,6 +210,8 @@ class ThinkServer:
         self._inbox: Inbox[tuple[str, bytes]] = Inbox()
         """Frames received, waiting for the ingest thread (bounded in bytes: a flood is dropped)."""
         self._to_learn: collections.deque[ExperienceBatch] = collections.deque()
+        self._storing = False
+        """Whether the ingest thread is storing a batch it has not queued yet."""
         """Stored batches waiting for the learner thread, bounded by LEARN_QUEUE_BYTES (`_ingest`)."""
         self._to_learn_bytes = 0
         self._to_learn_lock = threading.Lock()
@@ -417,7 +419,9 @@ class ThinkServer:
     def replayed(self) -> bool:
         """Whether every stored experience has had its thinks (nothing queued or owed)."""
         learner = self.learner
-        return learner is not None and not self._to_learn and self.schedule.settled(int(learner.thinks[0]))
+        # In the order a batch moves: being stored (ingest thread), queued, then learned and owed.
+        return (learner is not None and not self._storing and not self._to_learn
+                and self.schedule.settled(int(learner.thinks[0])))  # fmt: skip
 
     def _check_data_dir_spec(self, given: LearnerConfig) -> None:
         """Refuse a --learner-config of another spec than the learner this data directory holds.
@@ -694,10 +698,14 @@ class ThinkServer:
             if new.first_seq <= self.store.stored_through.get(new.client, -1):
                 self._queued_fills.add((new.client, new.first_seq))  # below what the learner was given
                 self.counters["ingest/holes_filled"] += len(new)
-            self.store.append(new, part.lost)
-            with self._to_learn_lock:
-                self._to_learn_bytes += _nbytes(new)
-            self._to_learn.append(new)
+            self._storing = True  # stored, not yet queued: not replayed (`replayed` reads this first)
+            try:
+                self.store.append(new, part.lost)
+                with self._to_learn_lock:
+                    self._to_learn_bytes += _nbytes(new)
+                self._to_learn.append(new)
+            finally:
+                self._storing = False
         self._recent = _noted(self._recent, batch.client, 2 * MAX_LISTED)
         self._wake.set()
 

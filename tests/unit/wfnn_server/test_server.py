@@ -604,23 +604,31 @@ def test_one_update_longer_than_the_clients_patience_keeps_the_heartbeat_going(t
     assert counters["publish/status_relayed"] > 0
 
 
-def test_a_batch_being_learned_is_not_replayed_yet(tmp_path, monkeypatch):
+def test_a_batch_being_stored_or_learned_is_not_replayed_yet(tmp_path, monkeypatch):
     """`replayed` ends a --replay-only run: it read an empty queue as done while the batch taken
-    from it was still being learned, before its thinks were owed."""
+    from it was still being learned, before its thinks were owed, and while a batch stored was
+    not queued yet."""
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     seen = []
     learn_batch = ThinkServer._learn_batch
 
     def learning(learner, b):
-        seen.append(server.replayed())
+        seen.append(("learning", server.replayed()))
         return learn_batch(learner, b)
 
     monkeypatch.setattr(ThinkServer, "_learn_batch", staticmethod(learning))
     with make_server(tmp_path, hub, cfg) as server:
+        append = server.store.append
+
+        def storing(*args, **kwargs):
+            append(*args, **kwargs)
+            seen.append(("stored", server.replayed()))
+
+        monkeypatch.setattr(server.store, "append", storing)
         send(hub, batch(cfg, 0, 10))
         assert Listener(hub).wait(lambda: server.store.count == 10 and server.replayed())
         assert int(server.learner.buffer.count[0]) == 10 and int(server.learner.thinks[0]) == 10
-    assert seen == [False]
+    assert seen == [("stored", False), ("learning", False)]
 
 
 @pytest.mark.parametrize("saved_copy", ["kept", "unreadable", "missing"])
