@@ -93,6 +93,8 @@ PREVIOUS_CHECKPOINT = "checkpoint.prev.npz"
 """The checkpoint before the newest: a server that cannot read the newest falls back to it."""
 THINK_CALL_S = 0.1
 """About the longest one think call runs (`_think`), well inside the status period."""
+STOP_JOIN_S = 30.0
+"""How long `stop` waits for each thread before it gives up on the final checkpoint."""
 LEARN_QUEUE_BYTES = 256 << 20
 """Stored experiences waiting for the learner thread, at most (their arrays' bytes): beyond it,
 new batches are dropped unstored and come again from their clients' journals."""
@@ -611,9 +613,16 @@ class ThinkServer:
                 self.dashboard.stop()
                 self.dashboard = None
             for thread in self._threads:
-                thread.join(timeout=30)
+                thread.join(timeout=STOP_JOIN_S)
+            running = [t.name for t in self._threads if t.is_alive()]
             self._threads.clear()
-            if self.learner is not None:
+            if running:
+                # A checkpoint beside a think in flight would count its thinks as paid (the
+                # budget is taken before they are done) and never do them after a restart.
+                log.warning("%s still running %g s after the stop: no final checkpoint (the last one "
+                            "stands, and what came after it is owed again at the next start)",
+                            ", ".join(running), STOP_JOIN_S)  # fmt: skip
+            elif self.learner is not None:
                 self.checkpoint()
         finally:
             self.store.close()
@@ -820,7 +829,7 @@ class ThinkServer:
                 if now >= next_publish or caught_up:
                     self.publish()
                     next_publish = now + cfg.publish_period_s
-                if now >= next_checkpoint:
+                if now >= next_checkpoint and not self._stop.is_set():  # after a stop: its own, or none
                     self.checkpoint()
                     next_checkpoint = now + cfg.checkpoint_period_s
             now = time.monotonic()

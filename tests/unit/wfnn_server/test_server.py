@@ -198,7 +198,7 @@ def test_experiences_stored_before_the_learner_is_built_are_learned_once(tmp_pat
         stored.set()
         assert listener.wait(lambda: server.learner is not None and not server._to_learn)
         assert int(server.learner.buffer.count[0]) == 50  # each stored experience in the replay once
-        assert listener.wait(lambda: server.budget == 0)
+        assert listener.wait(server.replayed)  # the budget is taken before its thinks are done
         assert int(server.learner.thinks[0]) == 3 * 50  # and its thinks owed once
         assert listener.wait(lambda: server.learned_through.get("c1") == 49)  # and reported learned
         server.checkpoint()
@@ -602,6 +602,41 @@ def test_one_update_longer_than_the_clients_patience_keeps_the_heartbeat_going(t
     assert len(statuses) >= 8
     assert all(s.stored_through.get("c1") == 4 for s in statuses)
     assert counters["publish/status_relayed"] > 0
+
+
+def test_a_stop_while_a_think_is_in_flight_writes_no_checkpoint_beside_it(tmp_path, monkeypatch, caplog):
+    """The budget is taken before its thinks are done: a checkpoint written beside a think in
+    flight counted them as paid, and a restart from it never did them."""
+    import threading
+
+    import wfnn_server.server as server_module
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    monkeypatch.setattr(server_module, "STOP_JOIN_S", 0.2)
+    server = make_server(tmp_path, hub, cfg, checkpoint_period_s=0.05).start()
+    release, thinking = threading.Event(), threading.Event()
+    think = server.learner.think
+
+    def slow(n):
+        thinking.set()
+        release.wait(10.0)
+        return think(n)
+
+    monkeypatch.setattr(server.learner, "think", slow)
+    send(hub, batch(cfg, 0, 10))
+    assert thinking.wait(10.0)
+    path, threads = tmp_path / "s1" / CHECKPOINT, list(server._threads)
+    before = path.read_bytes() if path.exists() else None
+    with caplog.at_level(logging.WARNING):
+        server.stop()
+    release.set()
+    for thread in threads:  # the late think ends; nothing is written after the stop either
+        thread.join(10.0)
+    assert "no final checkpoint" in caplog.text
+    assert (path.read_bytes() if path.exists() else None) == before
+    again = make_server(tmp_path, hub, cfg)
+    assert again.budget == 10  # owed again
+    again.store.close()
 
 
 def test_a_batch_being_stored_or_learned_is_not_replayed_yet(tmp_path, monkeypatch):
