@@ -34,6 +34,7 @@ are). This module also summarises, merges, splits and exports logs (`wfnn-logs`)
 from __future__ import annotations
 
 import bisect
+import collections
 import contextlib
 import errno
 import json
@@ -295,6 +296,10 @@ def _decode_batch(frame: bytes, keys: list[bytes | None]) -> ExperienceBatch:
     return cast(ExperienceBatch, decode(frame, keys[-1], expect=ExperienceBatch, mac="if_present").message)
 
 
+REFUSALS_TOLD = 5
+"""Refused records named one by one in a read of a log; the rest are counted in one line."""
+
+
 def read_entries(
     directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
 ) -> Iterator[tuple[Position, bytes, ExperienceBatch]]:
@@ -307,15 +312,23 @@ def read_entries(
     """
     counts = counts if counts is not None else ReadCounts()
     keys: list[bytes | None] = [*_candidate_keys(directory, key)] if key else [None]
+    refused: collections.Counter[str] = collections.Counter()
     for position, frame in read_records(directory, None, counts.report, marker=MAGIC):
         try:
             batch = _decode_batch(frame, keys)
         except ProtocolError as exc:
             counts.refused[exc.reason] += 1
-            log.error("%s: record at %s is not an experience batch (%s); skipped", directory, position, exc)
+            refused[exc.reason] += 1
+            if refused.total() <= REFUSALS_TOLD:  # a wrong key refuses every record: told, not listed
+                log.error("%s: record at %s is not an experience batch (%s); skipped",
+                          directory, position, exc)  # fmt: skip
             continue
         assert isinstance(batch, ExperienceBatch)
         yield position, frame, batch
+    if refused.total() > REFUSALS_TOLD:
+        reasons = ", ".join(f"{reason} {n}" for reason, n in sorted(refused.items()))
+        log.error("%s: %d records refused in all (%s), the first %d named above",
+                  directory, refused.total(), reasons, REFUSALS_TOLD)  # fmt: skip
 
 
 def read_batches(

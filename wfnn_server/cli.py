@@ -183,7 +183,7 @@ def serve(
         weights = escape(one_line(str(config.data_dir / "checkpoint.npz")))
         console.print(
             f"replay-only: {figures['imported']} experiences imported, {figures['experiences']} stored, "
-            f"{figures['thinks']} thinks; weights in {weights}",
+            f"{figures['thinks']} thinks in all (earlier runs' too); weights in {weights}",
             soft_wrap=True,
         )
 

@@ -49,7 +49,7 @@ def test_replay_only_learns_every_recorded_experience_once_and_refuses_a_foreign
     proc = _replay(tmp_path / "d", tmp_path / "rec" / "journal", listen=False)  # offline: no port taken
     said = " ".join((proc.stdout + proc.stderr).split())
     assert proc.returncode == 0 and "no network" in said, said
-    assert "replay-only: 0 experiences imported, 400 stored, 1200 thinks" in said
+    assert "replay-only: 0 experiences imported, 400 stored, 1200 thinks in all" in said
     _, _, again = load_weights(tmp_path / "d" / "checkpoint.npz")
     assert again["thinks"] == meta["thinks"] and logs.summarise(tmp_path / "d" / "store").experiences == 400
     # A record of another task (learner spec) is refused with a clear error; nothing is stored.

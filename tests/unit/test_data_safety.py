@@ -483,6 +483,17 @@ def test_a_checkpoint_from_before_unqueued_was_recorded_owes_every_refill(tmp_pa
 
 
 # --------------------------------------------------------------------------- what the key protects
+def test_a_log_read_with_a_wrong_key_names_a_few_refusals_and_counts_the_rest(tmp_path, caplog):
+    journal(tmp_path / "j", small_config(), key=b"k" * 32)
+    counts = logs.ReadCounts()
+    with caplog.at_level(logging.ERROR):
+        assert list(logs.read_batches(tmp_path / "j", b"w" * 32, counts)) == []
+    assert counts.refused == {"auth": BATCHES}
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == logs.REFUSALS_TOLD + 1 < BATCHES
+    assert f"{BATCHES} records refused in all (auth {BATCHES})" in lines[-1]
+
+
 def test_a_keyed_server_replays_its_own_store_and_a_keyed_clients_journal(tmp_path):
     cfg = small_config(thinks_per_action=1)
     key = b"k" * 32
