@@ -14,6 +14,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
 import re
 import signal
@@ -381,7 +382,7 @@ def _run(
             spec.new_episode(task, rng)
             policy = controllers.choose() if controllers is not None else LEARNER
             episode_policies.append(controllers.recorded[policy] if controllers is not None else policy)
-            total, steps = 0.0, 0
+            total, steps, measured_steps = 0.0, 0, 0
             for _ in range(episode_steps):
                 if steps and out_of_time(ticker.next_due()):  # not a wait for a tick past the duration
                     break
@@ -433,9 +434,12 @@ def _run(
                 measured = float(spec.metric(task)[0])
                 if np.isfinite(total + measured):
                     total += measured
+                    measured_steps += 1
                 else:  # a NaN reward, or finite ones summing past float64's range, would make the
                     metric_not_finite += 1  # whole episode's score NaN or infinite: counted apart
-                rewards.append(float(transitions[skills[d].name].reward[0]))
+                reward = float(transitions[skills[d].name].reward[0])
+                if math.isfinite(reward):  # a NaN one is never learned either
+                    rewards.append(reward)
                 if acted is not None and policy == LEARNER:
                     values.append(float(acted.result.value))
                 if frames is not None and spec.views is not None and tick_count % config.camera_every == 0:
@@ -454,7 +458,8 @@ def _run(
                     next_status = now + 0.5
                 if config.duration_s is not None and now - start >= config.duration_s:
                     break
-            scores.append(total / max(steps, 1))
+            # The mean over the steps whose metric was finite; NaN (null in the JSON) where none was.
+            scores.append(total / measured_steps if measured_steps else float("nan"))
             if on_status is not None:
                 on_status(_status(brains, ticks, safety, rewards, values, episode + 1, scores,
                                   time.perf_counter() - start))  # fmt: skip
@@ -505,8 +510,8 @@ def _run(
         "metric": spec.metric_name(task) if callable(spec.metric_name) else spec.metric_name,
         "scores": scores,
         "episode_policies": episode_policies[: len(scores)],
-        "first10_median": float(np.median(scores[:10])),
-        "last10_median": float(np.median(scores[-10:])),
+        "first10_median": _median(scores[:10]),
+        "last10_median": _median(scores[-10:]),
         "experiences_learned": learned,
         "lockstep_timeouts": lockstep_timeouts,
         "metric_not_finite": metric_not_finite,
@@ -549,7 +554,10 @@ def _run(
     write_json(out / "metrics.json", metrics)
     if config.json_stats is not None:
         write_json(config.json_stats, metrics)
-    plot(metrics, out / "learning_curve.png")
+    try:
+        plot(metrics, out / "learning_curve.png")
+    except (ValueError, OverflowError) as exc:  # scores near float64's largest: matplotlib cannot scale them
+        log.warning("%s not drawn (%s); the scores are in metrics.json", out / "learning_curve.png", exc)
     return metrics
 
 
@@ -619,6 +627,12 @@ def _save_views(frames: FrameWriter, tick: int, spec: SimSpec, task: VecTask) ->
 
 RECENT = 1000
 """Ticks the live status summarises (the whole run only at the end: no growing work per tick)."""
+
+
+def _median(scores: list[float]) -> float:
+    """The median of the finite scores (NaN where there are none)."""
+    finite = [v for v in scores if math.isfinite(v)]
+    return float(np.median(finite)) if finite else float("nan")
 
 
 def _status(

@@ -1,5 +1,7 @@
 """Gymnasium tasks behind the client's task interface."""
 
+import dataclasses
+import json
 from decimal import Decimal
 from fractions import Fraction
 
@@ -209,9 +211,15 @@ def test_this_projects_own_tasks_declare_rewards_of_at_most_zero_through_gymnasi
 
 
 class _NanReward(_Spaces):
+    every = 10
+
     def step(self, action):
         self.t += 1
-        return self._obs(), float("nan") if self.t % 10 == 0 else -1.0, False, False, {}
+        return self._obs(), float("nan") if self.t % self.every == 0 else -1.0, False, False, {}
+
+
+class _AlwaysNanReward(_NanReward):
+    every = 1
 
 
 def test_a_tasks_non_finite_rewards_are_counted_apart_from_the_episodes_score(tmp_path):
@@ -221,8 +229,17 @@ def test_a_tasks_non_finite_rewards_are_counted_apart_from_the_episodes_score(tm
     gym.register("WfnnTestNanReward-v0", entry_point=_NanReward, max_episode_steps=50)
     config = ClientConfig(sim="gym", env="WfnnTestNanReward-v0", rate_hz=0, episodes=2, out=tmp_path / "r")
     metrics = run(config)
-    assert metrics["scores"] == [-1.0 * 45 / 50, -1.0 * 45 / 50]  # the 45 finite rewards over 50 steps
+    # The mean of the 45 finite rewards: a NaN step is not a reward of 0.
+    assert metrics["scores"] == [-1.0, -1.0] and metrics["last10_median"] == -1.0
     assert metrics["metric_not_finite"] == 10
+    assert metrics["client/reward_mean"] == -1.0
+    # No finite reward at all: no score (null in the JSON), not a perfect-looking 0.
+    gym.register("WfnnTestAlwaysNanReward-v0", entry_point=_AlwaysNanReward, max_episode_steps=20)
+    config = dataclasses.replace(config, env="WfnnTestAlwaysNanReward-v0", episodes=1, out=tmp_path / "n")
+    metrics = run(config)
+    assert np.isnan(metrics["scores"][0]) and np.isnan(metrics["last10_median"])
+    saved = json.loads((tmp_path / "n" / "metrics.json").read_text())
+    assert saved["scores"] == [None] and saved["last10_median"] is None
 
 
 class _Rewarding(_Spaces):
@@ -240,8 +257,10 @@ def test_finite_rewards_that_sum_past_float64s_range_are_counted_apart_too(tmp_p
     gym.register("WfnnTestHugeReward-v0", entry_point=_Rewarding, max_episode_steps=20)
     config = ClientConfig(sim="gym", env="WfnnTestHugeReward-v0", rate_hz=0, episodes=1, out=tmp_path / "r")
     metrics = run(config)
-    assert metrics["scores"] == [1e308 / 20]
+    assert metrics["scores"] == [1e308]  # the mean over the one step that could be summed
     assert metrics["metric_not_finite"] == 19  # each step past the first
+    # A score matplotlib cannot put on an axis leaves the run's figures whole, without its plot.
+    assert json.loads((tmp_path / "r" / "metrics.json").read_text())["scores"] == [1e308]
 
 
 def test_a_greedy_run_of_saved_weights_sizes_its_divergence_threshold_by_the_rewards_it_meets(tmp_path):
