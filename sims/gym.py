@@ -111,8 +111,19 @@ class GymVec:
         self.valid_margin = 1.0
         """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
-            low, high = self._measured_ranges(low, high, probe_steps)
+            declared = obs.low, obs.high
+            with np.errstate(over="ignore", invalid="ignore"):  # told below, naming the observation
+                low, high = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
+            wrong = np.flatnonzero(~(np.isfinite(low) & np.isfinite(high) & (high >= low)))
+            if wrong.size:  # one bound declared, the other measured beyond it; or values too large
+                i = int(wrong[0])
+                raise ValueError(
+                    f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, {declared[1][i]:g}]; "
+                    f"with its unbounded side measured under random actions it spans [{low[i]:g}, "
+                    f"{high[i]:g}]: the task's observations lie beyond its declared bound, or are too "
+                    "large to scale"
+                )
         constant = ~(high > low)  # declared so: an observation that never changes (range 1 around it,
         half = np.maximum(0.5, 0.5e-6 * np.abs(low))  # or wider far from 0, as for a still one above)
         low, high = np.where(constant, low - half, low), np.where(constant, high + half, high)

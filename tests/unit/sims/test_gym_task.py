@@ -145,6 +145,31 @@ def test_measured_ranges_leave_out_non_finite_values_and_give_a_still_observatio
     task.close()
 
 
+class _Shifted(_Spaces):
+    """Declared in [0, inf) (or unbounded), its first observation lies about `at`."""
+
+    observation_space = gym.spaces.Box(np.array([0.0, -np.inf, -np.inf]), np.inf, (3,), np.float64)
+    at = -100.0
+
+    def _obs(self):
+        return np.array([self.at + self.np_random.normal(), 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    ("attrs", "message"),
+    [
+        ({}, r"observation 0 is declared in \[0, inf\].*lie beyond its declared bound"),
+        ({"observation_space": gym.spaces.Box(-np.inf, np.inf, (3,), np.float64), "at": 1e308}, "too large"),
+    ],
+)
+@pytest.mark.filterwarnings("ignore:.*not within the observation space")  # Gymnasium's checker sees it too
+def test_observations_beyond_their_declared_bound_or_too_large_to_scale_are_named(attrs, message):
+    name = "Shifted" if not attrs else "HugeValues"
+    with pytest.raises(ValueError, match=message):
+        GymVec(_register(name, **{"_obs": _Shifted._obs, "at": _Shifted.at,
+                                  "observation_space": _Shifted.observation_space, **attrs}))  # fmt: skip
+
+
 def test_bounds_of_float32s_largest_size_stand_for_none():
     huge = float(np.finfo(np.float32).max)
     task = GymVec(_register("HugeObs", observation_space=gym.spaces.Box(-huge, huge, (3,), np.float32)))
