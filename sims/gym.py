@@ -113,11 +113,15 @@ class GymVec:
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
             declared = obs.low, obs.high
             with np.errstate(over="ignore", invalid="ignore"):  # told below, naming the observation
-                low, high = self._measured_ranges(low, high, probe_steps)
+                low, high, seen = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
             wrong = np.flatnonzero(~(np.isfinite(low) & np.isfinite(high) & (high >= low)))
+            i = int(wrong[0]) if wrong.size else -1
+            if wrong.size and not seen[i]:
+                raise ValueError(f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, "
+                                 f"{declared[1][i]:g}] and was never finite under random actions: its range "
+                                 "cannot be measured")  # fmt: skip
             if wrong.size:  # one bound declared, the other measured beyond it; or values too large
-                i = int(wrong[0])
                 raise ValueError(
                     f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, {declared[1][i]:g}]; "
                     f"with its unbounded side measured under random actions it spans [{low[i]:g}, "
@@ -146,7 +150,8 @@ class GymVec:
 
     def _measured_ranges(
         self, low: FloatArray, high: FloatArray, steps: int
-    ) -> tuple[FloatArray, FloatArray]:
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """(low [S], high [S], seen [S]): declared bounds, measured where infinite; seen where finite."""
         rng = np.random.default_rng(PROBE_SEED)
         seen = []
         obs, _ = self._task("reset", self.env.reset, seed=PROBE_SEED)
@@ -170,6 +175,7 @@ class GymVec:
         return (
             np.where(np.isfinite(low), low, measured_low),
             np.where(np.isfinite(high), high, measured_high),
+            finite,
         )
 
     def _observation(self, obs: Any) -> FloatArray:

@@ -260,10 +260,11 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
             rows.append((name, _fmt(metrics[present[0]])))
     sections = [Section("Run", rows, [("learning curve and episode scores", _uri(figure))], [])]
     given = metrics["scores"]
-    undrawn = sum(s is not None and not np.isfinite(v) for s, v in zip(given, _drawable(given), strict=True))
+    undrawn = int(np.count_nonzero(~np.isfinite(_drawable(given))))
     if undrawn:
         sections[0].notes.append(
-            f"{undrawn} episode scores beyond +-{DRAWABLE:g} or not finite are not drawn"
+            f"{undrawn} episode scores missing (no finite metric), beyond +-{DRAWABLE:g} or not "
+            "finite are not drawn"
         )
     policies = _policies(metrics, len(metrics["scores"]))
     if policies and len(set(policies)) > 1:

@@ -352,6 +352,9 @@ def client(
         if len(scores) >= 20
         else f"episode 1 {scores[0]:.3f} -> episode {len(scores)} {scores[-1]:.3f}"
     )
+    if metrics["metric_not_finite"]:  # a score is the mean over the steps whose metric was finite
+        trend += (f" (over the finite steps: {metrics['metric_not_finite']} steps' metric was not finite; "
+                  "nan: none was)")  # fmt: skip
     refused = int(metrics.get("learn/rejected", 0))  # in-process: what the learner's sanity checks refused
     # C/S: where no server took any (all of another task, say), the journal holds them all.
     unacked = " (none acknowledged by a server)" if metrics.get("uplink/acked_by_any", 0) < 0 else ""
@@ -364,7 +367,9 @@ def client(
         soft_wrap=True,
     )
     # No weights where no snapshot ever came (C/S), or they were not finite.
-    saved = ("weights, " if metrics.get("weights_saved") else "") + "metrics.json and learning_curve.png"
+    saved = ("weights, " if metrics.get("weights_saved") else "") + "metrics.json"
+    drawn = (Path(out) / "learning_curve.png").exists()  # this run's: a failed plot removes an older one
+    saved += " and learning_curve.png" if drawn else " (no learning curve: see above)"
     if metrics.get("camera_frames"):
         saved += f", {metrics['camera_frames']['written']} camera frames (cameras/)"
     console.print(f"saved {saved} in {escape(one_line(str(out)))}/", soft_wrap=True)

@@ -554,10 +554,12 @@ def _run(
     write_json(out / "metrics.json", metrics)
     if config.json_stats is not None:
         write_json(config.json_stats, metrics)
+    curve = out / "learning_curve.png"
     try:
-        plot(metrics, out / "learning_curve.png")
+        plot(metrics, curve)
     except (ValueError, OverflowError) as exc:  # scores near float64's largest: matplotlib cannot scale them
-        log.warning("%s not drawn (%s); the scores are in metrics.json", out / "learning_curve.png", exc)
+        curve.unlink(missing_ok=True)  # an earlier run's in this folder is not this run's curve
+        log.warning("%s not drawn (%s); the scores are in metrics.json", curve, exc)
     return metrics
 
 

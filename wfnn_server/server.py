@@ -212,9 +212,9 @@ class ThinkServer:
         self._inbox: Inbox[tuple[str, bytes]] = Inbox()
         """Frames received, waiting for the ingest thread (bounded in bytes: a flood is dropped)."""
         self._to_learn: collections.deque[ExperienceBatch] = collections.deque()
+        """Stored batches waiting for the learner thread, bounded by LEARN_QUEUE_BYTES (`_ingest`)."""
         self._storing = False
         """Whether the ingest thread is storing a batch it has not queued yet."""
-        """Stored batches waiting for the learner thread, bounded by LEARN_QUEUE_BYTES (`_ingest`)."""
         self._to_learn_bytes = 0
         self._to_learn_lock = threading.Lock()
         """Held while `_to_learn_bytes` changes (the ingest thread adds, the learner thread takes)."""

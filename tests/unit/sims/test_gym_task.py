@@ -160,11 +160,20 @@ class _Shifted(_Spaces):
     [
         ({}, r"observation 0 is declared in \[0, inf\].*lie beyond its declared bound"),
         ({"observation_space": gym.spaces.Box(-np.inf, np.inf, (3,), np.float64), "at": 1e308}, "too large"),
+        (
+            {
+                "observation_space": gym.spaces.Box(
+                    np.array([10.0, -np.inf, -np.inf]), np.inf, (3,), np.float64
+                ),
+                "at": np.nan,
+            },
+            r"observation 0 is declared in \[10, inf\] and was never finite",
+        ),
     ],
 )
 @pytest.mark.filterwarnings("ignore:.*not within the observation space")  # Gymnasium's checker sees it too
 def test_observations_beyond_their_declared_bound_or_too_large_to_scale_are_named(attrs, message):
-    name = "Shifted" if not attrs else "HugeValues"
+    name = f"Shifted{len(attrs)}{attrs.get('at', 0)}".replace(".", "").replace("+", "")
     with pytest.raises(ValueError, match=message):
         GymVec(_register(name, **{"_obs": _Shifted._obs, "at": _Shifted.at,
                                   "observation_space": _Shifted.observation_space, **attrs}))  # fmt: skip
@@ -265,6 +274,30 @@ def test_a_tasks_non_finite_rewards_are_counted_apart_from_the_episodes_score(tm
     assert np.isnan(metrics["scores"][0]) and np.isnan(metrics["last10_median"])
     saved = json.loads((tmp_path / "n" / "metrics.json").read_text())
     assert saved["scores"] == [None] and saved["last10_median"] is None
+
+
+def test_the_clients_summary_says_why_a_score_is_nan_and_a_curve_it_could_not_draw_is_not_claimed(tmp_path):
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+
+    gym.register("WfnnTestAlwaysNanRewardCli-v0", entry_point=_AlwaysNanReward, max_episode_steps=5)
+    gym.register("WfnnTestHugeRewardCli-v0", entry_point=_Rewarding, max_episode_steps=5)
+    out = tmp_path / "r"
+    result = CliRunner().invoke(cli.app, ["--env", "WfnnTestAlwaysNanRewardCli-v0", "--rate-hz", "0",
+                                          "--episodes", "1", "--out", str(out)])  # fmt: skip
+    said = " ".join(result.output.split())
+    assert result.exit_code == 0, said
+    assert (
+        "episode 1 nan -> episode 1 nan" in said and "5 steps' metric was not finite; nan: none was" in said
+    )
+    assert (out / "learning_curve.png").exists() and "metrics.json and learning_curve.png" in said
+    # The same folder again, with scores matplotlib cannot draw: the earlier curve is not passed off.
+    result = CliRunner().invoke(cli.app, ["--env", "WfnnTestHugeRewardCli-v0", "--rate-hz", "0",
+                                          "--episodes", "1", "--out", str(out)])  # fmt: skip
+    said = " ".join(result.output.split())
+    assert result.exit_code == 0, said
+    assert not (out / "learning_curve.png").exists() and "(no learning curve: see above)" in said
 
 
 class _Rewarding(_Spaces):

@@ -96,11 +96,11 @@ def test_a_damaged_run_metrics_file_is_named_in_one_line_and_left_as_it_was(tmp_
 def test_a_diverged_runs_huge_scores_are_reported_not_drawn(tmp_path, recwarn):
     """Scores at float64's limits (a diverged run) once made the figure's span overflow."""
     (tmp_path / "run").mkdir()
-    (tmp_path / "run" / "metrics.json").write_text('{"scores": [1e308, -1e308, 1, 2, 3, NaN, 5, 6]}')
+    (tmp_path / "run" / "metrics.json").write_text('{"scores": [1e308, -1e308, 1, 2, 3, NaN, 5, 6, null]}')
     result = CliRunner().invoke(app, ["report", str(tmp_path / "run")])
     assert result.exit_code == 0, result.output
     html = (tmp_path / "run" / "report.html").read_text()
-    assert "3 episode scores beyond +-1e+300 or not finite are not drawn" in html
+    assert "4 episode scores missing (no finite metric), beyond +-1e+300 or not finite are not drawn" in html
     assert (tmp_path / "run" / "report.png").read_bytes().startswith(b"\x89PNG")
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
