@@ -164,7 +164,7 @@ class GymVec:
                 obs, _ = self._task("reset", self.env.reset, seed=int(rng.integers(2**31)))
         data = np.asarray(seen, dtype=np.float64)
         data[~np.isfinite(data)] = np.nan  # a NaN or infinite observation says nothing of the range
-        finite = ~np.isnan(data).all(axis=0)  # observations with a finite value in the probe
+        finite = np.asarray(~np.isnan(data).all(axis=0), dtype=np.bool_)  # any finite value in the probe
         p1, p99 = np.zeros(data.shape[1]), np.zeros(data.shape[1])
         if finite.any():
             p1[finite], p99[finite] = np.nanpercentile(data[:, finite], [1, 99], axis=0)
