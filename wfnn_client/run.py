@@ -59,6 +59,12 @@ from wfnn_io.segments import check_free
 
 log = logging.getLogger(__name__)
 
+SUITED_REWARD_RMS = (0.05, 20.0)
+"""Root-mean-square rewards a step beyond which the deep learner's defaults are known not to suit
+the task (README, "a limitation: the reward's scale"): a run meeting such rewards is told once."""
+REWARD_ADVICE_AFTER = 1000
+"""Finite rewards met before that advice is judged."""
+
 
 class SetupError(ValueError):
     """The run cannot start as configured (nothing was run); the message says why."""
@@ -336,6 +342,8 @@ def _run(
     rewards: deque[float] = deque(maxlen=RECENT)
     values: deque[float] = deque(maxlen=RECENT)
     learned = lockstep_timeouts = metric_not_finite = 0
+    reward_squares, reward_count = 0.0, 0  # the first REWARD_ADVICE_AFTER finite rewards' (advice)
+    advise = config.learn and any(sk.lcfg.learner == "deep" for sk in skills)
     driven = np.zeros(len(skills), dtype=np.int64)
     """Ticks each behaviour drove."""
     outages: list[dict[str, float]] = []
@@ -440,6 +448,10 @@ def _run(
                 reward = float(transitions[skills[d].name].reward[0])
                 if math.isfinite(reward):  # a NaN one is never learned either
                     rewards.append(reward)
+                    if advise and reward_count < REWARD_ADVICE_AFTER:
+                        reward_squares, reward_count = reward_squares + reward * reward, reward_count + 1
+                        if reward_count == REWARD_ADVICE_AFTER:
+                            _advise_on_reward_scale(math.sqrt(reward_squares / reward_count), reward_count)
                 if acted is not None and policy == LEARNER:
                     values.append(float(acted.result.value))
                 if frames is not None and spec.views is not None and tick_count % config.camera_every == 0:
@@ -629,6 +641,16 @@ def _save_views(frames: FrameWriter, tick: int, spec: SimSpec, task: VecTask) ->
 
 RECENT = 1000
 """Ticks the live status summarises (the whole run only at the end: no growing work per tick)."""
+
+
+def _advise_on_reward_scale(rms: float, n: int) -> None:
+    """Tell a deep learner's run whose rewards lie far outside the scale its defaults suit."""
+    low, high = SUITED_REWARD_RMS
+    if not low <= rms <= high:  # inf (squares past float64's range) too
+        log.warning("the first %d rewards' root-mean-square is %.3g a step, outside %g-%g: the deep "
+                    "learner's defaults (Adam's step, the separation weight) do not suit rewards of that "
+                    "scale and it may learn nothing (README: a limitation: the reward's scale); scale the "
+                    "task's rewards", n, rms, low, high)  # fmt: skip
 
 
 def _median(scores: list[float]) -> float:

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import logging
 from decimal import Decimal
 from fractions import Fraction
 
@@ -343,6 +344,30 @@ def test_a_greedy_run_of_saved_weights_sizes_its_divergence_threshold_by_the_rew
     saved = tmp_path / "a" / "weights.npz"
     metrics = run(ClientConfig(**common, learn=False, weights=saved, out=tmp_path / "b"))
     assert metrics["learn/divergence_resets"] == 0 and metrics["client/q_mean"] > 9e4
+
+
+@pytest.mark.parametrize(
+    ("reward", "learner", "told"),
+    [(1e4, "deep", True), (1e-3, "deep", True), (-1.0, "deep", False), (1e4, "thesis", False)],
+)
+def test_a_deep_run_meeting_rewards_far_from_the_scale_its_defaults_suit_is_told_once(
+    tmp_path, caplog, reward, learner, told
+):
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import REWARD_ADVICE_AFTER, run
+
+    paying = type("Paying", (_Rewarding,), {"reward": reward})
+    gym.register("WfnnTestPaying-v0", entry_point=paying, max_episode_steps=REWARD_ADVICE_AFTER // 2)
+    small = '{"deep": {"hidden": [8], "value_hidden": 4, "warmup": 0}, "batch_size": 8}'
+    config = ClientConfig(sim="gym", env="WfnnTestPaying-v0", rate_hz=0, episodes=3, learner=learner,
+                          learner_options=small if learner == "deep" else "", thinks_per_action=1,
+                          out=tmp_path / "r")  # fmt: skip
+    with caplog.at_level(logging.WARNING):
+        run(config)
+    said = [r.getMessage() for r in caplog.records if "root-mean-square" in r.getMessage()]
+    assert len(said) == (1 if told else 0), said
+    if told:
+        assert f"{abs(reward):.3g} a step, outside 0.05-20" in said[0]
 
 
 class _MisShaped(gym.Env):
