@@ -116,12 +116,12 @@ class GymVec:
                 low, high, seen = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
             wrong = np.flatnonzero(~(np.isfinite(low) & np.isfinite(high) & (high >= low)))
-            i = int(wrong[0]) if wrong.size else -1
-            if wrong.size and not seen[i]:
-                raise ValueError(f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, "
-                                 f"{declared[1][i]:g}] and was never finite under random actions: its range "
-                                 "cannot be measured")  # fmt: skip
             if wrong.size:  # one bound declared, the other measured beyond it; or values too large
+                i = int(wrong[0])
+                if not seen[i]:
+                    raise ValueError(f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, "
+                                     f"{declared[1][i]:g}] and was never finite under random actions: its "
+                                     "range cannot be measured")  # fmt: skip
                 raise ValueError(
                     f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, {declared[1][i]:g}]; "
                     f"with its unbounded side measured under random actions it spans [{low[i]:g}, "

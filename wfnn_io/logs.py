@@ -34,7 +34,6 @@ are). This module also summarises, merges, splits and exports logs (`wfnn-logs`)
 from __future__ import annotations
 
 import bisect
-import collections
 import contextlib
 import errno
 import json
@@ -312,7 +311,7 @@ def read_entries(
     """
     counts = counts if counts is not None else ReadCounts()
     keys: list[bytes | None] = [*_candidate_keys(directory, key)] if key else [None]
-    refused: collections.Counter[str] = collections.Counter()
+    refused: Counter[str] = Counter()  # this read's (`counts` may hold earlier reads' too)
     for position, frame in read_records(directory, None, counts.report, marker=MAGIC):
         try:
             batch = _decode_batch(frame, keys)
