@@ -555,6 +555,9 @@ def vs_sb3(
     eval_every: Annotated[int, typer.Option(min=1, help="Steps between greedy evaluations.")] = 2000,
     eval_episodes: Annotated[int, typer.Option(min=1)] = 3,
     thinks: Annotated[int, typer.Option(min=0, help="WFNN replays per action.")] = 200,
+    reward_scale: Annotated[
+        float, typer.Option(help="Rewards learnt from are multiplied by this (returns reported are not).")
+    ] = 1.0,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -566,7 +569,7 @@ def vs_sb3(
         cfg = vs_sb3_bench.VsSb3Config(
             tasks=_names(tasks), steps=tuple(int(v) for v in _names(steps)), algorithms=_names(algorithms),
             learners=_names(learners), deep_options=deep_options, seeds=seeds, eval_every=eval_every,
-            eval_episodes=eval_episodes, thinks=thinks, seed=seed,
+            eval_episodes=eval_episodes, thinks=thinks, reward_scale=reward_scale, seed=seed,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -11,7 +11,9 @@ action out (WFNN `act` on numpy, SB3 `predict` on torch), median over many calls
 WFNN runs each learner in `learners` ("thesis": the thesis' learner and defaults; "deep": deep
 wire fitting with its defaults, and `deep_options` over them) over the task's declared ranges
 (`sims.gym.GymVec`), as `wfnn-client --env` would; results are keyed by learner name. SB3
-runs with its defaults for the algorithm (MlpPolicy), as a user of it would start.
+runs with its defaults for the algorithm (MlpPolicy), as a user of it would start. With
+`reward_scale` every learner trains on the task's rewards multiplied by it, and the returns are
+still the task's own: how much a learner's settings depend on the units a task pays in.
 Stable-Baselines3 is an optional dependency (`pip install stable-baselines3`); without it only
 WFNN runs and the SB3 rows say why. Everything trains on one core (torch's threads set to 1).
 
@@ -40,6 +42,9 @@ FloatArray = NDArray[np.float64]
 ALGORITHMS = ("wfnn", "sac", "td3")
 SB3_MAX_SEED = (1 << 32) - 1
 """SB3 seeds numpy's legacy generator, which takes seeds below 2^32."""
+MIN_REWARD_SCALE = 1e-6
+MAX_REWARD_SCALE = 1e6
+"""Bounds of `reward_scale` (a negative one would turn the task's goal around)."""
 EVAL_LIMIT = 1000
 """Steps of an evaluation episode of a task without a time limit (as `GymVec` learns it)."""
 
@@ -61,6 +66,9 @@ class VsSb3Config:
     eval_episodes: int = 3
     thinks: int = 200
     """The thesis' learner's replays per action (the thesis' boat figure)."""
+    reward_scale: float = 1.0
+    """Every reward a learner trains on is multiplied by this; the returns reported are the task's
+    own. How a learner's settings depend on the reward's scale: a user's task pays in its own units."""
     act_calls: int = 2000
     seed: int = 0
 
@@ -83,6 +91,9 @@ class VsSb3Config:
         for name, given in named.items():  # keys of the results: a name's last run would replace the others'
             if len(set(given)) != len(given):
                 raise ValueError(f"{name} named twice: {', '.join(given)}")
+        if not MIN_REWARD_SCALE <= self.reward_scale <= MAX_REWARD_SCALE:  # NaN fails too
+            raise ValueError(f"reward scale must be in [{MIN_REWARD_SCALE:g}, {MAX_REWARD_SCALE:g}], "
+                             f"got {self.reward_scale}")  # fmt: skip
         if self.seeds < 1 or not 0 <= self.seed <= self.seed + self.seeds - 1 <= MAX_SEED:
             raise ValueError(
                 f"seeds {self.seed} to {self.seed + self.seeds - 1}: they must lie in [0, {MAX_SEED}]"
@@ -183,7 +194,7 @@ def run_wfnn(
         t0 = time.perf_counter()
         u = learner.act(x).action
         tr = task.step(u[None])
-        learner.learn(x, u, tr.state[0], tr.reward[0], tr.terminal[0], tr.learnable[0])
+        learner.learn(x, u, tr.state[0], tr.reward[0] * cfg.reward_scale, tr.terminal[0], tr.learnable[0])
         learner.think()
         x = task.observe()[0]
         step_s[step - 1] = time.perf_counter() - t0
@@ -218,7 +229,11 @@ def run_sb3(
     from stable_baselines3.common.logger import Logger
 
     torch.set_num_threads(1)  # the comparison is per core, as WFNN's learner runs on one
-    model = {"sac": SAC, "td3": TD3}[algorithm]("MlpPolicy", gym.make(env_id), seed=seed, verbose=0)
+    env = gym.make(env_id)
+    if cfg.reward_scale != 1.0:
+        scale = cfg.reward_scale
+        env = gym.wrappers.TransformReward(env, lambda r: scale * float(r))
+    model = {"sac": SAC, "td3": TD3}[algorithm]("MlpPolicy", env, seed=seed, verbose=0)
     # A logger with no outputs: SB3's own makes an empty folder in the system's temporary
     # directory at every `learn` call, which a run of many chunks would leave behind.
     model.set_logger(Logger(folder=None, output_formats=[]))

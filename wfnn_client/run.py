@@ -343,7 +343,8 @@ def _run(
     values: deque[float] = deque(maxlen=RECENT)
     learned = lockstep_timeouts = metric_not_finite = 0
     reward_squares, reward_count = 0.0, 0  # the first REWARD_ADVICE_AFTER finite rewards' (advice)
-    advise = config.learn and any(sk.lcfg.learner == "deep" for sk in skills)
+    # Values learnt normalised (deep.popart_rate) do not depend on the reward's scale.
+    advise = config.learn and any(sk.lcfg.learner == "deep" and not sk.lcfg.deep.popart_rate for sk in skills)
     driven = np.zeros(len(skills), dtype=np.int64)
     """Ticks each behaviour drove."""
     outages: list[dict[str, float]] = []
@@ -649,8 +650,9 @@ def _advise_on_reward_scale(rms: float, n: int) -> None:
     if not low <= rms <= high:  # inf (squares past float64's range) too
         log.warning("the first %d rewards' root-mean-square is %.3g a step, outside %g-%g: the deep "
                     "learner's defaults (Adam's step, the separation weight) do not suit rewards of that "
-                    "scale and it may learn nothing (README: a limitation: the reward's scale); scale the "
-                    "task's rewards", n, rms, low, high)  # fmt: skip
+                    "scale and it may learn nothing (README: a limitation: the reward's scale); learn "
+                    "normalised values (--learner-options '{\"deep\": {\"popart_rate\": 0.0003}}') or "
+                    "scale the task's rewards", n, rms, low, high)  # fmt: skip
 
 
 def _median(scores: list[float]) -> float:

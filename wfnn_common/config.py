@@ -107,6 +107,15 @@ class DeepConfig:
     smoothing term), as Q3C does, so that far wires neither shape Q there nor learn from it;
     0, or at least n_wires, interpolates all wires. The greedy action (the best wire) is the same
     either way."""
+    popart_rate: float = 0.0
+    """Where set, the critics learn values normalised by running statistics of their targets, and
+    this is the statistics' step size per update (PopArt, van Hasselt et al. 2016): when the
+    statistics move, the value heads' output layers are rescaled so that every Q stays as it was,
+    and `act`'s weights carry the values in the task's units. The learning then does not depend
+    on the reward's scale (Adam moves weights by about `lr` per step, so values of thousands took
+    thousands of times as many steps as values of one). The scale is bounded below
+    and above (`deep_net.POPART_MIN_STD` and the constants beside it). 0 learns the values as
+    they are."""
     n_step: int = 1
     """Returns over this many consecutive experiences: each experience is followed by the first
     one stored after it that starts exactly from its next state, whichever client sent it; the
@@ -136,6 +145,7 @@ class DeepConfig:
             (0.0 <= self.separation <= 1e3, "deep.separation must be in [0, 1000]"),
             (0.0 <= self.tanh_limit <= 20.0, "deep.tanh_limit must be in [0, 20]"),
             (0 <= self.top_k <= MAX_WIRES, f"deep.top_k must be in [0, {MAX_WIRES}]"),
+            (0.0 <= self.popart_rate <= 1.0, "deep.popart_rate must be in [0, 1]"),
             (1 <= self.n_step <= 100, "deep.n_step must be in [1, 100]"),
             (0 <= self.warmup <= 10_000_000, "deep.warmup must be in [0, 1e7]"),
             (self.device == "cpu" or self.device == "cuda" or

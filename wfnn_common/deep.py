@@ -308,8 +308,27 @@ class DeepWFNN(WFNN):
                 or step != np.round(step)
             ):
                 raise ValueError(f"training state adam_step is not a count: {str(step)[:40]!r}")
-        critic1 = arrays["theta"][: self.shapes.n_params].astype(np.float32)
-        if not np.array_equal(critic1, self.params.flat[0].astype(np.float32)):
+        moments = np.zeros(3)
+        if "value_moments" in state:  # saved where the values were learnt normalised (deep.popart_rate)
+            moments = np.asarray(state["value_moments"])
+            if (
+                moments.dtype.kind not in "fiu"
+                or moments.shape != (3,)
+                or not np.isfinite(moments).all()
+                or not 0.0 < float(moments[2]) <= 1.0
+                or float(moments[1]) < 0.0
+                or abs(float(moments[0])) > FLOAT32_MAX  # a mean it trains with in float32
+                or float(moments[1]) > FLOAT32_MAX**2
+            ):
+                raise ValueError(
+                    f"training state value_moments are not targets' moments: {str(moments)[:60]!r}"
+                )
+            moments = moments.astype(np.float64)
+            state = {**state, "value_moments": moments}
+        critic1 = arrays["theta"][: self.shapes.n_params]
+        if moments[2] > 0.0:  # `act`'s weights give the values in the task's units
+            critic1 = deep_net.in_task_units(critic1, self.shapes, *deep_net.value_scale(moments))
+        if not np.array_equal(critic1.astype(np.float32), self.params.flat[0].astype(np.float32)):
             raise ValueError("training state theta: critic 1 is not the weights saved beside it")
         state = {**state, **arrays}
         self._theta0 = np.asarray(state["theta"], dtype=np.float64)

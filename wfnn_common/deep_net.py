@@ -41,6 +41,16 @@ LN_EPS = 1e-5
 """Variance floor of the layer normalisation."""
 SPAN_FLOOR = 1e-6
 """Smallest value span used to normalise a state's wire values (equal values: no smoothing)."""
+POPART_MIN_STD = 1e-2
+POPART_RELATIVE_STD = 1e-3
+POPART_MAX_STD = 1e36
+"""Bounds of the scale by which `deep.popart_rate` normalises values: at least POPART_MIN_STD
+and POPART_RELATIVE_STD of the mean's magnitude, at most POPART_MAX_STD (within float32's range,
+in which the update runs). The absolute floor is not smaller because a task paying nothing for
+long (a sparse reward) shrinks its targets' spread to the critics' own noise: below it, the
+first reward would be a normalised target of thousands, the very scale the normalisation is
+there to spare the network. The relative floor keeps targets of one large value (a task paying
+1e19 every step: no spread) within float32 once normalised (they overflowed its square)."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +123,37 @@ class DeepShapes:
             fan[f"V{k}"] = fan[f"bv{k}"] = self.value_hidden
         fan["vo"] = fan["bo"] = self.value_hidden
         return fan
+
+
+def value_scale(moments: FloatArray) -> tuple[float, float]:
+    """The (mean, standard deviation) of the targets from their running moments [3].
+
+    moments are the exponential averages of y and y^2 and the averages' total weight (their
+    bias correction, as Adam's): (0, 0, 0) before any target, which gives (0, 1), the values as
+    they are. The deviation is kept within [max(POPART_MIN_STD, POPART_RELATIVE_STD |mean|),
+    POPART_MAX_STD].
+    """
+    m1, m2, weight = (float(v) for v in moments)
+    if weight <= 0.0:
+        return 0.0, 1.0
+    mean = m1 / weight
+    std = math.sqrt(max(m2 / weight - mean * mean, 0.0))
+    return mean, min(max(std, POPART_MIN_STD, POPART_RELATIVE_STD * abs(mean)), POPART_MAX_STD)
+
+
+def in_task_units(flat: FloatArray, shapes: DeepShapes, mean: float, std: float) -> FloatArray:
+    """One critic's weights [n_params] that give values in the task's units: a float64 copy.
+
+    A critic that learns values normalised by (mean, std) scores q~ = v . g + b_o; its values
+    are q = std q~ + mean, which the same network gives with v and b_o replaced by std v and
+    std b_o + mean. The wires' actions and their order by value do not change.
+    """
+    out = np.array(flat, dtype=np.float64)
+    a, b, _ = shapes.slices()["vo"]
+    out[a:b] *= std
+    a, b, _ = shapes.slices()["bo"]
+    out[a:b] = out[a:b] * std + mean
+    return out
 
 
 def init_critic(shapes: DeepShapes, rng: np.random.Generator, scale: float = 1.0) -> FloatArray:

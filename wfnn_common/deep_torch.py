@@ -13,6 +13,14 @@ target averaging are one operation each. One update on a minibatch of B experien
          + sum_j mean max(0, |z| - tanh_limit)^2   (z the wire head's inputs to tanh)
          + bc_weight * mean |best wire of critic 1 at x - u|^2
 
+With `deep.popart_rate` the critics' outputs are normalised values: Q = std Q~ + mean, with
+the running (mean, std) of the targets, and the first term is sum_j mean (Q~_j(x, u) - (y -
+mean) / std)^2. The interpolation commutes with that affine map (its smoothing term is on
+min-max normalised values, its weights sum to 1), so Q~ interpolates the normalised wire values.
+After each step the statistics take in the batch's targets, and both critics' and targets'
+output layers are rescaled so that their values in the task's units stay as they were (van
+Hasselt et al. 2016).
+
 Q_j(x, u) is the wire-fitting interpolation (Eq 3.1) of critic j's wires (the deep.top_k of
 largest weight, where set) with the smoothing term on normalised values
 (`deep_net.wirefit_normalised`); the smoothing term's values are
@@ -47,7 +55,7 @@ import torch
 import torch.nn.functional as tnf
 
 from wfnn_common.config import LearnerConfig
-from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes
+from wfnn_common.deep_net import LN_EPS, SPAN_FLOOR, DeepShapes, in_task_units, value_scale
 
 logger = logging.getLogger(__name__)
 
@@ -183,15 +191,19 @@ def loss(
     next_state: torch.Tensor,
     discount: torch.Tensor,
     noise: torch.Tensor,
+    scale: torch.Tensor,
 ) -> Losses:
     """The update's loss (module docstring) -> (loss, critic 1's Q(x, u) [B], targets y [B]).
 
     blocks are both critics' weights (`Critics.blocks`), target [2 n] their targets as one vector;
-    x [B, S], u [B, A], reward and discount [B], next_state [B, S], noise [B, A] standard normal.
-    Pure in its arguments, so that torch.compile can take it whole.
+    x [B, S], u [B, A], reward and discount [B], next_state [B, S], noise [B, A] standard normal;
+    scale [2] the (mean, std) that normalise the values (read only with deep.popart_rate). Q and
+    y come back in the task's units. Pure in its arguments, so that torch.compile can take it whole.
     """
     cfg, d = config, config.deep
     c, eps, k = cfg.smoothing_c, cfg.eps, d.top_k
+    popart = d.popart_rate > 0.0  # fixed per config: without it the graph is the one it always was
+    mean, std = scale[0], scale[1]
     target_blocks = critics.blocks(target)
     with torch.no_grad():
         tu, tq = critics.wires(target_blocks, next_state)
@@ -200,21 +212,27 @@ def loss(
             next_u = next_u + (noise * d.target_noise).clamp(-d.target_noise_clip, d.target_noise_clip)
             next_u = next_u.clamp(-1.0, 1.0)
         next_q = wirefit(tu, tq, next_u, c, eps, k).min(dim=0).values
+        if popart:
+            next_q = next_q * std + mean
         y = reward + discount * next_q
         if cfg.advantage_k < 1.0:
             nu, nq = critics.wires(target_blocks, x)
             v = wirefit(nu, nq, best_wire(nu[0], nq[0]), c, eps, k).min(dim=0).values
+            if popart:
+                v = v * std + mean
             y = v + (y - v) / cfg.advantage_k
+        learnt = (y - mean) / std if popart else y
     wu, wq, z = critics.wires_and_preactivations(blocks, x)
     Q = wirefit(wu, wq, u, c, eps, k)  # [2, B]
-    total = ((Q - y) ** 2).mean(dim=1).sum()
+    total = ((Q - learnt) ** 2).mean(dim=1).sum()
     if d.separation > 0.0:
         total = total + 2.0 * d.separation * separation(wu, None if d.separate_best else wq)
     if d.tanh_limit > 0.0:
         total = total + (tnf.relu(z.abs() - d.tanh_limit) ** 2).mean(dim=(1, 2)).sum()
     if cfg.bc_weight > 0.0:
         total = total + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
-    return total, Q[0].detach(), y
+    Q1 = Q[0].detach()
+    return total, (Q1 * std + mean if popart else Q1), y
 
 
 @functools.lru_cache(maxsize=8)
@@ -300,6 +318,9 @@ class Trainer:
         """Adam's denominator, rewritten in place by each step (no new vector per update)."""
         self._critic1 = self.theta[: self.critics.n].numpy() if self.device.type == "cpu" else None
         """Critic 1's float32 weights as a numpy view of theta (on a CPU), for `critic1`."""
+        self.moments = np.zeros(3)
+        """The targets' running moments (`deep_net.value_scale`), with deep.popart_rate."""
+        self._identity = torch.tensor([0.0, 1.0], device=self.device)
         self.generator = torch.Generator(device=self.device).manual_seed(int(seed))
         self._compiled: Any = None
         """`loss` compiled (deep.compile), False where compiling failed, None until first used."""
@@ -308,6 +329,7 @@ class Trainer:
         """Fresh weights (targets equal), and Adam's moments forgotten."""
         self.theta.copy_(torch.as_tensor(theta, dtype=torch.float32))
         self.target.copy_(self.theta)
+        self.moments = np.zeros(3)
         self._forget_adam()
 
     def _forget_adam(self) -> None:
@@ -338,7 +360,10 @@ class Trainer:
         self.theta.addcdiv_(self.adam_m, denominator, value=-d.lr / (1.0 - beta1**self.adam_step))
 
     def critic1(self) -> np.ndarray:
-        """Critic 1's weights as float64 [n_params] (what `act` uses)."""
+        """Critic 1's weights as float64 [n_params] (what `act` uses), values in the task's units."""
+        if self.moments[2] > 0.0:
+            raw = self.theta[: self.critics.n].to("cpu", torch.float64).numpy()
+            return in_task_units(raw, self.critics.shapes, *value_scale(self.moments))
         if self._critic1 is not None:  # float32 to float64 is exact, in numpy as in torch
             return self._critic1.astype(np.float64)
         return self.theta[: self.critics.n].to("cpu", torch.float64).numpy()
@@ -367,14 +392,42 @@ class Trainer:
         d = self.config.deep
         t = self._tensors(batch)
         noise = torch.randn(t["action"].shape, generator=self.generator, device=self.device)
+        popart = d.popart_rate > 0.0
+        scale = torch.tensor(value_scale(self.moments), device=self.device) if popart else self._identity
         args = (self.blocks, self.target, t["state"], t["action"], t["reward"], t["next_state"],
-                t["discount"], noise)  # fmt: skip
+                t["discount"], noise, scale)  # fmt: skip
         total, Q1, y = self._compiled_loss(args) if d.compile else loss(self.critics, self.config, *args)
         self._step(self.gradient(total))
         self.target.lerp_(self.theta, d.tau)
+        if popart:
+            self._track(y)
         if not stats:
             return float("nan"), float("nan")
         return float(Q1.mean()), float((y - Q1).abs_().mean())
+
+    def _track(self, y: torch.Tensor) -> None:
+        """The statistics take in targets y [B]; the output layers keep every value as it was.
+
+        In float64: squares of targets beyond 1.8e19 would be infinite in float32.
+        """
+        before = value_scale(self.moments)
+        y64 = y.detach().to(torch.float64)
+        rate = self.config.deep.popart_rate
+        batch = np.array([float(y64.mean()), float((y64 * y64).mean()), 1.0])
+        self.moments = (1.0 - rate) * self.moments + rate * batch
+        self._rescale(self.theta, before, value_scale(self.moments))
+        self._rescale(self.target, before, value_scale(self.moments))
+
+    def _rescale(self, vector: torch.Tensor, before: tuple[float, float], after: tuple[float, float]) -> None:
+        """Both critics' output layers in vector [2 n]: values under `before` the same under `after`.
+
+        std v~ + mean = std' v~' + mean' for v~' = (std v~ + mean - mean') / std'.
+        """
+        (mean, std), (mean2, std2) = before, after
+        blocks = self.critics.blocks(vector)
+        with torch.no_grad():
+            blocks["vo"].mul_(std / std2)
+            blocks["bo"].mul_(std / std2).add_((mean - mean2) / std2)
 
     def gradient(self, total: torch.Tensor) -> torch.Tensor:
         """The gradient [2 n] of a loss computed from `blocks`, laid out as theta.
@@ -401,6 +454,8 @@ class Trainer:
     def state(self) -> dict[str, np.ndarray]:
         """Everything training needs to resume: weights, targets, Adam's moments and step."""
         out = {"theta": self.theta.cpu().numpy().copy(), "target": self.target.cpu().numpy().copy()}
+        if self.moments[2] > 0.0:
+            out["value_moments"] = self.moments.copy()
         if self.adam_step > 0:
             out["adam_m"] = self.adam_m.cpu().numpy().copy()
             out["adam_v"] = self.adam_v.cpu().numpy().copy()
@@ -408,9 +463,20 @@ class Trainer:
         return out
 
     def load(self, state: dict[str, np.ndarray]) -> None:
-        """Inverse of `state` (arrays checked for shape and finiteness by the caller)."""
+        """Inverse of `state` (arrays checked for shape and finiteness by the caller).
+
+        Weights that learnt normalised values (saved with `value_moments`) go on so with
+        deep.popart_rate, and are turned into values in the task's units without it; weights
+        saved without go on in the task's units either way (the statistics start afresh).
+        """
         self.theta.copy_(torch.as_tensor(state["theta"], dtype=torch.float32))
         self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
+        self.moments = np.array(state.get("value_moments", np.zeros(3)), dtype=np.float64)
+        if self.moments[2] > 0.0 and self.config.deep.popart_rate == 0.0:
+            identity = value_scale(np.zeros(3))
+            self._rescale(self.theta, value_scale(self.moments), identity)
+            self._rescale(self.target, value_scale(self.moments), identity)
+            self.moments = np.zeros(3)
         self._forget_adam()
         if "adam_m" in state:
             self.adam_m.copy_(torch.as_tensor(state["adam_m"], dtype=torch.float32))

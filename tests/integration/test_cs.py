@@ -273,9 +273,10 @@ def test_a_foraging_nomad_learns_both_behaviours_on_their_own_servers(tmp_path):
 
 def test_deep_learner_over_zenoh_matches_the_single_process_learner(tmp_path):
     """The deep learner through a think server: snapshots, lock-step thinks and checkpoints (with a
-    deeper value head than the default, whose weights `act` lays out and reads on the client)."""
+    deeper value head than the default, whose weights `act` lays out and reads on the client, and
+    values learnt normalised, which snapshots carry in the task's units)."""
     port = free_port()
-    deep = '"hidden": [16, 16], "value_hidden": 8, "value_layers": 2, "warmup": 100'
+    deep = '"hidden": [16, 16], "value_hidden": 8, "value_layers": 2, "warmup": 100, "popart_rate": 0.01'
     options = f'{{"deep": {{{deep}}}, "batch_size": 32}}'
     common = ["--sim", "boat", "--episodes", "3", "--rate-hz", "0", "--lockstep", "--thinks", "2",
               "--seed", "3", "--learner", "deep", "--learner-options", options]  # fmt: skip
@@ -291,11 +292,12 @@ def test_deep_learner_over_zenoh_matches_the_single_process_learner(tmp_path):
     ck_cfg, params, meta = load_weights(tmp_path / "srv" / "checkpoint.npz")
     # Two thinks per stored experience (those beyond the sanity limits are not stored), on both sides.
     assert ck_cfg.learner == "deep" and meta["thinks"] == local["think/thinks"] > 2 * 300
-    assert ck_cfg.deep.value_layers == 2
+    assert ck_cfg.deep.value_layers == 2 and ck_cfg.deep.popart_rate == 0.01
     with np.load(tmp_path / "srv" / "checkpoint.npz") as ck:
         assert float(ck["train/adam_step"]) == meta["thinks"] and ck["train/theta"].shape == (
             2 * params.flat.shape[1],
         )
+        assert 0.0 < float(ck["train/value_moments"][2]) < 1.0
 
 
 @pytest.mark.parametrize("signal_name", ["SIGTERM", "SIGINT"])

@@ -348,8 +348,9 @@ def test_a_greedy_run_of_saved_weights_sizes_its_divergence_threshold_by_the_rew
 
 @pytest.mark.parametrize(
     ("reward", "learner", "told"),
-    [(1e4, "deep", True), (1e-3, "deep", True), (-1.0, "deep", False), (1e4, "thesis", False)],
-)
+    [(1e4, "deep", True), (1e-3, "deep", True), (-1.0, "deep", False), (1e4, "thesis", False),
+     (1e4, "popart", False)],
+)  # fmt: skip
 def test_a_deep_run_meeting_rewards_far_from_the_scale_its_defaults_suit_is_told_once(
     tmp_path, caplog, reward, learner, told
 ):
@@ -358,16 +359,21 @@ def test_a_deep_run_meeting_rewards_far_from_the_scale_its_defaults_suit_is_told
 
     paying = type("Paying", (_Rewarding,), {"reward": reward})
     gym.register("WfnnTestPaying-v0", entry_point=paying, max_episode_steps=REWARD_ADVICE_AFTER // 2)
-    small = '{"deep": {"hidden": [8], "value_hidden": 4, "warmup": 0}, "batch_size": 8}'
-    config = ClientConfig(sim="gym", env="WfnnTestPaying-v0", rate_hz=0, episodes=3, learner=learner,
-                          learner_options=small if learner == "deep" else "", thinks_per_action=1,
+    # "popart": the deep learner with its values normalised, which suits any reward's scale.
+    deep = {"hidden": [8], "value_hidden": 4, "warmup": 0}
+    if learner == "popart":
+        deep["popart_rate"] = 0.001
+    small = json.dumps({"deep": deep, "batch_size": 8})
+    config = ClientConfig(sim="gym", env="WfnnTestPaying-v0", rate_hz=0, episodes=3,
+                          learner="thesis" if learner == "thesis" else "deep",
+                          learner_options="" if learner == "thesis" else small, thinks_per_action=1,
                           out=tmp_path / "r")  # fmt: skip
     with caplog.at_level(logging.WARNING):
         run(config)
     said = [r.getMessage() for r in caplog.records if "root-mean-square" in r.getMessage()]
     assert len(said) == (1 if told else 0), said
     if told:
-        assert f"{abs(reward):.3g} a step, outside 0.05-20" in said[0]
+        assert f"{abs(reward):.3g} a step, outside 0.05-20" in said[0] and "popart_rate" in said[0]
 
 
 class _MisShaped(gym.Env):

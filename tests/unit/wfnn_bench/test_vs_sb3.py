@@ -97,6 +97,10 @@ def test_a_learner_config_that_cannot_be_built_stops_the_run_before_it_starts():
         ({"deep_options": '{"learner": "thesis"}', "learners": ("deep",)}, "--learners"),
         ({"deep_options": '{"n_wires": 4}', "learners": ("thesis",)}, "does not run"),
         ({"deep_options": '{"n_wires": 4}', "learners": ("deep",), "algorithms": ("sac",)}, "does not run"),
+        ({"reward_scale": 0.0}, "reward scale"),
+        ({"reward_scale": -1.0}, "reward scale"),
+        ({"reward_scale": float("nan")}, "reward_scale must be a finite number"),
+        ({"reward_scale": 1e7}, "reward scale"),
     ],
 )
 def test_bad_vs_sb3_configs_are_refused(kw, message):
@@ -141,3 +145,38 @@ def test_the_largest_one_off_cost_of_a_run_is_told_beside_its_seconds_per_step(m
     monkeypatch.setattr(WFNN, "think", slow_once)
     result = run_wfnn("Pendulum-v1", 40, 0, cfg)
     assert result["one_off_s"] >= 0.5 and result["s_per_step"] >= 0.5 / 40
+
+
+def test_the_reward_scale_multiplies_what_learners_learn_and_not_the_returns_reported(monkeypatch):
+    from wfnn_bench.vs_sb3 import run_wfnn
+    from wfnn_common.learner import WFNN
+
+    learnt: list[float] = []
+    learn = WFNN.learn
+
+    def heard(self, state, action, next_state, reward, *args, **kwargs):
+        learnt.append(float(reward))
+        return learn(self, state, action, next_state, reward, *args, **kwargs)
+
+    monkeypatch.setattr(WFNN, "learn", heard)
+    returns = {}
+    for scale in (1.0, 1000.0):
+        cfg = VsSb3Config(tasks=("Pendulum-v1",), steps=(20,), algorithms=("wfnn",), eval_every=20,
+                          eval_episodes=1, thinks=0, act_calls=5, reward_scale=scale)  # fmt: skip
+        returns[scale] = run_wfnn("Pendulum-v1", 20, 3, cfg)["returns"]
+    np.testing.assert_allclose(np.array(learnt[20:]), 1000.0 * np.array(learnt[:20]), rtol=1e-12)
+    assert min(learnt) < 0.0 and returns[1.0] == returns[1000.0]  # no thinks: the same greedy policy
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    seen: list[float] = []
+    store = ReplayBuffer.add
+
+    def stored(self, obs, next_obs, action, reward, done, infos):
+        seen.append(float(np.asarray(reward).reshape(-1)[0]))
+        return store(self, obs, next_obs, action, reward, done, infos)
+
+    monkeypatch.setattr(ReplayBuffer, "add", stored)
+    sb3 = run_sb3("td3", "Pendulum-v1", 20, 0, VsSb3Config(eval_every=20, eval_episodes=1, reward_scale=1e-3))
+    assert len(seen) == 20 and max(abs(r) for r in seen) < 0.0165  # Pendulum pays at most 16.3 a step
+    assert sb3["returns"][0] < -10.0  # reported in the task's own units

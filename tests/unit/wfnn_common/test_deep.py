@@ -201,15 +201,17 @@ def _fed(learner: DeepWFNN) -> DeepWFNN:
 
 
 def _loss_args(trainer, seed):
-    """`loss`'s arguments after the critics and config: the trainer's blocks and targets, and a
-    random minibatch of 32 of the test task's shapes."""
+    """`loss`'s arguments after the critics and config: the trainer's blocks and targets, a
+    random minibatch of 32 of the test task's shapes, and values' (mean, std) of (-3, 2.5)."""
     rng = np.random.default_rng(seed)
     batch = (torch.tensor(rng.uniform(-1, 1, shape), dtype=torch.float32)
              for shape in [(32, 2), (32, 1), (32,), (32, 2), (32,), (32, 1)])  # fmt: skip
-    return (trainer.blocks, trainer.target, *batch)
+    return (trainer.blocks, trainer.target, *batch, torch.tensor([-3.0, 2.5]))
 
 
-@pytest.mark.parametrize("options", [{}, {"top_k": 3, "tanh_limit": 3.0}, {"value_layers": 2}])
+@pytest.mark.parametrize(
+    "options", [{}, {"top_k": 3, "tanh_limit": 3.0}, {"value_layers": 2}, {"popart_rate": 0.01}]
+)
 def test_the_gradient_taken_block_by_block_is_the_whole_vectors(options):
     learner = _fed(DeepWFNN(config(deep=options)))
     learner.think(2)  # an earlier gradient is in the vector, and Adam has moved the weights
@@ -247,8 +249,10 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
 @pytest.mark.parametrize(
-    "options", [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0}, {"value_layers": 2}]
-)
+    "options",
+    [{"top_k": 0}, {"top_k": 3}, {"separate_best": False, "tanh_limit": 3.0}, {"value_layers": 2},
+     {"popart_rate": 0.01}],
+)  # fmt: skip
 def test_the_compiled_loss_and_gradient_are_the_uncompiled_ones(options):
     trainer = _fed(DeepWFNN(config(deep={"compile": True, **options})))._train()
     args = _loss_args(trainer, seed=5)
@@ -915,3 +919,107 @@ def test_the_smallest_eps_the_deep_learner_accepts_keeps_its_weights_finite_on_a
     learner.think(1)
     assert np.isfinite(learner.params.flat).all()
     assert not learner.act(x, explore=False).diverged and int(learner.resets[0]) == 0
+
+
+def _task_values(trainer, vector, x):
+    """Both critics' wire values [2, B, N] of the flat weights `vector` at states x, in the task's units."""
+    mean, std = deep_net.value_scale(trainer.moments)
+    with torch.no_grad():
+        _, q = trainer.critics.wires(trainer.critics.blocks(vector), x)
+    return q.double() * std + mean
+
+
+def test_popart_keeps_every_value_as_it_was_when_its_statistics_move():
+    learner = _fed(DeepWFNN(config(deep={"popart_rate": 0.5})))
+    learner.think(3)
+    trainer = learner._train()
+    x = torch.tensor(np.random.default_rng(1).uniform(-1, 1, (20, 2)), dtype=torch.float32)
+    before = [_task_values(trainer, v, x) for v in (trainer.theta, trainer.target)]
+    scale = deep_net.value_scale(trainer.moments)
+    trainer._track(torch.tensor(np.random.default_rng(2).normal(500.0, 80.0, 64), dtype=torch.float32))
+    moved = deep_net.value_scale(trainer.moments)
+    assert moved[0] > 200.0 and moved[1] > 10.0 * scale[1]
+    for vector, values in zip((trainer.theta, trainer.target), before, strict=True):
+        torch.testing.assert_close(_task_values(trainer, vector, x), values, rtol=1e-4, atol=1e-4)
+    # `act`'s weights give the values in the task's units, and the same wires.
+    learner._sync()
+    wire_u, wire_q = deep_net.wires(learner.params, x.double().numpy())
+    np.testing.assert_allclose(wire_q, before[0][0].numpy(), rtol=1e-4, atol=1e-4)
+    with torch.no_grad():
+        tu, _ = trainer.critics.wires(trainer.blocks, x)
+    np.testing.assert_allclose(wire_u, tu[0].double().numpy(), atol=1e-5)
+    # The statistics follow the targets: their mean and deviation, bias corrected.
+    y = np.random.default_rng(3).normal(-40.0, 6.0, 256)
+    fresh = _fed(DeepWFNN(config(deep={"popart_rate": 1e-3})))._train()
+    fresh._track(torch.tensor(y, dtype=torch.float32))
+    np.testing.assert_allclose(deep_net.value_scale(fresh.moments), (y.mean(), y.std()), rtol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [1e-2, 1.0, 1e4])
+def test_popart_learns_the_best_action_whatever_the_rewards_scale(scale):
+    """The contextual bandit (`test_learns_the_best_action_of_a_contextual_bandit`), its rewards
+    multiplied by `scale`: with the values normalised, one setting of the learner learns each."""
+    learner = DeepWFNN(config(batch_size=64, deep={"lr": 3e-3, "target_noise": 0.0, "popart_rate": 0.01}))
+    rng = np.random.default_rng(0)
+    s = rng.uniform(-1, 1, (2000, 2))
+    a = rng.uniform(-2, 2, (2000, 1))
+    learner.learn_many(s, a, s, -scale * (a[:, 0] - s[:, 0]) ** 2, np.ones(2000, dtype=bool))
+    learner.think(1500)
+    tests = np.array([[-0.8, 0.0], [0.0, 1.0], [0.7, -1.0]])
+    greedy = np.array([learner.act(t, explore=False).action[0] for t in tests])
+    np.testing.assert_allclose(greedy, tests[:, 0], atol=0.5)  # of the range [-2, 2]
+    # Its values are in the task's units: the best action's value is near 0, a poor one's far below.
+    assert abs(float(learner.q_value(tests[0], tests[0, :1]))) < 0.5 * scale
+    assert float(learner.q_value(tests[0], [1.5])) < -2.0 * scale
+
+
+def test_popart_statistics_are_saved_resumed_and_checked(tmp_path):
+    cfg = config(deep={"popart_rate": 0.05})
+    learner = _fed(DeepWFNN(cfg))
+    learner.think(10)
+    state = learner.training_state()
+    assert state["value_moments"].shape == (3,) and 0.0 < state["value_moments"][2] < 1.0
+    save_weights(tmp_path / "ck.npz", cfg, learner.params, {"thinks": 10}, training=state)
+    ck_cfg, params, _, training = load_checkpoint(tmp_path / "ck.npz")
+    resumed = make_learner(ck_cfg, params=params)
+    resumed.load_training_state(training)
+    np.testing.assert_array_equal(resumed.params.flat, learner.params.flat)
+    np.testing.assert_array_equal(resumed.training_state()["value_moments"], state["value_moments"])
+    batch = learner._n_step(np.arange(32))
+    learner._trainer.generator.manual_seed(5)
+    resumed._trainer.generator.manual_seed(5)
+    assert learner._trainer.update(batch) == resumed._trainer.update(batch)
+    # Weights that learnt normalised values, resumed without the normalisation, give the same values.
+    plain = make_learner(with_options(cfg, {"deep": {"popart_rate": 0.0}}), params=learner.params.copy())
+    plain.load_training_state(state)
+    x = np.random.default_rng(6).uniform(-1, 1, (10, 2))
+    np.testing.assert_allclose(plain.greedy_values(x), learner.greedy_values(x), rtol=1e-5, atol=1e-5)
+    assert "value_moments" not in plain.training_state()
+    # Statistics that are not a targets' moments, or that do not fit the weights saved beside them.
+    other = state["value_moments"] * np.array([2.0, 4.0, 1.0])
+    for bad in (np.array([0.1, 0.2]), np.array([0.1, -0.2, 0.5]), np.array([0.1, 0.2, 1.5]),
+                np.array([np.nan, 0.2, 0.5]), np.array([1e39, 0.2, 0.5]), np.array(["a", "b", "c"]),
+                other):  # fmt: skip
+        resumed = make_learner(cfg, params=learner.params.copy())
+        with pytest.raises(ValueError, match="training state"):
+            resumed.load_training_state({**state, "value_moments": bad})
+    # A reset forgets the statistics with the weights.
+    learner.reset_weights(np.array([True]))
+    assert "value_moments" not in learner.training_state()
+
+
+@pytest.mark.parametrize("rewards", ["constant", "spread"])
+def test_popart_keeps_its_weights_finite_on_the_largest_rewards_learnt(rewards):
+    """Rewards of 1e19 every step (no spread: the deviation at its floor) and of up to 4e28 both
+    made normalised targets whose squares overflowed float32 within a few updates."""
+    learner = DeepWFNN(config(batch_size=32, deep={"popart_rate": 3e-4}))
+    rng = np.random.default_rng(0)
+    s, a, sn = rng.uniform(-1, 1, (200, 2)), rng.uniform(-2, 2, (200, 1)), rng.uniform(-1, 1, (200, 2))
+    r = np.full(200, 1e19) if rewards == "constant" else -1e28 * (a[:, 0] - s[:, 0]) ** 2
+    assert learner.learn_many(s, a, sn, r, np.zeros(200, dtype=bool)).all()
+    for _ in range(30):
+        learner.think(1)
+        assert np.isfinite(learner._trainer.theta.numpy()).all() and np.isfinite(learner.params.flat).all()
+    assert int(learner.resets[0]) == 0
+    mean, _ = deep_net.value_scale(learner._trainer.moments)
+    assert np.sign(mean) == np.sign(r.mean()) and abs(mean) > 1e18
