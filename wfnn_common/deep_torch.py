@@ -15,8 +15,11 @@ target averaging are one operation each. One update on a minibatch of B experien
 
 With `deep.popart_rate` the critics' outputs are normalised values: Q = std Q~ + mean, with
 the running (mean, std) of the targets, and the first term is sum_j mean (Q~_j(x, u) - (y -
-mean) / std)^2. The interpolation commutes with that affine map (its smoothing term is on
-min-max normalised values, its weights sum to 1), so Q~ interpolates the normalised wire values.
+mean) / std)^2, and the separation, tanh-limit and bc terms are divided by std^2, so that they
+keep the weight against the values that they have without the option (normalised, the values'
+pull on the wires is 1 / std^2 of what it was, against the same push apart: the boat lost by
+that). The interpolation commutes with that affine map (its smoothing term is on min-max
+normalised values, its weights sum to 1), so Q~ interpolates the normalised wire values.
 After each step the statistics take in the batch's targets, and both critics' and targets'
 output layers are rescaled so that their values in the task's units stay as they were (van
 Hasselt et al. 2016).
@@ -225,12 +228,13 @@ def loss(
     wu, wq, z = critics.wires_and_preactivations(blocks, x)
     Q = wirefit(wu, wq, u, c, eps, k)  # [2, B]
     total = ((Q - learnt) ** 2).mean(dim=1).sum()
+    aux = 1.0 / (std * std) if popart else 1.0  # their weight against the values in the task's units
     if d.separation > 0.0:
-        total = total + 2.0 * d.separation * separation(wu, None if d.separate_best else wq)
+        total = total + aux * 2.0 * d.separation * separation(wu, None if d.separate_best else wq)
     if d.tanh_limit > 0.0:
-        total = total + (tnf.relu(z.abs() - d.tanh_limit) ** 2).mean(dim=(1, 2)).sum()
+        total = total + aux * (tnf.relu(z.abs() - d.tanh_limit) ** 2).mean(dim=(1, 2)).sum()
     if cfg.bc_weight > 0.0:
-        total = total + cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
+        total = total + aux * cfg.bc_weight * ((best_wire(wu[0], wq[0]) - u) ** 2).sum(dim=-1).mean()
     Q1 = Q[0].detach()
     return total, (Q1 * std + mean if popart else Q1), y
 

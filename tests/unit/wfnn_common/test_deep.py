@@ -1023,3 +1023,35 @@ def test_popart_keeps_its_weights_finite_on_the_largest_rewards_learnt(rewards):
     assert int(learner.resets[0]) == 0
     mean, _ = deep_net.value_scale(learner._trainer.moments)
     assert np.sign(mean) == np.sign(r.mean()) and abs(mean) > 1e18
+
+
+@pytest.mark.parametrize(("k", "options"), [(1.0, {}), (0.5, {"top_k": 3, "tanh_limit": 0.5})])
+def test_the_popart_loss_is_the_plain_loss_in_the_tasks_units_over_std_squared(k, options):
+    """Normalised values change what the weights mean, not what is learnt: the loss on normalised
+    weights is the loss without the option on the same critics in the task's units, over std^2
+    (every term: the separation, tanh-limit and bc terms keep their weight against the values)."""
+    popart = _fed(DeepWFNN(config(bc_weight=0.3, advantage_k=k, deep={"popart_rate": 0.01, **options})))
+    popart.think(2)
+    trainer = popart._train()
+    mean, std = -3.0, 2.5
+    args = _loss_args(trainer, seed=8)
+    args = (*args[:-1], torch.tensor([mean, std]))
+    got = loss(trainer.critics, trainer.config, *args)
+
+    def task_units(vector):
+        n = trainer.critics.n
+        flat = vector.detach().double().numpy()
+        both = [
+            deep_net.in_task_units(flat[k * n : (k + 1) * n], trainer.critics.shapes, mean, std)
+            for k in (0, 1)
+        ]
+        return torch.tensor(np.concatenate(both), dtype=torch.float32)
+
+    plain_cfg = with_options(trainer.config, {"deep": {"popart_rate": 0.0}})
+    theta = task_units(trainer.theta)
+    plain = loss(
+        trainer.critics, plain_cfg, trainer.critics.blocks(theta), task_units(trainer.target), *args[2:]
+    )
+    torch.testing.assert_close(got[0] * std**2, plain[0], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(got[1], plain[1], rtol=1e-5, atol=1e-4)  # Q(x, u) in the task's units
+    torch.testing.assert_close(got[2], plain[2], rtol=1e-5, atol=1e-4)  # the targets
