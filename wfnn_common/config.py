@@ -111,11 +111,12 @@ class DeepConfig:
     """Where set, the critics learn values normalised by running statistics of their targets, and
     this is the statistics' step size per update (PopArt, van Hasselt et al. 2016): when the
     statistics move, the value heads' output layers are rescaled so that every Q stays as it was,
-    and `act`'s weights carry the values in the task's units. The learning then does not depend
-    on the reward's scale (Adam moves weights by about `lr` per step, so values of thousands took
-    thousands of times as many steps as values of one). The scale is bounded below
-    and above (`deep_net.POPART_MIN_STD` and the constants beside it). 0 learns the values as
-    they are."""
+    and `act`'s weights carry the values in the task's units. The weights then need not grow with
+    the reward's scale (Adam moves weights by about `lr` per step, so values of thousands took
+    thousands of times as many steps as values of one); the separation, tanh-limit and bc terms
+    keep their weight against the values in the task's units, which still depends on that scale.
+    The scale is bounded below and above (`deep_net.POPART_MIN_STD` and the constants beside it).
+    0 learns the values as they are."""
     n_step: int = 1
     """Returns over this many consecutive experiences: each experience is followed by the first
     one stored after it that starts exactly from its next state, whichever client sent it; the

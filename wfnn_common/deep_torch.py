@@ -365,12 +365,13 @@ class Trainer:
 
     def critic1(self) -> np.ndarray:
         """Critic 1's weights as float64 [n_params] (what `act` uses), values in the task's units."""
-        if self.moments[2] > 0.0:
-            raw = self.theta[: self.critics.n].to("cpu", torch.float64).numpy()
-            return in_task_units(raw, self.critics.shapes, *value_scale(self.moments))
         if self._critic1 is not None:  # float32 to float64 is exact, in numpy as in torch
-            return self._critic1.astype(np.float64)
-        return self.theta[: self.critics.n].to("cpu", torch.float64).numpy()
+            raw = self._critic1.astype(np.float64)
+        else:
+            raw = self.theta[: self.critics.n].to("cpu", torch.float64).numpy()
+        if self.moments[2] > 0.0:  # learnt normalised (deep.popart_rate)
+            return in_task_units(raw, self.critics.shapes, *value_scale(self.moments))
+        return raw
 
     def _tensors(self, batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         """The minibatch's arrays as float32 tensors on the device, moved in one copy.
@@ -419,8 +420,9 @@ class Trainer:
         rate = self.config.deep.popart_rate
         batch = np.array([float(y64.mean()), float((y64 * y64).mean()), 1.0])
         self.moments = (1.0 - rate) * self.moments + rate * batch
-        self._rescale(self.theta, before, value_scale(self.moments))
-        self._rescale(self.target, before, value_scale(self.moments))
+        after = value_scale(self.moments)
+        self._rescale(self.theta, before, after)
+        self._rescale(self.target, before, after)
 
     def _rescale(self, vector: torch.Tensor, before: tuple[float, float], after: tuple[float, float]) -> None:
         """Both critics' output layers in vector [2 n]: values under `before` the same under `after`.
@@ -477,9 +479,9 @@ class Trainer:
         self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
         self.moments = np.array(state.get("value_moments", np.zeros(3)), dtype=np.float64)
         if self.moments[2] > 0.0 and self.config.deep.popart_rate == 0.0:
-            identity = value_scale(np.zeros(3))
-            self._rescale(self.theta, value_scale(self.moments), identity)
-            self._rescale(self.target, value_scale(self.moments), identity)
+            saved, identity = value_scale(self.moments), value_scale(np.zeros(3))
+            self._rescale(self.theta, saved, identity)
+            self._rescale(self.target, saved, identity)
             self.moments = np.zeros(3)
         self._forget_adam()
         if "adam_m" in state:
