@@ -139,6 +139,11 @@ DRAWABLE = 1e300
 may reach float64's limits, and the span of two such scores would overflow)."""
 
 
+def _is_score(value: Any) -> bool:
+    """An episode's score as metrics.json holds it: a number, or null (not finite when written)."""
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
+
+
 def _drawable(scores: list[Any]) -> np.ndarray:
     """The episodes' scores as floats, with missing, non-finite and undrawable ones NaN."""
     values = np.asarray([np.nan if s is None else s for s in scores], dtype=np.float64)
@@ -245,6 +250,9 @@ def _run_sections(directory: Path) -> tuple[list[Section], bytes]:
     metrics = _read_json(path)
     if not isinstance(metrics, dict) or "scores" not in metrics:
         raise ReportError(f"{path} is not a client run's metrics (no scores)")
+    scores = metrics["scores"]
+    if not isinstance(scores, list) or not all(_is_score(s) for s in scores):
+        raise ReportError(f"{path}: malformed metrics (scores must be a list of numbers, one per episode)")
     try:
         return _run_sections_of(directory, metrics)
     except (TypeError, ValueError, LookupError, AttributeError, ArithmeticError, RecursionError) as exc:
@@ -374,7 +382,7 @@ def run(config: ReportConfig) -> Path:
     """Write the report; returns the HTML file's path. Raises ReportError for unusable input."""
     path = config.path
     figure: bytes | None = None
-    if path.is_dir() and (path / "metrics.json").exists():
+    if path.is_dir() and os.path.lexists(path / "metrics.json"):  # a dangling link too: a run's, unreadable
         sections, figure = _run_sections(path)
         title, out = f"wfnn run {path.name}", config.out or path / "report.html"
     elif is_log(path):  # its log.json and client.json are no benchmarks, and logs are never written to

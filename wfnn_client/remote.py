@@ -17,6 +17,7 @@ counts what fails (`wfnn_io.protocol.take`).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -34,7 +35,7 @@ from wfnn_common.learners import Learner
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_io.bus import Bus, Channel, guarded
 from wfnn_io.cli_errors import log_failure
-from wfnn_io.protocol import CameraView, ClientStatus, Codec, Keys, load_key
+from wfnn_io.protocol import MAX_KEY_CHARS, CameraView, ClientStatus, Codec, Keys, load_key
 
 __all__ = [
     "PLACEMENT",
@@ -48,6 +49,19 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+MAX_REPEATED_METRICS = 512
+"""Most of the followed server's figures a client repeats (as server/...) in its own figures and
+status: that status must stay within the protocol's limits (`MAX_MAP_ENTRIES` entries, keys of
+`MAX_KEY_CHARS`) whatever a server's status holds, or every server would refuse it."""
+
+
+def _repeated(metrics: dict[str, float]) -> dict[str, float]:
+    """A followed server's figures as this client repeats them: server/<name>, those that fit."""
+    fit = (f"server/{k}" for k in metrics)
+    pairs = ((k, v) for k, v in zip(fit, metrics.values(), strict=True) if len(k) <= MAX_KEY_CHARS)
+    return dict(itertools.islice(pairs, MAX_REPEATED_METRICS))
 
 
 class RemoteBrain:
@@ -261,7 +275,7 @@ class RemoteBrain:
             acked_by_any = max((v.acked for v in self.table.views.values()), default=-1)
             followed = self.table.views.get(self.following)
             if followed is not None:
-                out.update({f"server/{k}": v for k, v in followed.metrics.items()})
+                out.update(_repeated(followed.metrics))
         out["uplink/acked_through_max"] = float(max(acked)) if acked else -1.0
         out["uplink/acked_by_any"] = float(acked_by_any)  # live or gone since: whether any server took any
         for name, values in (("downlink/snapshot_latency_ms", self.apply_latency_ms),

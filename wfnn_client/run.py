@@ -43,6 +43,7 @@ from wfnn_common.config import (
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
 from wfnn_io.cli_errors import Terminated, handling, log_failure, noting, terminate
+from wfnn_io.logs import CLIENT_JSON, remove_empty_log
 from wfnn_io.persist import (
     PersistError,
     load_checkpoint,
@@ -306,9 +307,11 @@ def _run(
     episode_steps = spec.episode_steps(task) if callable(spec.episode_steps) else spec.episode_steps
     tick_count = 0
     skills: list[Skill] = []
+    new_journals: list[Path] = []
     controllers: Controllers | None = None
     try:
         learners = [(name, *_learner(config, name, behaviours.ranges(name))) for name in behaviours.names]
+        writable(Path(config.out) / "config.json")
         for name in behaviours.names:  # what the run writes at its end: refused now, not then
             writable(Path(config.out) / f"{_named('weights', name)}.npz")
             if config.local and config.learn:
@@ -319,6 +322,8 @@ def _run(
                 config.behaviour_policy, learners[0][1].spec_hash(), np.array(first.action_low),
                 np.array(first.action_high), handcoded, np.random.default_rng(config.seed + 7),
             )  # fmt: skip
+        journals = [Path(config.out) / _named("journal", name) for name in behaviours.names]
+        new_journals = [j for j in journals if not os.path.lexists(j)]
         for name, lcfg, learner in learners:  # each opens its journal, which checks its spec
             skills.append(Skill(name, lcfg, learner, make_brain(config, learner, name)))
         # Written once the rest is known to hold: a refused start leaves the last run's config as it was.
@@ -328,6 +333,9 @@ def _run(
             _Brains(skills).stop()
         except BaseException as stop_exc:  # the refusal is what to report
             log_failure(log, "stopping the brains made before the refusal failed", stop_exc)
+        for journal in new_journals:  # a refused start leaves no journal (and client id) of its making
+            with contextlib.suppress(OSError):
+                remove_empty_log(journal, also=(CLIENT_JSON,))
         if isinstance(exc, ValueError):  # options that do not fit this task or run directory
             raise SetupError(str(exc)) from exc
         raise

@@ -7,7 +7,11 @@ configured. Callbacks run on the bus's threads and must only hand work to a queu
 Publication channels are chosen per kind of traffic:
 - `DATA` (experiences): reliable, congestion control BLOCK, so nothing is dropped under load
   (the caller is the uplink thread, never the control tick);
-- `CONTROL` (acks): reliable, BLOCK, express (sent at once, not batched), high priority;
+- `CONTROL` (acks): reliable, DROP, express (sent at once, not batched), high priority: an ack
+  says all that earlier ones did (every experience through a number), and a dropped one is made
+  good by the next or by a re-send's; blocking instead, a server's ingest, which acks every
+  batch, would wait on any peer that subscribes to acks and stops reading (Zenoh holds a full
+  link 5 s before closing it), for every client;
 - `LATEST` (weights, status): reliable, DROP, express, highest priority: under congestion the
   newest snapshot matters, not an old one.
 
@@ -475,7 +479,7 @@ class ZenohBus:
                 block, drop = z.CongestionControl.BLOCK, z.CongestionControl.DROP
                 options: dict[Channel, dict[str, Any]] = {
                     Channel.DATA: {"congestion_control": block, "priority": z.Priority.DATA},
-                    Channel.CONTROL: {"congestion_control": block, "priority": z.Priority.INTERACTIVE_HIGH,
+                    Channel.CONTROL: {"congestion_control": drop, "priority": z.Priority.INTERACTIVE_HIGH,
                                       "express": True},
                     Channel.LATEST: {"congestion_control": drop, "priority": z.Priority.REAL_TIME,
                                      "express": True},

@@ -44,7 +44,7 @@ import secrets
 import shutil
 import time
 from collections import Counter
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Collection, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard, cast
@@ -107,12 +107,13 @@ def is_log(directory: Path) -> bool:
     return directory.is_dir() and any(directory.glob("*.seg")) and not _unfinished(directory)
 
 
-def remove_empty_log(directory: Path) -> bool:
+def remove_empty_log(directory: Path, also: Collection[str] = ()) -> bool:
     """Remove a log that holds no record (what a refused start made); -> whether it was removed.
 
-    Only a folder of empty segments, its lock and its `log.json` goes; anything else in it, or one
-    byte in a segment, and it is left whole. So is a log another process has open (its lock is
-    held): one that started beside the refused one and took the folder.
+    Only a folder of empty segments, its lock, its `log.json` and the files named in `also` (its
+    owner's own, such as a journal's `client.json`) goes; anything else in it, or one byte in a
+    segment, and it is left whole. So is a log another process has open (its lock is held): one
+    that started beside the refused one and took the folder.
     """
     directory = Path(directory)
     if not directory.is_dir() or directory.is_symlink():
@@ -123,7 +124,7 @@ def remove_empty_log(directory: Path) -> bool:
         return False
     try:
         entries = list(directory.iterdir())
-        own = {LOCK, LOG_JSON}
+        own = {LOCK, LOG_JSON, *also}
         for entry in entries:
             if entry.is_symlink() or not entry.is_file():
                 return False

@@ -195,6 +195,12 @@ _B1_1, _U8_1, _U1_1 = _array("|b1", 1), _array("<u8", 1), _array("|u1", 1)
 
 MAX_SEQ = (1 << 62) - 1
 """The largest experience number (every count and acknowledgement of it fits an int64)."""
+_SEQ = {"range": (-1, MAX_SEQ)}
+"""Field metadata: an experience number, or -1 for none (each value, for a map)."""
+MAX_SPEC_CHARS = 64
+"""Longest spec hash (`LearnerConfig.spec_hash` gives 16 characters): a receiver keeps the newest
+of every heard sender's."""
+_SPEC = {"max_chars": MAX_SPEC_CHARS}
 
 # Experience flags (ExperienceBatch.flags).
 EXP_EXPLORED = 0x01
@@ -227,7 +233,7 @@ class ExperienceBatch:
 
     TYPE: ClassVar[MsgType] = MsgType.EXPERIENCES
     client: str
-    spec_hash: str
+    spec_hash: str = field(metadata=_SPEC)
     first_seq: int
     weights_source: str
     state: FloatArray = field(metadata=_F8_2)
@@ -308,7 +314,7 @@ class Ack:
     started_ns: int
     """The server's start (`ServerStatus.started_ns`): a client takes acks only of the start the
     server's status announces (a store restored from a backup counts its incarnations again)."""
-    stored_through: int
+    stored_through: int = field(metadata=_SEQ)
     """-1: nothing stored yet."""
 
 
@@ -326,13 +332,13 @@ class WeightSnapshot:
     started_ns: int
     """The server's start (see `Ack.started_ns`)."""
     version: int
-    spec_hash: str
+    spec_hash: str = field(metadata=_SPEC)
     published_ns: int
     """time.time_ns() when published (publish-to-applied latency on one host)."""
     thinks: int
     diverged: bool
     """The server saw divergence and reset; these weights have not relearned yet."""
-    learned_through: dict[str, int]
+    learned_through: dict[str, int] = field(metadata=_SEQ)
     """Per client: every experience numbered <= this has had its thinks (lock-step mode)."""
     params: FloatArray = field(metadata=_F8_2)
 
@@ -347,13 +353,13 @@ class ServerStatus:
     store: str
     """The identity of the server's store (see `Ack.store`)."""
     started_ns: int
-    spec_hash: str
+    spec_hash: str = field(metadata=_SPEC)
     """Empty until the server has a learner config."""
     learner_config: str
     """The LearnerConfig it learns with, its own overrides applied, as JSON (empty until it has
     one): a client whose settings were not adopted learns so, and records it."""
     weights_version: int
-    stored_through: dict[str, int]
+    stored_through: dict[str, int] = field(metadata=_SEQ)
     rejected: dict[str, int]
     """Frames rejected, by reason."""
     metrics: dict[str, float]
@@ -373,14 +379,14 @@ class ClientStatus:
 
     TYPE: ClassVar[MsgType] = MsgType.CLIENT_STATUS
     client: str
-    spec_hash: str
+    spec_hash: str = field(metadata=_SPEC)
     learner_config: str
     """The client's LearnerConfig as JSON."""
     following: str
     """Server whose snapshots `act` uses ("" for none, "local" in-process)."""
     weights_version: int
-    produced_through: int
-    acked: dict[str, int]
+    produced_through: int = field(metadata=_SEQ)
+    acked: dict[str, int] = field(metadata=_SEQ)
     metrics: dict[str, float]
 
     def __post_init__(self) -> None:
@@ -499,6 +505,21 @@ _KINDS = {"int": "int", "float": "float", "bool": "bool", "str": "str",
           "dict[str, int]": "dict:int", "dict[str, float]": "dict:float"}  # fmt: skip
 
 
+def _check_bounds(name: str, value: Any, meta: dict[str, Any]) -> None:
+    """Check a decoded field against the bounds its metadata gives.
+
+    A number's range (each value's, for a map): an acknowledgement below -1 would have its client
+    declare experiences lost that were stored. A string's length: receivers keep some of them.
+    """
+    if "range" in meta:
+        low, high = meta["range"]
+        for v in value.values() if isinstance(value, dict) else (value,):
+            if not low <= v <= high:
+                raise MalformedBody(f"{name}: {v} is outside [{low}, {high}]")
+    if "max_chars" in meta and len(value) > meta["max_chars"]:
+        raise MalformedBody(f"{name}: {len(value)} characters, more than {meta['max_chars']}")
+
+
 def _fields(cls: type[Any]) -> list[tuple[str, str, dict[str, Any]]]:
     """(name, kind, array metadata) per field of a message class."""
     out = []
@@ -555,6 +576,7 @@ def from_body(msg_type: MsgType, body: Any) -> Message:
             values[name] = _check_dict(name, kind[5:], v)
         else:
             values[name] = _check_scalar(name, kind, v)
+        _check_bounds(name, values[name], meta)
     msg: Message = MESSAGES[msg_type](**values)
     if isinstance(msg, ExperienceBatch):
         msg.validate()

@@ -21,7 +21,7 @@ from wfnn_client.brain import Experience
 from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
 from wfnn_common.learners import make_learner
 from wfnn_io.bus import NetConfig, check_exposure, endpoints
-from wfnn_io.protocol import EXP_NON_FINITE, Ack, ClientStatus, Codec
+from wfnn_io.protocol import EXP_NON_FINITE, MAX_SEQ, Ack, ClientStatus, Codec
 
 
 def feed(brain, n, seed=0):
@@ -249,7 +249,7 @@ def test_one_forged_ack_of_a_huge_number_does_not_stop_resends(tmp_path):
             feed(brain, 20)
             assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
             forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
-                         started_ns=server.started_ns, stored_through=2**63)  # fmt: skip
+                         started_ns=server.started_ns, stored_through=MAX_SEQ)  # fmt: skip
             hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
             assert wait(lambda: brain.rejected["ack_beyond"] == 1)
             lose_one_live_batch(hub, brain)

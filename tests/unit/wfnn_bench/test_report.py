@@ -82,6 +82,10 @@ def test_unusable_input_is_refused_with_the_reason(tmp_path):
         (b'{"scores": [1, 1' + b"0" * 400 + b"]}", "malformed metrics"),
         (b'{"scores": ' + b"[" * 100_000 + b"]" * 100_000 + b"}", "metrics.json"),
         (b'{"scores": [1, 2], "metric": "$\\foo$"}', "malformed metrics"),
+        (b'{"scores": "1789"}', "malformed metrics"),  # a string's characters were drawn as scores
+        (b'{"scores": [[1, 2], [3, 4]]}', "malformed metrics"),
+        (b'{"scores": [true, 2]}', "malformed metrics"),
+        (b'{"scores": {"a": 1}}', "malformed metrics"),
     ],
 )
 def test_a_damaged_run_metrics_file_is_named_in_one_line_and_left_as_it_was(tmp_path, metrics, reason):
@@ -228,3 +232,13 @@ def test_a_run_of_thousands_of_behaviour_policies_is_drawn_as_a_few_groups(tmp_p
     )
     html = run(ReportConfig(path=tmp_path / "run")).read_text()
     assert "wfnn 10" in html and "other policies" in html
+
+
+def test_a_run_whose_metrics_json_is_a_dangling_link_is_refused_not_read_as_benchmarks(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.json").write_text('{"client": {"seed": 0}}')
+    (run_dir / "metrics.json").symlink_to(tmp_path / "gone" / "metrics.json")  # out of the run: not read
+    result = CliRunner().invoke(app, ["report", str(run_dir)])
+    assert result.exit_code == 2 and "metrics.json" in result.output and result.output.count("\n") == 1
+    assert not (run_dir / "report.html").exists()

@@ -314,3 +314,43 @@ def test_options_of_the_run_given_are_taken(tmp_path, monkeypatch):
         assert result.exit_code == 0, result.output
     assert seen[0].forage is not None and seen[0].forage.pursue == "every_second"
     assert seen[1].boat_dt == 1.0 and seen[2].follow == "s2" and seen[2].controller == "x"
+
+
+def test_a_start_refused_after_its_journals_opened_leaves_no_journal_of_its_making(tmp_path, monkeypatch):
+    """Its client id would be picked up by the next run in the directory; a journal that was there
+    before the start stays as it was."""
+    from wfnn_client import run as run_module
+    from wfnn_client.run import run
+
+    (tmp_path / "run" / "config.json").mkdir(parents=True)  # refused before any journal opens
+    with pytest.raises(OSError, match=r"config\.json"):
+        run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "run"))
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["config.json"]
+
+    def full_disk(path, *args, **kwargs):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(run_module, "write_json", full_disk)  # refused once the journals are open
+    from sims.nomad import ForageConfig, NomadConfig
+
+    boat = ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "boat")
+    forage = ClientConfig(
+        sim="nomad",
+        episodes=1,
+        rate_hz=0.0,
+        out=tmp_path / "forage",
+        nomad=NomadConfig(behaviour="wander"),
+        forage=ForageConfig(),
+    )  # one journal each
+    for config in (boat, forage):
+        with pytest.raises(OSError, match="No space"):
+            run(config)
+        assert config.out.is_dir() and list(config.out.iterdir()) == []
+    monkeypatch.undo()
+    run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "kept"))
+    before = {p.name: p.read_bytes() for p in (tmp_path / "kept" / "journal").iterdir() if p.is_file()}
+    monkeypatch.setattr(run_module, "write_json", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "kept"))
+    after = {p.name: p.read_bytes() for p in (tmp_path / "kept" / "journal").iterdir() if p.is_file()}
+    assert after == before

@@ -1011,3 +1011,31 @@ def test_the_longest_alive_is_the_earliest_start_on_a_clock_that_agrees_with_the
     # A new start known from an ack, its status not yet heard: its clock is unchecked.
     unheard = ServerView(server="e", started_ns=wall - 3_600 * 10**9)
     assert _longest_alive([b, unheard]) is b
+
+
+def test_a_followed_servers_figures_never_make_this_clients_status_one_the_protocol_refuses(tmp_path):
+    """A server's status may hold as many figures, of keys as long, as the protocol allows; a client
+    repeats them as server/<name> beside its own, and its status must still be one servers take."""
+    from wfnn_io.protocol import MAX_KEY_CHARS, MAX_MAP_ENTRIES, ClientStatus
+
+    hub, cfg = Hub(), small_config()
+    server = make_server(tmp_path, hub, cfg).start()
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    figures = {f"m{i:04d}".ljust(MAX_KEY_CHARS, "x"): float(i) for i in range(MAX_MAP_ENTRIES - 1)}
+    figures["think/thinks_per_s"] = -5.0
+    codec = Codec("robot1")
+    try:
+        assert wait(lambda: brain.following == "s1")
+        for _ in range(100):  # the server's own statuses replace these figures now and then
+            with brain.table.lock:
+                brain.table.views["s1"].metrics = figures  # as the downlink keeps a status's
+            status = codec.decode(codec.encode(brain._status()), ClientStatus)[1]
+            if status.metrics.get("server/think/thinks_per_s") == -5.0:
+                break
+        else:
+            raise AssertionError("the figures were always replaced before the status was made")
+        assert not any(k.startswith("server/m") for k in status.metrics)  # too long with the prefix
+    finally:
+        brain.stop()
+        server.stop()

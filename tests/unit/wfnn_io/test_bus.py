@@ -8,6 +8,14 @@ from wfnn_io.bus import Channel, NetConfig, ZenohBus
 from wfnn_server.spawn import endpoint, free_port
 
 
+def _until_subscribed(sender: ZenohBus, key: str, arrived: threading.Event) -> None:
+    """Put on `key` until the receiver's callback says the subscription reached the sender."""
+    deadline = time.monotonic() + 30.0
+    while not arrived.wait(0.1):
+        assert time.monotonic() < deadline, "the subscription never reached the sender"
+        sender.put(key, b"x", Channel.CONTROL)
+
+
 def test_publishers_are_bounded_and_a_key_published_again_after_eviction_still_arrives(monkeypatch):
     """A server acks on a key naming the client: every id it ever answered kept a publisher."""
     monkeypatch.setattr(bus_module, "MAX_PUBLISHERS", 4)
@@ -23,10 +31,8 @@ def test_publishers_are_bounded_and_a_key_published_again_after_eviction_still_a
 
     try:
         receiver.subscribe("wfnn/t/**", on_sample)
+        _until_subscribed(sender, "wfnn/t/hello", arrived)
         deadline = time.monotonic() + 30.0
-        while not arrived.wait(0.1):  # until the subscription has reached the sender
-            assert time.monotonic() < deadline, "the subscription never reached the sender"
-            sender.put("wfnn/t/hello", b"x", Channel.CONTROL)
         keys = [f"wfnn/t/ack/c{i}" for i in range(12)] + ["wfnn/t/ack/c0", "wfnn/t/ack/c11"]
         for key in keys:
             sender.put(key, b"x", Channel.CONTROL)
@@ -37,4 +43,31 @@ def test_publishers_are_bounded_and_a_key_published_again_after_eviction_still_a
         assert [k for k in got if k.startswith("wfnn/t/ack/")] == keys  # reliable, in order, none lost
     finally:
         receiver.close()
+        sender.close()
+
+
+def test_a_peer_that_stops_reading_acks_does_not_hold_the_acking_thread():
+    """A server acks from its ingest thread: a subscriber to acks that never reads them must not
+    hold that thread (blocking, each put would wait on the full link, 5 s before Zenoh closes it)."""
+    port = free_port()
+    sender = ZenohBus(NetConfig(listen=(endpoint(port),)))
+    stalled = ZenohBus(NetConfig(connect=(endpoint(port),)))
+    release, arrived = threading.Event(), threading.Event()
+
+    def never_done(key: str, payload: bytes) -> None:
+        arrived.set()
+        release.wait(30.0)  # holds the receiving session's thread, as a peer that stops reading
+
+    try:
+        stalled.subscribe("wfnn/t/ack/**", never_done)
+        _until_subscribed(sender, "wfnn/t/ack/c1", arrived)
+        payload, longest = bytes(16_384), 0.0
+        for _ in range(4_000):  # 64 MiB: far beyond what the link's queues hold
+            start = time.monotonic()
+            sender.put("wfnn/t/ack/c1", payload, Channel.CONTROL)
+            longest = max(longest, time.monotonic() - start)
+        assert longest < 1.0, f"a put waited {longest:.2f} s on a peer that does not read"
+    finally:
+        release.set()
+        stalled.close()
         sender.close()

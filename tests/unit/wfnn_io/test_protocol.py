@@ -14,6 +14,8 @@ from wfnn_io.protocol import (
     MAC_SIZE,
     MAGIC,
     MAX_BODY,
+    MAX_SEQ,
+    MAX_SPEC_CHARS,
     PNG_SIGNATURE,
     PROTOCOL_VERSION,
     Ack,
@@ -803,3 +805,34 @@ def test_a_key_file_others_can_read_is_taken_with_a_warning(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="wfnn_io.protocol"):
         assert load_key(str(path)) == b"0123456789abcdef0123456789abcdef"
     assert any("can be read by others (mode 644)" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize(
+    ("make", "field", "bad"),
+    [(make_ack, "stored_through", -2), (make_ack, "stored_through", MAX_SEQ + 1),
+     (make_server_status, "stored_through", {"robot1": -999}), (make_client_status, "acked", {"srv1": -2}),
+     (make_client_status, "produced_through", -5), (make_weights, "learned_through", {"robot1": -2})],
+)  # fmt: skip
+def test_experience_numbers_out_of_their_range_are_refused(make, field, bad):
+    """An acknowledgement below -1 (none) would have a client declare stored experiences lost."""
+    good = make()
+    frame = raw_frame(msgpack.packb({**to_body(good), field: bad}, use_bin_type=True), msg_type=good.TYPE)
+    with pytest.raises(MalformedBody, match=field):
+        decode(frame)
+    assert_same_message(decode(raw_frame(msgpack.packb(to_body(good), use_bin_type=True),
+                                         msg_type=good.TYPE)).message, good)  # fmt: skip
+
+
+@pytest.mark.parametrize("make", [make_batch, make_weights, make_server_status, make_client_status])
+def test_a_spec_hash_longer_than_any_spec_gives_is_refused(make):
+    """Receivers keep each heard sender's newest spec hash: thousands of forged ids must not hold
+    a 64 KiB string each."""
+    good = make()
+    for spec, ok in (("0" * MAX_SPEC_CHARS, True), ("0" * (MAX_SPEC_CHARS + 1), False)):
+        frame = raw_frame(msgpack.packb({**to_body(good), "spec_hash": spec}, use_bin_type=True),
+                          msg_type=good.TYPE)  # fmt: skip
+        if ok:
+            assert decode(frame).message.spec_hash == spec
+        else:
+            with pytest.raises(MalformedBody, match="spec_hash"):
+                decode(frame)
