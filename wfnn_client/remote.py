@@ -35,7 +35,7 @@ from wfnn_common.learners import Learner
 from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_io.bus import Bus, Channel, guarded
 from wfnn_io.cli_errors import log_failure
-from wfnn_io.protocol import MAX_KEY_CHARS, CameraView, ClientStatus, Codec, Keys, load_key
+from wfnn_io.protocol import MAX_KEY_CHARS, MAX_MAP_ENTRIES, CameraView, ClientStatus, Codec, Keys, load_key
 
 __all__ = [
     "PLACEMENT",
@@ -55,6 +55,16 @@ MAX_REPEATED_METRICS = 512
 """Most of the followed server's figures a client repeats (as server/...) in its own figures and
 status: that status must stay within the protocol's limits (`MAX_MAP_ENTRIES` entries, keys of
 `MAX_KEY_CHARS`) whatever a server's status holds, or every server would refuse it."""
+
+
+def _carried(metrics: dict[str, float]) -> dict[str, float]:
+    """The figures a status carries: those whose names fit, the first `MAX_MAP_ENTRIES` of them.
+
+    The control loop's figures hold every behaviour's brain's, each under `<behaviour>/` (with
+    what each repeats of its server), so several behaviours could pass the protocol's limits.
+    """
+    fit = ((k, v) for k, v in metrics.items() if len(k) <= MAX_KEY_CHARS)
+    return dict(itertools.islice(fit, MAX_MAP_ENTRIES))
 
 
 def _repeated(metrics: dict[str, float]) -> dict[str, float]:
@@ -291,9 +301,10 @@ class RemoteBrain:
         with self.table.lock:
             acked = {v.server: v.acked for v in self.table.views.values()}
         weights = self.downlink.current
+        own = self.metrics()
+        loop = {k: v for k, v in self._loop_metrics.items() if k not in own}
         return ClientStatus(
             client=self.id, spec_hash=self.spec_hash, learner_config=self._config_json,
             following=self.following, weights_version=weights.version if weights else 0,
-            produced_through=self.produced_through, acked=acked,
-            metrics={**self._loop_metrics, **self.metrics()},
+            produced_through=self.produced_through, acked=acked, metrics=_carried({**own, **loop}),
         )  # fmt: skip

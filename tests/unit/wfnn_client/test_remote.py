@@ -1036,6 +1036,16 @@ def test_a_followed_servers_figures_never_make_this_clients_status_one_the_proto
         else:
             raise AssertionError("the figures were always replaced before the status was made")
         assert not any(k.startswith("server/m") for k in status.metrics)  # too long with the prefix
+        # Several behaviours: the loop's figures hold each brain's under <behaviour>/, with what each
+        # repeats of its server, and every brain is told them all.
+        with brain.table.lock:
+            brain.table.views["s1"].metrics = {f"f{i}": float(i) for i in range(600)}  # short names
+        behaviours = {f"{b}/{k}": v for b in ("servo", "wander") for k, v in brain.metrics().items()}
+        assert len(behaviours) > MAX_MAP_ENTRIES
+        brain.report({"client/reward_mean": -0.5, **behaviours, "servo/" + "k" * MAX_KEY_CHARS: 1.0})
+        status = codec.decode(codec.encode(brain._status()), ClientStatus)[1]
+        assert len(status.metrics) == MAX_MAP_ENTRIES and status.metrics["client/reward_mean"] == -0.5
+        assert {"uplink/produced_through", "weights/version", "downlink/failovers"} <= status.metrics.keys()
     finally:
         brain.stop()
         server.stop()
