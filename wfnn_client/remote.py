@@ -22,6 +22,7 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -57,21 +58,23 @@ status: that status must stay within the protocol's limits (`MAX_MAP_ENTRIES` en
 `MAX_KEY_CHARS`) whatever a server's status holds, or every server would refuse it."""
 
 
+def _fitting(figures: Iterable[tuple[str, float]], most: int) -> dict[str, float]:
+    """The first `most` of (name, figure) pairs whose names fit a protocol map's keys."""
+    return dict(itertools.islice(((k, v) for k, v in figures if len(k) <= MAX_KEY_CHARS), most))
+
+
 def _carried(metrics: dict[str, float]) -> dict[str, float]:
     """The figures a status carries: those whose names fit, the first `MAX_MAP_ENTRIES` of them.
 
     The control loop's figures hold every behaviour's brain's, each under `<behaviour>/` (with
     what each repeats of its server), so several behaviours could pass the protocol's limits.
     """
-    fit = ((k, v) for k, v in metrics.items() if len(k) <= MAX_KEY_CHARS)
-    return dict(itertools.islice(fit, MAX_MAP_ENTRIES))
+    return _fitting(metrics.items(), MAX_MAP_ENTRIES)
 
 
 def _repeated(metrics: dict[str, float]) -> dict[str, float]:
     """A followed server's figures as this client repeats them: server/<name>, those that fit."""
-    fit = (f"server/{k}" for k in metrics)
-    pairs = ((k, v) for k, v in zip(fit, metrics.values(), strict=True) if len(k) <= MAX_KEY_CHARS)
-    return dict(itertools.islice(pairs, MAX_REPEATED_METRICS))
+    return _fitting(((f"server/{k}", v) for k, v in metrics.items()), MAX_REPEATED_METRICS)
 
 
 class RemoteBrain:

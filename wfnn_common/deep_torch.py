@@ -315,6 +315,9 @@ class Trainer:
             block.requires_grad_(True)
             block.grad = grad
         self.target = self.theta.clone()
+        self._outputs = [(b["vo"], b["bo"]) for b in map(self.critics.blocks, (self.theta, self.target))]
+        """Both critics' output layers in theta and in target (views made once, not the loss's
+        leaves), which `_rescale` moves."""
         self.adam_m = torch.zeros_like(self.target)
         self.adam_v = torch.zeros_like(self.target)
         self.adam_step = 0
@@ -420,20 +423,18 @@ class Trainer:
         rate = self.config.deep.popart_rate
         batch = np.array([float(y64.mean()), float((y64 * y64).mean()), 1.0])
         self.moments = (1.0 - rate) * self.moments + rate * batch
-        after = value_scale(self.moments)
-        self._rescale(self.theta, before, after)
-        self._rescale(self.target, before, after)
+        self._rescale(before, value_scale(self.moments))
 
-    def _rescale(self, vector: torch.Tensor, before: tuple[float, float], after: tuple[float, float]) -> None:
-        """Both critics' output layers in vector [2 n]: values under `before` the same under `after`.
+    def _rescale(self, before: tuple[float, float], after: tuple[float, float]) -> None:
+        """Both critics' and targets' output layers: values under `before` the same under `after`.
 
         std v~ + mean = std' v~' + mean' for v~' = (std v~ + mean - mean') / std'.
         """
         (mean, std), (mean2, std2) = before, after
-        blocks = self.critics.blocks(vector)
         with torch.no_grad():
-            blocks["vo"].mul_(std / std2)
-            blocks["bo"].mul_(std / std2).add_((mean - mean2) / std2)
+            for vo, bo in self._outputs:
+                vo.mul_(std / std2)
+                bo.mul_(std / std2).add_((mean - mean2) / std2)
 
     def gradient(self, total: torch.Tensor) -> torch.Tensor:
         """The gradient [2 n] of a loss computed from `blocks`, laid out as theta.
@@ -479,9 +480,7 @@ class Trainer:
         self.target.copy_(torch.as_tensor(state["target"], dtype=torch.float32))
         self.moments = np.array(state.get("value_moments", np.zeros(3)), dtype=np.float64)
         if self.moments[2] > 0.0 and self.config.deep.popart_rate == 0.0:
-            saved, identity = value_scale(self.moments), value_scale(np.zeros(3))
-            self._rescale(self.theta, saved, identity)
-            self._rescale(self.target, saved, identity)
+            self._rescale(value_scale(self.moments), value_scale(np.zeros(3)))
             self.moments = np.zeros(3)
         self._forget_adam()
         if "adam_m" in state:
