@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from sims.boat import HANDCODED_GAINS, BoatConfig, BoatVec, handcoded_boat
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_population
@@ -64,6 +64,7 @@ class BoatBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
         BoatConfig(dt=self.dt, steps_per_target=self.steps_per_target)  # the boat's own checks, now

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from sims.cartpole import CartPoleVec
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
@@ -41,6 +41,7 @@ class CartPoleBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
 
 
 def run(bench: CartPoleBenchConfig, progress: Progress = no_progress) -> dict[str, Any]:

@@ -540,6 +540,15 @@ def _names(text: str) -> tuple[str, ...]:
     return tuple(v.strip() for v in text.split(",") if v.strip())
 
 
+def _counts(text: str, option: str) -> tuple[int, ...]:
+    """Comma-separated whole numbers; a BadParameter naming the option otherwise."""
+    try:
+        return tuple(int(v) for v in _names(text))
+    except ValueError:
+        raise typer.BadParameter(f"whole numbers, comma-separated, expected: {text!r}",
+                                 param_hint=option) from None  # fmt: skip
+
+
 @app.command("vs-sb3")
 def vs_sb3(
     tasks: Annotated[
@@ -567,7 +576,7 @@ def vs_sb3(
     _logging(verbose, json_path, plot_path)
     try:
         cfg = vs_sb3_bench.VsSb3Config(
-            tasks=_names(tasks), steps=tuple(int(v) for v in _names(steps)), algorithms=_names(algorithms),
+            tasks=_names(tasks), steps=_counts(steps, "--steps"), algorithms=_names(algorithms),
             learners=_names(learners), deep_options=deep_options, seeds=seeds, eval_every=eval_every,
             eval_episodes=eval_episodes, thinks=thinks, reward_scale=reward_scale, seed=seed,
         )  # fmt: skip

@@ -23,6 +23,19 @@ Progress = Callable[[int], None]
 """Called with how many units of work just finished."""
 
 
+BENCH_MAX_SEED = (1 << 32) - 1
+"""The largest seed a benchmark takes. Each derives its learners' and tasks' seeds from it (the boat's
+controllers from seed x 1,000, evaluations from seed + 1,000, a server per seed + i), and every
+one of those must stay a seed its learner takes (`config.MAX_SEED`, 2^62 - 1)."""
+
+
+def check_seed(seed: int) -> None:
+    """ValueError unless `seed` is a benchmark's seed (in [0, BENCH_MAX_SEED])."""
+    if not 0 <= seed <= BENCH_MAX_SEED:
+        raise ValueError(f"seed must be in [0, {BENCH_MAX_SEED}] (a benchmark derives more seeds from it), "
+                         f"got {seed}")  # fmt: skip
+
+
 def no_progress(_: int) -> None:
     """A progress callback that shows nothing."""
 

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_bench.hosts import BIN, Hosts
 from wfnn_common.config import check_fields
 from wfnn_io.persist import save_figure
@@ -93,6 +93,7 @@ class FaultsBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         unknown = [c for c in self.cases if c not in CASES]
         if unknown or not self.cases:
             raise ValueError(f"cases are some of {', '.join(CASES)}, got {','.join(self.cases)}")

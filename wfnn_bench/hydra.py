@@ -30,7 +30,16 @@ import numpy as np
 
 from sims.hydra import REGIMES, HydraConfig, HydraVec
 from sims.hydra.vision import VisionConfig, VisionSource
-from wfnn_bench.common import Progress, finite_median, fmt2, machine_info, nan_mean, no_progress, tick_learner
+from wfnn_bench.common import (
+    Progress,
+    check_seed,
+    finite_median,
+    fmt2,
+    machine_info,
+    nan_mean,
+    no_progress,
+    tick_learner,
+)
 from wfnn_client.step import Decided, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learners import make_population
@@ -76,6 +85,7 @@ class HydraBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
 

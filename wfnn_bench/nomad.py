@@ -40,7 +40,15 @@ from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcod
 from sims.nomad.forage import Pursue
 from sims.nomad.model import NomadModelConfig
 from sims.nomad.transforms import phantom_goals, servo_mirror
-from wfnn_bench.common import Progress, finite_median, fmt2, machine_info, no_progress, tick_learner
+from wfnn_bench.common import (
+    Progress,
+    check_seed,
+    finite_median,
+    fmt2,
+    machine_info,
+    no_progress,
+    tick_learner,
+)
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_common.config import LEARNERS, ExplorationConfig, LearnerConfig, check_fields
 from wfnn_common.learner import WFNN
@@ -111,6 +119,7 @@ class NomadBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
         # The passive learner's settings are checked now, not when its part starts hours in.

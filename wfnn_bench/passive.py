@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from sims.boat import BoatConfig, BoatVec, handcoded_boat, mirror, phantom
 from wfnn_bench.boat import BoatBenchConfig, learner_config, run_protocol
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_client.brain import Experience, Recorder
 from wfnn_common.config import DEEP_DEFAULTS, LEARNERS, LearnerConfig, check_fields
 from wfnn_common.learners import make_population
@@ -111,6 +111,7 @@ class PassiveBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if self.learner not in LEARNERS:
             raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
         # A bad learner_options, bc_weight or k is a ConfigError now, not after the logs are made.

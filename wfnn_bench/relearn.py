@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from sims.hydra import HydraConfig, HydraVec
-from wfnn_bench.common import Progress, fmt2, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, fmt2, machine_info, no_progress
 from wfnn_bench.hydra import EPISODE, learn_episode
 from wfnn_bench.passive import PassiveBenchConfig
 from wfnn_common.config import ExplorationConfig, LearnerConfig, check_fields
@@ -78,6 +78,7 @@ class RelearnBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
 
 
 def steps(cfg: RelearnBenchConfig) -> int:

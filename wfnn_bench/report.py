@@ -20,6 +20,7 @@ import io
 import json
 import logging
 import os
+import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,7 +75,8 @@ class Section:
 
 
 TEMPLATE = jinja2.Environment(autoescape=True).from_string("""<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>{{ title }}</title>
+<html lang="en"><head><meta charset="utf-8"><meta name="generator" content="wfnn report">
+<title>{{ title }}</title>
 <style>
  body { font-family: system-ui, sans-serif; margin: 1.2rem auto; max-width: 1100px; color: #222; }
  h1 { font-size: 1.4rem; } h2 { font-size: 1.15rem; border-bottom: 1px solid #ddd; padding-bottom: 0.2rem; }
@@ -297,13 +299,35 @@ REPORT_SOFTWARE = "wfnn report"
 """The PNG text chunk ("Software") that marks a report's own figure."""
 
 
+REPORT_HEADS = (b'<meta name="generator" content="wfnn report">',
+                b'<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>wfnn ')  # fmt: skip
+"""What marks a report's HTML in its first 4 KiB: the generator tag, or (reports written before
+it) the head every report has begun with."""
+
+
+def _head(path: Path, n: int = 4096) -> bytes:
+    """A regular file's first n bytes; b"" for anything else (opened without waiting on a FIFO)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError:
+        return b""
+    try:
+        return os.read(fd, n) if stat.S_ISREG(os.fstat(fd).st_mode) else b""
+    except OSError:
+        return b""
+    finally:
+        os.close(fd)
+
+
 def _a_reports_figure(png: Path) -> bool:
     """Whether `png` is a figure a report wrote (its Software chunk, in the file's first 4 KiB)."""
-    try:
-        head = read_regular_bytes(png, PICTURE_LIMIT)[:4096]
-    except OSError:
-        return False
-    return b"Software\x00" + REPORT_SOFTWARE.encode() in head
+    return b"Software\x00" + REPORT_SOFTWARE.encode() in _head(png)
+
+
+def _a_report(html: Path) -> bool:
+    """Whether `html` is a report's HTML (`REPORT_HEADS`), which a new report may replace."""
+    head = _head(html)
+    return REPORT_HEADS[0] in head or head.startswith(REPORT_HEADS[1])
 
 
 def _a_results_picture(png: Path) -> bool:
@@ -406,6 +430,9 @@ def run(config: ReportConfig) -> Path:
         raise ReportError(f"{out}: a report is never written into an experience log; give --out elsewhere")
     if out.suffix.lower() not in (".html", ".htm"):  # never over a benchmark's JSON or PNG it reads
         raise ReportError(f"--out {out}: the report is HTML; name a .html file")
+    if os.path.lexists(out) and not _a_report(out):
+        raise ReportError(f"--out {out}: it holds something that is no report, which the report would "
+                          "replace; give another --out")  # fmt: skip
     png = out.with_suffix(".png")
     if figure is not None and _a_results_picture(png):
         raise ReportError(f"--out {out}: its figure would replace {png} (a result's)")

@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_common.config import check_fields
 from wfnn_io import logs
 from wfnn_io.bus import Channel, NetConfig, ZenohBus
@@ -65,6 +65,7 @@ class SafetyBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if self.episodes < 1 or min(self.restart_seconds, self.storm_seconds, self.frames_seconds) < 6:
             raise ValueError("episodes must be >= 1 and each phase at least 6 s long")
 

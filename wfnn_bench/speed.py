@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_common.config import LearnerConfig, check_fields
 from wfnn_common.learner import WFNN, FloatArray
 from wfnn_common.learners import Learner, make_learner
@@ -44,6 +44,7 @@ class SpeedBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if not 1 <= self.population <= 4096 or not self.batch_sizes:
             raise ValueError(f"population must be in [1, 4096] and batch sizes given, got {self.population}")
         for batch in self.batch_sizes:  # the network's sizes, checked now by the learner config's own rules

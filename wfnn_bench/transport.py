@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from sims.boat import BoatVec
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, check_seed, machine_info, no_progress
 from wfnn_client.brain import Experience
 from wfnn_client.config import ClientConfig
 from wfnn_client.remote import RemoteBrain, RemoteConfig
@@ -72,6 +72,7 @@ class TransportBenchConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_seed(self.seed)
         if not 1.0 <= self.rate_hz <= 1000.0:  # a tick the client keeps (as the faults bench's)
             raise ValueError(f"rate_hz must be in [1, 1000], got {self.rate_hz}")
 

@@ -23,6 +23,7 @@ per 200-action episode, the boat starting at rest).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,6 +39,7 @@ from wfnn_common.config import LEARNERS, MAX_SEED, LearnerConfig, check_fields, 
 from wfnn_common.learners import make_learner
 from wfnn_io.persist import save_figure
 
+log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 ALGORITHMS = ("wfnn", "sac", "td3")
 SB3_MAX_SEED = (1 << 32) - 1
@@ -209,12 +211,17 @@ def run_wfnn(
             reported = step
     act = _act_us(greedy, x, cfg.act_calls)
     task.close()
+    refused = int(learner.rejected[0])
+    if refused:  # its returns are of a learner that learned from the rest only: said beside them
+        log.warning("%s %s seed %d: %d of %d experiences refused (not finite, or beyond the learner's "
+                    "ranges)", env_id, learner_name, seed, refused, steps)  # fmt: skip
     # Every step counts, one-off costs too (torch.compile's graph, numba's kernels on a cold cache),
     # as SB3's seconds per step count its own; the slowest step's excess over a typical one is told
     # beside them, to judge a run of one or two seeds by.
     return {"steps": points, "returns": returns, "lengths": lengths,
             "s_per_step": float(step_s.sum()) / steps, "one_off_s": float(step_s.max() - np.median(step_s)),
-            "act_us": act[0], "act_us_p99": act[1], "config": learner.config.to_dict()}  # fmt: skip
+            "act_us": act[0], "act_us_p99": act[1], "refused": refused,
+            "config": learner.config.to_dict()}  # fmt: skip
 
 
 def run_sb3(
@@ -332,6 +339,7 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                 "s_per_step": float(np.median([r["s_per_step"] for r in runs])),
                 "act_us": float(np.median([r["act_us"] for r in runs])),
                 "act_us_p99": float(np.median([r["act_us_p99"] for r in runs])),
+                **({"refused": [r["refused"] for r in runs]} if "refused" in runs[0] else {}),
                 **({"config": runs[0]["config"]} if "config" in runs[0] else {}),
             }  # fmt: skip
         task = out["tasks"][env_id]
@@ -387,6 +395,9 @@ def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
                          " / ".join(f"{v:.0f}" for v in r["final_returns"])))  # fmt: skip
             rows.append((f"{env_id} {algorithm}: final greedy episode length per seed",
                          " / ".join(f"{v:.0f}" for v in r["final_lengths"])))  # fmt: skip
+            if any(r.get("refused", ())):
+                rows.append((f"{env_id} {algorithm}: experiences refused per seed (not learned from)",
+                             " / ".join(str(v) for v in r["refused"])))  # fmt: skip
             rows.append(
                 (
                     f"{env_id} {algorithm}: s_per_step / act_us p50 / p99",

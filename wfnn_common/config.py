@@ -82,7 +82,8 @@ class DeepConfig:
     lr: float = 3e-4
     """Adam's step size."""
     grad_clip: float = 10.0
-    """Largest gradient norm of one update (larger gradients are scaled down); 0 disables."""
+    """Largest gradient norm of one update (larger gradients are scaled down); 0 disables, but for
+    a bound of 1e18 that keeps Adam's float32 moments finite (`deep_torch.GRAD_NORM_LIMIT`)."""
     tau: float = 0.005
     """Polyak averaging rate of the target critics."""
     target_noise: float = 0.2

@@ -49,6 +49,7 @@ import ctypes.util
 import dataclasses
 import functools
 import logging
+import math
 import warnings
 from collections.abc import Callable
 from typing import Any, cast
@@ -257,6 +258,11 @@ def compiled_loss(config: LearnerConfig) -> Callable[..., Losses]:
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
+GRAD_NORM_LIMIT = 1e18
+"""The largest gradient norm of an update where deep.grad_clip does not bound it (0, or a norm
+beyond float32's range): Adam's second moment holds squares of the gradient's components in
+float32 (largest 3.4e38), which a gradient beyond about 1.8e19 overflows, freezing the weights it
+covers and leaving a training state that no load accepts (as a task paying 1e20 a step gives)."""
 """Adam's moment decays and denominator term (Kingma and Ba 2015's defaults)."""
 
 
@@ -345,7 +351,7 @@ class Trainer:
         self.adam_step = 0
 
     def _step(self, grad: torch.Tensor) -> None:
-        """Clip the gradient's norm at deep.grad_clip, then one Adam step (in place).
+        """Clip the gradient's norm at deep.grad_clip (GRAD_NORM_LIMIT where 0), then one Adam step.
 
         The clipping factor is float32 arithmetic on the norm as a numpy scalar, with the roundings
         of the 0-dim tensor operations it replaces (norm + 1e-6; grad_clip / that, which torch
@@ -353,11 +359,18 @@ class Trainer:
         of 1 (no clipping) leaves the gradient as it is, as multiplying by 1 would.
         """
         d = self.config.deep
-        if d.grad_clip > 0.0:
-            norm = np.float32(torch.linalg.vector_norm(grad).item()) + np.float32(1e-6)
-            scale = np.minimum((np.float32(1.0) / norm) * np.float32(d.grad_clip), np.float32(1.0))
+        norm = torch.linalg.vector_norm(grad).item()
+        if d.grad_clip > 0.0 and norm != math.inf:
+            norm32 = np.float32(norm) + np.float32(1e-6)
+            scale = np.minimum((np.float32(1.0) / norm32) * np.float32(d.grad_clip), np.float32(1.0))
             if scale != 1.0:  # NaN included: it spreads to the gradient as before
                 grad.mul_(float(scale))
+        else:  # no clipping asked for, or squares beyond float32: bounded in float64 all the same
+            if norm == math.inf:
+                norm = torch.linalg.vector_norm(grad, dtype=torch.float64).item()
+            limit = d.grad_clip if d.grad_clip > 0.0 else GRAD_NORM_LIMIT
+            if norm > limit:  # NaN is not: it spreads to the gradient as before
+                grad.mul_(limit / norm)
         beta1, beta2 = ADAM_BETAS
         self.adam_step += 1
         self.adam_m.lerp_(grad, 1.0 - beta1)

@@ -6,3 +6,8 @@ session), `segments` (CRC-framed append-only files), `persist` (versioned save/l
 atomic write), `logs` (experience logs; `logs_cli` is `wfnn-logs`) and `cli_errors` (bad input
 ends in one line and a nonzero exit). The learner maths (`wfnn_common`) never imports it.
 """
+
+from wfnn_io.launch import tool
+
+main_logs = tool("wfnn_io.logs_cli")
+"""`wfnn-logs`."""

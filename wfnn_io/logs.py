@@ -296,6 +296,20 @@ def _decode_batch(frame: bytes, keys: list[bytes | None]) -> ExperienceBatch:
     return cast(ExperienceBatch, decode(frame, keys[-1], expect=ExperienceBatch, mac="if_present").message)
 
 
+def first_spec(directory: Path) -> str | None:
+    """The learner spec of a log's first valid batch, or None where it holds none (read-only).
+
+    What a log whose log.json is damaged or missing still says of its experiences: every batch
+    carries its spec, and a log's batches share one (a log of another spec is refused).
+    """
+    for _, frame in read_records(directory, None, None, marker=MAGIC):
+        try:
+            return _decode_batch(frame, [None]).spec_hash  # tags unverified: only the spec is read
+        except ProtocolError:
+            continue
+    return None
+
+
 REFUSALS_TOLD = 5
 """Refused records named one by one in a read of a log; the rest are counted in one line."""
 
@@ -370,11 +384,11 @@ class ExperienceLog:
         except FileExistsError:
             self.made = False
         check_free(self.directory)  # a log in use: refused before its log.json is set aside or rewritten
+        damaged = ""
         try:
             info = read_log_json(self.directory)
         except LogFormatError as exc:
-            set_aside(self.directory / LOG_JSON, str(exc))
-            info = None
+            info, damaged = None, str(exc)
         recorded, unusable = None, ""
         if info is not None and info.get("learner_config") is not None:
             try:
@@ -387,6 +401,16 @@ class ExperienceLog:
                 f"{self.directory} records experiences of learner spec {recorded.spec_hash()}, not "
                 f"{config.spec_hash()} (another task or ranges): use another run directory"
             )
+        if config is not None and recorded is None:  # log.json damaged or gone: the records still say
+            spec = first_spec(self.directory)
+            if spec is not None and spec != config.spec_hash():
+                raise LogFormatError(
+                    f"{self.directory} records experiences of learner spec {spec}, not "
+                    f"{config.spec_hash()} (another task or ranges; its {LOG_JSON} is damaged or "
+                    "missing): use another run directory"
+                )
+        if damaged:  # only once nothing refuses the log: a refused open changes nothing
+            set_aside(self.directory / LOG_JSON, damaged)
         identity = info.get("id") if info is not None else None
         self.id: str = identity if _is_log_id(identity) else new_log_id()
         """The log's identity, made when it was created."""

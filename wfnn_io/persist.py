@@ -12,6 +12,7 @@ import errno
 import io
 import json
 import os
+import re
 import stat
 import tempfile
 import zipfile
@@ -142,6 +143,17 @@ def _atomic_write(
         Path(tmp).unlink(missing_ok=True)
         raise
     sync_dir(path.parent)
+
+
+def unfinished_write_of(name: str, target: str) -> bool:
+    """Whether a file called `name` is the temporary file an atomic write of `target` fills.
+
+    That is the target's (cut) name, mkstemp's 8 random characters and ".tmp", so that only what
+    a crashed write left is cleared away, never a user's file named alike.
+    """
+    prefix = _short(target)
+    middle = name[len(prefix) : -len(".tmp")] if name.startswith(prefix) and name.endswith(".tmp") else ""
+    return re.fullmatch(r"[a-z0-9_]{8}", middle) is not None
 
 
 def _short(name: str, most: int = 200) -> str:

@@ -57,6 +57,7 @@ from wfnn_io.persist import (
     read_regular_text,
     remove_empty_folders,
     save_weights,
+    unfinished_write_of,
     write_json,
 )
 from wfnn_io.protocol import (
@@ -294,7 +295,7 @@ class ThinkServer:
         """
         names = (CHECKPOINT, PREVIOUS_CHECKPOINT, LEARNER_JSON, "incarnation", SERVER_JSON)
         for path in self.data_dir.glob("*.tmp"):
-            if path.is_file() and any(path.name.startswith(name) for name in names):
+            if path.is_file() and any(unfinished_write_of(path.name, name) for name in names):
                 path.unlink(missing_ok=True)
                 log.info("%s: left by a write a crash interrupted; deleted", path)
 

@@ -6,7 +6,7 @@ import re
 import pytest
 from typer.testing import CliRunner
 
-from wfnn_bench.report import ReportConfig, ReportError, app, run
+from wfnn_bench.report import REPORT_HEADS, ReportConfig, ReportError, app, run
 from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import parse_mix
 from wfnn_client.run import run as run_client
@@ -142,11 +142,12 @@ def test_a_reports_figure_replaces_no_picture_but_its_own_and_a_refusal_writes_n
     with pytest.raises(ReportError, match=r"photo.png, which is no report's figure"):
         run(ReportConfig(path=tmp_path / "run", out=tmp_path / "photo.html"))
     assert (tmp_path / "photo.png").read_bytes().endswith(b"mine") and not (tmp_path / "photo.html").exists()
-    (tmp_path / "keep.html").write_text("OLD REPORT")
+    old_report = '<!doctype html>\n<html lang="en"><head><meta charset="utf-8"><title>wfnn run r</title>OLD'
+    (tmp_path / "keep.html").write_text(old_report)
     os.mkfifo(tmp_path / "keep.png")
     with pytest.raises(OSError, match="not a regular file"):
         run(ReportConfig(path=tmp_path / "run", out=tmp_path / "keep.html"))
-    assert (tmp_path / "keep.html").read_text() == "OLD REPORT"
+    assert (tmp_path / "keep.html").read_text() == old_report
     # A report's own pair is rewritten as a whole.
     run(ReportConfig(path=tmp_path / "run", out=tmp_path / "r.html"))
     first = (tmp_path / "r.png").read_bytes()
@@ -242,3 +243,27 @@ def test_a_run_whose_metrics_json_is_a_dangling_link_is_refused_not_read_as_benc
     result = CliRunner().invoke(app, ["report", str(run_dir)])
     assert result.exit_code == 2 and "metrics.json" in result.output and result.output.count("\n") == 1
     assert not (run_dir / "report.html").exists()
+
+
+def test_an_html_file_that_is_no_report_is_never_replaced_nor_the_png_beside_it(tmp_path):
+    """Someone's own report.html was replaced, and with it their report.png: a PNG was protected
+    only where no HTML stood beside it."""
+    import shutil
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "metrics.json").write_text(json.dumps({"scores": [1.0, 0.5, 0.25]}))
+    run(ReportConfig(path=run_dir))
+    report, figure = (run_dir / "report.html").read_bytes(), (run_dir / "report.png").read_bytes()
+    run(ReportConfig(path=run_dir))  # a report replaces a report
+    old_head = report.replace(b'<meta name="generator" content="wfnn report">\n', b"")
+    assert old_head.startswith(REPORT_HEADS[1] + b"run ")
+    (run_dir / "report.html").write_bytes(old_head)  # as reports were written before the mark
+    run(ReportConfig(path=run_dir))
+    assert (run_dir / "report.html").read_bytes() == report
+    mine = b"<p>my notes</p>"
+    (run_dir / "report.html").write_bytes(mine)
+    shutil.copy(run_dir / "report.png", tmp_path / "mine.png")
+    result = CliRunner().invoke(app, ["report", str(run_dir)])
+    assert result.exit_code == 2 and "no report" in result.output and result.output.count("\n") == 1
+    assert (run_dir / "report.html").read_bytes() == mine and (run_dir / "report.png").read_bytes() == figure

@@ -180,3 +180,44 @@ def test_the_reward_scale_multiplies_what_learners_learn_and_not_the_returns_rep
     sb3 = run_sb3("td3", "Pendulum-v1", 20, 0, VsSb3Config(eval_every=20, eval_episodes=1, reward_scale=1e-3))
     assert len(seen) == 20 and max(abs(r) for r in seen) < 0.0165  # Pendulum pays at most 16.3 a step
     assert sb3["returns"][0] < -10.0  # reported in the task's own units
+
+
+class _Astray(_Walk):
+    """The walk, whose observations lie a hundred times beyond the space it declares."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float64)
+
+    def step(self, action):
+        _, reward, arrived, truncated, info = super().step(action)
+        return np.array([100.0]), reward, arrived, truncated, info
+
+
+@pytest.mark.filterwarnings("ignore:.*not within the observation space")
+def test_experiences_a_learner_refused_are_reported_beside_its_returns(caplog):
+    """A task whose every experience the learner refused gave a table of returns as if it had learnt."""
+    from wfnn_bench.vs_sb3 import rows, run
+
+    gym.register("WfnnTestAstray-v0", entry_point=_Astray, max_episode_steps=20)
+    gym.register("WfnnTestWalkBounded-v0", entry_point=_Walk, max_episode_steps=20)
+    cfg = VsSb3Config(tasks=("WfnnTestAstray-v0", "WfnnTestWalkBounded-v0"), steps=(30, 30),
+                      algorithms=("wfnn",), eval_every=30, eval_episodes=1, thinks=1,
+                      act_calls=5)  # fmt: skip
+    with caplog.at_level("WARNING"):
+        result = run(cfg)
+    assert result["tasks"]["WfnnTestAstray-v0"]["thesis"]["refused"] == [30, 30, 30]
+    assert result["tasks"]["WfnnTestWalkBounded-v0"]["thesis"]["refused"] == [0, 0, 0]
+    table = dict(rows(result, cfg))
+    refused = "WfnnTestAstray-v0 thesis: experiences refused per seed (not learned from)"
+    assert table[refused] == "30 / 30 / 30"
+    assert not any(name.startswith("WfnnTestWalkBounded-v0") and "refused" in name for name in table)
+    assert "WfnnTestAstray-v0 thesis seed 0: 30 of 30 experiences refused" in caplog.text
+
+
+@pytest.mark.parametrize("steps", ["abc", "1e3", "100,x"])
+def test_steps_that_are_not_whole_numbers_are_refused_naming_the_option(steps):
+    from typer.testing import CliRunner
+
+    from wfnn_bench.cli import app
+
+    result = CliRunner().invoke(app, ["vs-sb3", "--steps", steps])
+    assert result.exit_code == 2 and "--steps" in result.output and "whole numbers" in result.output

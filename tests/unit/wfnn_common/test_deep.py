@@ -1055,3 +1055,24 @@ def test_the_popart_loss_is_the_plain_loss_in_the_tasks_units_over_std_squared(k
     torch.testing.assert_close(got[0] * std**2, plain[0], rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(got[1], plain[1], rtol=1e-5, atol=1e-4)  # Q(x, u) in the task's units
     torch.testing.assert_close(got[2], plain[2], rtol=1e-5, atol=1e-4)  # the targets
+
+
+@pytest.mark.parametrize("grad_clip", [0.0, 10.0])
+def test_adams_moments_stay_finite_and_resumable_on_the_largest_gradients(grad_clip):
+    """Rewards of 1e25 (accepted: below MAX_REWARD) with clipping off overflowed Adam's float32
+    second moment to inf, freezing the weights it covered, and the learner's own saved state was
+    refused on load; with clipping on, a norm whose squares overflow float32 zeroed the gradient."""
+    learner = DeepWFNN(config(batch_size=16, squash_reward=False, deep={"grad_clip": grad_clip}))
+    rng = np.random.default_rng(0)
+    s, a, sn = rng.uniform(-1, 1, (64, 2)), rng.uniform(-2, 2, (64, 1)), rng.uniform(-1, 1, (64, 2))
+    r = np.where(np.arange(64) % 2, 1e25, -1e25)
+    assert learner.learn_many(s, a, sn, r, np.zeros(64, dtype=bool)).all()
+    learner.think(1)
+    before = learner._trainer.theta.clone()
+    learner.think(20)
+    state = learner.training_state()
+    for key in ("theta", "adam_m", "adam_v"):
+        assert np.isfinite(state[key]).all(), key
+    assert (learner._trainer.theta != before).float().mean() > 0.5  # the weights still learn
+    resumed = make_learner(learner.config, params=learner.snapshot())
+    resumed.load_training_state(state)  # raised "adam_v: not finite" before

@@ -1,5 +1,7 @@
 """One-line errors of the tools (`wfnn_io.cli_errors`)."""
 
+import pytest
+
 from wfnn_io.cli_errors import describe
 
 
@@ -133,3 +135,31 @@ def test_a_file_to_write_named_with_a_trailing_slash_is_refused_before_anything_
     command = [sys.executable, "-m", "wfnn_bench.cli", "speed", "--json", out]
     done = subprocess.run(command, capture_output=True, text=True, timeout=120, cwd=Path(__file__).parents[3])
     assert done.returncode == 2 and "names a folder" in done.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_a_ctrl_c_while_a_tool_is_imported_ends_it_in_one_line(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C in a tool's first second (its imports) printed a Python traceback of the import."""
+    from wfnn_io.launch import tool
+
+    (tmp_path / "slow_tool.py").write_text("raise KeyboardInterrupt\n")  # as a Ctrl-C mid-import
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(SystemExit) as stop:
+        tool("slow_tool")()
+    assert stop.value.code == 130 and capsys.readouterr().err == "interrupted\n"
+    (tmp_path / "fine_tool.py").write_text("def main():\n    print('ran')\n")
+    tool("fine_tool")()
+    assert capsys.readouterr().out == "ran\n"
+
+
+def test_every_console_script_imports_its_tool_under_that_care():
+    import importlib
+    import tomllib
+    from pathlib import Path
+
+    scripts = tomllib.loads(Path("pyproject.toml").read_text())["project"]["scripts"]
+    assert set(scripts) == {"wfnn-client", "wfnn-server", "wfnn-router", "wfnn-bench", "wfnn-logs", "wfnn"}
+    for target in scripts.values():
+        package, name = target.split(":")
+        assert "." not in package  # a package's own light module, not the tool's
+        main = getattr(importlib.import_module(package), name)
+        assert main.__qualname__ == "tool.<locals>.main", target

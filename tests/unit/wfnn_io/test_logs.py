@@ -703,3 +703,25 @@ def test_a_log_description_whose_version_is_not_a_whole_number_is_refused(tmp_pa
     path.write_text(json.dumps({**json.loads(path.read_text()), "version": version}))
     with pytest.raises(logs.LogFormatError, match="version"):
         logs.read_log_json(tmp_path / "log")
+
+
+@pytest.mark.parametrize("damage", ["torn", "missing", "unusable config"])
+def test_a_record_whose_description_is_damaged_is_still_not_continued_by_another_task(tmp_path, damage):
+    """With log.json damaged or gone, a journal took another task's experiences under the same
+    client, and then no tool would read any of it (its batches of two specs)."""
+    import json
+
+    record(tmp_path / "log")
+    path = tmp_path / "log" / "log.json"
+    if damage == "torn":
+        path.write_text("{")
+    elif damage == "missing":
+        path.unlink()
+    else:
+        path.write_text(json.dumps({**json.loads(path.read_text()), "learner_config": {"state_low": 1}}))
+    before = {p.name: p.read_bytes() for p in (tmp_path / "log").iterdir()}
+    with pytest.raises(ValueError, match=r"records experiences of learner spec .*another run directory"):
+        Recorder(tmp_path / "log", LearnerConfig.for_task(CartPoleVec))
+    assert {p.name: p.read_bytes() for p in (tmp_path / "log").iterdir()} == before  # refused: unchanged
+    Recorder(tmp_path / "log", LearnerConfig.for_task(BoatVec)).close()  # its own task goes on
+    assert logs.summarise(tmp_path / "log").experiences == 300

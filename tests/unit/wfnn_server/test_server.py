@@ -511,14 +511,21 @@ def test_the_views_states_come_newest_last(tmp_path):
 
 
 def test_what_a_crash_left_of_an_atomic_write_is_deleted_at_the_next_start(tmp_path):
+    import os
+    import tempfile
+
     data = tmp_path / "s1"
     data.mkdir()
-    (data / "checkpoint.npzk3j2x9.tmp").write_bytes(b"\0" * 1000)  # a checkpoint write never renamed
-    (data / "notes.tmp").write_text("the user's")
+    fd, left = tempfile.mkstemp(dir=data, prefix="checkpoint.npz", suffix=".tmp")  # as a write names it
+    os.write(fd, b"\0" * 1000)  # a checkpoint write never renamed
+    os.close(fd)
+    users = ["notes.tmp", "checkpoint.npz.before-upgrade.tmp", "checkpoint.npzk3j2x9.tmp", "incarnation.tmp"]
+    for name in users:  # named alike, but no write's: a user's own
+        (data / name).write_text("the user's")
     with make_server(tmp_path, Hub(), small_config()):
         pass
-    assert not (data / "checkpoint.npzk3j2x9.tmp").exists()
-    assert (data / "notes.tmp").read_text() == "the user's"
+    assert not os.path.exists(left)
+    assert all((data / name).read_text() == "the user's" for name in users)
 
 
 def test_a_second_server_on_one_data_directory_is_refused_before_it_counts_a_start(tmp_path):
