@@ -197,6 +197,11 @@ MAX_SEQ = (1 << 62) - 1
 """The largest experience number (every count and acknowledgement of it fits an int64)."""
 _SEQ = {"range": (-1, MAX_SEQ)}
 """Field metadata: an experience number, or -1 for none (each value, for a map)."""
+MAX_VERSION = (1 << 64) - 1
+"""The largest weights version: experience batches record the version that chose each action as
+an unsigned 64-bit integer."""
+_VERSION = {"range": (0, MAX_VERSION)}
+"""Field metadata: a weights version (a negative one, applied, stopped a client's uplink)."""
 MAX_SPEC_CHARS = 64
 """Longest spec hash (`LearnerConfig.spec_hash` gives 16 characters): a receiver keeps the newest
 of every heard sender's."""
@@ -331,7 +336,7 @@ class WeightSnapshot:
     """The identity of the server's store (see `Ack.store`)."""
     started_ns: int
     """The server's start (see `Ack.started_ns`)."""
-    version: int
+    version: int = field(metadata=_VERSION)
     spec_hash: str = field(metadata=_SPEC)
     published_ns: int
     """time.time_ns() when published (publish-to-applied latency on one host)."""
@@ -358,7 +363,7 @@ class ServerStatus:
     learner_config: str
     """The LearnerConfig it learns with, its own overrides applied, as JSON (empty until it has
     one): a client whose settings were not adopted learns so, and records it."""
-    weights_version: int
+    weights_version: int = field(metadata=_VERSION)
     stored_through: dict[str, int] = field(metadata=_SEQ)
     rejected: dict[str, int]
     """Frames rejected, by reason."""
@@ -384,7 +389,7 @@ class ClientStatus:
     """The client's LearnerConfig as JSON."""
     following: str
     """Server whose snapshots `act` uses ("" for none, "local" in-process)."""
-    weights_version: int
+    weights_version: int = field(metadata=_VERSION)
     produced_through: int = field(metadata=_SEQ)
     acked: dict[str, int] = field(metadata=_SEQ)
     metrics: dict[str, float]

@@ -198,6 +198,7 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
         "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=KEY),
         "misrouted": Codec("s2", KEY, "t").encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
         "unannounced": forge(cfg, incarnation=7, key=KEY),  # not what s1's status says it is
+        "malformed": forge(cfg, version=-1, key=KEY),  # applied, it stopped the uplink (batches: uint64)
     }
     for reason, frame in bad.items():  # one at a time: the downlink keeps only the newest per server
         bus.put(KEYS.weights("s1"), frame, None)

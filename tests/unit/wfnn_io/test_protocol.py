@@ -811,10 +811,14 @@ def test_a_key_file_others_can_read_is_taken_with_a_warning(tmp_path, caplog):
     ("make", "field", "bad"),
     [(make_ack, "stored_through", -2), (make_ack, "stored_through", MAX_SEQ + 1),
      (make_server_status, "stored_through", {"robot1": -999}), (make_client_status, "acked", {"srv1": -2}),
-     (make_client_status, "produced_through", -5), (make_weights, "learned_through", {"robot1": -2})],
+     (make_client_status, "produced_through", -5), (make_weights, "learned_through", {"robot1": -2}),
+     (make_weights, "version", -1), (make_server_status, "weights_version", -1),
+     (make_client_status, "weights_version", -3)],
 )  # fmt: skip
 def test_experience_numbers_out_of_their_range_are_refused(make, field, bad):
-    """An acknowledgement below -1 (none) would have a client declare stored experiences lost."""
+    """An acknowledgement below -1 (none) would have a client declare stored experiences lost; a
+    snapshot of a negative version, applied, stopped the client's uplink (batches record versions
+    unsigned)."""
     good = make()
     frame = raw_frame(msgpack.packb({**to_body(good), field: bad}, use_bin_type=True), msg_type=good.TYPE)
     with pytest.raises(MalformedBody, match=field):
