@@ -244,6 +244,8 @@ class Downlink:
                             "dropped", status.server, latest.version, status.weights_version)  # fmt: skip
             ask = not view.asked and view.latest is None and status.spec_hash == self.spec_hash
             view.asked = view.asked or ask
+        if status.spec_hash and status.spec_hash != self.spec_hash:
+            self._other_spec(status.server, status.spec_hash)
         if new_config:  # a config not seen from this server before: checked, and compared with ours once
             try:
                 differ = config_differences(self._config_json, status.learner_config)
@@ -307,15 +309,24 @@ class Downlink:
             if not view.spec_hash:
                 view.spec_hash = snap.spec_hash
 
+    def _other_spec(self, server: str, spec: str) -> None:
+        """Say once per server (and not for every forged id) that it learns for another spec.
+
+        From its status too: a snapshot larger than this client's own network (a deep learner's
+        to a thesis client) is dropped by the bus before it is read, and the robot sat on its safe
+        action with nothing said.
+        """
+        if server not in self._spec_warned and len(self._spec_warned) < MAX_SERVERS:
+            self._spec_warned.add(server)
+            log.error("server %s learns for spec %s; this client is spec %s (another task, ranges or "
+                      "learner): its weights are ignored", server, spec, self.spec_hash)  # fmt: skip
+
     def _invalid(self, sender: str, seq: int, snap: WeightSnapshot) -> str:
         """Why a decoded snapshot (frame number `seq`) must not drive the robot ("" when it may)."""
         if sender != snap.server:
             return "misrouted"
         if snap.spec_hash != self.spec_hash:
-            if snap.server not in self._spec_warned and len(self._spec_warned) < MAX_SERVERS:
-                self._spec_warned.add(snap.server)  # once per server, and not for every forged id
-                log.error("server %s publishes weights for spec %s; this client is spec %s: ignored",
-                          snap.server, snap.spec_hash, self.spec_hash)  # fmt: skip
+            self._other_spec(snap.server, snap.spec_hash)
             return "spec"
         if snap.params.shape != (1, self._n_params):
             return "shape"

@@ -65,6 +65,8 @@ SUITED_REWARD_RMS = (0.05, 20.0)
 the task (README, "a limitation: the reward's scale"): a run meeting such rewards is told once."""
 REWARD_ADVICE_AFTER = 1000
 """Finite rewards met before that advice is judged."""
+MAX_THINKS = 10**15
+"""The largest count of thinks saved weights may carry (more than any run makes)."""
 
 
 class SetupError(ValueError):
@@ -275,7 +277,7 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
         path = config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
         # A learner that learns here resumes the training saved with the weights (the deep
         # learner's second critic, targets, optimiser and warm-up), as a think server does.
-        saved_cfg, params, _, training = load_checkpoint(path, training=config.learn and config.local)
+        saved_cfg, params, meta, training = load_checkpoint(path, training=config.learn and config.local)
         if saved_cfg.spec_hash() != lcfg.spec_hash():
             kind = saved_cfg.learner
             same_task = _ranges(saved_cfg) == _ranges(lcfg)
@@ -288,6 +290,11 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             learner.load_training_state(training)
         except ValueError as exc:  # weights that make no learner of their config (several networks, say)
             raise ValueError(f"{path}: {exc}") from exc
+        thinks = meta.get("thinks") if config.learn and config.local else None
+        if thinks is not None:  # the count goes on: a local learner's weights versions are its thinks
+            if not isinstance(thinks, int) or isinstance(thinks, bool) or not 0 <= thinks <= MAX_THINKS:
+                raise ValueError(f"{path}: its thinks are not a count: {str(thinks)[:40]!r}")
+            learner.thinks[:] = thinks
     return lcfg, learner
 
 
@@ -487,13 +494,20 @@ def _run(
             if out_of_time(ticker.next_due()):
                 break
         wall = time.perf_counter() - start
-    except BaseException:
+    except BaseException as ended:
         try:
             _stop_brains(brains)  # what was recorded before the failure is kept
         except Exception as exc:  # the failure that ended the run is what to report
             log_failure(log, "stopping the brains after the run failed failed too", exc)
         if frames is not None:
             frames.close()
+        if isinstance(ended, KeyboardInterrupt) and config.local and config.learn:
+            # Ctrl-C or SIGTERM is how a long run is ended: what the learner learned is kept (the
+            # journal keeps the experiences), so that --weights resumes it. A failure's learner is
+            # not trusted to be whole, and its experiences can be learned again from the journal.
+            saved = _save_weights(skills, config, len(scores))
+            if saved:
+                log.warning("interrupted: %s saved in %s", ", ".join(saved), config.out)
         raise
     noted = _stop_brains(brains)
     camera_frames = frames.close() if frames is not None else None
@@ -501,22 +515,8 @@ def _run(
     brains.check()
     final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     out = Path(config.out)
-    weights_saved: list[str] = []
+    weights_saved = _save_weights(skills, config, len(scores))
     for sk in skills:
-        current = getattr(sk.brain, "current", None)  # C/S: the snapshot act used last
-        params = sk.learner.params if config.local else (current.params if current is not None else None)
-        meta = {"sim": config.sim, "episodes": len(scores), "following": sk.brain.following,
-                "behaviour": sk.name}  # fmt: skip
-        name = f"{_named('weights', sk.name)}.npz"
-        try:
-            if params is not None:
-                # A learner that learned here keeps its training state beside the weights (a think
-                # server's is in its own checkpoints), so that --weights resumes it whole.
-                training = sk.learner.training_state() if config.local and config.learn else None
-                save_weights(out / name, sk.lcfg, params, meta, training=training)
-                weights_saved.append(name)
-        except PersistError as exc:  # weights diverged past what the monitor reset (the run ended first)
-            log.error("%s at the end of the run", exc)
         if config.local and config.learn:
             save_experiences(
                 out / f"{_named('experiences', sk.name)}.npz", sk.lcfg, sk.learner.buffer.contents(0)
@@ -582,6 +582,32 @@ def _run(
         curve.unlink(missing_ok=True)  # an earlier run's in this folder is not this run's curve
         log.warning("%s not drawn (%s); the scores are in metrics.json", curve, exc)
     return metrics
+
+
+def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> list[str]:
+    """Save each behaviour's weights in the run directory -> the files written.
+
+    With the training state of a learner that learned here.
+    """
+    saved: list[str] = []
+    for sk in skills:
+        current = getattr(sk.brain, "current", None)  # C/S: the snapshot act used last
+        params = sk.learner.params if config.local else (current.params if current is not None else None)
+        meta: dict[str, Any] = {"sim": config.sim, "episodes": episodes, "following": sk.brain.following,
+                                "behaviour": sk.name}  # fmt: skip
+        if config.local and config.learn:  # resumed with --weights, the count (and version) goes on
+            meta["thinks"] = int(sk.learner.thinks[0])
+        name = f"{_named('weights', sk.name)}.npz"
+        try:
+            if params is not None:
+                # A learner that learned here keeps its training state beside the weights (a think
+                # server's is in its own checkpoints), so that --weights resumes it whole.
+                training = sk.learner.training_state() if config.local and config.learn else None
+                save_weights(Path(config.out) / name, sk.lcfg, params, meta, training=training)
+                saved.append(name)
+        except PersistError as exc:  # weights diverged past what the monitor reset (the run ended first)
+            log.error("%s at the end of the run", exc)
+    return saved
 
 
 class _Brains:

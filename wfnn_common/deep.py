@@ -296,9 +296,7 @@ class DeepWFNN(WFNN):
         scale = np.asarray(state.get("reward_scale", 0.0))  # absent from checkpoints made before it
         if scale.dtype.kind not in "fiu" or scale.shape != () or not 0.0 <= float(scale) <= MAX_REWARD:
             raise ValueError(f"training state reward_scale is not a reward's size: {str(scale)[:40]!r}")
-        acted = np.asarray(state.get("acted", self.acted))  # absent from checkpoints made before it
-        if acted.dtype.kind not in "iu" or acted.shape != () or not 0 <= int(acted) <= 10**15:
-            raise ValueError(f"training state acted is not a count: {str(acted)[:40]!r}")
+        trained = False
         if "adam_step" in state:
             step = np.asarray(state["adam_step"])
             if (
@@ -308,6 +306,13 @@ class DeepWFNN(WFNN):
                 or step != np.round(step)
             ):
                 raise ValueError(f"training state adam_step is not a count: {str(step)[:40]!r}")
+            trained = float(step) > 0
+        # Absent where the learner never acted (a think server's, and checkpoints made before it was
+        # saved): its warm-up is done if it trained (as for weights alone), and not if it never did,
+        # whose weights are as fresh as a new learner's (a robot's brain that never drove).
+        acted = np.asarray(state.get("acted", self.acted if trained else 0))
+        if acted.dtype.kind not in "iu" or acted.shape != () or not 0 <= int(acted) <= 10**15:
+            raise ValueError(f"training state acted is not a count: {str(acted)[:40]!r}")
         moments = np.zeros(3)
         if "value_moments" in state:  # saved where the values were learnt normalised (deep.popart_rate)
             moments = np.asarray(state["value_moments"])

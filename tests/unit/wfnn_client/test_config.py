@@ -354,3 +354,52 @@ def test_a_start_refused_after_its_journals_opened_leaves_no_journal_of_its_maki
         run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "kept"))
     after = {p.name: p.read_bytes() for p in (tmp_path / "kept" / "journal").iterdir() if p.is_file()}
     assert after == before
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_local_run_ended_by_ctrl_c_keeps_what_its_learner_learned(tmp_path, learner):
+    """Ctrl-C or SIGTERM, how a long run is ended, left only the journal: no weights to resume."""
+    from wfnn_client.run import run as run_client
+    from wfnn_io.persist import load_checkpoint
+
+    heard = []
+
+    def interrupt(fields):
+        heard.append(fields)
+        if len(heard) == 2:  # after the first episode
+            raise KeyboardInterrupt
+
+    out = tmp_path / "run"
+    options = '{"deep": {"warmup": 20}}' if learner == "deep" else ""
+    cfg = ClientConfig(sim="boat", rate_hz=0, episodes=50, thinks_per_action=1, out=out, learner=learner,
+                       learner_options=options)  # fmt: skip
+    with pytest.raises(KeyboardInterrupt):
+        run_client(cfg, on_status=interrupt)
+    _, params, meta, training = load_checkpoint(out / "weights.npz")
+    assert meta["episodes"] >= 1 and params.flat.shape[0] == 1
+    if learner == "deep":
+        assert int(training["adam_step"]) > 0 and int(training["acted"]) > 20
+    resumed = run_client(ClientConfig(sim="boat", rate_hz=0, episodes=1, thinks_per_action=1,
+                                      out=tmp_path / "resumed", learner=learner, learner_options=options,
+                                      weights=out / "weights.npz"))  # fmt: skip
+    assert resumed["experiences_learned"] > 0
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path, learner):
+    """Its thinks (a local learner's weights version) began again at 0: versions recorded in a
+    continued journal went backwards."""
+    from wfnn_client.run import run as run_client
+    from wfnn_io.persist import load_checkpoint
+
+    def client(out, **kw):
+        return ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=1, thinks_per_action=2, out=out,
+                            learner=learner, **kw)  # fmt: skip
+
+    first = run_client(client(tmp_path / "a"))
+    _, _, meta, _ = load_checkpoint(tmp_path / "a" / "weights.npz")
+    assert meta["thinks"] == first["think/thinks"] > 0
+    second = run_client(client(tmp_path / "a", weights=tmp_path / "a" / "weights.npz"))
+    assert second["think/thinks"] == 2 * first["think/thinks"]
+    _, _, meta, _ = load_checkpoint(tmp_path / "a" / "weights.npz")
+    assert meta["thinks"] == second["think/thinks"]

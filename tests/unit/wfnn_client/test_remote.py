@@ -355,8 +355,15 @@ def test_a_server_of_another_spec_is_not_said_to_learn_for_this_client(tmp_path,
     brain.start()
     announce(hub.bus(), "s9", other, started_ns=1)
     assert wait(lambda: "s9" in brain.servers and brain.servers["s9"].learner_config != "")
+    announce(hub.bus(), "s9", other, started_ns=1, token=False)  # its next heartbeat: said once only
+    assert wait(lambda: brain.servers["s9"].heard > 0)
     brain.stop()
     assert not [r for r in caplog.records if "not this client's" in r.getMessage()]
+    # Said from its status alone, no snapshot read: a snapshot larger than this client's network
+    # (a deep learner's to a thesis client) never reaches the client to be refused.
+    said = [r.getMessage() for r in caplog.records if "learns for spec" in r.getMessage()]
+    assert said == [f"server s9 learns for spec {other.spec_hash()}; this client is spec {cfg.spec_hash()} "
+                    "(another task, ranges or learner): its weights are ignored"]  # fmt: skip
 
 
 def test_a_status_with_an_unreadable_config_is_counted_and_never_recorded(tmp_path):

@@ -741,12 +741,20 @@ def test_a_learner_resumed_in_its_warm_up_takes_the_rest_of_it(tmp_path):
     resumed.load_training_state(training)
     assert [bool(resumed.act(x).explored) for _ in range(21)] == [True] * 20 + [False]
     # A learner that never acted (a think server's) says nothing of it: a learner resumed from
-    # its checkpoint counts its warm-up as done, as one made from weights alone does.
-    server_side = DeepWFNN(cfg)
+    # its checkpoint counts its warm-up as done where it trained, as one made from weights alone
+    # does; where it never trained either (a robot's brain that never drove), its weights are as
+    # fresh as a new learner's, and it was resumed acting greedily on them, with no warm-up.
+    server_side = _fed(DeepWFNN(cfg))
+    server_side.think(3)
     assert "acted" not in server_side.training_state()
     resumed = make_learner(cfg, params=server_side.params.copy())
     resumed.load_training_state(server_side.training_state())
     assert not bool(resumed.act(x).explored)
+    idle = DeepWFNN(cfg)
+    assert "acted" not in idle.training_state()
+    resumed = make_learner(cfg, params=idle.params.copy())
+    resumed.load_training_state(idle.training_state())
+    assert [bool(resumed.act(x).explored) for _ in range(51)] == [True] * 50 + [False]
     for bad in (np.float64(3.0), np.int64(-1), np.array([3]), np.str_("3")):
         with pytest.raises(ValueError, match="training state acted"):
             make_learner(cfg, params=params).load_training_state({**training, "acted": bad})

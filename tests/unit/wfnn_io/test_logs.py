@@ -725,3 +725,11 @@ def test_a_record_whose_description_is_damaged_is_still_not_continued_by_another
     assert {p.name: p.read_bytes() for p in (tmp_path / "log").iterdir()} == before  # refused: unchanged
     Recorder(tmp_path / "log", LearnerConfig.for_task(BoatVec)).close()  # its own task goes on
     assert logs.summarise(tmp_path / "log").experiences == 300
+
+
+def test_a_record_of_the_other_learner_is_refused_naming_the_learners(tmp_path):
+    record(tmp_path / "log")
+    with pytest.raises(ValueError, match="the thesis learner's, not the deep learner's"):
+        Recorder(tmp_path / "log", LearnerConfig.for_task(BoatVec, learner="deep"))
+    with pytest.raises(ValueError, match=r"\(another task or ranges\)"):
+        Recorder(tmp_path / "log", LearnerConfig.for_task(CartPoleVec))
