@@ -505,9 +505,13 @@ def _run(
             # Ctrl-C or SIGTERM is how a long run is ended: what the learner learned is kept (the
             # journal keeps the experiences), so that --weights resumes it. A failure's learner is
             # not trusted to be whole, and its experiences can be learned again from the journal.
-            saved = _save_weights(skills, config, len(scores))
-            if saved:
-                log.warning("interrupted: %s saved in %s", ", ".join(saved), config.out)
+            try:
+                saved = _save_weights(skills, config, len(scores))
+            except Exception as exc:  # the interrupt is what ends the run, whatever the save met
+                log_failure(log, "saving the learner after the run was interrupted failed", exc)
+            else:
+                if saved:
+                    log.warning("interrupted: %s saved in %s", ", ".join(saved), config.out)
         raise
     noted = _stop_brains(brains)
     camera_frames = frames.close() if frames is not None else None
