@@ -258,12 +258,12 @@ def compiled_loss(config: LearnerConfig) -> Callable[..., Losses]:
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
+"""Adam's moment decays and denominator term (Kingma and Ba 2015's defaults)."""
 GRAD_NORM_LIMIT = 1e18
 """The largest gradient norm of an update where deep.grad_clip does not bound it (0, or a norm
 beyond float32's range): Adam's second moment holds squares of the gradient's components in
 float32 (largest 3.4e38), which a gradient beyond about 1.8e19 overflows, freezing the weights it
 covers and leaving a training state that no load accepts (as a task paying 1e20 a step gives)."""
-"""Adam's moment decays and denominator term (Kingma and Ba 2015's defaults)."""
 
 
 M_TRIM_THRESHOLD = -1
