@@ -20,7 +20,6 @@ import io
 import json
 import logging
 import os
-import stat
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from wfnn_io.persist import (
     atomic_write_bytes,
     atomic_write_text,
     read_regular_bytes,
+    read_regular_head,
     read_regular_text,
     writable,
 )
@@ -306,17 +306,11 @@ it) the head every report has begun with."""
 
 
 def _head(path: Path, n: int = 4096) -> bytes:
-    """A regular file's first n bytes; b"" for anything else (opened without waiting on a FIFO)."""
+    """A regular file's first n bytes; b"" for anything else."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        return read_regular_head(path, n)
     except OSError:
         return b""
-    try:
-        return os.read(fd, n) if stat.S_ISREG(os.fstat(fd).st_mode) else b""
-    except OSError:
-        return b""
-    finally:
-        os.close(fd)
 
 
 def _a_reports_figure(png: Path) -> bool:

@@ -76,6 +76,20 @@ def read_regular(path: Path | str, limit: int = MAX_TEXT_BYTES) -> tuple[bytes, 
     return data, info
 
 
+def read_regular_head(path: Path | str, n: int) -> bytes:
+    """A regular file's first `n` bytes, whatever its size (to look for a mark in its head).
+
+    Opened without waiting, as `read_regular_bytes` is; OSError for anything not a regular file.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file", str(path))
+        return os.read(fd, n)
+    finally:
+        os.close(fd)
+
+
 def read_regular_text(path: Path | str, limit: int = MAX_TEXT_BYTES) -> str:
     """`read_regular_bytes` as UTF-8 text (UnicodeDecodeError for bytes that are not)."""
     return read_regular_bytes(path, limit).decode("utf-8")
