@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from wfnn_client.brain import Acted
 from wfnn_client.sims import Policy
+from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import make_learner
 from wfnn_io.persist import load_weights
@@ -97,7 +98,7 @@ class Controllers:
     """
 
     def __init__(
-        self, mix: tuple[PolicyShare, ...], learner_spec: str, action_low: FloatArray,
+        self, mix: tuple[PolicyShare, ...], learner: LearnerConfig, action_low: FloatArray,
         action_high: FloatArray, handcoded: Policy | None, rng: np.random.Generator,
     ) -> None:  # fmt: skip
         self.mix = mix
@@ -114,7 +115,7 @@ class Controllers:
             elif m.name == "random":
                 self.policies[m.name] = lambda _state: rng.uniform(low, high)
             elif m.name.startswith("weights:"):
-                self.policies[m.name] = _saved(Path(m.name[len("weights:") :]), learner_spec)
+                self.policies[m.name] = _saved(Path(m.name[len("weights:") :]), learner)
         shares = np.array([m.share for m in mix])
         self._p = shares / shares.sum()
 
@@ -129,15 +130,16 @@ class Controllers:
         return Acted(result, self.recorded[name], 0)
 
 
-def _saved(path: Path, learner_spec: str) -> Policy:
+def _saved(path: Path, learner: LearnerConfig) -> Policy:
     """A saved WFNN acting greedily (numpy, like the learner's own act)."""
     try:
         cfg, params, _ = load_weights(path)
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"behaviour policy weights:{path}: cannot load ({exc})") from exc
-    if cfg.spec_hash() != learner_spec:
+    if cfg.spec_hash() != learner.spec_hash():
         raise ValueError(
-            f"behaviour policy weights:{path} is for learner spec {cfg.spec_hash()}, not {learner_spec}"
+            f"behaviour policy weights:{path} is for learner spec {cfg.spec_hash()}, not "
+            f"{learner.spec_hash()} ({cfg.spec_difference(learner)})"
         )
     try:
         saved = make_learner(cfg, params=params)

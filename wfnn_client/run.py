@@ -37,9 +37,7 @@ from wfnn_client.safety import SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_client.tick import Ticker, TickStats
-from wfnn_common.config import (
-    LearnerConfig,
-)
+from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
 from wfnn_io.cli_errors import Terminated, handling, log_failure, noting, terminate
@@ -48,6 +46,7 @@ from wfnn_io.persist import (
     PersistError,
     load_checkpoint,
     make_directory,
+    read_regular_text,
     save_experiences,
     save_figure,
     save_weights,
@@ -65,8 +64,6 @@ SUITED_REWARD_RMS = (0.05, 20.0)
 the task (README, "a limitation: the reward's scale"): a run meeting such rewards is told once."""
 REWARD_ADVICE_AFTER = 1000
 """Finite rewards met before that advice is judged."""
-MAX_THINKS = 10**15
-"""The largest count of thinks saved weights may carry (more than any run makes)."""
 
 
 class SetupError(ValueError):
@@ -274,7 +271,8 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
     lcfg = learner_config(ranges, config)
     learner = make_learner(lcfg)
     if config.weights is not None:
-        path = config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
+        path = _given_weights(config, name)
+        assert path is not None
         # A learner that learns here resumes the training saved with the weights (the deep
         # learner's second critic, targets, optimiser and warm-up), as a think server does.
         saved_cfg, params, meta, training = load_checkpoint(path, training=config.learn and config.local)
@@ -292,7 +290,7 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             raise ValueError(f"{path}: {exc}") from exc
         thinks = meta.get("thinks") if config.learn and config.local else None
         if thinks is not None:  # the count goes on: a local learner's weights versions are its thinks
-            if not isinstance(thinks, int) or isinstance(thinks, bool) or not 0 <= thinks <= MAX_THINKS:
+            if not isinstance(thinks, int) or isinstance(thinks, bool) or not 0 <= thinks <= MAX_SAVED_COUNT:
                 raise ValueError(f"{path}: its thinks are not a count: {str(thinks)[:40]!r}")
             learner.thinks[:] = thinks
     return lcfg, learner
@@ -319,6 +317,8 @@ def _run(
     try:
         learners = [(name, *_learner(config, name, behaviours.ranges(name))) for name in behaviours.names]
         writable(Path(config.out) / "config.json")
+        if not config.learn:
+            _refuse_a_learning_runs_folder(Path(config.out))
         for name in behaviours.names:  # what the run writes at its end: refused now, not then
             writable(Path(config.out) / f"{_named('weights', name)}.npz")
             if config.local and config.learn:
@@ -326,7 +326,7 @@ def _run(
         if config.behaviour_policy:
             handcoded = spec.handcoded(task) if spec.handcoded is not None else None
             controllers = Controllers(
-                config.behaviour_policy, learners[0][1].spec_hash(), np.array(first.action_low),
+                config.behaviour_policy, learners[0][1], np.array(first.action_low),
                 np.array(first.action_high), handcoded, np.random.default_rng(config.seed + 7),
             )  # fmt: skip
         journals = [Path(config.out) / _named("journal", name) for name in behaviours.names]
@@ -588,10 +588,40 @@ def _run(
     return metrics
 
 
+def _given_weights(config: ClientConfig, name: str) -> Path | None:
+    """Behaviour `name`'s weights file given by `--weights`, if any."""
+    if config.weights is None:
+        return None
+    return config.weights if not name else config.weights / f"{_named('weights', name)}.npz"
+
+
+def _refuse_a_learning_runs_folder(out: Path) -> None:
+    """Refuse, for a run that learns nothing, the folder of a run that learned.
+
+    Its outputs would replace that run's config.json, metrics.json and learning curve, and its
+    weights without the training state saved beside them (a `--no-learn --weights RUN/weights.npz
+    --out RUN` evaluation). A config.json that cannot be read is taken for a run that learned.
+    """
+    path = out / "config.json"
+    if not os.path.lexists(path):
+        return
+    try:
+        learned = json.loads(read_regular_text(path))["client"]["learn"] is not False
+    except (OSError, ValueError, KeyError, TypeError):
+        learned = True
+    if learned:
+        raise ValueError(
+            f"--no-learn: {out} holds the outputs of a run that learned (its config.json), which this "
+            "run's would replace: give another --out"
+        )
+
+
 def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> list[str]:
     """Save each behaviour's weights in the run directory -> the files written.
 
-    With the training state of a learner that learned here.
+    With the training state of a learner that learned here. The file given by `--weights` is
+    replaced only by a learner that learned from it here: other weights (a server's, or the same
+    ones without the training state saved beside them) would lose what it holds.
     """
     saved: list[str] = []
     for sk in skills:
@@ -602,16 +632,27 @@ def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> l
         if config.local and config.learn:  # resumed with --weights, the count (and version) goes on
             meta["thinks"] = int(sk.learner.thinks[0])
         name = f"{_named('weights', sk.name)}.npz"
+        given, path = _given_weights(config, sk.name), Path(config.out) / name
+        if not (config.local and config.learn) and given is not None and _same_file(given, path):
+            log.info("%s is the file this run was given (--weights): kept as it was", path)
+            continue
         try:
             if params is not None:
                 # A learner that learned here keeps its training state beside the weights (a think
                 # server's is in its own checkpoints), so that --weights resumes it whole.
                 training = sk.learner.training_state() if config.local and config.learn else None
-                save_weights(Path(config.out) / name, sk.lcfg, params, meta, training=training)
+                save_weights(path, sk.lcfg, params, meta, training=training)
                 saved.append(name)
         except PersistError as exc:  # weights diverged past what the monitor reset (the run ended first)
             log.error("%s at the end of the run", exc)
     return saved
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them is not there (or cannot be looked at): not the same file
+        return False
 
 
 class _Brains:

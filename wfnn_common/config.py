@@ -190,6 +190,9 @@ MAX_ACTION_DIM = 64
 MAX_HIDDEN = 4096
 MAX_WIRES = 1024
 MAX_THINKS = 1_000_000
+MAX_SAVED_COUNT = 10**15
+"""The largest count (thinks, actions, optimiser steps) a saved learner may claim: more than any
+run makes, and exact in a float64."""
 MAX_BATCH = 1 << 20
 MAX_REPLAY_BYTES = 8 << 30
 MAX_PARAMS = 4_000_000
@@ -540,6 +543,16 @@ class LearnerConfig:
             if d.value_layers != 1:  # one layer's spec keeps the hash it had before the field existed
                 spec["value_layers"] = d.value_layers
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+
+    def spec_difference(self, other: LearnerConfig) -> str:
+        """What tells `self`'s spec from `other`'s, in words, for refusals.
+
+        "the deep learner's, not the thesis learner's" where they are different learners, else
+        "another task or ranges".
+        """
+        if self.learner != other.learner:
+            return f"the {self.learner} learner's, not the {other.learner} learner's"
+        return "another task or ranges"
 
     def short_repr(self) -> str:
         """One line for logs."""

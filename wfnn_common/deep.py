@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wfnn_common import deep_net
-from wfnn_common.config import MAX_SEED, LearnerConfig
+from wfnn_common.config import MAX_SAVED_COUNT, MAX_SEED, LearnerConfig
 from wfnn_common.deep_net import DeepParams, DeepShapes
 from wfnn_common.learner import FLOAT32_MAX, MAX_REWARD, WFNN, ActResult, BoolArray, FloatArray
 from wfnn_common.replay import Experiences
@@ -302,7 +302,7 @@ class DeepWFNN(WFNN):
             if (
                 step.dtype.kind not in "fiu"
                 or step.shape != ()
-                or not 0 <= float(step) <= 1e15
+                or not 0 <= float(step) <= MAX_SAVED_COUNT
                 or step != np.round(step)
             ):
                 raise ValueError(f"training state adam_step is not a count: {str(step)[:40]!r}")
@@ -311,7 +311,7 @@ class DeepWFNN(WFNN):
         # saved): its warm-up is done if it trained (as for weights alone), and not if it never did,
         # whose weights are as fresh as a new learner's (a robot's brain that never drove).
         acted = np.asarray(state.get("acted", self.acted if trained else 0))
-        if acted.dtype.kind not in "iu" or acted.shape != () or not 0 <= int(acted) <= 10**15:
+        if acted.dtype.kind not in "iu" or acted.shape != () or not 0 <= int(acted) <= MAX_SAVED_COUNT:
             raise ValueError(f"training state acted is not a count: {str(acted)[:40]!r}")
         moments = np.zeros(3)
         if "value_moments" in state:  # saved where the values were learnt normalised (deep.popart_rate)

@@ -397,11 +397,9 @@ class ExperienceLog:
                 log.error("%s: the learner config it records is not usable (%s)", self.directory, exc)
                 unusable = f"its learner config is not usable ({exc})"
         if config is not None and recorded is not None and recorded.spec_hash() != config.spec_hash():
-            other = (f"the {recorded.learner} learner's, not the {config.learner} learner's"
-                     if recorded.learner != config.learner else "another task or ranges")  # fmt: skip
             raise LogFormatError(
                 f"{self.directory} records experiences of learner spec {recorded.spec_hash()}, not "
-                f"{config.spec_hash()} ({other}): use another run directory"
+                f"{config.spec_hash()} ({recorded.spec_difference(config)}): use another run directory"
             )
         if config is not None and recorded is None:  # log.json damaged or gone: the records still say
             spec = first_spec(self.directory)

@@ -52,9 +52,7 @@ def test_saved_policies_are_recorded_by_names_that_tell_them_apart():
 def _controllers(mix, tmp_path=None, handcoded=None, seed=0):
     cfg = learner_config(BoatVec(1), ClientConfig(sim="boat"))
     low, high = np.array(cfg.action_low), np.array(cfg.action_high)
-    return Controllers(
-        parse_mix(mix), cfg.spec_hash(), low, high, handcoded, np.random.default_rng(seed)
-    ), cfg
+    return Controllers(parse_mix(mix), cfg, low, high, handcoded, np.random.default_rng(seed)), cfg
 
 
 def test_episodes_are_drawn_by_share_and_each_controller_acts_as_itself(tmp_path):
@@ -124,13 +122,13 @@ def test_a_deep_learners_saved_weights_drive_as_a_behaviour_policy(tmp_path):
     saved = make_learner(cfg)
     save_weights(tmp_path / "deep.npz", cfg, saved.params, {})
     low, high = np.array(cfg.action_low), np.array(cfg.action_high)
-    mix = Controllers(parse_mix(f"weights:{tmp_path / 'deep.npz'}"), cfg.spec_hash(), low, high, None,
+    mix = Controllers(parse_mix(f"weights:{tmp_path / 'deep.npz'}"), cfg, low, high, None,
                       np.random.default_rng(0))  # fmt: skip
     x = np.array([1.0, -0.5, 0.1, 0.0, 0.2, 0.0, 0.0])
     acted = mix.act(f"weights:{tmp_path / 'deep.npz'}", x)
     np.testing.assert_array_equal(acted.result.action, saved.act(x, explore=False).action)
-    # The thesis' learner's spec is another: its controllers refuse the deep weights.
-    with pytest.raises(ValueError, match="learner spec"):
+    # The thesis' learner's spec is another: its controllers refuse the deep weights, naming both.
+    with pytest.raises(ValueError, match=r"learner spec .*the deep learner's, not the thesis learner's"):
         _controllers(f"weights:{tmp_path / 'deep.npz'}")
 
 
@@ -262,3 +260,32 @@ def test_a_run_that_learns_nothing_keeps_and_saves_the_weights_it_was_given(tmp_
     assert metrics["experiences_learned"] == 0
     _, saved, _ = load_weights(tmp_path / "run" / "weights.npz")
     np.testing.assert_array_equal(np.asarray(saved.flat), np.asarray(learner.params.flat))
+
+
+def _hashes(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_an_evaluation_never_replaces_what_a_learning_run_saved(tmp_path):
+    """`--no-learn --weights RUN/weights.npz --out RUN` replaced the run's config.json, metrics and
+    curve, and rewrote its weights without the training state saved beside them (a deep learner's
+    second critic, targets and optimiser: 1.1 MB became 0.2 MB)."""
+    options = '{"deep": {"warmup": 20}}'
+    trained = tmp_path / "trained"
+    run(ClientConfig(sim="boat", episodes=1, rate_hz=0, learner="deep", learner_options=options, out=trained))
+    before = _hashes(trained)
+    evaluation = dict(sim="boat", episodes=1, rate_hz=0, learn=False, learner="deep", learner_options=options)
+    with pytest.raises(ValueError, match="holds the outputs of a run that learned"):
+        run(ClientConfig(**evaluation, weights=trained / "weights.npz", out=trained))
+    assert _hashes(trained) == before
+    # The weights alone in a folder of their own: the evaluation's outputs go beside them, and the
+    # file it was given is kept as it was, training state and all.
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (alone / "weights.npz").write_bytes(before["weights.npz"])
+    run(ClientConfig(**evaluation, weights=alone / "weights.npz", out=alone))
+    assert (alone / "weights.npz").read_bytes() == before["weights.npz"]
+    assert (alone / "metrics.json").exists()
+    # An evaluation's own folder is an evaluation's to replace.
+    run(ClientConfig(**evaluation, weights=alone / "weights.npz", out=alone))
+    assert (alone / "weights.npz").read_bytes() == before["weights.npz"]
