@@ -171,6 +171,11 @@ class Journal:
         """Number the next batch from `seq` (the numbers before it, not journaled, are not held)."""
         self.next_seq = max(self.next_seq, seq)
 
+    @property
+    def last_held(self) -> int:
+        """The newest experience the journal holds (-1: none)."""
+        return self._last[-1] if self._last else -1
+
     def holds(self, seq: int) -> bool:
         """Whether experience `seq` is in the journal (False in a gap that damage left)."""
         i = bisect.bisect_left(self._last, seq)

@@ -244,8 +244,8 @@ class RemoteBrain:
         self.uplink.add(experience, acted)
 
     def sync(self, timeout_s: float) -> bool:
-        """Wait until the followed server's applied snapshot has learned everything produced."""
-        target = self.produced_through
+        """Wait until the followed server's applied snapshot has learned every experience so far."""
+        target = self.uplink.experiences_through
         deadline = time.monotonic() + timeout_s
         with self.downlink.learned:
             while True:

@@ -103,6 +103,19 @@ class Uplink:
         return self._first_seq - 1 + self._skipped + self._added
 
     @property
+    def experiences_through(self) -> int:
+        """The number of the newest experience there is: queued, sent or journaled.
+
+        Below `produced_through` only before this run's first experience, after a run that
+        crashed: the numbers it reserved and never journaled stand for no experience until this
+        run's first batch declares them lost, so nothing waits meanwhile for a server to hold or
+        learn them (a lock-step restart's first sync did, until it timed out).
+        """
+        if self._added or self._skipped:
+            return self.produced_through
+        return min(self.produced_through, self.journal.last_held)
+
+    @property
     def queued(self) -> int:
         """Experiences not yet sent."""
         return len(self._pending)
@@ -123,9 +136,9 @@ class Uplink:
         self._wake.set()
 
     def all_acked(self) -> bool:
-        """Whether some live server has stored everything produced so far."""
+        """Whether some live server has stored every experience so far (`experiences_through`)."""
         with self.table.lock:
-            return any(v.alive and v.acked >= self.produced_through for v in self.table.views.values())
+            return any(v.alive and v.acked >= self.experiences_through for v in self.table.views.values())
 
     def stop(self) -> None:
         """Make `run` send what is queued and return."""

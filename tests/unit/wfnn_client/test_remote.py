@@ -902,6 +902,30 @@ def test_a_journal_that_lost_its_tail_in_a_crash_never_reuses_numbers_its_server
     assert again.counters["uplink/numbers_reserved_skipped"] > 0
 
 
+def test_a_lockstep_client_restarted_after_a_crash_syncs_past_the_numbers_it_reserved(tmp_path):
+    """Its first sync waited for the server to learn the numbers the crashed run reserved and never
+    used, which only its first batch declares lost: every lock-step restart timed out."""
+    import shutil
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        first = remote(tmp_path, hub, cfg)
+        first.start()
+        for _ in range(30):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(first.all_acked) and server.store.stored_through[first.id] == 29
+        shutil.copytree(tmp_path / "journal", tmp_path / "crashed")  # as a kill -9 leaves it: not closed
+        first.stop()
+        again = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", lockstep=True)
+        assert again.produced_through > 29 == again.uplink.experiences_through
+        again.start()
+        assert again.sync(5.0)
+        again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
+        assert again.sync(5.0)  # the first batch declared the reserved numbers lost, and was learned
+        assert wait(again.all_acked)
+        again.stop()
+
+
 def test_a_journal_closed_cleanly_continues_where_it_was_and_says_nothing(tmp_path, caplog):
     from wfnn_client.journal import Journal
 
