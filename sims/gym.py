@@ -93,6 +93,13 @@ def _space_problem(env: gym.Env[Any, Any]) -> str:
     return ""
 
 
+def _shape_of(value: Any) -> str:
+    """What a value is, in a few words, for an error message."""
+    if isinstance(value, tuple):
+        return f"a tuple of {len(value)}"
+    return f"a {type(value).__name__}"
+
+
 class GymVec:
     """One Gymnasium environment as a vectorised task of one instance."""
 
@@ -115,13 +122,15 @@ class GymVec:
             with np.errstate(over="ignore", invalid="ignore"):  # told below, naming the observation
                 low, high, seen = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
+            unseen = np.flatnonzero(~(np.isfinite(declared[0]) & np.isfinite(declared[1])) & ~seen)
+            if unseen.size:  # what its measured range would be is made up, not measured
+                i = int(unseen[0])
+                raise ValueError(f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, "
+                                 f"{declared[1][i]:g}] and was never finite under random actions: its "
+                                 "range cannot be measured")  # fmt: skip
             wrong = np.flatnonzero(~(np.isfinite(low) & np.isfinite(high) & (high >= low)))
             if wrong.size:  # one bound declared, the other measured beyond it; or values too large
                 i = int(wrong[0])
-                if not seen[i]:
-                    raise ValueError(f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, "
-                                     f"{declared[1][i]:g}] and was never finite under random actions: its "
-                                     "range cannot be measured")  # fmt: skip
                 raise ValueError(
                     f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, {declared[1][i]:g}]; "
                     f"with its unbounded side measured under random actions it spans [{low[i]:g}, "
@@ -154,14 +163,14 @@ class GymVec:
         """(low [S], high [S], seen [S]): declared bounds, measured where infinite; seen where finite."""
         rng = np.random.default_rng(PROBE_SEED)
         seen = []
-        obs, _ = self._task("reset", self.env.reset, seed=PROBE_SEED)
+        obs = self._reset(PROBE_SEED)
         self.env.action_space.seed(PROBE_SEED)  # unseeded, the ranges would differ per run
         for _ in range(steps):
             seen.append(self._observation(obs)[0])
             sample = self.env.action_space.sample()
-            obs, _, terminated, truncated, _ = self._task("step", self.env.step, sample)
+            obs, _, terminated, truncated = self._step(sample)
             if terminated or truncated:
-                obs, _ = self._task("reset", self.env.reset, seed=int(rng.integers(2**31)))
+                obs = self._reset(int(rng.integers(2**31)))
         data = np.asarray(seen, dtype=np.float64)
         data[~np.isfinite(data)] = np.nan  # a NaN or infinite observation says nothing of the range
         finite = np.asarray(~np.isnan(data).all(axis=0), dtype=np.bool_)  # any finite value in the probe
@@ -186,6 +195,9 @@ class GymVec:
         """
         shape = self.env.observation_space.shape
         try:
+            kind = np.asarray(obs).dtype.kind
+            if kind in "cUSVMm":  # complex (whose real part alone float64 would keep), text, dates
+                raise ValueError(f"of dtype kind {kind!r}")
             x = np.asarray(obs, dtype=np.float64)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self.env_id} returned an observation that is not numbers ({exc})") from None
@@ -226,9 +238,31 @@ class GymVec:
         except Exception as exc:
             raise RuntimeError(f"{self.env_id} failed in {what}: {type(exc).__name__}: {exc}") from exc
 
+    def _reset(self, seed: int | None) -> Any:
+        """The env's reset -> its observation.
+
+        ValueError naming the task where it does not return Gymnasium's (observation, info).
+        """
+        out = self._task("reset", self.env.reset, seed=seed)
+        if not (isinstance(out, tuple) and len(out) == 2):
+            raise ValueError(f"{self.env_id}: reset() returned {_shape_of(out)}, not Gymnasium's "
+                             "(observation, info)")  # fmt: skip
+        return out[0]
+
+    def _step(self, action: Any) -> tuple[Any, Any, bool, bool]:
+        """The env's step -> (observation, reward, terminated, truncated).
+
+        ValueError naming the task where it does not return Gymnasium's five (an old API's four).
+        """
+        out = self._task("step", self.env.step, action)
+        if not (isinstance(out, tuple) and len(out) == 5):
+            raise ValueError(f"{self.env_id}: step() returned {_shape_of(out)}, not Gymnasium's "
+                             "(observation, reward, terminated, truncated, info)")  # fmt: skip
+        return out[0], out[1], bool(out[2]), bool(out[3])
+
     def reset(self, rng: np.random.Generator) -> FloatArray:
         """A new episode -> states [1, S]."""
-        obs, _ = self._task("reset", self.env.reset, seed=int(rng.integers(2**31)))
+        obs = self._reset(int(rng.integers(2**31)))
         self._obs = self._observation(obs)
         self.episode_return = 0.0
         return self.observe()
@@ -240,8 +274,7 @@ class GymVec:
     def step(self, action: FloatArray) -> Transition:
         """One environment step with actions [1, A]; a finished episode restarts at once."""
         u = np.clip(np.asarray(action, dtype=np.float64).reshape(1, -1)[0], self.action_low, self.action_high)
-        obs, reward, terminated, truncated, _ = self._task("step", self.env.step,
-                                                          u.astype(self.env.action_space.dtype))  # fmt: skip
+        obs, reward, terminated, truncated = self._step(u.astype(self.env.action_space.dtype))
         next_state = self._observation(obs)
         r = self._reward(reward)
         self.last_reward = np.array([r])
@@ -250,7 +283,7 @@ class GymVec:
             self.returns.append(self.episode_return)
             self.episodes += 1
             self.episode_return = 0.0
-            self._obs = self._observation(self._task("reset", self.env.reset)[0])
+            self._obs = self._observation(self._reset(None))
         else:
             self._obs = next_state.copy()
         return Transition(
