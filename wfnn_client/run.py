@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -58,6 +58,7 @@ from wfnn_io.protocol import EXP_SAFE_ACTION, EXP_VETO_PROPOSED, load_key
 from wfnn_io.segments import check_free
 
 log = logging.getLogger(__name__)
+_R = TypeVar("_R")
 
 SUITED_REWARD_RMS = (0.05, 20.0)
 """Root-mean-square rewards a step beyond which the deep learner's defaults are known not to suit
@@ -391,6 +392,16 @@ def _run(
     brains.start()
     start = time.perf_counter()
 
+    robot_failed = False  # the robot (the task) failed: the learner is whole, saved as at an interrupt
+
+    def robot(call: Callable[[], _R]) -> _R:
+        nonlocal robot_failed
+        try:
+            return call()
+        except Exception:
+            robot_failed = True
+            raise
+
     def out_of_time(due: float) -> bool:
         """Whether a tick due then would start after the run's duration.
 
@@ -403,7 +414,7 @@ def _run(
             raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s")
         start = time.perf_counter()
         for episode in range(config.episodes):
-            spec.new_episode(task, rng)
+            robot(partial(spec.new_episode, task, rng))
             policy = controllers.choose() if controllers is not None else LEARNER
             episode_policies.append(controllers.recorded[policy] if controllers is not None else policy)
             total, steps, measured_steps = 0.0, 0, 0
@@ -447,7 +458,7 @@ def _run(
                           learn_proposal=to_brain(sk, EXP_VETO_PROPOSED, acted))
                     for k, sk in enumerate(skills)
                 ] if config.learn else []  # fmt: skip
-                transitions = robot_step(decided, behaviours.step, pupils)
+                transitions = robot_step(decided, lambda u: robot(partial(behaviours.step, u)), pupils)
                 if not config.learn:  # the rewards still size what act judges diverged (learn would)
                     for sk in skills:
                         sk.learner.rewarded(transitions[sk.name].reward)
@@ -501,17 +512,20 @@ def _run(
             log_failure(log, "stopping the brains after the run failed failed too", exc)
         if frames is not None:
             frames.close()
-        if isinstance(ended, KeyboardInterrupt) and config.local and config.learn:
-            # Ctrl-C or SIGTERM is how a long run is ended: what the learner learned is kept (the
-            # journal keeps the experiences), so that --weights resumes it. A failure's learner is
-            # not trusted to be whole, and its experiences can be learned again from the journal.
+        if (isinstance(ended, KeyboardInterrupt) or robot_failed) and config.local and config.learn:
+            # Ctrl-C or SIGTERM is how a long run is ended, and a robot (a simulation going
+            # unstable, a task's own error) can fail in a step, before anything learned from it:
+            # what the learner learned is kept (the journal keeps the experiences), so that
+            # --weights resumes it. The learner's own failure is not trusted to have left it
+            # whole, and its experiences can be learned again from the journal.
+            why = "interrupted" if isinstance(ended, KeyboardInterrupt) else "the robot failed"
             try:
                 saved = _save_weights(skills, config, len(scores))
-            except Exception as exc:  # the interrupt is what ends the run, whatever the save met
-                log_failure(log, "saving the learner after the run was interrupted failed", exc)
+            except Exception as exc:  # what ended the run is what to report, whatever the save met
+                log_failure(log, f"saving the learner after the run ended ({why}) failed", exc)
             else:
                 if saved:
-                    log.warning("interrupted: %s saved in %s", ", ".join(saved), config.out)
+                    log.warning("%s: %s saved in %s", why, ", ".join(saved), config.out)
         raise
     noted = _stop_brains(brains)
     camera_frames = frames.close() if frames is not None else None

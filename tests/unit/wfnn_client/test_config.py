@@ -1,5 +1,7 @@
 import re
 
+import gymnasium
+import numpy as np
 import pytest
 
 from sims.hydra import HydraConfig
@@ -383,6 +385,43 @@ def test_a_local_run_ended_by_ctrl_c_keeps_what_its_learner_learned(tmp_path, le
                                       out=tmp_path / "resumed", learner=learner, learner_options=options,
                                       weights=out / "weights.npz"))  # fmt: skip
     assert resumed["experiences_learned"] > 0
+
+
+class _FailsLate(gymnasium.Env):
+    """A task whose step fails (a simulation going unstable) after 250 steps."""
+
+    observation_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float64)
+    action_space = gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2), {}
+
+    def step(self, action):
+        _FailsLate.steps += 1
+        if _FailsLate.steps > 250:
+            raise RuntimeError("simulation unstable")
+        return np.full(2, 0.5 * float(action[0])), -1.0, False, _FailsLate.steps % 100 == 0, {}
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_local_run_whose_robot_fails_keeps_what_its_learner_learned(tmp_path, learner):
+    """A task failing in a step (the learner whole, as at Ctrl-C) left only the journal."""
+    from wfnn_client.run import run as run_client
+    from wfnn_io.persist import load_checkpoint
+
+    gymnasium.register(f"WfnnTestFailsLate{learner}-v0", entry_point=_FailsLate, max_episode_steps=100)
+    options = '{"deep": {"warmup": 20}}' if learner == "deep" else ""
+    cfg = ClientConfig(sim="gym", env=f"WfnnTestFailsLate{learner}-v0", rate_hz=0, episodes=5,
+                       thinks_per_action=1, out=tmp_path / "run", learner=learner,
+                       learner_options=options)  # fmt: skip
+    _FailsLate.steps = 0
+    with pytest.raises(RuntimeError, match="failed in step: RuntimeError: simulation unstable"):
+        run_client(cfg)
+    _, _, meta, training = load_checkpoint(tmp_path / "run" / "weights.npz")
+    assert meta["episodes"] == 2  # saved where it failed, in its third episode
+    if learner == "deep":
+        assert int(training["adam_step"]) > 0 and int(training["acted"]) >= 250
 
 
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
