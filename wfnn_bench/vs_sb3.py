@@ -266,6 +266,18 @@ def run_sb3(
             "act_us": act[0], "act_us_p99": act[1]}  # fmt: skip
 
 
+class _Counted:
+    """A progress callback that also counts the steps it heard (`done`)."""
+
+    def __init__(self, progress: Progress) -> None:
+        self.progress = progress
+        self.done = 0
+
+    def __call__(self, n: int) -> None:
+        self.done += n
+        self.progress(n)
+
+
 def steps_total(cfg: VsSb3Config) -> int:
     """Progress units: environment steps, over every task, algorithm or learner, and seed.
 
@@ -326,8 +338,22 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
             runs = []
             for k in range(cfg.seeds):
                 seed = cfg.seed + k
-                runs.append(run_wfnn(env_id, steps, seed, cfg, algorithm, progress) if algorithm in LEARNERS
-                            else run_sb3(algorithm, env_id, steps, seed, cfg, progress))  # fmt: skip
+                if algorithm in LEARNERS:
+                    runs.append(run_wfnn(env_id, steps, seed, cfg, algorithm, progress))
+                    continue
+                counted = _Counted(progress)
+                try:
+                    runs.append(run_sb3(algorithm, env_id, steps, seed, cfg, counted))
+                except Exception as exc:  # SB3 learns whatever the task gives it (a NaN reward, say)
+                    # A comparator failing loses neither the other runs nor the figures made so far.
+                    first_line = (str(exc).splitlines() or [""])[0][:300]
+                    why = f"seed {seed}: {type(exc).__name__}: {first_line}"
+                    log.warning("%s %s failed (%s): the run goes on without it", env_id, algorithm, why)
+                    out["tasks"][env_id][algorithm] = {"failed": why}
+                    progress(steps * (cfg.seeds - k) - counted.done)
+                    break
+            if "failed" in out["tasks"][env_id].get(algorithm, {}):
+                continue
             returns = np.array([r["returns"] for r in runs])  # [seeds, points]
             lengths = np.array([r["lengths"] for r in runs])  # [seeds, points]: mean greedy episode
             q25, q50, q75 = np.percentile(returns, [25, 50, 75], axis=0)
@@ -386,8 +412,9 @@ def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
         for algorithm, r in algos.items():
             if not isinstance(r, dict):
                 continue
-            if "skipped" in r:
-                rows.append((f"{env_id} {algorithm}", f"skipped: {r['skipped']}"))
+            if "skipped" in r or "failed" in r:
+                what = "skipped" if "skipped" in r else "failed"
+                rows.append((f"{env_id} {algorithm}", f"{what}: {r[what]}"))
                 continue
             curve = " / ".join(f"{v:.0f}" for v in r["return_median"])
             rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))

@@ -221,3 +221,36 @@ def test_steps_that_are_not_whole_numbers_are_refused_naming_the_option(steps):
 
     result = CliRunner().invoke(app, ["vs-sb3", "--steps", steps])
     assert result.exit_code == 2 and "--steps" in result.output and "whole numbers" in result.output
+
+
+class _NanReward(_Walk):
+    """The walk bounded in [-10, 10], whose every 7th reward is NaN."""
+
+    observation_space = gym.spaces.Box(-10.0, 10.0, (1,), np.float64)
+
+    def step(self, action):
+        obs, reward, arrived, truncated, info = super().step(action)
+        self.t = getattr(self, "t", 0) + 1
+        return np.clip(obs, -10, 10), np.nan if self.t % 7 == 0 else reward, arrived, truncated, info
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")  # Gymnasium's checker warns of the NaN rewards too
+def test_a_comparator_that_fails_on_the_task_loses_no_other_run(caplog, tmp_path):
+    """SAC learning NaN rewards failed in torch, and the whole benchmark ended with no JSON, the
+    WFNN runs already made lost."""
+    from wfnn_bench.vs_sb3 import plot, rows, run
+
+    gym.register("WfnnTestNanReward-v0", entry_point=_NanReward, max_episode_steps=50)
+    cfg = VsSb3Config(tasks=("WfnnTestNanReward-v0",), steps=(300,), algorithms=("wfnn", "sac"), seeds=2,
+                      eval_every=150, eval_episodes=1, thinks=1, act_calls=5)  # fmt: skip
+    heard = []
+    with caplog.at_level("WARNING"):
+        result = run(cfg, progress=heard.append)
+    task = result["tasks"]["WfnnTestNanReward-v0"]
+    assert len(task["thesis"]["final_returns"]) == 2 and all(n > 0 for n in task["thesis"]["refused"])
+    assert task["sac"]["failed"].startswith("seed 0: ")
+    assert sum(heard) == 2 * 2 * 300  # every step counted, the failed run's too
+    assert dict(rows(result, cfg))["WfnnTestNanReward-v0 sac"].startswith("failed: seed 0: ")
+    assert "WfnnTestNanReward-v0 sac failed (seed 0: " in caplog.text
+    plot(result, tmp_path / "plot.png")
+    assert (tmp_path / "plot.png").stat().st_size > 0
