@@ -313,6 +313,11 @@ class LocalBrain:
     def report(self, metrics: dict[str, Any]) -> None:
         """Nobody to tell in-process."""
 
+    @property
+    def thinking(self) -> bool:
+        """Whether its think thread still runs after `stop` (a long think outlived the wait)."""
+        return self.mt is not None and self.mt.thinking
+
     def check(self) -> None:
         """Raise the think thread's or the record's error, if any."""
         if self.mt is not None and self.mt.error is not None:

@@ -394,10 +394,11 @@ def _run(
 
     robot_failed = False  # the robot (the task) failed: the learner is whole, saved as at an interrupt
 
-    def robot(call: Callable[[], _R]) -> _R:
+    def robot(call: Callable[..., _R], *args: Any) -> _R:
+        """`call(*args)`, a call of the robot (the task, its rewards and veto, the safety layer)."""
         nonlocal robot_failed
         try:
-            return call()
+            return call(*args)
         except Exception:
             robot_failed = True
             raise
@@ -414,7 +415,7 @@ def _run(
             raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s")
         start = time.perf_counter()
         for episode in range(config.episodes):
-            robot(partial(spec.new_episode, task, rng))
+            robot(spec.new_episode, task, rng)
             policy = controllers.choose() if controllers is not None else LEARNER
             episode_policies.append(controllers.recorded[policy] if controllers is not None else policy)
             total, steps, measured_steps = 0.0, 0, 0
@@ -422,7 +423,7 @@ def _run(
                 if steps and out_of_time(ticker.next_due()):  # not a wait for a tick past the duration
                     break
                 late = ticker.wait()
-                d = int(behaviours.driving()[0])
+                d = int(robot(behaviours.driving)[0])
                 driver = skills[d].brain
                 driven[d] += 1
                 if driver.connected:
@@ -435,14 +436,14 @@ def _run(
                     if not outages or "end_unix" in outages[-1]:
                         outages.append({"start_unix": time.time()})
                 t0 = time.perf_counter()
-                xs = [behaviours.observe(sk.name)[0] for sk in skills]
+                xs = [robot(behaviours.observe, sk.name)[0] for sk in skills]
                 if policy == LEARNER:
                     acted = driver.act(xs[d], explore=config.learn)
                 else:  # another controller drives; the learner learns from its actions
                     assert controllers is not None
                     acted = controllers.act(policy, xs[d])
                 proposed = acted.result.action if acted is not None else None
-                decision = safety.decide(proposed, xs[d], ticker.late_now() if period else 0.0)
+                decision = robot(safety.decide, proposed, xs[d], ticker.late_now() if period else 0.0)
                 ticks.add_latency(time.perf_counter() - t0)
                 vetoed = decision.proposed is not None
                 proposal = decision.proposed if decision.proposed is not None else decision.executed
@@ -454,11 +455,11 @@ def _run(
                 chose = None if decision.flags & EXP_SAFE_ACTION else acted
                 pupils = [
                     Pupil(xs[k][None], to_brain(sk, decision.flags, chose if k == d else None), sk.name,
-                          partial(behaviours.reward, sk.name) if k == d and twice else None,
+                          partial(robot, behaviours.reward, sk.name) if k == d and twice else None,
                           learn_proposal=to_brain(sk, EXP_VETO_PROPOSED, acted))
                     for k, sk in enumerate(skills)
                 ] if config.learn else []  # fmt: skip
-                transitions = robot_step(decided, lambda u: robot(partial(behaviours.step, u)), pupils)
+                transitions = robot_step(decided, partial(robot, behaviours.step), pupils)
                 if not config.learn:  # the rewards still size what act judges diverged (learn would)
                     for sk in skills:
                         sk.learner.rewarded(transitions[sk.name].reward)
@@ -466,7 +467,7 @@ def _run(
                     lockstep_timeouts += 1
                     log.warning("lock-step: no snapshot covering experience %d in %.0f s",
                                 learned, config.lockstep_timeout_s)  # fmt: skip
-                measured = float(spec.metric(task)[0])
+                measured = float(robot(spec.metric, task)[0])
                 if np.isfinite(total + measured):
                     total += measured
                     measured_steps += 1
@@ -512,7 +513,8 @@ def _run(
             log_failure(log, "stopping the brains after the run failed failed too", exc)
         if frames is not None:
             frames.close()
-        if (isinstance(ended, KeyboardInterrupt) or robot_failed) and config.local and config.learn:
+        ended_outside = isinstance(ended, KeyboardInterrupt) or robot_failed
+        if ended_outside and config.local and config.learn and _learners_whole(brains):
             # Ctrl-C or SIGTERM is how a long run is ended, and a robot (a simulation going
             # unstable, a task's own error) can fail in a step, before anything learned from it:
             # what the learner learned is kept (the journal keeps the experiences), so that
@@ -600,6 +602,22 @@ def _run(
         curve.unlink(missing_ok=True)  # an earlier run's in this folder is not this run's curve
         log.warning("%s not drawn (%s); the scores are in metrics.json", curve, exc)
     return metrics
+
+
+def _learners_whole(brains: _Brains) -> bool:
+    """Whether the local learners are whole, to be saved with no half-made update.
+
+    None failed, and none still thinks (its think thread outlived its stop's wait).
+    """
+    try:
+        brains.check()
+    except Exception as exc:
+        log_failure(log, "the learner is not saved: it failed too", exc)
+        return False
+    thinking = [sk.name or "the learner" for sk in brains.skills if getattr(sk.brain, "thinking", False)]
+    if thinking:
+        log.error("%s not saved: still thinking when the run ended", ", ".join(thinking))
+    return not thinking
 
 
 def _given_weights(config: ClientConfig, name: str) -> Path | None:

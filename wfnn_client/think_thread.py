@@ -75,6 +75,11 @@ class ActLearnThinkMT:
         self._thread.start()
         return self
 
+    @property
+    def thinking(self) -> bool:
+        """Whether the think thread runs (after `stop`: whether it outlived the wait)."""
+        return self._thread is not None and self._thread.is_alive()
+
     def stop(self, timeout: float = 5.0) -> None:
         """Stop the think thread and wait for it; experiences still queued join the replay buffer.
 

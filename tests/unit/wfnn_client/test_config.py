@@ -424,6 +424,61 @@ def test_a_local_run_whose_robot_fails_keeps_what_its_learner_learned(tmp_path, 
         assert int(training["adam_step"]) > 0 and int(training["acted"]) >= 250
 
 
+def test_a_learner_that_failed_itself_is_not_saved_when_its_robot_fails_too(tmp_path, monkeypatch):
+    """Its think thread failed half-way through an update, and the robot failed before the run's
+    check of the brains saw it: the half-made learner was saved as whole."""
+    from wfnn_client.run import run as run_client
+    from wfnn_common.learner import WFNN
+
+    think, calls = WFNN.think, []
+
+    def fails_once(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            self.params.flat[:] += 1000.0  # half an update, finite
+            raise FloatingPointError("the update blew up half-way")
+        return think(self, *args, **kwargs)
+
+    monkeypatch.setattr(WFNN, "think", fails_once)
+    gymnasium.register("WfnnTestFailsLateThink-v0", entry_point=_FailsLate, max_episode_steps=1000)
+    _FailsLate.steps = 0
+    # Ended by the robot's failure, or by the think thread's where the run's check saw it first.
+    with pytest.raises(RuntimeError, match=r"simulation unstable|think thread failed"):
+        run_client(ClientConfig(sim="gym", env="WfnnTestFailsLateThink-v0", rate_hz=0, episodes=1,
+                                thinks_per_action=1, out=tmp_path / "run"))  # fmt: skip
+    assert len(calls) >= 2 and not (tmp_path / "run" / "weights.npz").exists()
+
+
+def test_a_local_run_whose_tasks_reward_fails_keeps_what_its_learner_learned(tmp_path, monkeypatch):
+    """Only the task's step and new episode counted as the robot's: its reward of a vetoed proposal
+    (learning twice), failing in a step, left only the journal."""
+    import dataclasses
+
+    from wfnn_client.run import run as run_client
+    from wfnn_client.sims import SIMS
+
+    calls = []
+
+    def reward_of(task):
+        def reward(state, action, next_state):
+            calls.append(1)
+            if len(calls) > 300:
+                raise RuntimeError("the reward model failed")
+            return -abs(next_state[..., 0])
+
+        return reward
+
+    def always_veto(task):
+        return lambda state, action: np.zeros_like(action)
+
+    monkeypatch.setitem(SIMS, "positioning", dataclasses.replace(SIMS["positioning"], reward_of=reward_of,
+                                                                 veto=always_veto))  # fmt: skip
+    with pytest.raises(RuntimeError, match="the reward model failed"):
+        run_client(ClientConfig(sim="positioning", rate_hz=0, episodes=3, thinks_per_action=1,
+                                out=tmp_path / "run"))  # fmt: skip
+    assert (tmp_path / "run" / "weights.npz").exists()
+
+
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path, learner):
     """Its thinks (a local learner's weights version) began again at 0: versions recorded in a
