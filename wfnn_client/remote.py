@@ -245,12 +245,11 @@ class RemoteBrain:
 
     def sync(self, timeout_s: float) -> bool:
         """Wait until the followed server's applied snapshot has learned every experience so far."""
-        target = self.uplink.experiences_through
         deadline = time.monotonic() + timeout_s
         with self.downlink.learned:
             while True:
-                w = self.downlink.current
-                if w is not None and w.learned_through.get(self.id, -1) >= target:
+                w, target = self.downlink.current, self.uplink.experiences_through
+                if w is not None and target is not None and w.learned_through.get(self.id, -1) >= target:
                     return True
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or self.error is not None:

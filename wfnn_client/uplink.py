@@ -103,17 +103,24 @@ class Uplink:
         return self._first_seq - 1 + self._skipped + self._added
 
     @property
-    def experiences_through(self) -> int:
-        """The number of the newest experience there is: queued, sent or journaled.
+    def experiences_through(self) -> int | None:
+        """The number of the newest experience there is: queued, sent, journaled or held by a server.
 
         Below `produced_through` only before this run's first experience, after a run that
-        crashed: the numbers it reserved and never journaled stand for no experience until this
-        run's first batch declares them lost, so nothing waits meanwhile for a server to hold or
-        learn them (a lock-step restart's first sync did, until it timed out).
+        crashed: of the numbers it reserved and never journaled, those no server holds stand for
+        no experience until this run's first batch declares them lost, so nothing waits meanwhile
+        for a server to learn them (a lock-step restart's first sync did, until it timed out),
+        while those a server holds (the journal's newest records lost in a power cut) are still
+        experiences. None until the servers have had their say (`_check_numbering`).
         """
-        if self._added or self._skipped:
-            return self.produced_through
-        return min(self.produced_through, self.journal.last_held)
+        produced = self.produced_through
+        if self._added or self._skipped or self.journal.last_held >= produced:
+            return produced
+        if not self._numbering:
+            return None
+        with self.table.lock:
+            held = max((v.acked for v in self.table.views.values()), default=-1)
+        return min(produced, max(self.journal.last_held, held))
 
     @property
     def queued(self) -> int:
@@ -137,8 +144,11 @@ class Uplink:
 
     def all_acked(self) -> bool:
         """Whether some live server has stored every experience so far (`experiences_through`)."""
+        through = self.experiences_through
+        if through is None:
+            return False
         with self.table.lock:
-            return any(v.alive and v.acked >= self.experiences_through for v in self.table.views.values())
+            return any(v.alive and v.acked >= through for v in self.table.views.values())
 
     def stop(self) -> None:
         """Make `run` send what is queued and return."""

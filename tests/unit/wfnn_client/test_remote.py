@@ -917,12 +917,37 @@ def test_a_lockstep_client_restarted_after_a_crash_syncs_past_the_numbers_it_res
         shutil.copytree(tmp_path / "journal", tmp_path / "crashed")  # as a kill -9 leaves it: not closed
         first.stop()
         again = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", lockstep=True)
-        assert again.produced_through > 29 == again.uplink.experiences_through
+        assert again.produced_through > 29 and again.uplink.experiences_through is None  # not yet heard
         again.start()
-        assert again.sync(5.0)
+        assert again.sync(5.0) and again.uplink.experiences_through == 29
         again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
         assert again.sync(5.0)  # the first batch declared the reserved numbers lost, and was learned
         assert wait(again.all_acked)
+        again.stop()
+
+
+def test_a_lockstep_restart_after_a_power_cut_waits_for_what_the_server_holds_beyond_the_journal(tmp_path):
+    """The journal's newest records lost (not synced), its first sync waited only for what the
+    journal kept: it acted on weights that had not learned experiences the server holds."""
+    import shutil
+
+    hub, cfg = Hub(), small_config(thinks_per_action=400)  # the server learns slowly
+    with make_server(tmp_path, hub, cfg) as server:
+        first = remote(tmp_path, hub, cfg, batch_max=10)
+        first.start()
+        for _ in range(100):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(first.all_acked) and server.store.stored_through[first.id] == 99
+        shutil.copytree(tmp_path / "journal", tmp_path / "crashed")  # not closed, and then
+        first.stop()
+        seg = tmp_path / "crashed" / "00000000.seg"  # its newest records never synced
+        seg.write_bytes(seg.read_bytes()[: seg.stat().st_size * 6 // 10])
+        again = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", batch_max=10, lockstep=True)
+        assert again.journal.last_held < 99 and again.uplink.experiences_through is None  # not yet heard
+        again.start()
+        assert again.sync(30.0)
+        assert again.downlink.current.learned_through[first.id] >= 99
+        assert again.uplink.experiences_through == 99
         again.stop()
 
 
