@@ -93,6 +93,11 @@ def _space_problem(env: gym.Env[Any, Any]) -> str:
     return ""
 
 
+NOT_NUMBERS = (str, bytes, complex, np.str_, np.bytes_, np.complexfloating)
+"""Text and bytes, which float() parses, and complex numbers, whose real part numpy's float()
+takes with only a warning: not a reward, nor part of an observation."""
+
+
 def _shape_of(value: Any) -> str:
     """What a value is, in a few words, for an error message."""
     if isinstance(value, tuple):
@@ -118,11 +123,11 @@ class GymVec:
         self.valid_margin = 1.0
         """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
-            declared = obs.low, obs.high
+            declared, unbounded = (obs.low, obs.high), ~(np.isfinite(low) & np.isfinite(high))
             with np.errstate(over="ignore", invalid="ignore"):  # told below, naming the observation
                 low, high, seen = self._measured_ranges(low, high, probe_steps)
             self.valid_margin = MEASURED_MARGIN
-            unseen = np.flatnonzero(~(np.isfinite(declared[0]) & np.isfinite(declared[1])) & ~seen)
+            unseen = np.flatnonzero(unbounded & ~seen)
             if unseen.size:  # what its measured range would be is made up, not measured
                 i = int(unseen[0])
                 raise ValueError(f"{env_id}: observation {i} is declared in [{declared[0][i]:g}, "
@@ -195,9 +200,12 @@ class GymVec:
         """
         shape = self.env.observation_space.shape
         try:
-            kind = np.asarray(obs).dtype.kind
-            if kind in "cUSVMm":  # complex (whose real part alone float64 would keep), text, dates
-                raise ValueError(f"of dtype kind {kind!r}")
+            raw = np.asarray(obs)
+            # Complex numbers (whose real part alone float64 would keep), text (which it would
+            # parse) and dates are not observations, in an array of objects too.
+            objects = raw.dtype.kind == "O"
+            if raw.dtype.kind in "cUSVMm" or (objects and any(isinstance(v, NOT_NUMBERS) for v in raw.flat)):
+                raise ValueError(f"of dtype {raw.dtype}")
             x = np.asarray(obs, dtype=np.float64)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self.env_id} returned an observation that is not numbers ({exc})") from None
@@ -218,10 +226,7 @@ class GymVec:
         except Exception:
             shape = None
         value: float | None = None
-        # Text and bytes, which float() parses, and complex numbers, whose real part numpy's
-        # float() takes with only a warning, are not rewards.
-        odd = str | bytes | complex | np.str_ | np.bytes_ | np.complexfloating
-        if shape == () and not isinstance(reward, odd):
+        if shape == () and not isinstance(reward, NOT_NUMBERS):
             try:
                 value = float(reward)
             except (TypeError, ValueError, OverflowError):

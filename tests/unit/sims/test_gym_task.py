@@ -180,17 +180,18 @@ def test_observations_beyond_their_declared_bound_or_too_large_to_scale_are_name
                                   "observation_space": _Shifted.observation_space, **attrs}))  # fmt: skip
 
 
-@pytest.mark.parametrize("low", [-np.inf, 0.0])
-def test_an_unbounded_observation_never_finite_is_refused_whatever_its_declared_bound(low):
-    """Its range was made up (-0.5 to 0.5), not refused, unless a declared bound lay outside it."""
-    space = gym.spaces.Box(np.array([low, -np.inf, -np.inf]), np.inf, (3,), np.float64)
-    name = _register(
-        f"NeverFinite{int(low == 0)}", observation_space=space, _obs=lambda self: np.full(3, np.nan)
-    )
-    with pytest.raises(
-        ValueError, match=rf"observation 0 is declared in \[{low:g}, inf\] and was never finite"
-    ):
-        GymVec(name)
+F32_MAX = float(np.finfo(np.float32).max)
+
+
+@pytest.mark.parametrize(("low", "high"), [(-np.inf, np.inf), (0.0, np.inf), (-F32_MAX, F32_MAX)])
+def test_an_unbounded_observation_never_finite_is_refused_whatever_its_declared_bound(low, high):
+    """Its range was made up (-0.5 to 0.5), not refused, unless a declared bound lay outside it
+    (float32's largest size stands for no bound, as infinity does)."""
+    space = gym.spaces.Box(np.array([low, -np.inf]), np.array([high, np.inf]), (2,), np.float64)
+    never = _register(f"NeverFinite{low}{high}".replace(".", "").replace("+", ""), observation_space=space,
+                      _obs=lambda self: np.full(2, np.nan))  # fmt: skip
+    with pytest.raises(ValueError, match=r"observation 0 is declared in \[\S+, \S+\] and was never finite"):
+        GymVec(never)
 
 
 def _old_reset(self, *, seed=None, options=None):
@@ -207,13 +208,17 @@ def _old_step(self, action):
         ({"reset": _old_reset}, r"reset\(\) returned a ndarray, not Gymnasium's \(observation, info\)"),
         ({"step": _old_step}, r"failed in step: .*expected 5, got 4"),  # Gymnasium's wrappers unpack it first
         ({"_obs": lambda self: np.array([1j, 0, 0])}, "returned an observation that is not numbers"),
+        (
+            {"_obs": lambda self: np.array(["0.1", 0.0, 0.0], dtype=object)},
+            "an observation that is not numbers",
+        ),
     ],
 )
 @pytest.mark.filterwarnings("ignore::UserWarning")  # Gymnasium's checker warns of them too
 def test_a_task_that_does_not_speak_gymnasiums_api_is_refused_naming_it(attrs, message):
     """An old API's reset failed with "too many values to unpack", not naming the task; a complex
     observation lost its imaginary part with only a warning."""
-    name = _register(f"OldApi{next(iter(attrs)).strip('_')}", **attrs)
+    name = _register(f"OldApi{next(iter(attrs)).strip('_')}{len(message)}", **attrs)
     with pytest.raises((ValueError, RuntimeError), match=f"WfnnTestOldApi.*{message}"):
         task = GymVec(name, probe_steps=100) if "_obs" in attrs else GymVec(name)
         task.reset(np.random.default_rng(0))
