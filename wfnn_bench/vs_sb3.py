@@ -335,7 +335,7 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                 out["tasks"][env_id][algorithm] = {"skipped": problem}
                 progress(steps * cfg.seeds)
                 continue
-            runs = []
+            runs, finished, failed = [], [], []
             for k in range(cfg.seeds):
                 seed = cfg.seed + k
                 if algorithm in LEARNERS:
@@ -344,20 +344,23 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                 counted = _Counted(progress)
                 try:
                     runs.append(run_sb3(algorithm, env_id, steps, seed, cfg, counted))
+                    finished.append(seed)
                 except Exception as exc:  # SB3 learns whatever the task gives it (a NaN reward, say)
-                    # A comparator failing loses neither the other runs nor the figures made so far.
+                    # A comparator's failure loses neither its other seeds nor the other runs.
                     first_line = (str(exc).splitlines() or [""])[0][:300]
                     why = f"seed {seed}: {type(exc).__name__}: {first_line}"
                     log.warning("%s %s failed (%s): the run goes on without it", env_id, algorithm, why)
-                    out["tasks"][env_id][algorithm] = {"failed": why}
-                    progress(steps * (cfg.seeds - k) - counted.done)
-                    break
-            if "failed" in out["tasks"][env_id].get(algorithm, {}):
+                    failed.append(why)
+                    progress(steps - counted.done)
+            if failed:  # its figures are over the seeds that finished, which are named
+                out["tasks"][env_id][algorithm] = {"failed": failed, "finished_seeds": finished}
+            if not runs:
                 continue
             returns = np.array([r["returns"] for r in runs])  # [seeds, points]
             lengths = np.array([r["lengths"] for r in runs])  # [seeds, points]: mean greedy episode
             q25, q50, q75 = np.percentile(returns, [25, 50, 75], axis=0)
             out["tasks"][env_id][algorithm] = {
+                **out["tasks"][env_id].get(algorithm, {}),
                 "steps": runs[0]["steps"], "return_q25": q25, "return_median": q50, "return_q75": q75,
                 "returns": returns, "final_return_median": float(q50[-1]),
                 "final_returns": returns[:, -1],
@@ -372,7 +375,7 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
         for name in cfg.learners:
             for sb3 in ("sac", "td3"):
                 other = task.get(sb3, {})
-                if name in task and "act_us" in other:
+                if name in task and "act_us" in other and "failed" not in other:
                     task[f"{sb3}_act_over_{name}_act"] = other["act_us"] / task[name]["act_us"]
                     task[f"{name}_s_per_step_over_{sb3}"] = task[name]["s_per_step"] / other["s_per_step"]
     out["wall_s"] = time.perf_counter() - t0
@@ -412,10 +415,15 @@ def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
         for algorithm, r in algos.items():
             if not isinstance(r, dict):
                 continue
-            if "skipped" in r or "failed" in r:
-                what = "skipped" if "skipped" in r else "failed"
-                rows.append((f"{env_id} {algorithm}", f"{what}: {r[what]}"))
+            if "skipped" in r:
+                rows.append((f"{env_id} {algorithm}", f"skipped: {r['skipped']}"))
                 continue
+            if "failed" in r:
+                finished = ", ".join(str(s) for s in r["finished_seeds"]) or "none"
+                failed = "; ".join(r["failed"])
+                rows.append((f"{env_id} {algorithm}", f"failed: {failed} (seeds finished: {finished})"))
+                if "steps" not in r:
+                    continue
             curve = " / ".join(f"{v:.0f}" for v in r["return_median"])
             rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
             rows.append((f"{env_id} {algorithm}: final return per seed",

@@ -248,9 +248,40 @@ def test_a_comparator_that_fails_on_the_task_loses_no_other_run(caplog, tmp_path
         result = run(cfg, progress=heard.append)
     task = result["tasks"]["WfnnTestNanReward-v0"]
     assert len(task["thesis"]["final_returns"]) == 2 and all(n > 0 for n in task["thesis"]["refused"])
-    assert task["sac"]["failed"].startswith("seed 0: ")
-    assert sum(heard) == 2 * 2 * 300  # every step counted, the failed run's too
-    assert dict(rows(result, cfg))["WfnnTestNanReward-v0 sac"].startswith("failed: seed 0: ")
+    assert [f[:8] for f in task["sac"]["failed"]] == ["seed 0: ", "seed 1: "]
+    assert task["sac"]["finished_seeds"] == [] and "steps" not in task["sac"]
+    assert sum(heard) == 2 * 2 * 300  # every step counted, the failed runs' too
+    table = dict(rows(result, cfg))
+    assert table["WfnnTestNanReward-v0 sac"].startswith("failed: seed 0: ")
+    assert table["WfnnTestNanReward-v0 sac"].endswith("(seeds finished: none)")
     assert "WfnnTestNanReward-v0 sac failed (seed 0: " in caplog.text
     plot(result, tmp_path / "plot.png")
     assert (tmp_path / "plot.png").stat().st_size > 0
+
+
+def test_a_comparators_seeds_that_finished_are_kept_beside_one_that_failed(monkeypatch):
+    """A later seed's failure threw away the seeds that had finished, and the seeds after it."""
+    from wfnn_bench import vs_sb3
+
+    def run_sb3(algorithm, env_id, steps, seed, cfg, progress):
+        progress(steps // 2)
+        if seed == 1:
+            raise RuntimeError("diverged\nmore lines")
+        progress(steps - steps // 2)
+        return {"steps": [steps], "returns": [-100.0 * (seed + 1)], "lengths": [200.0], "s_per_step": 1e-3,
+                "act_us": 100.0, "act_us_p99": 200.0}  # fmt: skip
+
+    monkeypatch.setattr(vs_sb3, "run_sb3", run_sb3)
+    monkeypatch.setattr(vs_sb3, "sb3_problem", lambda: None)
+    cfg = VsSb3Config(tasks=("Pendulum-v1",), steps=(20,), algorithms=("wfnn", "sac"), seeds=3, eval_every=20,
+                      eval_episodes=1, thinks=1, act_calls=5)  # fmt: skip
+    heard = []
+    result = vs_sb3.run(cfg, progress=heard.append)
+    sac = result["tasks"]["Pendulum-v1"]["sac"]
+    assert sac["failed"] == ["seed 1: RuntimeError: diverged"] and sac["finished_seeds"] == [0, 2]
+    assert sac["final_returns"].tolist() == [-100.0, -300.0] and sac["final_return_median"] == -200.0
+    assert sum(heard) == 2 * 3 * 20
+    assert "sac_act_over_thesis_act" not in result["tasks"]["Pendulum-v1"]  # not over every seed
+    table = dict(vs_sb3.rows(result, cfg))
+    assert table["Pendulum-v1 sac"] == "failed: seed 1: RuntimeError: diverged (seeds finished: 0, 2)"
+    assert table["Pendulum-v1 sac: final return per seed"] == "-100 / -300"
