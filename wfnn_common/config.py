@@ -190,6 +190,15 @@ MAX_ACTION_DIM = 64
 MAX_HIDDEN = 4096
 MAX_WIRES = 1024
 MAX_THINKS = 1_000_000
+_RANGES = ("state_low", "state_high", "action_low", "action_high")
+"""The spec's fields that say what the network's inputs and outputs mean (`spec_difference`)."""
+
+
+def _shown(value: Any) -> str:
+    """A spec field's value in a refusal: lists as lists, none longer than 60 characters."""
+    return str(list(value) if isinstance(value, tuple) else value)[:60]
+
+
 MAX_SAVED_COUNT = 10**15
 """The largest count (thinks, actions, optimiser steps) a saved learner may claim: more than any
 run makes, and exact in a float64."""
@@ -523,12 +532,9 @@ class LearnerConfig:
         """Canonical JSON (sorted keys), used for hashing and saving."""
         return json.dumps(self.to_dict(), sort_keys=True)
 
-    def spec_hash(self) -> str:
-        """Hash of the fields that fix the network's shape and the meaning of its inputs.
-
-        Two learners with the same spec hash can exchange weights and experiences.
-        """
-        spec = {
+    def _spec(self) -> dict[str, Any]:
+        """The fields the spec hash covers, each under its name."""
+        spec: dict[str, Any] = {
             "state_low": self.state_low,
             "state_high": self.state_high,
             "action_low": self.action_low,
@@ -539,20 +545,35 @@ class LearnerConfig:
         if self.learner == "deep":  # the thesis' spec keeps its old hash: its files stay valid
             d = self.deep
             spec = {**spec, "learner": "deep", "n_hidden": 0, "hidden": d.hidden,
-                    "value_hidden": d.value_hidden, "layer_norm": d.layer_norm}  # fmt: skip
-            if d.value_layers != 1:  # one layer's spec keeps the hash it had before the field existed
-                spec["value_layers"] = d.value_layers
+                    "value_hidden": d.value_hidden, "layer_norm": d.layer_norm,
+                    "value_layers": d.value_layers}  # fmt: skip
+        return spec
+
+    def spec_hash(self) -> str:
+        """Hash of the fields that fix the network's shape and the meaning of its inputs.
+
+        Two learners with the same spec hash can exchange weights and experiences.
+        """
+        spec = self._spec()
+        if spec.get("value_layers") == 1:  # one layer's spec keeps the hash it had before the field existed
+            del spec["value_layers"]
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
 
     def spec_difference(self, other: LearnerConfig) -> str:
         """What tells `self`'s spec from `other`'s, in words, for refusals.
 
-        "the deep learner's, not the thesis learner's" where they are different learners, else
-        "another task or ranges".
+        "the deep learner's, not the thesis learner's" where they are different learners; else
+        "another task or ranges", and the network's fields that differ ("n_wires 8, not 4").
         """
         if self.learner != other.learner:
             return f"the {self.learner} learner's, not the {other.learner} learner's"
-        return "another task or ranges"
+        mine, theirs = self._spec(), other._spec()
+        differ = [k for k in mine if mine[k] != theirs.get(k)]
+        network = [f"{k} {_shown(mine[k])}, not {_shown(theirs.get(k))}" for k in differ if k not in _RANGES]
+        parts = ["another task or ranges"] if any(k in _RANGES for k in differ) else []
+        if network:
+            parts.append(f"another network: {'; '.join(network)}")
+        return " and ".join(parts) or "another spec"
 
     def short_repr(self) -> str:
         """One line for logs."""

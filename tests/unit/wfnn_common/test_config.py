@@ -1,8 +1,10 @@
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
+from sims.boat import BoatVec
 from tests.fakes import small_config
 from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
 
@@ -72,6 +74,19 @@ def test_roundtrip_and_spec_hash():
     assert small_config(n_hidden=7).spec_hash() != cfg.spec_hash()
     with pytest.raises(ConfigError, match="unknown"):
         LearnerConfig.from_dict({**cfg.to_dict(), "bogus": 1})
+
+
+def test_a_spec_difference_names_what_differs():
+    """The same learner with another network was refused as of "another task or ranges"."""
+    cfg = small_config()
+    assert small_config(n_wires=8).spec_difference(cfg) == "another network: n_wires 8, not 4"
+    wider = small_config(state_high=tuple(v + 1 for v in cfg.state_high), n_hidden=7)
+    both = f"another task or ranges and another network: n_hidden 7, not {cfg.n_hidden}"
+    assert wider.spec_difference(cfg) == both
+    deep, thesis = LearnerConfig.for_task(BoatVec, learner="deep"), LearnerConfig.for_task(BoatVec)
+    assert deep.spec_difference(thesis) == "the deep learner's, not the thesis learner's"
+    two = dataclasses.replace(deep, deep=dataclasses.replace(deep.deep, value_layers=2, hidden=(64,)))
+    assert two.spec_difference(deep) == "another network: hidden [64], not [128, 128]; value_layers 2, not 1"
 
 
 def test_numpy_scalars_are_held_as_pythons_and_whole_number_ranges_are_warned_of(caplog):
