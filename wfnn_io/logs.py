@@ -406,7 +406,7 @@ class ExperienceLog:
             if spec is not None and spec != config.spec_hash():
                 raise LogFormatError(
                     f"{self.directory} records experiences of learner spec {spec}, not "
-                    f"{config.spec_hash()} (another task or ranges; its {LOG_JSON} is damaged or "
+                    f"{config.spec_hash()} (another task, ranges or network; its {LOG_JSON} is damaged or "
                     "missing): use another run directory"
                 )
         if damaged:  # only once nothing refuses the log: a refused open changes nothing
