@@ -134,16 +134,20 @@ def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> tuple[float
     env = gym.make(env_id)
     limit = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EVAL_LIMIT
     total, length = 0.0, 0
-    for k in range(episodes):
-        obs, _ = env.reset(seed=seed + k)
-        done, steps = False, 0
-        while not done and steps < limit:
-            obs, reward, terminated, truncated, _ = env.step(policy(obs))
-            total += float(reward)
-            length += 1
-            steps += 1
-            done = terminated or truncated
-    env.close()
+    try:
+        for k in range(episodes):
+            obs, _ = env.reset(seed=seed + k)
+            done, steps = False, 0
+            while not done and steps < limit:
+                obs, reward, terminated, truncated, _ = env.step(policy(obs))
+                total += float(reward)
+                length += 1
+                steps += 1
+                done = terminated or truncated
+    except Exception as exc:  # one line naming the task (a step failing only here said "boom in step")
+        raise RuntimeError(f"{env_id} failed in a greedy evaluation: {type(exc).__name__}: {exc}") from exc
+    finally:
+        env.close()
     return total / episodes, length / episodes
 
 

@@ -362,7 +362,10 @@ class LearnerConfig:
             ),
             (0.0 <= self.valid_margin <= 1e12, "valid_margin must be in [0, 1e12]"),
             (math.isfinite(self.divergence_threshold), "divergence_threshold must be finite"),
-            (self.divergence_patience >= 0, "divergence_patience must be >= 0"),
+            (
+                0 <= self.divergence_patience <= MAX_SAVED_COUNT,
+                f"divergence_patience must be in [0, {MAX_SAVED_COUNT}]",
+            ),
             (0.0 < self.init_scale <= 100.0, "init_scale must be in (0, 100]"),
             (0 <= self.seed <= MAX_SEED, f"seed must be in [0, {MAX_SEED}]"),
             (self.derivatives in ("approx", "exact"), "derivatives must be 'approx' or 'exact'"),

@@ -374,9 +374,20 @@ def wirefit_normalised(
 
     With 0 < top_k < N only the top_k largest weights count (ties at the k-th weight all count).
     """
+    return wirefit_from_distances(((u[..., None, :] - wire_u) ** 2).sum(axis=-1), wire_q, c, eps, top_k)
+
+
+def wirefit_from_distances(
+    dist2: FloatArray, wire_q: FloatArray, c: float, eps: float, top_k: int = 0
+) -> FloatArray:
+    """`wirefit_normalised` from the squared distances dist2 [..., N] of each action to the wires.
+
+    For callers that know the distances more cheaply than from the actions (a surface over one
+    or two action variables, the others held at the best wire's: `SurfaceGrid`).
+    """
     q_max = wire_q.max(axis=-1, keepdims=True)
     span = np.maximum(q_max - wire_q.min(axis=-1, keepdims=True), SPAN_FLOOR)
-    d = ((u[..., None, :] - wire_u) ** 2).sum(axis=-1) + c * (q_max - wire_q) / span + eps
+    d = dist2 + c * (q_max - wire_q) / span + eps
     w = 1.0 / d
     n = w.shape[-1]
     if 0 < top_k < n:

@@ -100,8 +100,14 @@ class SurfaceGrid:
                     -self.limit, self.limit)  # fmt: skip
         wire_u, wire_q = deep_net.wires(params, x)
         best = int(wire_q[0].argmax())
-        u = np.where(self.on_axis, self.grid_u, wire_u[0, best])
-        q = deep_net.wirefit_normalised(wire_u[0], wire_q[0], u, cfg.smoothing_c, cfg.eps, cfg.deep.top_k)
+        # Off the surface's axes every point sits at the best wire: that part of each point's
+        # squared distance to a wire is one figure per wire, so the work is points x wires x
+        # (one or two axes), not x every action variable (1024 wires of 64 actions made one
+        # surface of 1681 points 0.9 s and 850 MB).
+        off = ((wire_u[0, best] - wire_u[0]) ** 2)[:, ~self.on_axis].sum(axis=-1)  # [N]
+        on = self.grid_u[:, self.on_axis]  # [P, len(dims)]
+        dist2 = ((on[:, None, :] - wire_u[0][None][..., self.on_axis]) ** 2).sum(axis=-1) + off
+        q = deep_net.wirefit_from_distances(dist2, wire_q[0], cfg.smoothing_c, cfg.eps, cfg.deep.top_k)
         wires = self.actions.from_unit(wire_u[0])
         return Surface(self.dims, self.axes, q.reshape(self.shape), wires, wire_q[0].copy(), best)
 

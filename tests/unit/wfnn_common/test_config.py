@@ -50,6 +50,9 @@ def test_thesis_defaults():
         ({"state_low": (1e308, 0.0), "state_high": (1.7e308, 1.0)}, "too narrow or too wide"),
         ({"divergence_threshold": float("nan")}, "divergence_threshold"),
         ({"valid_margin": 1e300}, "valid_margin"),
+        # Past int64, a server's divergence monitor failed at its first batch and stopped the
+        # server (a config travels in a client's status: a fresh server adopts it).
+        ({"divergence_patience": 2**64}, "divergence_patience"),
         # The thesis' network travels in one snapshot too, and its minibatch update is bounded.
         ({"n_hidden": 4096, "n_wires": 1024}, "parameters"),
         ({"update": "minibatch", "batch_size": 1 << 20, "n_wires": 1024}, "minibatch update"),

@@ -4,14 +4,17 @@ import numpy as np
 import pytest
 
 from tests.fakes import small_config
-from wfnn_common.learner import WFNN
+from wfnn_common.learners import make_learner
 from wfnn_common.surface import SurfaceGrid, action_value_surface
 
 
-@pytest.mark.parametrize("dims", [(0,), (1,), (0, 1), (1, 0)])
-def test_the_surface_is_q_over_the_grid_with_other_actions_at_the_best_wire(dims):
-    cfg = small_config(action_dim=2, state_dim=3, action_low=(-2.0, 0.0), action_high=(2.0, 1.0))
-    learner = WFNN(cfg)
+@pytest.mark.parametrize("learner_name", ["thesis", "deep"])
+@pytest.mark.parametrize("dims", [(0,), (1,), (0, 1), (1, 0), (2, 0)])
+def test_the_surface_is_q_over_the_grid_with_other_actions_at_the_best_wire(dims, learner_name):
+    """The deep learner's too, whose surface adds the distance off its axes once per wire."""
+    cfg = small_config(action_dim=3, state_dim=3, action_low=(-2.0, 0.0, -1.0), action_high=(2.0, 1.0, 3.0),
+                       learner=learner_name, n_wires=6)  # fmt: skip
+    learner = make_learner(cfg)
     state = np.array([0.3, -0.7, 0.1])
     surface = action_value_surface(cfg, learner.params, state, dims, points=7)
     best = learner.act(state, explore=False)
