@@ -285,3 +285,15 @@ def test_a_comparators_seeds_that_finished_are_kept_beside_one_that_failed(monke
     table = dict(vs_sb3.rows(result, cfg))
     assert table["Pendulum-v1 sac"] == "failed: seed 1: RuntimeError: diverged (seeds finished: 0, 2)"
     assert table["Pendulum-v1 sac: final return per seed"] == "-100 / -300"
+
+
+class _Boom(_Walk):
+    def step(self, action):
+        raise ValueError("boom")
+
+
+def test_a_task_failing_in_an_evaluation_is_named():
+    """It said only "boom in step" where the task failed in a greedy evaluation alone."""
+    gym.register("WfnnTestBoom-v0", entry_point=_Boom, max_episode_steps=20)
+    with pytest.raises(RuntimeError, match="WfnnTestBoom-v0 failed in a greedy evaluation: ValueError: boom"):
+        _evaluate(lambda obs: np.array([1.0], np.float32), "WfnnTestBoom-v0", 1, 0)
