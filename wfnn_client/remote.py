@@ -248,7 +248,8 @@ class RemoteBrain:
         deadline = time.monotonic() + timeout_s
         with self.downlink.learned:
             while True:
-                w, target = self.downlink.current, self.uplink.experiences_through
+                w = self.downlink.current
+                target = self.uplink.experiences_through(w.server) if w is not None else None
                 if w is not None and target is not None and w.learned_through.get(self.id, -1) >= target:
                     return True
                 remaining = deadline - time.monotonic()

@@ -441,7 +441,9 @@ def _run(
                     acted = driver.act(xs[d], explore=config.learn)
                 else:  # another controller drives; the learner learns from its actions
                     assert controllers is not None
-                    acted = controllers.act(policy, xs[d])
+                    # The task's own controller is the robot's code; random and saved ones are not.
+                    acted = (robot(controllers.act, policy, xs[d]) if policy == "handcoded"
+                             else controllers.act(policy, xs[d]))  # fmt: skip
                 proposed = acted.result.action if acted is not None else None
                 decision = robot(safety.decide, proposed, xs[d], ticker.late_now() if period else 0.0)
                 ticks.add_latency(time.perf_counter() - t0)

@@ -102,16 +102,15 @@ class Uplink:
         """The number the newest experience queued has, or will have when it is sent."""
         return self._first_seq - 1 + self._skipped + self._added
 
-    @property
-    def experiences_through(self) -> int | None:
-        """The number of the newest experience there is: queued, sent, journaled or held by a server.
+    def experiences_through(self, server: str) -> int | None:
+        """The number of the newest experience there is for `server`: queued, sent, journaled or held by it.
 
         Below `produced_through` only before this run's first experience, after a run that
-        crashed: of the numbers it reserved and never journaled, those no server holds stand for
-        no experience until this run's first batch declares them lost, so nothing waits meanwhile
-        for a server to learn them (a lock-step restart's first sync did, until it timed out),
-        while those a server holds (the journal's newest records lost in a power cut) are still
-        experiences. None until the servers have had their say (`_check_numbering`).
+        crashed: of the numbers it reserved and never journaled, those the server does not hold
+        stand for no experience it can be sent until this run's first batch declares them lost,
+        so nothing waits meanwhile for it to learn them (a lock-step restart's first sync did,
+        until it timed out), while those it holds (the journal's newest records lost in a power
+        cut) are still experiences. None until the servers have had their say (`_check_numbering`).
         """
         produced = self.produced_through
         if self._added or self._skipped or self.journal.last_held >= produced:
@@ -119,7 +118,8 @@ class Uplink:
         if not self._numbering:
             return None
         with self.table.lock:
-            held = max((v.acked for v in self.table.views.values()), default=-1)
+            view = self.table.views.get(server)
+            held = view.acked if view is not None else -1
         return min(produced, max(self.journal.last_held, held))
 
     @property
@@ -143,12 +143,16 @@ class Uplink:
         self._wake.set()
 
     def all_acked(self) -> bool:
-        """Whether some live server has stored every experience so far (`experiences_through`)."""
-        through = self.experiences_through
-        if through is None:
-            return False
+        """Whether some live server has stored every experience there is for it (`experiences_through`)."""
         with self.table.lock:
-            return any(v.alive and v.acked >= through for v in self.table.views.values())
+            alive = [v.server for v in self.table.views.values() if v.alive]
+        for server in alive:
+            through = self.experiences_through(server)
+            with self.table.lock:
+                view = self.table.views.get(server)
+                if through is not None and view is not None and view.acked >= through:
+                    return True
+        return False
 
     def stop(self) -> None:
         """Make `run` send what is queued and return."""

@@ -571,12 +571,12 @@ class LearnerConfig:
         if self.learner != other.learner:
             return f"the {self.learner} learner's, not the {other.learner} learner's"
         mine, theirs = self._spec(), other._spec()
-        differ = [k for k in mine if mine[k] != theirs.get(k)]
+        differ = [k for k in mine if json.dumps(mine[k]) != json.dumps(theirs.get(k))]  # as hashed
         network = [f"{k} {_shown(mine[k])}, not {_shown(theirs.get(k))}" for k in differ if k not in _RANGES]
         parts = ["another task or ranges"] if any(k in _RANGES for k in differ) else []
         if network:
             parts.append(f"another network: {'; '.join(network)}")
-        return " and ".join(parts) or "another spec"
+        return " and ".join(parts)
 
     def short_repr(self) -> str:
         """One line for logs."""

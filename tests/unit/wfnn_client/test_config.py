@@ -479,6 +479,32 @@ def test_a_local_run_whose_tasks_reward_fails_keeps_what_its_learner_learned(tmp
     assert (tmp_path / "run" / "weights.npz").exists()
 
 
+def test_a_local_run_whose_tasks_own_controller_fails_keeps_what_its_learner_learned(tmp_path, monkeypatch):
+    """The task's hand-coded controller, driving as a behaviour policy, is the robot's code too."""
+    import dataclasses
+
+    from wfnn_client.controllers import parse_mix
+    from wfnn_client.run import run as run_client
+    from wfnn_client.sims import SIMS
+
+    calls = []
+
+    def handcoded(task):
+        def policy(state):
+            calls.append(1)
+            if len(calls) > 300:
+                raise RuntimeError("the hand-coded controller failed")
+            return np.zeros(1)
+
+        return policy
+
+    monkeypatch.setitem(SIMS, "positioning", dataclasses.replace(SIMS["positioning"], handcoded=handcoded))
+    with pytest.raises(RuntimeError, match="the hand-coded controller failed"):
+        run_client(ClientConfig(sim="positioning", rate_hz=0, episodes=3, thinks_per_action=1,
+                                behaviour_policy=parse_mix("handcoded"), out=tmp_path / "run"))  # fmt: skip
+    assert (tmp_path / "run" / "weights.npz").exists()
+
+
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path, learner):
     """Its thinks (a local learner's weights version) began again at 0: versions recorded in a

@@ -917,9 +917,9 @@ def test_a_lockstep_client_restarted_after_a_crash_syncs_past_the_numbers_it_res
         shutil.copytree(tmp_path / "journal", tmp_path / "crashed")  # as a kill -9 leaves it: not closed
         first.stop()
         again = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", lockstep=True)
-        assert again.produced_through > 29 and again.uplink.experiences_through is None  # not yet heard
+        assert again.produced_through > 29 and again.uplink.experiences_through(server.id) is None  # unheard
         again.start()
-        assert again.sync(5.0) and again.uplink.experiences_through == 29
+        assert again.sync(5.0) and again.uplink.experiences_through(server.id) == 29
         again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
         assert again.sync(5.0)  # the first batch declared the reserved numbers lost, and was learned
         assert wait(again.all_acked)
@@ -943,12 +943,20 @@ def test_a_lockstep_restart_after_a_power_cut_waits_for_what_the_server_holds_be
         seg = tmp_path / "crashed" / "00000000.seg"  # its newest records never synced
         seg.write_bytes(seg.read_bytes()[: seg.stat().st_size * 6 // 10])
         again = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", batch_max=10, lockstep=True)
-        assert again.journal.last_held < 99 and again.uplink.experiences_through is None  # not yet heard
+        assert again.journal.last_held < 99 and again.uplink.experiences_through(server.id) is None
         again.start()
         assert again.sync(30.0)
         assert again.downlink.current.learned_through[first.id] >= 99
-        assert again.uplink.experiences_through == 99
+        assert again.uplink.experiences_through(server.id) == 99
         again.stop()
+        # Followed, a server holding only what the journal kept is not waited on for what another
+        # holds, which cannot be sent to it before the first batch declares it lost.
+        with make_server(tmp_path, hub, cfg, server_id="s2") as s2:
+            pinned = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", batch_max=10, lockstep=True,
+                            follow="s2")  # fmt: skip
+            pinned.start()
+            assert pinned.sync(10.0) and pinned.uplink.experiences_through(s2.id) == pinned.journal.last_held
+            pinned.stop()
 
 
 def test_a_journal_closed_cleanly_continues_where_it_was_and_says_nothing(tmp_path, caplog):

@@ -90,6 +90,10 @@ def test_a_spec_difference_names_what_differs():
     assert deep.spec_difference(thesis) == "the deep learner's, not the thesis learner's"
     two = dataclasses.replace(deep, deep=dataclasses.replace(deep.deep, value_layers=2, hidden=(64,)))
     assert two.spec_difference(deep) == "another network: hidden [64], not [128, 128]; value_layers 2, not 1"
+    # Ranges written as whole numbers hash to another spec, though equal: what differs is named.
+    four = small_config(state_dim=4)  # (not the spec whose warning another test awaits)
+    whole = LearnerConfig.from_dict({**four.to_dict(), "state_low": [-1] * 4})
+    assert whole.spec_hash() != four.spec_hash() and whole.spec_difference(four) == "another task or ranges"
 
 
 def test_numpy_scalars_are_held_as_pythons_and_whole_number_ranges_are_warned_of(caplog):
