@@ -1,4 +1,5 @@
 import re
+import threading
 
 import gymnasium
 import numpy as np
@@ -430,17 +431,24 @@ def test_a_learner_that_failed_itself_is_not_saved_when_its_robot_fails_too(tmp_
     from wfnn_client.run import run as run_client
     from wfnn_common.learner import WFNN
 
-    think, calls = WFNN.think, []
+    think, calls, failed = WFNN.think, [], threading.Event()
 
     def fails_once(self, *args, **kwargs):
         calls.append(1)
         if len(calls) == 2:
             self.params.flat[:] += 1000.0  # half an update, finite
+            failed.set()
             raise FloatingPointError("the update blew up half-way")
         return think(self, *args, **kwargs)
 
+    class FailsAfterTheLearner(_FailsLate):
+        def step(self, action):
+            if _FailsLate.steps >= 250:  # however slowly the think thread ran (a loaded machine)
+                failed.wait(30.0)
+            return super().step(action)
+
     monkeypatch.setattr(WFNN, "think", fails_once)
-    gymnasium.register("WfnnTestFailsLateThink-v0", entry_point=_FailsLate, max_episode_steps=1000)
+    gymnasium.register("WfnnTestFailsLateThink-v0", entry_point=FailsAfterTheLearner, max_episode_steps=1000)
     _FailsLate.steps = 0
     # Ended by the robot's failure, or by the think thread's where the run's check saw it first.
     with pytest.raises(RuntimeError, match=r"simulation unstable|think thread failed"):
