@@ -308,8 +308,11 @@ def _run(
     ticks = TickStats(keep_all=config.timing_trace)
     ticker = Ticker(period, ticks)
     first = behaviours.ranges(behaviours.names[0])
+    # A tick as fast as possible stands for one of the simulation's steps (a Gymnasium task's own).
+    simulated_hz = float(getattr(task, "rate_hz", 0.0)) if config.sim == "gym" else 0.0
+    simulated_hz = simulated_hz or config.simulated_hz or spec.rate_hz
     safety = SafetyLayer(config.safety, first.action_low, first.action_high, period,
-                         spec.veto(task) if spec.veto else None)  # fmt: skip
+                         spec.veto(task) if spec.veto else None, step_s=1.0 / simulated_hz)  # fmt: skip
     episode_steps = spec.episode_steps(task) if callable(spec.episode_steps) else spec.episode_steps
     tick_count = 0
     skills: list[Skill] = []
