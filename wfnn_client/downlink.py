@@ -118,6 +118,8 @@ class Downlink:
         self._config_warned: set[tuple[str, str]] = set()
         self._spec_warned: set[str] = set()
         """Servers whose weights of another spec were logged (both sets bounded: ids are forgeable)."""
+        self.other_specs: dict[str, str] = {}
+        """The spec of each server heard learning for another (as bounded as `_spec_warned`)."""
         self._lost_at: float | None = None
         self._applied_at: float | None = None
         """time.monotonic() when weights were last applied (None before the first)."""
@@ -318,6 +320,7 @@ class Downlink:
         """
         if server not in self._spec_warned and len(self._spec_warned) < MAX_SERVERS:
             self._spec_warned.add(server)
+            self.other_specs[server] = spec
             log.error("server %s learns for spec %s; this client is spec %s (another task, ranges or "
                       "learner): its weights are ignored", server, spec, self.spec_hash)  # fmt: skip
 

@@ -149,6 +149,14 @@ class RemoteBrain:
         """Each time the followed server was left for another: from, to, at_unix."""
         return self.downlink.failovers
 
+    def why_no_weights(self) -> str:
+        """What the client heard that explains its having no weights ("" where nothing does)."""
+        other = self.downlink.other_specs
+        if not other:
+            return ""
+        heard = ", ".join(f"{server} (spec {spec})" for server, spec in list(other.items())[:4])
+        return f"the servers heard learn for another spec than this client's {self.spec_hash}: {heard}"
+
     @property
     def learned_with(self) -> dict[str, str]:
         """Per server whose snapshots drove the robot: the learner config it learned with (JSON)."""

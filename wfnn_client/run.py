@@ -415,7 +415,9 @@ def _run(
 
     try:
         if config.lockstep and not brains.sync(config.lockstep_timeout_s):  # lock-step acts on weights only
-            raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s")
+            why = "; ".join(w for sk in skills if (w := getattr(sk.brain, "why_no_weights", lambda: "")()))
+            raise TimeoutError(f"no weights from {', '.join(config.server)} in {config.lockstep_timeout_s} s"
+                               + (f" ({why})" if why else ""))  # fmt: skip
         start = time.perf_counter()
         for episode in range(config.episodes):
             robot(spec.new_episode, task, rng)

@@ -364,6 +364,9 @@ def test_a_server_of_another_spec_is_not_said_to_learn_for_this_client(tmp_path,
     said = [r.getMessage() for r in caplog.records if "learns for spec" in r.getMessage()]
     assert said == [f"server s9 learns for spec {other.spec_hash()}; this client is spec {cfg.spec_hash()} "
                     "(another task, ranges or learner): its weights are ignored"]  # fmt: skip
+    # A lock-step run's "no weights" names it (it said only "no weights from ..." after 30 s).
+    assert brain.why_no_weights() == (f"the servers heard learn for another spec than this client's "
+                                      f"{cfg.spec_hash()}: s9 (spec {other.spec_hash()})")  # fmt: skip
 
 
 def test_a_status_with_an_unreadable_config_is_counted_and_never_recorded(tmp_path):
