@@ -308,7 +308,7 @@ def _run(
     ticks = TickStats(keep_all=config.timing_trace)
     ticker = Ticker(period, ticks)
     first = behaviours.ranges(behaviours.names[0])
-    # A tick as fast as possible stands for one of the simulation's steps (a Gymnasium task's own).
+    # A tick as fast as possible stands for a tick at the task's own real-time rate (`SafetyLayer`).
     simulated_hz = float(getattr(task, "rate_hz", 0.0)) if config.sim == "gym" else 0.0
     simulated_hz = simulated_hz or config.simulated_hz or spec.rate_hz
     safety = SafetyLayer(config.safety, first.action_low, first.action_high, period,

@@ -80,8 +80,8 @@ class SafetyLayer:
     ) -> None:
         """A safety layer for one robot.
 
-        `period_s` is the tick's period (0: as fast as possible); `step_s` the time one tick stands
-        for then (a simulation's step), for the rate filter.
+        `period_s` is the tick's period (0: as fast as possible); `step_s` the period one tick
+        stands for then, for the rate filter: the task's own real-time tick.
         """
         self.config = config
         self.low = np.asarray(action_low, dtype=np.float64)
@@ -97,9 +97,11 @@ class SafetyLayer:
             rate = np.asarray(config.max_action_rate, dtype=np.float64)
             if rate.shape != self.low.shape:
                 raise ValueError(f"max_action_rate needs {self.low.size} components, got {rate.size}")
-            # As fast as possible (period 0) is a simulation: one tick is one of its steps, so the
-            # same robot is filtered alike at its own rate and in lock-step (it counted as a
-            # second: a filter 15 to 50 times looser there).
+            # As fast as possible (period 0) is a simulation: one tick stands for a tick at the
+            # task's own real-time rate, so the same robot is filtered alike at its own rate and
+            # in lock-step (it counted as a second: a filter 15 to 50 times looser there). The
+            # boat's and positioning's real-time ticks (50 Hz) are not their simulated steps (0.1
+            # and 1 time unit): "per second" is the robot's wall-clock second, as on hardware.
             self.max_step = rate * (period_s if period_s > 0 else step_s)
         self.deadline_s = config.act_deadline_fraction * period_s if period_s > 0 else float("inf")
         self.veto = veto if config.veto else None

@@ -46,7 +46,7 @@ def test_the_filter_limits_each_components_change_per_second():
     assert d.flags == 0 and s.counts["filtered"] == 2
 
 
-def test_as_fast_as_possible_a_tick_is_one_simulated_step_for_the_filter():
+def test_as_fast_as_possible_a_tick_stands_for_the_tasks_own_tick_for_the_filter():
     """It counted as a second: lock-step runs of a robot simulated at 15 to 50 Hz were filtered 15 to
     50 times more loosely than the same robot at its own rate."""
     fast = SafetyLayer(SafetyConfig(max_action_rate=(2.0, 10.0)), LOW, HIGH, 0.0, step_s=0.02)
@@ -56,12 +56,13 @@ def test_as_fast_as_possible_a_tick_is_one_simulated_step_for_the_filter():
     assert fast.deadline_s == float("inf")  # no deadline without a real-time tick
 
 
-def test_a_lockstep_run_filters_its_actions_at_the_simulations_own_step(tmp_path):
+def test_a_lockstep_run_filters_its_actions_as_at_the_tasks_own_rate(tmp_path):
     from wfnn_client.run import run
 
     metrics = run(ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=1, out=tmp_path / "run",
                                safety=SafetyConfig(max_action_rate=(5.0, 5.0))))  # fmt: skip
-    assert SIMS["boat"].rate_hz == 50.0 and metrics["safety"]["filtered"] > 0  # 0.1 a step, not 5
+    # The boat's real-time tick is 50 Hz: 0.1 a tick, not 5.
+    assert SIMS["boat"].rate_hz == 50.0 and metrics["safety"]["filtered"] > 0
 
 
 def test_a_vetoed_action_is_replaced_and_returned_for_learning_twice():
