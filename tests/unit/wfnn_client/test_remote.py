@@ -870,22 +870,31 @@ def test_a_restarted_client_resends_what_its_last_run_journaled_unacknowledged(t
         again.stop()
 
 
-def test_a_journal_that_lost_its_tail_in_a_crash_never_reuses_numbers_its_servers_hold(tmp_path):
-    """Even when no server is heard at the restart: the numbers reserved before publishing are skipped."""
+def _journal_after_a_power_cut(tmp_path, hub, cfg, server):
+    """A client that sent 100 experiences, all acknowledged by `server`, and stopped -> that client.
+
+    Its journal as a power cut leaves it is in tmp_path / "crashed": not closed, and its newest
+    records never synced (cut to 60% of its bytes).
+    """
     import shutil
 
+    first = remote(tmp_path, hub, cfg, batch_max=10)
+    first.start()
+    for _ in range(100):
+        first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+    assert wait(first.all_acked) and server.store.stored_through[first.id] == 99
+    shutil.copytree(tmp_path / "journal", tmp_path / "crashed")
+    first.stop()
+    seg = tmp_path / "crashed" / "00000000.seg"
+    seg.write_bytes(seg.read_bytes()[: seg.stat().st_size * 6 // 10])
+    return first
+
+
+def test_a_journal_that_lost_its_tail_in_a_crash_never_reuses_numbers_its_servers_hold(tmp_path):
+    """Even when no server is heard at the restart: the numbers reserved before publishing are skipped."""
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
-        first = remote(tmp_path, hub, cfg, batch_max=10)
-        first.start()
-        for _ in range(100):
-            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
-        assert wait(first.all_acked) and server.store.stored_through[first.id] == 99
-        # A power cut now: the journal as on disk, its newest records never synced.
-        shutil.copytree(tmp_path / "journal", tmp_path / "crashed")
-        first.stop()
-        seg = tmp_path / "crashed" / "00000000.seg"
-        seg.write_bytes(seg.read_bytes()[: seg.stat().st_size * 6 // 10])
+        first = _journal_after_a_power_cut(tmp_path, hub, cfg, server)
         hub.tap = lambda key, data: None  # and the server is out of reach at the restart
         again = remote(
             tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", batch_max=10, status_timeout_s=0.3
@@ -932,19 +941,9 @@ def test_a_lockstep_client_restarted_after_a_crash_syncs_past_the_numbers_it_res
 def test_a_lockstep_restart_after_a_power_cut_waits_for_what_the_server_holds_beyond_the_journal(tmp_path):
     """The journal's newest records lost (not synced), its first sync waited only for what the
     journal kept: it acted on weights that had not learned experiences the server holds."""
-    import shutil
-
     hub, cfg = Hub(), small_config(thinks_per_action=400)  # the server learns slowly
     with make_server(tmp_path, hub, cfg) as server:
-        first = remote(tmp_path, hub, cfg, batch_max=10)
-        first.start()
-        for _ in range(100):
-            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
-        assert wait(first.all_acked) and server.store.stored_through[first.id] == 99
-        shutil.copytree(tmp_path / "journal", tmp_path / "crashed")  # not closed, and then
-        first.stop()
-        seg = tmp_path / "crashed" / "00000000.seg"  # its newest records never synced
-        seg.write_bytes(seg.read_bytes()[: seg.stat().st_size * 6 // 10])
+        first = _journal_after_a_power_cut(tmp_path, hub, cfg, server)
         again = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed", batch_max=10, lockstep=True)
         assert again.journal.last_held < 99 and again.uplink.experiences_through(server.id) is None
         again.start()
