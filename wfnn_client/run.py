@@ -271,19 +271,16 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
     """A behaviour's learner config and learner (from saved weights where given); nothing written."""
     lcfg = learner_config(ranges, config)
     learner = make_learner(lcfg)
-    if config.weights is not None:
-        path = _given_weights(config, name)
-        assert path is not None
+    path = _given_weights(config, name)
+    if path is not None:
         # A learner that learns here resumes the training saved with the weights (the deep
         # learner's second critic, targets, optimiser and warm-up), as a think server does.
         saved_cfg, params, meta, training = load_checkpoint(path, training=config.learn and config.local)
         if saved_cfg.spec_hash() != lcfg.spec_hash():
-            kind = saved_cfg.learner
-            same_task = _ranges(saved_cfg) == _ranges(lcfg)
-            hint = (f" (they are the {kind} learner's, this run's is {lcfg.learner}: --learner {kind})"
-                    if kind != lcfg.learner and same_task else "")  # fmt: skip
-            raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, "
-                             f"this task needs {lcfg.spec_hash()}{hint}")  # fmt: skip
+            kind, same_task = saved_cfg.learner, _ranges(saved_cfg) == _ranges(lcfg)
+            hint = f": --learner {kind}" if kind != lcfg.learner and same_task else ""  # helps only then
+            raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, this task needs "
+                             f"{lcfg.spec_hash()} ({saved_cfg.spec_difference(lcfg)}{hint})")  # fmt: skip
         try:
             learner = make_learner(lcfg, params=params)
             learner.load_training_state(training)
