@@ -206,7 +206,7 @@ class GymVec:
             objects = raw.dtype.kind == "O"
             if raw.dtype.kind in "cUSVMm" or (objects and any(isinstance(v, NOT_NUMBERS) for v in raw.flat)):
                 raise ValueError(f"of dtype {raw.dtype}")
-            x = np.asarray(obs, dtype=np.float64)
+            x = raw.astype(np.float64, copy=False)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self.env_id} returned an observation that is not numbers ({exc})") from None
         if x.shape != shape:
