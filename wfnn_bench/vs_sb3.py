@@ -356,15 +356,16 @@ def run(cfg: VsSb3Config, progress: Progress = no_progress) -> dict[str, Any]:
                     log.warning("%s %s failed (%s): the run goes on without it", env_id, algorithm, why)
                     failed.append(why)
                     progress(steps - counted.done)
-            if failed:  # its figures are over the seeds that finished, which are named
-                out["tasks"][env_id][algorithm] = {"failed": failed, "finished_seeds": finished}
+            # Where seeds failed, its figures are over the seeds that finished, which are named.
+            failure = {"failed": failed, "finished_seeds": finished} if failed else {}
             if not runs:
+                out["tasks"][env_id][algorithm] = failure
                 continue
             returns = np.array([r["returns"] for r in runs])  # [seeds, points]
             lengths = np.array([r["lengths"] for r in runs])  # [seeds, points]: mean greedy episode
             q25, q50, q75 = np.percentile(returns, [25, 50, 75], axis=0)
             out["tasks"][env_id][algorithm] = {
-                **out["tasks"][env_id].get(algorithm, {}),
+                **failure,
                 "steps": runs[0]["steps"], "return_q25": q25, "return_median": q50, "return_q75": q75,
                 "returns": returns, "final_return_median": float(q50[-1]),
                 "final_returns": returns[:, -1],
