@@ -116,10 +116,9 @@ class Downlink:
         """Per server whose snapshots drove the robot: the learner config it learned with (JSON),
         which is not this client's where the server adopted another's or overrides fields."""
         self._config_warned: set[tuple[str, str]] = set()
-        self._spec_warned: set[str] = set()
-        """Servers whose weights of another spec were logged (both sets bounded: ids are forgeable)."""
         self.other_specs: dict[str, str] = {}
-        """The spec of each server heard learning for another (as bounded as `_spec_warned`)."""
+        """The spec of each server heard learning for another, said once each (this and
+        `_config_warned` bounded: ids are forgeable)."""
         self._lost_at: float | None = None
         self._applied_at: float | None = None
         """time.monotonic() when weights were last applied (None before the first)."""
@@ -318,8 +317,7 @@ class Downlink:
         to a thesis client) is dropped by the bus before it is read, and the robot sat on its safe
         action with nothing said.
         """
-        if server not in self._spec_warned and len(self._spec_warned) < MAX_SERVERS:
-            self._spec_warned.add(server)
+        if server not in self.other_specs and len(self.other_specs) < MAX_SERVERS:
             self.other_specs[server] = spec
             log.error("server %s learns for spec %s; this client is spec %s (another task, ranges or "
                       "learner): its weights are ignored", server, spec, self.spec_hash)  # fmt: skip
