@@ -318,6 +318,15 @@ class LocalBrain:
         """Whether its think thread still runs after `stop` (a long think outlived the wait)."""
         return self.mt is not None and self.mt.thinking
 
+    def finish_thinking(self, timeout_s: float) -> bool:
+        """After `stop`, wait up to timeout_s more for a think thread that outlived its wait.
+
+        A long think does (a first compiled update, a slow machine) -> whether it has finished.
+        """
+        if self.mt is not None and self.mt.thinking:
+            self.mt.stop(timeout_s)  # the queue it left joins the replay buffer once it ends
+        return not self.thinking
+
     def check(self) -> None:
         """Raise the think thread's or the record's error, if any."""
         if self.mt is not None and self.mt.error is not None:

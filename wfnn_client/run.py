@@ -536,6 +536,7 @@ def _run(
     noted = _stop_brains(brains)
     camera_frames = frames.close() if frames is not None else None
     _raise_noted(noted)
+    _finish_thinking(brains)
     brains.check()
     final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)
     out = Path(config.out)
@@ -606,6 +607,26 @@ def _run(
         curve.unlink(missing_ok=True)  # an earlier run's in this folder is not this run's curve
         log.warning("%s not drawn (%s); the scores are in metrics.json", curve, exc)
     return metrics
+
+
+THINKING_GRACE_S = 300.0
+"""How long a run that ended waits for a think thread still in its update before giving up."""
+
+
+def _finish_thinking(brains: _Brains) -> None:
+    """At a run's normal end, wait for a think thread that outlived its stop's wait.
+
+    Saved meanwhile, the learner would be whatever half of an update the thread had made. One
+    that does not finish within THINKING_GRACE_S is not saved: the run ends on an error instead.
+    """
+    grace_s = THINKING_GRACE_S
+    for sk in brains.skills:
+        if isinstance(sk.brain, LocalBrain) and sk.brain.thinking:
+            log.warning("%s still thinking at the run's end: waiting up to %.0f s for its update",
+                        sk.name or "the learner", grace_s)  # fmt: skip
+            if not sk.brain.finish_thinking(grace_s):
+                raise RuntimeError(f"{sk.name or 'the learner'} still thinking {grace_s:g} s after the "
+                                   "run ended: not saved (the journal keeps its experiences)")  # fmt: skip
 
 
 def _learners_whole(brains: _Brains) -> bool:

@@ -36,7 +36,7 @@ class SafetyConfig:
 
     safe_action: tuple[float, ...] | None = None
     """Executed when no valid weights exist yet or a command misses its deadline (None: zero,
-    clipped into the action range, e.g. zero velocity)."""
+    clipped into the action range, e.g. zero velocity); one outside the action range is refused."""
     max_action_rate: tuple[float, ...] | None = None
     """Largest change of each action component per second (None: no filter)."""
     act_deadline_fraction: float = 0.5
@@ -91,6 +91,14 @@ class SafetyLayer:
         )
         if safe.shape != self.low.shape:
             raise ValueError(f"safe_action needs {self.low.size} components, got {safe.size}")
+        if config.safe_action is not None:
+            # A stand-in the robot cannot execute is a mistake to say, not to clip silently: the
+            # clipped action may be far from the safe one meant (a full brake clipped to half).
+            outside = [i for i in range(safe.size) if not self.low[i] <= safe[i] <= self.high[i]]
+            if outside:
+                i = outside[0]
+                raise ValueError(f"safe_action component {i} is {safe[i]:g}, outside the action range "
+                                 f"[{self.low[i]:g}, {self.high[i]:g}]")  # fmt: skip
         self.safe = np.clip(safe, self.low, self.high)
         self.max_step: FloatArray | None = None
         if config.max_action_rate is not None:

@@ -1,5 +1,6 @@
 import re
 import threading
+import time
 
 import gymnasium
 import numpy as np
@@ -454,6 +455,50 @@ def test_a_learner_that_failed_itself_is_not_saved_when_its_robot_fails_too(tmp_
         run_client(ClientConfig(sim="gym", env="WfnnTestFailsLateThink-v0", rate_hz=0, episodes=1,
                                 thinks_per_action=200, out=tmp_path / "run"))  # fmt: skip
     assert failed.is_set() and not (tmp_path / "run" / "weights.npz").exists()
+
+
+@pytest.mark.parametrize("grace_s", [300.0, 0.05])
+def test_a_run_that_ends_while_its_learner_is_in_an_update_saves_it_whole(tmp_path, monkeypatch, grace_s):
+    """A think thread still in a long update (a first compiled one) after its stop's wait was
+    saved at the run's normal end as it stood: half an update. The run now waits for it, and
+    one that outlives that wait too is not saved."""
+    from wfnn_client import run as run_module
+    from wfnn_client.run import run as run_client
+    from wfnn_client.think_thread import ActLearnThinkMT
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import load_checkpoint
+
+    think, stop = WFNN.think, ActLearnThinkMT.stop
+    ending, in_update = threading.Event(), threading.Event()
+
+    def long_update(self, *args, **kwargs):
+        if ending.is_set() and not in_update.is_set():
+            self.params.flat[:] += 1000.0  # the first half of an update
+            in_update.set()
+            time.sleep(1.0)
+            self.params.flat[:] -= 1000.0  # the second
+        return think(self, *args, **kwargs)
+
+    def stop_while_it_updates(self, timeout=5.0):
+        if not ending.is_set():  # the first stop's wait runs out in the middle of the update
+            ending.set()
+            in_update.wait(30.0)
+            timeout = 0.05
+        stop(self, timeout)
+
+    monkeypatch.setattr(WFNN, "think", long_update)
+    monkeypatch.setattr(ActLearnThinkMT, "stop", stop_while_it_updates)
+    monkeypatch.setattr(run_module, "THINKING_GRACE_S", grace_s)
+    cfg = ClientConfig(sim="positioning", rate_hz=0, episodes=2, thinks_per_action=1, out=tmp_path / "run")
+    if grace_s < 1.0:
+        with pytest.raises(RuntimeError, match=r"still thinking 0\.05 s after the run ended: not saved"):
+            run_client(cfg)
+        assert in_update.is_set() and not (tmp_path / "run" / "weights.npz").exists()
+        return
+    metrics = run_client(cfg)
+    _, params, _, _ = load_checkpoint(tmp_path / "run" / "weights.npz")
+    assert in_update.is_set() and np.abs(params.flat).max() < 100.0
+    assert metrics["think/thinks"] > 0
 
 
 def test_a_local_run_whose_tasks_reward_fails_keeps_what_its_learner_learned(tmp_path, monkeypatch):

@@ -15,10 +15,21 @@ def layer(period=0.1, veto=None, **kw):
 
 
 def test_no_weights_gives_the_safe_action():
-    s = layer(safe_action=(0.5, -3.0))
+    s = layer(safe_action=(0.5, -2.0))
     d = s.decide(None, np.zeros(2), 0.0)
-    np.testing.assert_array_equal(d.executed, [0.5, -2.0])  # clipped into the action range
+    np.testing.assert_array_equal(d.executed, [0.5, -2.0])
     assert d.flags == EXP_SAFE_ACTION and d.proposed is None and s.counts["no_weights"] == 1
+
+
+@pytest.mark.parametrize(
+    "safe, component", [((0.5, -3.0), "component 1 is -3"), ((1.5, 0.0), r"component 0 is 1\.5")]
+)
+def test_a_safe_action_the_robot_cannot_execute_is_refused(safe, component):
+    # Clipped, it would be another action than the one meant as safe, said nowhere.
+    with pytest.raises(ValueError, match=component):
+        layer(safe_action=safe)
+    assert layer().safe.tolist() == [0.0, 0.0]  # the default, zero, is clipped into the range
+    assert SafetyLayer(SafetyConfig(), (0.5, 1.0), (2.0, 3.0), 0.1).safe.tolist() == [0.5, 1.0]
 
 
 @pytest.mark.parametrize("proposed", [[np.nan, 0.0], [0.0, np.inf], [-np.inf, np.nan]])
