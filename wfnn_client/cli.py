@@ -81,14 +81,23 @@ def _run_showing_progress(config: ClientConfig, sim: str, episodes: int) -> dict
                    prepared=True)  # fmt: skip
 
 
+def _figure(value: float, decimals: int = 3, sign: str = "") -> str:
+    """A score, reward or value with `decimals` places, or in powers of ten where it is huge.
+
+    A diverging task's 1e300 printed with places is 300 digits long.
+    """
+    return format(value, f"{sign}.{decimals}{'e' if math.isfinite(value) and abs(value) >= 1e9 else 'f'}")
+
+
 def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
     return (
-        f"score {f['client/score']:.3f} | jitter p99 {_shown(f['client/tick_jitter_ms_p99'], '.2f')} ms | "
+        f"score {_figure(f['client/score'])} | "
+        f"jitter p99 {_shown(f['client/tick_jitter_ms_p99'], '.2f')} ms | "
         f"overruns {f['client/overruns']:.0f} | safe {f['client/safe_actions']:.0f} | "
         f"thinks/s {_shown(thinks, ',.0f')} | "
-        f"r {f['client/reward_mean']:+.3f} | Q {f['client/q_mean']:+.3f} | "
+        f"r {_figure(f['client/reward_mean'], sign='+')} | Q {_figure(f['client/q_mean'], sign='+')} | "
         f"v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"
     )
 
@@ -348,9 +357,10 @@ def client(
         raise
     scores = metrics["scores"]
     trend = (
-        f"first-10 median {metrics['first10_median']:.3f} -> last-10 median {metrics['last10_median']:.3f}"
+        f"first-10 median {_figure(metrics['first10_median'])} -> "
+        f"last-10 median {_figure(metrics['last10_median'])}"
         if len(scores) >= 20
-        else f"episode 1 {scores[0]:.3f} -> episode {len(scores)} {scores[-1]:.3f}"
+        else f"episode 1 {_figure(scores[0])} -> episode {len(scores)} {_figure(scores[-1])}"
     )
     if metrics["metric_not_finite"]:  # a score is the mean over the steps whose metric was finite
         trend += (f" (over the finite steps: {metrics['metric_not_finite']} steps' metric was not finite; "

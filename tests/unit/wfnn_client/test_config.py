@@ -575,3 +575,20 @@ def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path,
     assert second["think/thinks"] == 2 * first["think/thinks"]
     _, _, meta, _ = load_checkpoint(tmp_path / "a" / "weights.npz")
     assert meta["thinks"] == second["think/thinks"]
+
+
+def test_huge_figures_print_in_powers_of_ten_and_usual_ones_with_their_places():
+    """A diverging task's score of 1e300 printed 300 digits in the status and summary lines."""
+    from wfnn_client.cli import status_line
+
+    fields = {"client/score": 1e300, "client/tick_jitter_ms_p99": float("nan"), "client/overruns": 0.0,
+              "client/safe_actions": 0.0, "client/reward_mean": -3e200, "client/q_mean": 0.25,
+              "following": "local"}  # fmt: skip
+    line = status_line(fields)
+    assert len(line) < 150 and "score 1.000e+300" in line and "r -3.000e+200" in line and "Q +0.250" in line
+    usual = status_line({**fields, "client/score": 1.0204, "client/reward_mean": -0.645})
+    assert (
+        "score 1.020 |" in usual
+        and "r -0.645 |" in usual
+        and "score nan" in status_line({**fields, "client/score": float("nan")})
+    )
