@@ -89,6 +89,23 @@ def _figure(value: float, decimals: int = 3, sign: str = "") -> str:
     return format(value, f"{sign}.{decimals}{'e' if math.isfinite(value) and abs(value) >= 1e9 else 'f'}")
 
 
+def _unacknowledged(metrics: dict[str, Any]) -> str:
+    """A C/S run's experiences no server acknowledged, for its summary line ("" where none).
+
+    The journal holds them all, and the client's next run sends them; where no server took any
+    (all of another task, say), nothing reached a learner.
+    """
+    acked, produced = metrics.get("uplink/acked_by_any"), metrics.get("uplink/produced_through")
+    if acked is None:  # thinking locally
+        return ""
+    if acked < 0:
+        return " (none acknowledged by a server)"
+    if produced is not None and acked < produced:
+        return (f" (acknowledged by a server through #{acked:.0f} of #{produced:.0f}: the journal keeps "
+                "the rest, which the next run sends)")  # fmt: skip
+    return ""
+
+
 def status_line(f: dict[str, Any]) -> str:
     """The live figures of a run."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
@@ -366,8 +383,7 @@ def client(
         trend += (f" (over the finite steps: {metrics['metric_not_finite']} steps' metric was not finite; "
                   "nan: none was)")  # fmt: skip
     refused = int(metrics.get("learn/rejected", 0))  # in-process: what the learner's sanity checks refused
-    # C/S: where no server took any (all of another task, say), the journal holds them all.
-    unacked = " (none acknowledged by a server)" if metrics.get("uplink/acked_by_any", 0) < 0 else ""
+    unacked = _unacknowledged(metrics)
     console.print(
         f"{trend} ({metrics['metric']}); {metrics['experiences_learned']} experiences{unacked}"
         f"{f' ({refused} refused as not finite or out of range)' if refused else ''}, following "

@@ -592,3 +592,17 @@ def test_huge_figures_print_in_powers_of_ten_and_usual_ones_with_their_places():
         and "r -0.645 |" in usual
         and "score nan" in status_line({**fields, "client/score": float("nan")})
     )
+
+
+def test_a_run_some_of_whose_experiences_no_server_acknowledged_says_so():
+    """Only a run of which no server acknowledged any was flagged: one whose server went away
+    half-way printed "N experiences" as if a learner had them all."""
+    from wfnn_client.cli import _unacknowledged
+
+    assert _unacknowledged({}) == ""  # thinking locally
+    assert _unacknowledged({"uplink/acked_by_any": -1.0, "uplink/produced_through": 99.0}) == (
+        " (none acknowledged by a server)"
+    )
+    partly = _unacknowledged({"uplink/acked_by_any": 59.0, "uplink/produced_through": 99.0})
+    assert "through #59 of #99" in partly and "the next run sends" in partly
+    assert _unacknowledged({"uplink/acked_by_any": 99.0, "uplink/produced_through": 99.0}) == ""
