@@ -65,8 +65,13 @@ class DeepWFNN(WFNN):
             theta = self._fresh_theta()
             params = DeepParams(theta[None, : self.shapes.n_params].copy(), self.shapes)
         else:  # critic 2 starts near critic 1, apart enough that the twins do not stay equal
+            # As float32 values, as fresh weights are (`_fresh_theta`): weights given in float64
+            # (a PopArt learner's in the task's units) were acted on as given, but resumed from a
+            # checkpoint taken before the first update as the trainer's float32 rounding of them.
+            given = params.flat[0].astype(np.float32).astype(np.float64)
+            params = DeepParams(given[None].copy(), self.shapes)
             nudge = 0.01 * deep_net.init_critic(self.shapes, self._weights_rng, self.config.init_scale)
-            theta = np.concatenate([params.flat[0], params.flat[0] + nudge])
+            theta = np.concatenate([given, given + nudge]).astype(np.float32).astype(np.float64)
         self.params: DeepParams = params  # type: ignore[assignment]
         self._theta0 = theta
         self._reward_scale = 0.0
@@ -230,7 +235,8 @@ class DeepWFNN(WFNN):
             raise ValueError("a deep learner thinks on its own weights only")
         if active is not None and not active[0]:
             return self.last_think
-        terminal = np.asarray(exp.terminal[0], dtype=np.bool_)
+        self._check_given(exp)
+        terminal = np.asarray(exp.terminal[0]) != 0
         discount = np.where(terminal, 0.0, self.config.gamma)
         batch = {"state": exp.state[0], "action": exp.action[0], "reward": self._reward(exp.reward[0]),
                  "next_state": exp.next_state[0], "discount": discount}  # fmt: skip
@@ -345,7 +351,7 @@ class DeepWFNN(WFNN):
     # ------------------------------------------------------------------ views
     def greedy_values(self, state: Any) -> FloatArray:
         """Value of the best wire for states [N, S] -> [1, N]."""
-        x = self.state_scaler.to_unit(np.asarray(state, dtype=np.float64).reshape(-1, self.config.state_dim))
+        x = self.state_scaler.to_unit(self._block(state, (None, self.config.state_dim), "state"))
         x = np.nan_to_num(np.clip(x, -self._limit, self._limit))
         return deep_net.greedy(self.params, x)[1][None]
 

@@ -44,6 +44,20 @@ doubles their difference, so rewards near float32's largest turned its weights N
 1e30 leaves those eight orders of magnitude."""
 
 
+def _flags(a: ArrayLike, what: str) -> NDArray[np.bool_]:
+    """`a` as booleans: bools, or numbers that are 0 or 1; anything else is a ValueError.
+
+    numpy takes any non-empty text or non-zero number for True: flags read from a CSV or JSON
+    log as "False", or a NaN, were stored as terminal, their next states dropped.
+    """
+    arr = np.asarray(a)
+    if arr.dtype == np.bool_:
+        return arr
+    if arr.dtype.kind in "iuf" and bool(((arr == 0) | (arr == 1)).all()):
+        return arr != 0
+    raise ValueError(f"{what} must be booleans or 0/1, got {str(a)[:60]!r}")
+
+
 class ActResult(NamedTuple):
     """What `act` chose.
 
@@ -190,6 +204,35 @@ class WFNN:
                     np.empty(W1.shape[0]), np.empty(W2.shape[0]))  # fmt: skip
 
     # ------------------------------------------------------------------ shapes
+    def _check_snapshot(self, params: Any) -> None:
+        """ValueError unless `params` are weights of this learner's network and population.
+
+        `act`'s compiled kernels take their sizes from the weights: another network's would be
+        read past their ends. A snapshot shares its learner's shapes, so the check is one `is`.
+        """
+        mine = self.params
+        shapes = getattr(params, "shapes", None)
+        if type(params) is not type(mine) or (shapes is not mine.shapes and shapes != mine.shapes):
+            raise ValueError(f"weights of another network ({shapes or type(params).__name__}) do not fit "
+                             f"this learner's {mine.shapes}")  # fmt: skip
+        if params.flat.shape[0] != mine.flat.shape[0]:
+            raise ValueError(f"weights of a population of {params.flat.shape[0]} do not fit this learner's "
+                             f"{mine.flat.shape[0]}")  # fmt: skip
+
+    def _block(self, a: ArrayLike, shape: tuple[int | None, ...], what: str, dtype: type = np.float64) -> Any:
+        """`a` as an array of exactly `shape` (None: any length), else a ValueError naming it.
+
+        Blocks of experiences are not reshaped into place: [S, N] states for [N, S] ones were
+        taken as other states, without a word.
+        """
+        arr = np.asarray(a, dtype=dtype) if dtype is not np.bool_ else _flags(a, what)
+        if arr.ndim != len(shape) or any(
+            w is not None and w != n for w, n in zip(shape, arr.shape, strict=False)
+        ):
+            wanted = ", ".join("N" if w is None else str(w) for w in shape)
+            raise ValueError(f"{what}: expected shape [{wanted}], got {list(np.shape(a))}")
+        return arr
+
     def _rows(self, a: ArrayLike, width: int) -> tuple[FloatArray, bool]:
         arr = np.asarray(a, dtype=np.float64)
         single = arr.ndim == 1
@@ -199,7 +242,9 @@ class WFNN:
         return arr, single
 
     def _per_learner(self, a: ArrayLike, dtype: type) -> NDArray[Any]:
-        arr: NDArray[Any] = np.asarray(a, dtype=dtype)
+        arr: NDArray[Any] = (
+            _flags(a, "terminal and valid flags") if dtype is np.bool_ else np.asarray(a, dtype=dtype)
+        )
         if arr.ndim == 0:
             arr = np.full(self.population, arr, dtype=dtype)
         if arr.shape != (self.population,):
@@ -232,6 +277,8 @@ class WFNN:
         was given: then the caller sees `diverged` and decides.
         """
         cfg = self.config
+        if params is not None and params is not self.params:
+            self._check_snapshot(params)
         s = np.asarray(state, dtype=np.float64)
         single = s.ndim == 1
         if single and self.population == 1 and s.shape[0] == cfg.state_dim:
@@ -398,12 +445,12 @@ class WFNN:
         Each experience passes the same sanity limits as in `learn`; returns which were stored [N].
         """
         cfg = self.config
-        s = np.asarray(state, dtype=np.float64).reshape(-1, cfg.state_dim)
+        s = self._block(state, (None, cfg.state_dim), "state")
         n = s.shape[0]
-        a = np.asarray(action, dtype=np.float64).reshape(n, cfg.action_dim)
-        sn = np.asarray(next_state, dtype=np.float64).reshape(n, cfg.state_dim)
-        r = np.asarray(reward, dtype=np.float64).reshape(n)
-        term = np.asarray(terminal, dtype=np.bool_).reshape(n)
+        a = self._block(action, (n, cfg.action_dim), "action")
+        sn = self._block(next_state, (n, cfg.state_dim), "next_state")
+        r = self._block(reward, (n,), "reward")
+        term = self._block(terminal, (n,), "terminal", np.bool_)
         exp, ok = self._check(s, a, sn, r, term, np.ones(n, dtype=np.bool_))
         images, kept = [exp], [ok]
         for symmetry in cfg.symmetries:  # the mirrored experiences of those stored
@@ -481,6 +528,9 @@ class WFNN:
     ) -> UpdateStats:
         """Learn from given experiences [P, T, ...] (incremental: T updates in order; minibatch: one)."""
         cfg = self.config
+        if params is not None and params is not self.params:
+            self._check_snapshot(params)
+        self._check_given(exp)
         p = params or self.params
         active = np.ones(self.population, dtype=np.bool_) if active is None else active
         if cfg.update == "incremental":
@@ -496,6 +546,30 @@ class WFNN:
         )  # fmt: skip
         self.thinks += active
         return stats
+
+    def _check_given(self, exp: Experiences) -> None:
+        """ValueError unless `exp` are experiences [P, T >= 1, ...] fit to learn from.
+
+        `think_on` learns what it is given, past `learn`'s checks: one NaN reward made every
+        weight NaN, and the next `act` reset them all without a word.
+        """
+        cfg, p = self.config, self.population
+        t = np.shape(exp.reward)[1] if np.ndim(exp.reward) == 2 else 0
+        if t < 1:
+            raise ValueError(
+                f"experiences must be [{p}, T >= 1, ...], got rewards of shape {list(np.shape(exp.reward))}"
+            )
+        shapes = {"state": (p, t, cfg.state_dim), "action": (p, t, cfg.action_dim),
+                  "next_state": (p, t, cfg.state_dim), "reward": (p, t), "terminal": (p, t)}  # fmt: skip
+        for name, shape in shapes.items():
+            if np.shape(getattr(exp, name)) != shape:
+                raise ValueError(f"experiences' {name}: expected shape {list(shape)}, got "
+                                 f"{list(np.shape(getattr(exp, name)))}")  # fmt: skip
+        # Next states at terminals too: the update computes with them (the buffer stores them zeroed).
+        finite = all(np.isfinite(a).all() for a in (exp.state, exp.action, exp.next_state))
+        finite = finite and bool((np.abs(exp.reward) <= MAX_REWARD).all())  # NaN fails
+        if not finite:
+            raise ValueError(f"experiences to think on must be finite, with rewards within +-{MAX_REWARD:g}")
 
     # ------------------------------------------------------------------ weights
     def reset_weights(self, which: BoolArray) -> None:
@@ -544,7 +618,7 @@ class WFNN:
 
     def greedy_values(self, state: ArrayLike) -> FloatArray:
         """Value of the best wire (Q of the action `act` would choose) for states [N, S] -> [P, N]."""
-        x = self.state_scaler.to_unit(np.asarray(state, dtype=np.float64).reshape(-1, self.config.state_dim))
+        x = self.state_scaler.to_unit(self._block(state, (None, self.config.state_dim), "state"))
         x = np.nan_to_num(np.clip(x, -self._limit, self._limit))
         _, out = forward(self.params, np.broadcast_to(x, (self.population, *x.shape)))
         return np.asarray(split_wires(out, self.config.n_wires, self.config.action_dim)[1].max(axis=-1))

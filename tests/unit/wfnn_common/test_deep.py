@@ -671,6 +671,28 @@ def test_a_learner_that_has_not_thought_yet_resumes_exactly(tmp_path):
         assert resumed.act(s, explore=False).action == learner.act(s, explore=False).action
 
 
+def test_a_learner_made_from_float64_weights_resumes_exactly_before_it_thinks(tmp_path):
+    """Weights given in float64 (a PopArt learner's, in the task's units) were acted on as given,
+    and resumed from a checkpoint taken before the first update as their float32 rounding."""
+    cfg = config()
+    shapes = DeepWFNN(cfg).shapes
+    flat = deep_net.init_critic(shapes, np.random.default_rng(7), 1.0) * (1.0 + 1e-9)
+    assert not np.array_equal(flat.astype(np.float32).astype(np.float64), flat)  # not float32 values
+    learner = DeepWFNN(cfg, params=deep_net.DeepParams(flat[None].copy(), shapes))
+    save_weights(tmp_path / "ck.npz", learner.config, learner.params, training=learner.training_state())
+    ck_cfg, params, _, training = load_checkpoint(tmp_path / "ck.npz")
+    resumed = make_learner(ck_cfg, params=params)
+    resumed.load_training_state(training)
+    np.testing.assert_array_equal(resumed.params.flat, learner.params.flat)
+    states = np.random.default_rng(8).uniform(-1.0, 1.0, (200, 2))
+    for s in states:
+        a, b = learner.act(s, explore=False), resumed.act(s, explore=False)
+        assert a.action == b.action and a.value == b.value
+    learner.learn(states[0], np.zeros(1), states[1], -1.0)
+    learner.think(1)  # and the trainer starts from the weights acted on
+    assert learner.params.flat.shape == flat[None].shape
+
+
 def test_the_divergence_threshold_the_rewards_set_is_resumed(tmp_path):
     """A learner resumed on a task of large rewards judged its own healthy weights diverged."""
     learner = DeepWFNN(config())

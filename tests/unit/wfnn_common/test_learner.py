@@ -570,3 +570,88 @@ def test_evaluating_leaves_the_learner_as_it_was(learner):
         model.act(np.array([[0.1, 0.2, 0.3], [0.3, 0.2, 0.1]]), explore=False)
     assert any((m._last_valid != lv).any() for m, lv in zip(members, last_valid, strict=True))
     assert int(np.sum(model.resets)) > 0  # what evaluating keeps from happening
+
+
+def _api_config(learner: str, **over) -> LearnerConfig:
+    deep = {"learner": "deep"} if learner == "deep" else {}
+    ranges = {
+        "state_low": (-1.0, -1.0),
+        "state_high": (1.0, 1.0),
+        "action_low": (-1.0,),
+        "action_high": (1.0,),
+    }
+    return LearnerConfig(**ranges, **deep, **over)
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_act_refuses_a_snapshot_of_another_network(learner):
+    """act's compiled kernels take their sizes from the weights: another network's were read past
+    their ends (an empty action and a value of 3.9e287 from memory outside them)."""
+    mine = make_learner(_api_config(learner, n_wires=9))
+    for other in (_api_config(learner, n_wires=2), replace(_api_config(learner), state_low=(-1.0,) * 5,
+                                                           state_high=(1.0,) * 5)):  # fmt: skip
+        with pytest.raises(ValueError, match="another network"):
+            mine.act(np.zeros(2), explore=False, params=make_learner(other).snapshot())
+    assert mine.act(np.zeros(2), explore=False, params=mine.snapshot()).action.shape == (1,)
+    if learner == "thesis":
+        population = make_learner(_api_config(learner, n_wires=9), population=3).snapshot()
+        with pytest.raises(ValueError, match="population of 3"):
+            mine.act(np.zeros(2), explore=False, params=population)
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_think_on_refuses_experiences_learn_would_refuse(learner):
+    """One NaN reward given to think_on made every weight NaN, and no experience failed with
+    numpy's reshape error."""
+    lrn = make_learner(_api_config(learner, batch_size=4))
+    before = lrn.params.flat.copy()
+    exp = Experiences(np.zeros((1, 4, 2)), np.zeros((1, 4, 1)), np.zeros((1, 4, 2)),
+                      np.array([[0.0, np.nan, 0.0, 0.0]]), np.zeros((1, 4), dtype=bool))  # fmt: skip
+    with pytest.raises(ValueError, match="finite"):
+        lrn.think_on(exp)
+    empty = Experiences(np.zeros((1, 0, 2)), np.zeros((1, 0, 1)), np.zeros((1, 0, 2)), np.zeros((1, 0)),
+                        np.zeros((1, 0), dtype=bool))  # fmt: skip
+    with pytest.raises(ValueError, match="T >= 1"):
+        lrn.think_on(empty)
+    with pytest.raises(ValueError, match="action: expected shape"):
+        lrn.think_on(exp._replace(reward=np.zeros((1, 4)), action=np.zeros((1, 4, 3))))
+    np.testing.assert_array_equal(lrn.params.flat, before)
+    with pytest.raises(ValueError, match="finite"):  # the update computes with it at a terminal too
+        lrn.think_on(exp._replace(reward=np.zeros((1, 4)), next_state=np.full((1, 4, 2), np.nan),
+                                  terminal=np.ones((1, 4), dtype=bool)))  # fmt: skip
+    np.testing.assert_array_equal(lrn.params.flat, before)
+    lrn.think_on(exp._replace(reward=np.zeros((1, 4)), terminal=np.ones((1, 4), dtype=bool)))
+    assert np.isfinite(lrn.params.flat).all() and int(np.sum(lrn.thinks)) >= 1
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_blocks_of_experiences_of_the_wrong_shape_are_refused_not_reshaped(learner):
+    """[S, N] states given for [N, S] ones were reshaped into other states and stored."""
+    lrn = make_learner(replace(_api_config(learner), state_low=(-1.0,) * 3, state_high=(1.0,) * 3))
+    s = np.array([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]])
+    with pytest.raises(ValueError, match=r"state: expected shape \[N, 3\], got \[3, 2\]"):
+        lrn.learn_many(s.T, np.zeros((2, 1)), s.T, np.zeros(2), np.zeros(2))
+    with pytest.raises(ValueError, match=r"action: expected shape \[2, 1\]"):
+        lrn.learn_many(s, np.zeros(2), s, np.zeros(2), np.zeros(2))
+    with pytest.raises(ValueError, match=r"state: expected shape"):
+        lrn.greedy_values(s.T)
+    assert int(lrn.buffer.count[0]) == 0
+    assert lrn.learn_many(s, np.zeros((2, 1)), s, np.zeros(2), np.zeros(2)).tolist() == [True, True]
+    assert lrn.greedy_values(s).shape == (1, 2)
+
+
+@pytest.mark.parametrize("flag", ["False", "no", np.nan, 0.5, 2])
+def test_flags_that_are_not_booleans_are_refused(flag):
+    """numpy takes any non-empty text or non-zero number for True: "False" read from a log was
+    stored as terminal, its next state dropped."""
+    lrn = make_learner(_api_config("thesis"))
+    with pytest.raises(ValueError, match="booleans or 0/1"):
+        lrn.learn(np.zeros(2), np.zeros(1), np.full(2, 0.5), -1.0, flag)
+    with pytest.raises(ValueError, match="booleans or 0/1"):
+        lrn.learn(np.zeros(2), np.zeros(1), np.full(2, 0.5), -1.0, False, flag)
+    with pytest.raises(ValueError, match="booleans or 0/1"):
+        lrn.learn_many(np.zeros((1, 2)), np.zeros((1, 1)), np.zeros((1, 2)), np.zeros(1), [flag])
+    assert int(lrn.buffer.count[0]) == 0
+    assert lrn.learn(np.zeros(2), np.zeros(1), np.full(2, 0.5), -1.0, 0) and lrn.learn(
+        np.zeros(2), np.zeros(1), np.full(2, 0.5), -1.0, np.float32(1.0)
+    )
