@@ -260,9 +260,25 @@ def _in_use(directory: Path) -> LogError:
     return LogError(f"{directory}: in use by another writer (a run, server or merge has it open)")
 
 
+def _open_lock(directory: Path, flags: int) -> int:
+    """`directory`'s LOCK file opened without waiting -> its descriptor; LogError unless a regular file.
+
+    A FIFO there would block the open for good, beyond the reach of SIGTERM (Python retries an
+    interrupted open), and a directory or device cannot stand for the lock.
+    """
+    fd = os.open(directory / LOCK, flags | os.O_NONBLOCK, 0o644)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise LogError(f"{directory / LOCK} is not a regular file: move it away to use this log")
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
 def take_lock(directory: Path) -> int:
     """Lock `directory`'s LOCK file for this log's lifetime -> its descriptor; LogError if held."""
-    fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _open_lock(directory, os.O_RDWR | os.O_CREAT)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -280,8 +296,12 @@ def check_free(directory: Path) -> None:
     on the same directory is refused before it overwrites the first one's record.
     """
     try:
-        fd = os.open(Path(directory) / LOCK, os.O_RDONLY)
-    except OSError:  # no log, or no lock file yet: nobody holds it
+        fd = _open_lock(Path(directory), os.O_RDONLY)
+    except FileNotFoundError:  # no log, or no lock file yet: nobody holds it
+        return
+    except LogError:
+        raise
+    except OSError:  # one that cannot be opened cannot be held either (the owner's open then says why)
         return
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -339,8 +359,14 @@ class SegmentLog:
         self._segment = current
         self._file = open(self.directory / segment_name(current), "ab")
         self._size = self._file.tell()
-        if not numbers and self.fsync != "never":  # a new segment's directory entry must survive too
-            sync_dir(self.directory)
+        if self.fsync != "never":
+            if numbers:
+                # What a writer that crashed left in the OS but never synced reads back as the
+                # log's own: durable only once synced (a restarted server acknowledged it, and a
+                # power cut then lost it). Earlier segments were synced before the next began.
+                os.fsync(self._file.fileno())
+            else:  # a new segment's directory entry must survive too
+                sync_dir(self.directory)
 
     # ------------------------------------------------------------------ opening
     def segment_numbers(self) -> list[int]:

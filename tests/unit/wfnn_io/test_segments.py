@@ -537,3 +537,52 @@ def test_a_repair_the_disk_cannot_take_leaves_no_empty_tail_in_quarantine(tmp_pa
     assert [(p.name, p.read_bytes()) for p in quarantined(tmp_path)] == [
         (f"00000000-{RECORD.size + 4:010d}.torn", tail)
     ]
+
+
+@pytest.mark.parametrize("policy, synced", [("interval", True), ("always", True), ("never", False)])
+def test_what_a_crashed_writer_left_unsynced_is_synced_before_the_log_counts_it(
+    tmp_path, monkeypatch, policy, synced
+):
+    """A writer killed before its sync left records in the OS only; reopened, the log took them
+    for its own durable records (a restarted server acknowledged them) and never synced them."""
+    import os
+
+    first = SegmentLog(tmp_path, fsync="interval")
+    for p in payloads(3):
+        first.append(p)
+    first._file.close()  # killed: the records are in the OS, never synced, the lock let go
+    os.close(first._lock)
+    segment = os.stat(seg_path(tmp_path, 0)).st_ino
+    real, synced_files = os.fsync, []
+
+    def spy(fd):
+        synced_files.append(os.fstat(fd).st_ino)
+        return real(fd)
+
+    monkeypatch.setattr(os, "fsync", spy)
+    log = SegmentLog(tmp_path, fsync=policy)
+    assert (segment in synced_files) is synced and len(read_all(log)) == 3
+    log.close()
+
+
+def test_a_lock_file_that_is_a_fifo_is_refused_at_once(tmp_path):
+    """Opening it waited for a writer that never came, and SIGTERM could not end the wait."""
+    import os
+    import threading
+
+    os.mkfifo(tmp_path / segments.LOCK)
+    outcomes = []
+
+    def open_both():
+        for opening in (lambda: segments.check_free(tmp_path), lambda: SegmentLog(tmp_path)):
+            try:
+                opening()
+                outcomes.append("opened")
+            except LogError as exc:
+                outcomes.append(str(exc))
+
+    worker = threading.Thread(target=open_both, daemon=True)
+    worker.start()
+    worker.join(10.0)
+    assert not worker.is_alive(), "still waiting on the FIFO"
+    assert len(outcomes) == 2 and all("is not a regular file" in o for o in outcomes)
