@@ -106,16 +106,25 @@ def _unacknowledged(metrics: dict[str, Any]) -> str:
     return ""
 
 
+def _per_behaviour(f: dict[str, Any], name: str) -> list[float]:
+    """A figure of several behaviours, each under `<behaviour>/name`, in their order."""
+    return [v for k, v in f.items() if k.endswith("/" + name) and "/" not in k[: -len(name) - 1]]
+
+
 def status_line(f: dict[str, Any]) -> str:
-    """The live figures of a run."""
+    """The live figures of a run (several behaviours: their thinks/s summed, their versions each)."""
     thinks = f.get("server/think/thinks_per_s", f.get("think/thinks_per_s"))
+    if thinks is None:
+        several = _per_behaviour(f, "server/think/thinks_per_s") or _per_behaviour(f, "think/thinks_per_s")
+        thinks = sum(several) if several else None
+    versions = _per_behaviour(f, "weights/version") if "weights/version" not in f else [f["weights/version"]]
     return (
         f"score {_figure(f['client/score'])} | "
         f"jitter p99 {_shown(f['client/tick_jitter_ms_p99'], '.2f')} ms | "
         f"overruns {f['client/overruns']:.0f} | safe {f['client/safe_actions']:.0f} | "
         f"thinks/s {_shown(thinks, ',.0f')} | "
         f"r {_figure(f['client/reward_mean'], sign='+')} | Q {_figure(f['client/q_mean'], sign='+')} | "
-        f"v{f.get('weights/version', 0):.0f} from {f['following'] or '-'}"
+        f"v{'/'.join(f'{v:.0f}' for v in versions) or 0} from {f['following'] or '-'}"
     )
 
 

@@ -457,8 +457,12 @@ def _run(
                 # The safe action was no one's choice: recorded as such ("", version 0), never
                 # as the learner's (nor flagged explored by what its proposal had been).
                 chose = None if decision.flags & EXP_SAFE_ACTION else acted
+                # The other behaviours record who chose: the driving behaviour's learner by its
+                # name (its weights are not theirs), another controller by its own.
+                watched = (chose._replace(source=f"behaviour:{skills[d].name}")
+                           if chose is not None and policy == LEARNER else chose)  # fmt: skip
                 pupils = [
-                    Pupil(xs[k][None], to_brain(sk, decision.flags, chose if k == d else None), sk.name,
+                    Pupil(xs[k][None], to_brain(sk, decision.flags, chose if k == d else watched), sk.name,
                           partial(robot, behaviours.reward, sk.name) if k == d and twice else None,
                           learn_proposal=to_brain(sk, EXP_VETO_PROPOSED, acted))
                     for k, sk in enumerate(skills)

@@ -182,14 +182,18 @@ class Dashboard:
         """Whether a request's Host headers (all of them) name this dashboard.
 
         One header, of its own addresses, or, where it serves every interface, any IP address
-        with its port.
+        with its port (on port 80 also without, as browsers send it).
         """
         if len(hosts) != 1:
             return False
         host = hosts[0].strip().lower()
         if host in self.hosts:
             return True
-        return self.every_interface and _ip_literal(host) and host.rpartition(":")[2] == str(self.port)
+        if not (self.every_interface and _ip_literal(host)):
+            return False
+        if host.endswith("]") or ":" not in host:  # no port: HTTP's default
+            return self.port == 80
+        return host.rpartition(":")[2] == str(self.port)
 
     def view(self, since: int = 0) -> dict[str, Any]:
         """Everything the page shows, with only the samples newer than `since`."""

@@ -606,3 +606,22 @@ def test_a_run_some_of_whose_experiences_no_server_acknowledged_says_so():
     partly = _unacknowledged({"uplink/acked_by_any": 59.0, "uplink/produced_through": 99.0})
     assert "through #59 of #99" in partly and "the next run sends" in partly
     assert _unacknowledged({"uplink/acked_by_any": 99.0, "uplink/produced_through": 99.0}) == ""
+
+
+def test_the_status_line_of_several_behaviours_shows_each_ones_weights_version():
+    """With each behaviour's figures under its name, it showed v0 and no thinks/s."""
+    from wfnn_client.cli import status_line
+
+    fields = {"client/score": 1.0, "client/tick_jitter_ms_p99": float("nan"), "client/overruns": 0.0,
+              "client/safe_actions": 0.0, "client/reward_mean": 0.0, "client/q_mean": 0.0,
+              "following": "servo:s1 wander:s2", "servo/weights/version": 238.0,
+              "wander/weights/version": 1220.0, "servo/server/think/thinks_per_s": 1000.0,
+              "wander/server/think/thinks_per_s": 500.0}  # fmt: skip
+    line = status_line(fields)
+    assert "v238/1220 from servo:s1 wander:s2" in line and "thinks/s 1,500" in line
+    one = {
+        **{k: v for k, v in fields.items() if "/" not in k or k.startswith("client/")},
+        "following": "local",
+    }
+    assert "v0 from local" in status_line(one) and "thinks/s -" in status_line(one)
+    assert "v7 from local" in status_line({**one, "weights/version": 7.0})

@@ -219,3 +219,24 @@ def test_a_safe_action_is_journaled_as_no_ones_choice(tmp_path):
     for b in batches:
         assert (b.flags & EXP_SAFE_ACTION).all() and not (b.flags & EXP_EXPLORED).any()
         assert not b.weights_version.any() and not b.action.any()
+
+
+def test_each_behaviours_log_names_the_behaviour_that_chose_the_others_actions(tmp_path):
+    """A foraging robot's wander log recorded the servo learner's actions as ("", 0), the safe
+    action's record, without the safe-action flag: no one's choice, and no one's safe action."""
+    from sims.nomad import ForageConfig, NomadConfig
+    from wfnn_client import run as client_run
+    from wfnn_io.logs import read_batches
+
+    foraging = {"nomad": NomadConfig(behaviour="wander"), "forage": ForageConfig()}
+    config = ClientConfig(sim="nomad", episodes=1, rate_hz=0.0, duration_s=6.0, lockstep=True, out=tmp_path,
+                          **foraging)  # fmt: skip
+    client_run.run(config)
+    sources = {}
+    for behaviour, other in (("servo", "wander"), ("wander", "servo")):
+        for b in read_batches(tmp_path / f"journal_{behaviour}"):
+            if b.weights_source == "":  # the safe action's record: only where it was the safe action
+                assert (b.flags & EXP_SAFE_ACTION).all()
+            sources.setdefault(behaviour, set()).add(b.weights_source)
+        assert sources[behaviour] <= {"", "local", f"behaviour:{other}"}
+    assert "behaviour:servo" in sources["wander"] and "local" in sources["wander"]

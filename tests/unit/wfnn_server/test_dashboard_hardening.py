@@ -397,3 +397,18 @@ def test_a_dashboard_on_every_interface_serves_pages_naming_an_ip_address_with_i
     assert not d.every_interface and not d.host_allowed([f"10.1.2.3:{d.port}"])  # bound to loopback
     d.every_interface = True  # as one bound to 0.0.0.0 is, however its host was spelt
     assert d.host_allowed([f"10.1.2.3:{d.port}"]) and not d.host_allowed([f"10.1.2.3:{d.port + 1}"])
+
+
+def test_a_dashboard_on_every_interface_at_port_80_serves_an_ip_address_without_its_port():
+    """Browsers leave HTTP's default port out of the Host header: opened as http://<LAN IP>/ it
+    answered 421, which the names without a port on port 80 already escaped."""
+    from types import SimpleNamespace
+
+    for port, plain in ((80, True), (8080, False)):
+        hosts = dashboard_module._allowed_hosts("0.0.0.0", port, True)
+        d = SimpleNamespace(hosts=hosts, every_interface=True, port=port)
+        for host in ("192.168.1.5", "[fe80::1]"):
+            assert dashboard_module.Dashboard.host_allowed(d, [host]) is plain
+        assert dashboard_module.Dashboard.host_allowed(d, [f"192.168.1.5:{port}"])
+        assert not dashboard_module.Dashboard.host_allowed(d, [f"192.168.1.5:{port + 1}"])
+        assert not dashboard_module.Dashboard.host_allowed(d, ["evil.example"])
