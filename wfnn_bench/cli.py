@@ -48,6 +48,10 @@ from wfnn_io.persist import to_jsonable, writable
 MAX_POPULATION = 100_000
 """Most learners, runs or controllers a benchmark option asks for (beyond: refused naming it,
 not by numpy's array limits once the run has started)."""
+MAX_BUDGET = 10_000_000
+"""Most of any other count a benchmark option asks for (targets, steps, episodes, calls,
+experiences, thinks), for the same reason: 1e11 targets ended in numpy's "Unable to allocate
+14.6 TiB" after the run had begun, a server already started and stopped."""
 
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
@@ -206,9 +210,12 @@ def boat(
         int, typer.Option(min=1, max=MAX_POPULATION, help="Controllers per condition.")
     ] = 20,
     mode: Annotated[str, typer.Option(help="advantage, q or both.")] = "both",
-    targets: Annotated[int, typer.Option(min=1)] = 40,
+    targets: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 40,
     thinks: Annotated[
-        int | None, typer.Option(min=0, help="Replays (updates) per action (learner's: thesis 200, deep 1).")
+        int | None,
+        typer.Option(
+            min=0, max=MAX_BUDGET, help="Replays (updates) per action (learner's: thesis 200, deep 1)."
+        ),
     ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     hold: Annotated[
@@ -254,9 +261,9 @@ def boat(
 @app.command()
 def cartpole(
     runs: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 8,
-    steps: Annotated[int, typer.Option(min=1, help="Control steps per run.")] = 30_000,
-    thinks: Annotated[int, typer.Option(min=0)] = 100,
-    max_attempt_steps: Annotated[int, typer.Option(min=1)] = 10_000,
+    steps: Annotated[int, typer.Option(min=1, max=MAX_BUDGET, help="Control steps per run.")] = 30_000,
+    thinks: Annotated[int, typer.Option(min=0, max=MAX_BUDGET)] = 100,
+    max_attempt_steps: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 10_000,
     gamma: Annotated[float, typer.Option(min=0.0, max=0.9999, help="Discount factor.")] = 0.8,
     advantage_k: Annotated[float, typer.Option(min=0.01, max=1.0, help="Advantage learning k.")] = 0.2,
     seed: int = 0,
@@ -275,8 +282,8 @@ def cartpole(
 
 @app.command()
 def speed(
-    act_calls: Annotated[int, typer.Option(min=100)] = 20_000,
-    thinks: Annotated[int, typer.Option(min=1000)] = 200_000,
+    act_calls: Annotated[int, typer.Option(min=100, max=MAX_BUDGET)] = 20_000,
+    thinks: Annotated[int, typer.Option(min=1000, max=MAX_BUDGET)] = 200_000,
     population: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 64,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -294,12 +301,18 @@ def hydra(
     controllers: Annotated[
         int, typer.Option(min=1, max=MAX_POPULATION, help="1-DOF controllers per training regime.")
     ] = 4,
-    episodes: Annotated[int, typer.Option(min=1, help="1-DOF training episodes (30 s each).")] = 30,
-    eval_episodes: Annotated[int, typer.Option(min=1)] = 4,
-    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action (thesis).")] = 200,
+    episodes: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="1-DOF training episodes (30 s each)."),
+    ] = 30,
+    eval_episodes: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 4,
+    thinks: Annotated[
+        int,
+        typer.Option(min=0, max=MAX_BUDGET, help="Experience replays per action (thesis)."),
+    ] = 200,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     four_dof_controllers: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 2,
-    four_dof_episodes: Annotated[int, typer.Option(min=1)] = 40,
+    four_dof_episodes: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 40,
     advantage_k: Annotated[
         float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning; the thesis' 0.2).")
     ] = 1.0,
@@ -307,7 +320,10 @@ def hydra(
         float, typer.Option(min=0.0, help="1-DOF image velocity penalty (3.75: Fig 7.6's raw units).")
     ] = 0.25,
     render: Annotated[bool, typer.Option(help="Also check rendered vision (template matching).")] = True,
-    render_ticks: Annotated[int, typer.Option(min=3, help="Ticks per regime of the rendering check.")] = 450,
+    render_ticks: Annotated[
+        int,
+        typer.Option(min=3, max=MAX_BUDGET, help="Ticks per regime of the rendering check."),
+    ] = 450,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -331,22 +347,40 @@ def nomad(
     controllers: Annotated[
         int, typer.Option(min=1, max=MAX_POPULATION, help="Servo controllers learning at once.")
     ] = 8,
-    episodes: Annotated[int, typer.Option(min=1, help="Servo training episodes (15 s each).")] = 30,
-    eval_every: Annotated[int, typer.Option(min=1, help="Evaluate greedily every this many episodes.")] = 5,
-    wander_episodes: Annotated[int, typer.Option(min=1, help="Learned wandering: 60 s episodes.")] = 15,
-    forage_minutes: Annotated[
-        int, typer.Option(min=1, help="Learning servoing while the hand-coded wandering forages: minutes.")
-    ] = 20,
-    forage_balls: Annotated[int, typer.Option(min=1, help="Balls in the room while foraging.")] = 24,
-    forage_eval_minutes: Annotated[
-        int, typer.Option(min=1, help="Evaluate foraging servoing every N min.")
+    episodes: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Servo training episodes (15 s each)."),
+    ] = 30,
+    eval_every: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Evaluate greedily every this many episodes."),
     ] = 5,
-    thinks: Annotated[int, typer.Option(min=0, help="Experience replays per action.")] = 200,
+    wander_episodes: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Learned wandering: 60 s episodes."),
+    ] = 15,
+    forage_minutes: Annotated[
+        int,
+        typer.Option(
+            min=1, max=MAX_BUDGET, help="Learning servoing while the hand-coded wandering forages: minutes."
+        ),
+    ] = 20,
+    forage_balls: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Balls in the room while foraging."),
+    ] = 24,
+    forage_eval_minutes: Annotated[
+        int, typer.Option(min=1, max=MAX_BUDGET, help="Evaluate foraging servoing every N min.")
+    ] = 5,
+    thinks: Annotated[int, typer.Option(min=0, max=MAX_BUDGET, help="Experience replays per action.")] = 200,
     advantage_k: Annotated[
         float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning).")
     ] = 0.2,
     watch_phantoms: Annotated[
-        int, typer.Option(min=0, help="Passive watching: phantom-goal copies per watched experience.")
+        int,
+        typer.Option(
+            min=0, max=MAX_BUDGET, help="Passive watching: phantom-goal copies per watched experience."
+        ),
     ] = 4,
     watch_mirror: Annotated[
         bool, typer.Option(help="Passive watching: also learn each experience mirrored.")
@@ -358,7 +392,10 @@ def nomad(
     watch_alpha: Annotated[float, typer.Option(min=1e-6, help="Passive watching: learning rate.")] = 0.05,
     render: Annotated[bool, typer.Option(help="Also check vision from rendered images (needs GL).")] = True,
     render_ticks: Annotated[
-        int, typer.Option(min=1, help="Rendered-vision check: ticks of hand-coded wandering (2 robots).")
+        int,
+        typer.Option(
+            min=1, max=MAX_BUDGET, help="Rendered-vision check: ticks of hand-coded wandering (2 robots)."
+        ),
     ] = 1200,
     learner: Annotated[
         str, typer.Option(help="The servo controllers learning from scratch: thesis or deep.")
@@ -389,7 +426,10 @@ def nomad(
 
 @app.command()
 def safety(
-    episodes: Annotated[int, typer.Option(min=1, help="Boat episodes recorded for the damaged logs.")] = 4,
+    episodes: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Boat episodes recorded for the damaged logs."),
+    ] = 4,
     seconds: Annotated[
         float, typer.Option(min=6.0, help="Length of each real-time phase (restart, storm, frames).")
     ] = 10.0,
@@ -409,7 +449,7 @@ def safety(
 @app.command()
 def transport(
     experiences: Annotated[
-        int, typer.Option(min=1000, help="Experiences in the throughput phase.")
+        int, typer.Option(min=1000, max=MAX_BUDGET, help="Experiences in the throughput phase.")
     ] = 200_000,
     seconds: Annotated[float, typer.Option(min=1.0, help="Length of the real-time phase.")] = 30.0,
     rate_hz: Annotated[float, typer.Option(min=1.0, help="Tick rate of the real-time phase.")] = 15.0,
@@ -435,7 +475,7 @@ def transport(
 def dashboard(
     seconds: Annotated[float, typer.Option(min=1.0, help="Measured window per run.")] = 60.0,
     warmup: Annotated[float, typer.Option(min=1.0, help="Warm-up before each window (s).")] = 15.0,
-    repeats: Annotated[int, typer.Option(min=1, help="Off/on pairs of runs.")] = 2,
+    repeats: Annotated[int, typer.Option(min=1, max=MAX_BUDGET, help="Off/on pairs of runs.")] = 2,
     update_hz: Annotated[float, typer.Option(min=0.1, max=30.0, help="View updates per second.")] = 4.0,
     think: Annotated[
         str, typer.Option(help="The server's --think: budget (light) or continuous (busy).")
@@ -460,9 +500,15 @@ def relearn(
     controllers: Annotated[
         int, typer.Option(min=1, max=MAX_POPULATION, help="Controllers learning at once.")
     ] = 2,
-    episodes: Annotated[int, typer.Option(min=1, help="30 s episodes of online learning.")] = 40,
-    eval_every: Annotated[int, typer.Option(min=1, help="Episodes between greedy evaluations.")] = 5,
-    thinks: Annotated[int, typer.Option(min=1, help="Thinks per action.")] = 200,
+    episodes: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="30 s episodes of online learning."),
+    ] = 40,
+    eval_every: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Episodes between greedy evaluations."),
+    ] = 5,
+    thinks: Annotated[int, typer.Option(min=1, max=MAX_BUDGET, help="Thinks per action.")] = 200,
     advantage_k: Annotated[float, typer.Option(min=0.01, max=1.0, help="Advantage learning k.")] = 0.2,
     seed: int = 0,
     json_path: JsonOpt = None,
@@ -497,15 +543,28 @@ def passive(
         ),
     ] = "",
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
-    log_targets: Annotated[int, typer.Option(min=1, help="Targets per logged boat and policy.")] = 10,
+    log_targets: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Targets per logged boat and policy."),
+    ] = 10,
     passive_thinks: Annotated[
-        int | None, typer.Option(min=1000, help="Replays per passive learner (thinks per logged experience).")
+        int | None,
+        typer.Option(min=1000, help="Replays per passive learner (thinks per logged experience)."),
     ] = None,
-    online_targets: Annotated[int, typer.Option(min=10, help="Targets of the online conditions.")] = 40,
+    online_targets: Annotated[
+        int,
+        typer.Option(min=10, max=MAX_BUDGET, help="Targets of the online conditions."),
+    ] = 40,
     thinks: Annotated[
-        int | None, typer.Option(min=0, help="Online replays per action (the learner's: thesis 200, deep 1).")
+        int | None,
+        typer.Option(
+            min=0, max=MAX_BUDGET, help="Online replays per action (the learner's: thesis 200, deep 1)."
+        ),
     ] = None,
-    eval_targets: Annotated[int, typer.Option(min=1, help="Targets of each greedy evaluation.")] = 10,
+    eval_targets: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Targets of each greedy evaluation."),
+    ] = 10,
     bc_weight: Annotated[
         float, typer.Option(min=0.0, help="Passive learners' pull of the best wire to the logged actions.")
     ] = 0.5,
@@ -560,10 +619,13 @@ def vs_sb3(
     deep_options: Annotated[
         str, typer.Option(help="Deep learner config fields over its defaults (JSON).")
     ] = "",
-    seeds: Annotated[int, typer.Option(min=1)] = 3,
-    eval_every: Annotated[int, typer.Option(min=1, help="Steps between greedy evaluations.")] = 2000,
-    eval_episodes: Annotated[int, typer.Option(min=1)] = 3,
-    thinks: Annotated[int, typer.Option(min=0, help="WFNN replays per action.")] = 200,
+    seeds: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 3,
+    eval_every: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_BUDGET, help="Steps between greedy evaluations."),
+    ] = 2000,
+    eval_episodes: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 3,
+    thinks: Annotated[int, typer.Option(min=0, max=MAX_BUDGET, help="WFNN replays per action.")] = 200,
     reward_scale: Annotated[
         float, typer.Option(help="Rewards learnt from are multiplied by this (returns reported are not).")
     ] = 1.0,

@@ -174,6 +174,22 @@ def _policy_groups(policies: list[str]) -> list[tuple[str, NDArray[np.int64]]]:
     return groups
 
 
+FIGURE_TEXT = 60
+"""The most characters of a run's own text (its sim, metric, drivers) drawn in its figure."""
+
+
+def _drawn(text: Any) -> str:
+    """A run's own text as its figure shows it: one line, at most FIGURE_TEXT characters, no mathtext.
+
+    A sim name of 5 million characters took matplotlib over a minute to fail in its rasteriser
+    ("raster overflow"), an error no report's message named, and "$" starts mathtext.
+    """
+    line = one_line(str(text))
+    if len(line) > FIGURE_TEXT:
+        line = line[: FIGURE_TEXT - 1] + "\u2026"
+    return line.replace("$", r"\$")
+
+
 def _run_figure(metrics: dict[str, Any]) -> bytes:
     """Learning curve (with a running median) and box plots of the first and last episodes."""
     import matplotlib
@@ -187,7 +203,7 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
     policies = _policies(metrics, len(scores))
     if policies and len(set(policies)) > 1:
         for name, rows in _policy_groups(policies):
-            a.scatter(episodes[rows], scores[rows], s=14, label=f"driven by {name}")
+            a.scatter(episodes[rows], scores[rows], s=14, label=f"driven by {_drawn(name)}")
     else:
         a.plot(episodes, scores, marker="o", ms=3, lw=0.8, label="episode")
     window = max(1, min(10, len(scores) // 4))
@@ -197,8 +213,8 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
             running = [np.nanmedian(scores[max(0, i - window + 1) : i + 1]) for i in range(len(scores))]
         a.plot(episodes, running, color="black", lw=1.6, label=f"running median of {window}")
     a.set_xlabel("episode")
-    a.set_ylabel(metrics.get("metric", "score"))
-    a.set_title(f"{metrics.get('sim', 'run')}: learning curve")
+    a.set_ylabel(_drawn(metrics.get("metric", "score")))
+    a.set_title(f"{_drawn(metrics.get('sim', 'run'))}: learning curve")
     a.legend(fontsize=8)
     k = max(1, min(10, len(scores) // 2))
     first, last = scores[:k], scores[-k:]

@@ -93,17 +93,24 @@ def _unacknowledged(metrics: dict[str, Any]) -> str:
     """A C/S run's experiences no server acknowledged, for its summary line ("" where none).
 
     The journal holds them all, and the client's next run sends them; where no server took any
-    (all of another task, say), nothing reached a learner.
+    (all of another task, say), nothing reached a learner. Several behaviours: each one's.
     """
-    acked, produced = metrics.get("uplink/acked_by_any"), metrics.get("uplink/produced_through")
-    if acked is None:  # thinking locally
-        return ""
-    if acked < 0:
-        return " (none acknowledged by a server)"
-    if produced is not None and acked < produced:
-        return (f" (acknowledged by a server through #{acked:.0f} of #{produced:.0f}: the journal keeps "
-                "the rest, which the next run sends)")  # fmt: skip
-    return ""
+    names = [""] if "uplink/acked_by_any" in metrics else [
+        k.split("/", 1)[0] for k in metrics if k.endswith("/uplink/acked_by_any") and k.count("/") == 2
+    ]  # fmt: skip
+    said = []
+    for name in names:
+        prefix, who = (f"{name}/", f"{name}: ") if name else ("", "")
+        acked, produced = (
+            metrics[f"{prefix}uplink/acked_by_any"],
+            metrics.get(f"{prefix}uplink/produced_through"),
+        )
+        if acked < 0:
+            said.append(f"{who}none acknowledged by a server")
+        elif produced is not None and acked < produced:
+            said.append(f"{who}acknowledged by a server through #{acked:.0f} of #{produced:.0f}: the journal "
+                        "keeps the rest, which the next run sends")  # fmt: skip
+    return f" ({'; '.join(said)})" if said else ""
 
 
 def _per_behaviour(f: dict[str, Any], name: str) -> list[float]:

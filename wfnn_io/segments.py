@@ -360,13 +360,19 @@ class SegmentLog:
         self._file = open(self.directory / segment_name(current), "ab")
         self._size = self._file.tell()
         if self.fsync != "never":
+            # What a writer that crashed left in the OS but never synced reads back as the log's
+            # own: durable only once synced (a restarted server acknowledged it, and a power cut
+            # then lost it). Every segment: one written under the `never` policy was not synced
+            # before the next began. A synced one has nothing to write.
+            for n in numbers[:-1]:
+                fd = os.open(self.directory / segment_name(n), os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
             if numbers:
-                # What a writer that crashed left in the OS but never synced reads back as the
-                # log's own: durable only once synced (a restarted server acknowledged it, and a
-                # power cut then lost it). Earlier segments were synced before the next began.
                 os.fsync(self._file.fileno())
-            else:  # a new segment's directory entry must survive too
-                sync_dir(self.directory)
+            sync_dir(self.directory)
 
     # ------------------------------------------------------------------ opening
     def segment_numbers(self) -> list[int]:

@@ -50,6 +50,10 @@ def test_help_texts_come_through_rich_markup_whole(module: str) -> None:
         ("wfnn_client.cli", ["--rate-hz", "abc"]),  # a value of the wrong type
         ("wfnn_bench.cli", ["boat", "--mode", "foo"]),
         ("wfnn_bench.cli", ["boat", "--controllers", "99999999999999999999"]),  # named, not numpy's limit
+        # Budgets that numpy refused only after the run had begun (a server started and stopped):
+        ("wfnn_bench.cli", ["boat", "--targets", "100000000000"]),
+        ("wfnn_bench.cli", ["transport", "--experiences", "99999999999"]),
+        ("wfnn_bench.cli", ["speed", "--act-calls", "99999999999999"]),
         ("wfnn_io.logs_cli", ["inspect"]),  # a missing argument
         ("wfnn_server.cli", ["--no-such-option"]),
         ("wfnn_client.cli", ["--out", ""]),  # an empty path is not the current directory

@@ -482,6 +482,7 @@ def test_a_run_that_ends_while_its_learner_is_in_an_update_saves_it_whole(tmp_pa
     def stop_while_it_updates(self, timeout=5.0):
         if not ending.is_set():  # the first stop's wait runs out in the middle of the update
             ending.set()
+            self.schedule.owe(1)  # a think to do, however far the thread had got
             in_update.wait(30.0)
             timeout = 0.05
         stop(self, timeout)
@@ -606,6 +607,12 @@ def test_a_run_some_of_whose_experiences_no_server_acknowledged_says_so():
     partly = _unacknowledged({"uplink/acked_by_any": 59.0, "uplink/produced_through": 99.0})
     assert "through #59 of #99" in partly and "the next run sends" in partly
     assert _unacknowledged({"uplink/acked_by_any": 99.0, "uplink/produced_through": 99.0}) == ""
+    figures = {"servo/uplink/acked_by_any": -1.0, "servo/uplink/produced_through": 99.0,
+               "wander/uplink/acked_by_any": 40.0, "wander/uplink/produced_through": 99.0}  # fmt: skip
+    several = _unacknowledged(figures)
+    assert several.startswith(
+        " (servo: none acknowledged by a server; wander: acknowledged by a server through #40"
+    )
 
 
 def test_the_status_line_of_several_behaviours_shows_each_ones_weights_version():

@@ -586,3 +586,25 @@ def test_a_lock_file_that_is_a_fifo_is_refused_at_once(tmp_path):
     worker.join(10.0)
     assert not worker.is_alive(), "still waiting on the FIFO"
     assert len(outcomes) == 2 and all("is not a regular file" in o for o in outcomes)
+
+
+def test_segments_a_never_syncing_writer_left_are_all_synced_when_the_log_is_opened(tmp_path, monkeypatch):
+    """Under the `never` policy a segment is not synced before the next begins: only the last was
+    synced at open, and what the earlier ones held was acknowledged unsynced."""
+    import os
+
+    first = SegmentLog(tmp_path, fsync="never", segment_bytes=200)
+    for p in payloads(20):
+        first.append(p)
+    first.close()
+    inodes = {os.stat(path).st_ino for path in tmp_path.glob("*.seg")}
+    assert len(inodes) > 3
+    real, synced_files = os.fsync, set()
+
+    def spy(fd):
+        synced_files.add(os.fstat(fd).st_ino)
+        return real(fd)
+
+    monkeypatch.setattr(os, "fsync", spy)
+    SegmentLog(tmp_path, fsync="interval").close()
+    assert inodes <= synced_files

@@ -1,0 +1,33 @@
+"""`wfnn-bench dashboard`'s figures from its measuring windows (`wfnn_bench.dashboard.run`)."""
+
+import json
+
+import pytest
+
+from wfnn_bench import dashboard as bench
+
+
+def _window(on: bool, stored: int, cpu: float, dash: float = 0.0005) -> dict:
+    per_experience = 1e3 * cpu / stored if stored else None  # as `_one` gives it
+    return {"dashboard": on, "window_s": 1.0, "server_cpu_s": cpu, "server_cpu_fraction_of_a_core": cpu,
+            "experiences_stored": stored, "server_cpu_ms_per_experience": per_experience,
+            "dashboard_cpu_s": dash if on else 0.0, "messages": 4, "kib_per_message": 0.5}  # fmt: skip
+
+
+def test_windows_that_saw_no_experience_are_left_out_not_divided_by(monkeypatch, tmp_path, caplog):
+    """An idle server's window (the robot not yet sending) ended the run in a division by zero,
+    after the work, or gave a dashboard share of 5.8e5 and a goal "NOT met" from nothing."""
+    cfg = bench.DashboardBenchConfig(seconds=1, warmup_s=1, repeats=1)
+    monkeypatch.setattr(bench, "_one", lambda c, on, w: _window(on, 0, 0.01 if on else 0.0))
+    result = bench.run(cfg)
+    assert result["added_fraction_ab"] is None and result["added_fraction_attributed"] is None
+    assert result["goal"]["met"] is None and "saw no experience" in caplog.text
+    assert dict(bench.rows(result, cfg))[f"goal {result['goal']['goal']}"] == "not measured"
+    json.dumps(result, allow_nan=False)
+    bench.plot(result, tmp_path / "empty.png")
+    assert (tmp_path / "empty.png").stat().st_size > 0
+
+    monkeypatch.setattr(bench, "_one", lambda c, on, w: _window(on, 100, 0.2 if on else 0.19))
+    result = bench.run(cfg)
+    assert result["added_fraction_attributed"] == pytest.approx(0.0005 / 0.1995)
+    assert result["added_fraction_ab"] == pytest.approx(2.0 / 1.9 - 1.0) and result["goal"]["met"] is True
