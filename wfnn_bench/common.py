@@ -78,6 +78,14 @@ def fmt2(value: float | None) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"
 
 
+def whole(value: float) -> str:
+    """A return for a table: whole units, or three figures in powers of ten where it is huge.
+
+    A diverging task's 1e300 in whole units is 300 digits long.
+    """
+    return f"{value:.3g}" if np.isfinite(value) and abs(value) >= 1e9 else f"{value:.0f}"
+
+
 def tick_learner(task: Any, learner: str) -> Learner:
     """A fresh learner of one robot, for timing a control tick.
 

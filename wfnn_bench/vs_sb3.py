@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sims.gym import GymVec, make_env
-from wfnn_bench.common import Progress, machine_info, no_progress
+from wfnn_bench.common import Progress, machine_info, no_progress, whole
 from wfnn_common.config import LEARNERS, MAX_SEED, LearnerConfig, check_fields, parse_json, with_options
 from wfnn_common.learners import make_learner
 from wfnn_io.persist import save_figure
@@ -429,10 +429,10 @@ def rows(result: dict[str, Any], cfg: VsSb3Config) -> list[tuple[str, Any]]:
                 rows.append((f"{env_id} {algorithm}", f"failed: {failed} (seeds finished: {finished})"))
                 if "steps" not in r:
                     continue
-            curve = " / ".join(f"{v:.0f}" for v in r["return_median"])
+            curve = " / ".join(whole(v) for v in r["return_median"])
             rows.append((f"{env_id} {algorithm}: greedy return median at {r['steps']} steps", curve))
             rows.append((f"{env_id} {algorithm}: final return per seed",
-                         " / ".join(f"{v:.0f}" for v in r["final_returns"])))  # fmt: skip
+                         " / ".join(whole(v) for v in r["final_returns"])))  # fmt: skip
             rows.append((f"{env_id} {algorithm}: final greedy episode length per seed",
                          " / ".join(f"{v:.0f}" for v in r["final_lengths"])))  # fmt: skip
             if any(r.get("refused", ())):

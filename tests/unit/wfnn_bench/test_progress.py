@@ -53,3 +53,11 @@ def test_a_table_cell_without_a_figure_is_a_dash():
     from wfnn_bench.cli import _cell
 
     assert [_cell(v) for v in (None, float("nan"), 1.23456, 3, "a/b")] == ["-", "-", "1.235", "3", "a/b"]
+
+
+def test_huge_returns_print_in_powers_of_ten_and_usual_ones_in_whole_units():
+    """A diverging task's return of 1e300 filled a table cell with 300 digits."""
+    from wfnn_bench.common import whole
+
+    assert whole(1e300) == "1e+300" and whole(-3.2e12) == "-3.2e+12"
+    assert whole(-121.6) == "-122" and whole(1000.0) == "1000" and whole(float("nan")) == "nan"
