@@ -185,6 +185,11 @@ DEEP_DEFAULTS: dict[str, Any] = {
 gamma 0.8, 200 thinks per action and squashed rewards suit one-experience SGD on a small net)."""
 
 
+MAX_SYMMETRIES = 16
+"""Most symmetries a config declares (a task's mirror images; each multiplies what is learned)."""
+MAX_CONFIG_JSON = 1 << 16
+"""Longest config JSON (`to_json`): the longest string a protocol message carries
+(`wfnn_io.protocol.MAX_STRING`)."""
 MAX_STATE_DIM = 1024
 MAX_ACTION_DIM = 64
 MAX_HIDDEN = 4096
@@ -404,11 +409,20 @@ class LearnerConfig:
                 raise ConfigError(f"batch_size x (state_dim + sum(deep.hidden) + n_wires x (value_layers x "
                                   f"value_hidden + n_wires + action_dim)) = {self.batch_size * row:,} is "
                                   f"more than {MAX_WORK:,} ({self.short_repr()})")  # fmt: skip
+        if len(self.symmetries) > MAX_SYMMETRIES:
+            raise ConfigError(f"at most {MAX_SYMMETRIES} symmetries, got {len(self.symmetries)} (each is "
+                              "learned with every experience)")  # fmt: skip
         for symmetry in self.symmetries:
             try:
                 symmetry.check_dims(self.state_dim, self.action_dim)
             except ValueError as exc:
                 raise ConfigError(str(exc)) from exc
+        # A config is carried as JSON in client statuses and server statuses: one longer than a
+        # protocol string was adopted and saved, and every status after it (restarts included)
+        # was refused by every receiver, so no client could follow that server again.
+        if (chars := len(self.to_json())) > MAX_CONFIG_JSON:
+            raise ConfigError(f"the config's JSON is {chars:,} characters, more than the "
+                              f"{MAX_CONFIG_JSON:,} a status carries ({self.short_repr()})")  # fmt: skip
 
     @classmethod
     def for_task(cls, task: Any, learner: str = "thesis", **overrides: Any) -> LearnerConfig:

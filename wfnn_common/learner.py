@@ -38,6 +38,8 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_INDICES = 1 << 22
 """Most replay indices a minibatch think draws at once (64 MiB with their random numbers)."""
 MAX_REWARD = 1e30
+LEARN_BLOCK_FLOATS = 1 << 22
+"""About how many numbers (32 MiB) `learn_many` makes at once, images included."""
 """Largest reward magnitude learned. The deep learner trains in float32 (largest 3.4e38): its
 values reach max |r| / (1 - gamma), its targets add n-step returns, and the loss's gradient
 doubles their difference, so rewards near float32's largest turned its weights NaN for good;
@@ -451,6 +453,21 @@ class WFNN:
         sn = self._block(next_state, (n, cfg.state_dim), "next_state")
         r = self._block(reward, (n,), "reward")
         term = self._block(terminal, (n,), "terminal", np.bool_)
+        # In pieces of about LEARN_BLOCK_FLOATS numbers with their images: a block of 100,000
+        # experiences under hundreds of symmetries, made and reordered at once, took gigabytes.
+        row = (1 + len(cfg.symmetries)) * (2 * cfg.state_dim + cfg.action_dim + 2)
+        step = max(1, LEARN_BLOCK_FLOATS // row)
+        if n > step:
+            return np.concatenate([self._learn_block(s[i : i + step], a[i : i + step], sn[i : i + step],
+                                                     r[i : i + step], term[i : i + step])
+                                   for i in range(0, n, step)])  # fmt: skip
+        return self._learn_block(s, a, sn, r, term)
+
+    def _learn_block(
+        self, s: FloatArray, a: FloatArray, sn: FloatArray, r: FloatArray, term: BoolArray
+    ) -> BoolArray:
+        """`learn_many` of checked arrays [n, ...]."""
+        cfg, n = self.config, s.shape[0]
         exp, ok = self._check(s, a, sn, r, term, np.ones(n, dtype=np.bool_))
         images, kept = [exp], [ok]
         for symmetry in cfg.symmetries:  # the mirrored experiences of those stored

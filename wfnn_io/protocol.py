@@ -480,12 +480,14 @@ def _check_scalar(name: str, kind: str, value: Any) -> Any:
             raise MalformedBody(f"{name}: expected a boolean, found {type(value).__name__}")
         return value
     if kind == "str":
-        if type(value) is not str or len(value) > 1 << 16:
+        if type(value) is not str or len(value) > MAX_STRING:
             raise MalformedBody(f"{name}: expected a string, found {type(value).__name__}")
         return value
     raise AssertionError(kind)
 
 
+MAX_STRING = 1 << 16
+"""Longest string field (characters): a learner config's JSON is the longest a status holds."""
 MAX_MAP_ENTRIES = 1024
 """Most entries of a map field (figures, per-client numbers): a status lists a few dozen figures
 and at most a few hundred clients, and a receiver keeps the newest of each sender's."""
@@ -556,6 +558,9 @@ def to_body(msg: Message) -> dict[str, Any]:
         elif kind == "int":
             body[name] = int(value)
         else:
+            if kind == "str" and len(value) > MAX_STRING:  # a frame its receivers would refuse
+                raise FrameTooLarge(f"{msg.TYPE.name} field {name} of {len(value)} characters exceeds the "
+                                    f"limit of {MAX_STRING}")  # fmt: skip
             body[name] = value
     return body
 

@@ -239,3 +239,36 @@ def test_numbers_beyond_any_float_are_a_config_error_not_an_overflow(patch):
     """They escaped as OverflowError: a traceback for a client's status, exit 1 naming no field."""
     with pytest.raises(ConfigError):
         LearnerConfig.from_dict({**small_config().to_dict(), **patch})
+
+
+def test_a_config_a_status_cannot_carry_is_refused():
+    """680 symmetries made a config whose JSON no protocol string holds: a server adopted and
+    saved it, and every status it sent after, restarts included, was refused by every client."""
+    import json
+
+    from wfnn_common.config import MAX_CONFIG_JSON, MAX_SYMMETRIES
+    from wfnn_common.symmetry import Symmetry
+
+    def mirror(k: int, s: int) -> Symmetry:
+        return Symmetry(name=f"m{k}", state_index=tuple(range(s)), state_sign=(1.0,) * s, action_index=(0,),
+                        action_sign=(-1.0,))  # fmt: skip
+
+    base = LearnerConfig(state_low=(-1.0,), state_high=(1.0,), action_low=(-1.0,), action_high=(1.0,))
+    assert (
+        len(
+            dataclasses.replace(
+                base, symmetries=tuple(mirror(k, 1) for k in range(MAX_SYMMETRIES))
+            ).symmetries
+        )
+        == 16
+    )
+    with pytest.raises(ConfigError, match="at most 16 symmetries"):
+        dataclasses.replace(base, symmetries=tuple(mirror(k, 1) for k in range(MAX_SYMMETRIES + 1)))
+    hostile = json.loads(base.to_json())
+    hostile["symmetries"] = [dataclasses.asdict(mirror(k, 1)) for k in range(680)]
+    with pytest.raises(ConfigError, match="symmetries"):
+        LearnerConfig.from_json(json.dumps(hostile, separators=(",", ":")))
+    wide = dataclasses.replace(base, state_low=(-1.0 / 3,) * 1024, state_high=(2.0 / 3,) * 1024)
+    with pytest.raises(ConfigError, match="characters, more than the 65,536 a status carries"):
+        dataclasses.replace(wide, symmetries=tuple(mirror(k, 1024) for k in range(4)))
+    assert len(wide.to_json()) <= MAX_CONFIG_JSON

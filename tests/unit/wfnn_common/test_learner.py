@@ -655,3 +655,27 @@ def test_flags_that_are_not_booleans_are_refused(flag):
     assert lrn.learn(np.zeros(2), np.zeros(1), np.full(2, 0.5), -1.0, 0) and lrn.learn(
         np.zeros(2), np.zeros(1), np.full(2, 0.5), -1.0, np.float32(1.0)
     )
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_large_block_is_learned_in_pieces_exactly_as_at_once(monkeypatch, learner):
+    """A block of 100,000 experiences under hundreds of symmetries was made with all its images
+    at once: gigabytes, and a think server stopped by the MemoryError."""
+    from wfnn_common import learner as learner_module
+    from wfnn_common.symmetry import Symmetry
+
+    flip = Symmetry(
+        name="flip", state_index=(1, 0), state_sign=(1.0, -1.0), action_index=(0,), action_sign=(-1.0,)
+    )
+    rng = np.random.default_rng(3)
+    n = 500
+    block = (rng.uniform(-1.2, 1.2, (n, 2)), rng.uniform(-1, 1, (n, 1)), rng.uniform(-1.2, 1.2, (n, 2)),
+             rng.uniform(-1, 0, n), rng.random(n) < 0.1)  # fmt: skip
+    block[3][::7] = np.nan  # refused, in every piece alike
+    whole, pieces = (make_learner(_api_config(learner, symmetries=(flip,))) for _ in range(2))
+    stored = whole.learn_many(*block)
+    monkeypatch.setattr(learner_module, "LEARN_BLOCK_FLOATS", 40)  # pieces of 3 experiences
+    assert (pieces.learn_many(*block) == stored).all() and 0 < stored.sum() < n
+    for a, b in zip(whole.buffer.contents(0), pieces.buffer.contents(0), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert int(whole.rejected.sum()) == int(pieces.rejected.sum())

@@ -840,3 +840,17 @@ def test_a_spec_hash_longer_than_any_spec_gives_is_refused(make):
         else:
             with pytest.raises(MalformedBody, match="spec_hash"):
                 decode(frame)
+
+
+def test_a_frame_whose_receivers_would_refuse_a_string_is_not_sent():
+    """A status holding a config of 72,687 characters was encoded and sent twice a second, and
+    every receiver refused it as malformed: the sender counted nothing."""
+    from wfnn_common.config import MAX_CONFIG_JSON
+    from wfnn_io.protocol import MAX_STRING
+
+    assert MAX_STRING == MAX_CONFIG_JSON  # a config that a config check passes, a status carries
+    for status in (make_server_status(), make_client_status()):
+        fits = dataclasses.replace(status, learner_config="x" * MAX_STRING)
+        assert decode(encode(fits, "srv1", 1)).message.learner_config == fits.learner_config
+        with pytest.raises(FrameTooLarge, match="learner_config of 65537 characters"):
+            encode(dataclasses.replace(status, learner_config="x" * (MAX_STRING + 1)), "srv1", 1)
