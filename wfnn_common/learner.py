@@ -38,12 +38,12 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_INDICES = 1 << 22
 """Most replay indices a minibatch think draws at once (64 MiB with their random numbers)."""
 MAX_REWARD = 1e30
-LEARN_BLOCK_FLOATS = 1 << 22
-"""About how many numbers (32 MiB) `learn_many` makes at once, images included."""
 """Largest reward magnitude learned. The deep learner trains in float32 (largest 3.4e38): its
 values reach max |r| / (1 - gamma), its targets add n-step returns, and the loss's gradient
 doubles their difference, so rewards near float32's largest turned its weights NaN for good;
 1e30 leaves those eight orders of magnitude."""
+LEARN_BLOCK_FLOATS = 1 << 22
+"""About how many numbers (32 MiB) `learn_many` makes at once, images included."""
 
 
 def _flags(a: ArrayLike, what: str) -> NDArray[np.bool_]:
