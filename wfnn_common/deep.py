@@ -459,9 +459,24 @@ class DeepPopulation:
         with contextlib.ExitStack() as stack:
             yield PopulationParams([stack.enter_context(m.evaluating()) for m in self.members])
 
+    def _rows(self, a: Any, width: int, what: str) -> FloatArray:
+        """`a` as [P, width] (a population of one: [width] too), else a ValueError naming it.
+
+        Not reshaped into place: [S, P] states for [P, S] ones were taken as other states.
+        """
+        arr = np.asarray(a, dtype=np.float64)
+        if self.population == 1 and arr.shape == (width,):
+            arr = arr[None]
+        if arr.shape != (self.population, width):
+            raise ValueError(f"{what}: expected shape [{self.population}, {width}], got {list(np.shape(a))}")
+        return arr
+
     def act(self, state: Any, explore: bool = True, params: PopulationParams | None = None) -> ActResult:
         """Each member's action for its state [P, S] -> ActResult of [P, ...] arrays."""
-        s = np.asarray(state, dtype=np.float64).reshape(self.population, self.config.state_dim)
+        s = self._rows(state, self.config.state_dim, "state")
+        if params is not None and len(params.members) != self.population:
+            raise ValueError(f"weights of a population of {len(params.members)} do not fit this one's "
+                             f"{self.population}")  # fmt: skip
         results = [m.act(s[i], explore, None if params is None else params.members[i])
                    for i, m in enumerate(self.members)]  # fmt: skip
         return ActResult(*(np.array([getattr(r, f) for r in results]) for f in ActResult._fields))
@@ -469,8 +484,9 @@ class DeepPopulation:
     def learn(self, state: Any, action: Any, next_state: Any, reward: Any, terminal: Any = False,
               valid: Any = True) -> BoolArray:  # fmt: skip
         """One experience per member ([P, ...] rows); -> which stored it [P]."""
-        p = self.population
-        rows = [np.asarray(a, dtype=np.float64).reshape(p, -1) for a in (state, action, next_state)]
+        p, cfg = self.population, self.config
+        rows = [self._rows(a, width, what) for a, width, what in ((state, cfg.state_dim, "state"),
+                (action, cfg.action_dim, "action"), (next_state, cfg.state_dim, "next_state"))]  # fmt: skip
         r, term, ok = (np.broadcast_to(np.asarray(v), (p,)) for v in (reward, terminal, valid))
         return np.array([bool(m.learn(rows[0][i], rows[1][i], rows[2][i], r[i], term[i], ok[i]))
                          for i, m in enumerate(self.members)])  # fmt: skip
@@ -496,7 +512,6 @@ class DeepPopulation:
 
     def q_value(self, state: Any, action: Any) -> FloatArray:
         """Q(x, u) of each member for its own state and action ([P, S], [P, A]) -> [P]."""
-        p, cfg = self.population, self.config
-        s = np.asarray(state, dtype=np.float64).reshape(p, cfg.state_dim)
-        a = np.asarray(action, dtype=np.float64).reshape(p, cfg.action_dim)
+        cfg = self.config
+        s, a = self._rows(state, cfg.state_dim, "state"), self._rows(action, cfg.action_dim, "action")
         return np.array([float(m.q_value(s[i], a[i])) for i, m in enumerate(self.members)])

@@ -679,3 +679,21 @@ def test_a_large_block_is_learned_in_pieces_exactly_as_at_once(monkeypatch, lear
     for a, b in zip(whole.buffer.contents(0), pieces.buffer.contents(0), strict=True):
         np.testing.assert_array_equal(a, b)
     assert int(whole.rejected.sum()) == int(pieces.rejected.sum())
+
+
+def test_a_deep_population_takes_its_members_rows_as_given_not_reshaped():
+    """[S, P] states for [P, S] ones were reshaped into other states, one per member."""
+    from wfnn_common.learners import make_population
+
+    population = make_population(_api_config("deep"), 3)
+    rows = np.array([[0.1, 0.2], [0.3, 0.4], [0.5, 0.6]])
+    with pytest.raises(ValueError, match=r"state: expected shape \[3, 2\], got \[2, 3\]"):
+        population.act(rows.T, explore=False)
+    with pytest.raises(ValueError, match=r"action: expected shape \[3, 1\]"):
+        population.learn(rows, np.zeros(3), rows, np.zeros(3))
+    with pytest.raises(ValueError, match=r"state: expected shape"):
+        population.q_value(rows.T, np.zeros((3, 1)))
+    with pytest.raises(ValueError, match="population of 2"):
+        population.act(rows, explore=False, params=make_population(_api_config("deep"), 2).snapshot())
+    assert population.act(rows, explore=False).action.shape == (3, 1)
+    assert population.learn(rows, np.zeros((3, 1)), rows, np.zeros(3)).tolist() == [True] * 3
