@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from wfnn_common import deep_net
 from wfnn_common.config import MAX_SAVED_COUNT, MAX_SEED, LearnerConfig
 from wfnn_common.deep_net import DeepParams, DeepShapes
-from wfnn_common.learner import FLOAT32_MAX, MAX_REWARD, WFNN, ActResult, BoolArray, FloatArray
+from wfnn_common.learner import FLOAT32_MAX, MAX_REWARD, WFNN, ActResult, BoolArray, FloatArray, exactly
 from wfnn_common.replay import Experiences
 from wfnn_common.update import UpdateStats, squash_reward
 
@@ -351,7 +351,7 @@ class DeepWFNN(WFNN):
     # ------------------------------------------------------------------ views
     def greedy_values(self, state: Any) -> FloatArray:
         """Value of the best wire for states [N, S] -> [1, N]."""
-        x = self.state_scaler.to_unit(self._block(state, (None, self.config.state_dim), "state"))
+        x = self.state_scaler.to_unit(exactly(state, (None, self.config.state_dim), "state"))
         x = np.nan_to_num(np.clip(x, -self._limit, self._limit))
         return deep_net.greedy(self.params, x)[1][None]
 
@@ -464,12 +464,9 @@ class DeepPopulation:
 
         Not reshaped into place: [S, P] states for [P, S] ones were taken as other states.
         """
-        arr = np.asarray(a, dtype=np.float64)
-        if self.population == 1 and arr.shape == (width,):
-            arr = arr[None]
-        if arr.shape != (self.population, width):
-            raise ValueError(f"{what}: expected shape [{self.population}, {width}], got {list(np.shape(a))}")
-        return arr
+        if self.population == 1 and np.shape(a) == (width,):
+            a = np.asarray(a)[None]
+        return cast(FloatArray, exactly(a, (self.population, width), what))
 
     def act(self, state: Any, explore: bool = True, params: PopulationParams | None = None) -> ActResult:
         """Each member's action for its state [P, S] -> ActResult of [P, ...] arrays."""

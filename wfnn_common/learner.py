@@ -60,6 +60,19 @@ def _flags(a: ArrayLike, what: str) -> NDArray[np.bool_]:
     raise ValueError(f"{what} must be booleans or 0/1, got {str(a)[:60]!r}")
 
 
+def exactly(a: ArrayLike, shape: tuple[int | None, ...], what: str, dtype: type = np.float64) -> Any:
+    """`a` as an array of exactly `shape` (None: any length), else a ValueError naming it.
+
+    Blocks of experiences are not reshaped into place: [S, N] states for [N, S] ones were taken
+    as other states, without a word. Flags (dtype bool) are booleans or 0/1 (`_flags`).
+    """
+    arr = np.asarray(a, dtype=dtype) if dtype is not np.bool_ else _flags(a, what)
+    if arr.ndim != len(shape) or any(w is not None and w != n for w, n in zip(shape, arr.shape, strict=True)):
+        wanted = ", ".join("N" if w is None else str(w) for w in shape)
+        raise ValueError(f"{what}: expected shape [{wanted}], got {list(np.shape(a))}")
+    return arr
+
+
 class ActResult(NamedTuple):
     """What `act` chose.
 
@@ -220,20 +233,6 @@ class WFNN:
         if params.flat.shape[0] != mine.flat.shape[0]:
             raise ValueError(f"weights of a population of {params.flat.shape[0]} do not fit this learner's "
                              f"{mine.flat.shape[0]}")  # fmt: skip
-
-    def _block(self, a: ArrayLike, shape: tuple[int | None, ...], what: str, dtype: type = np.float64) -> Any:
-        """`a` as an array of exactly `shape` (None: any length), else a ValueError naming it.
-
-        Blocks of experiences are not reshaped into place: [S, N] states for [N, S] ones were
-        taken as other states, without a word.
-        """
-        arr = np.asarray(a, dtype=dtype) if dtype is not np.bool_ else _flags(a, what)
-        if arr.ndim != len(shape) or any(
-            w is not None and w != n for w, n in zip(shape, arr.shape, strict=False)
-        ):
-            wanted = ", ".join("N" if w is None else str(w) for w in shape)
-            raise ValueError(f"{what}: expected shape [{wanted}], got {list(np.shape(a))}")
-        return arr
 
     def _rows(self, a: ArrayLike, width: int) -> tuple[FloatArray, bool]:
         arr = np.asarray(a, dtype=np.float64)
@@ -447,12 +446,12 @@ class WFNN:
         Each experience passes the same sanity limits as in `learn`; returns which were stored [N].
         """
         cfg = self.config
-        s = self._block(state, (None, cfg.state_dim), "state")
+        s = exactly(state, (None, cfg.state_dim), "state")
         n = s.shape[0]
-        a = self._block(action, (n, cfg.action_dim), "action")
-        sn = self._block(next_state, (n, cfg.state_dim), "next_state")
-        r = self._block(reward, (n,), "reward")
-        term = self._block(terminal, (n,), "terminal", np.bool_)
+        a = exactly(action, (n, cfg.action_dim), "action")
+        sn = exactly(next_state, (n, cfg.state_dim), "next_state")
+        r = exactly(reward, (n,), "reward")
+        term = exactly(terminal, (n,), "terminal", np.bool_)
         # In pieces of about LEARN_BLOCK_FLOATS numbers with their images: a block of 100,000
         # experiences under hundreds of symmetries, made and reordered at once, took gigabytes.
         row = (1 + len(cfg.symmetries)) * (2 * cfg.state_dim + cfg.action_dim + 2)
@@ -635,7 +634,7 @@ class WFNN:
 
     def greedy_values(self, state: ArrayLike) -> FloatArray:
         """Value of the best wire (Q of the action `act` would choose) for states [N, S] -> [P, N]."""
-        x = self.state_scaler.to_unit(self._block(state, (None, self.config.state_dim), "state"))
+        x = self.state_scaler.to_unit(exactly(state, (None, self.config.state_dim), "state"))
         x = np.nan_to_num(np.clip(x, -self._limit, self._limit))
         _, out = forward(self.params, np.broadcast_to(x, (self.population, *x.shape)))
         return np.asarray(split_wires(out, self.config.n_wires, self.config.action_dim)[1].max(axis=-1))
