@@ -297,11 +297,9 @@ def check_free(directory: Path) -> None:
     """
     try:
         fd = _open_lock(Path(directory), os.O_RDONLY)
-    except FileNotFoundError:  # no log, or no lock file yet: nobody holds it
-        return
-    except LogError:
+    except LogError:  # not a regular file (a LogError is an OSError: said, not taken for free)
         raise
-    except OSError:  # one that cannot be opened cannot be held either (the owner's open then says why)
+    except OSError:  # no log or no lock file yet, or one that cannot be opened: nobody holds it
         return
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
