@@ -53,6 +53,12 @@ MAX_BUDGET = 10_000_000
 experiences, thinks), for the same reason: 1e11 targets ended in numpy's "Unable to allocate
 14.6 TiB" after the run had begun, a server already started and stopped."""
 
+
+def _count(least: int, help: str | None = None) -> Any:
+    """The option of a count a benchmark takes: at least `least`, at most MAX_BUDGET."""
+    return typer.Option(min=least, max=MAX_BUDGET, help=help)
+
+
 app = typer.Typer(
     help="Benchmarks of the WFNN learner (thesis Chapters 3-4) and its speed.", no_args_is_help=True
 )
@@ -210,12 +216,10 @@ def boat(
         int, typer.Option(min=1, max=MAX_POPULATION, help="Controllers per condition.")
     ] = 20,
     mode: Annotated[str, typer.Option(help="advantage, q or both.")] = "both",
-    targets: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 40,
+    targets: Annotated[int, _count(1)] = 40,
     thinks: Annotated[
         int | None,
-        typer.Option(
-            min=0, max=MAX_BUDGET, help="Replays (updates) per action (learner's: thesis 200, deep 1)."
-        ),
+        _count(0, "Replays (updates) per action (learner's: thesis 200, deep 1)."),
     ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     hold: Annotated[
@@ -261,9 +265,9 @@ def boat(
 @app.command()
 def cartpole(
     runs: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 8,
-    steps: Annotated[int, typer.Option(min=1, max=MAX_BUDGET, help="Control steps per run.")] = 30_000,
-    thinks: Annotated[int, typer.Option(min=0, max=MAX_BUDGET)] = 100,
-    max_attempt_steps: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 10_000,
+    steps: Annotated[int, _count(1, "Control steps per run.")] = 30_000,
+    thinks: Annotated[int, _count(0)] = 100,
+    max_attempt_steps: Annotated[int, _count(1)] = 10_000,
     gamma: Annotated[float, typer.Option(min=0.0, max=0.9999, help="Discount factor.")] = 0.8,
     advantage_k: Annotated[float, typer.Option(min=0.01, max=1.0, help="Advantage learning k.")] = 0.2,
     seed: int = 0,
@@ -282,8 +286,8 @@ def cartpole(
 
 @app.command()
 def speed(
-    act_calls: Annotated[int, typer.Option(min=100, max=MAX_BUDGET)] = 20_000,
-    thinks: Annotated[int, typer.Option(min=1000, max=MAX_BUDGET)] = 200_000,
+    act_calls: Annotated[int, _count(100)] = 20_000,
+    thinks: Annotated[int, _count(1000)] = 200_000,
     population: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 64,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -303,16 +307,16 @@ def hydra(
     ] = 4,
     episodes: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="1-DOF training episodes (30 s each)."),
+        _count(1, "1-DOF training episodes (30 s each)."),
     ] = 30,
-    eval_episodes: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 4,
+    eval_episodes: Annotated[int, _count(1)] = 4,
     thinks: Annotated[
         int,
-        typer.Option(min=0, max=MAX_BUDGET, help="Experience replays per action (thesis)."),
+        _count(0, "Experience replays per action (thesis)."),
     ] = 200,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     four_dof_controllers: Annotated[int, typer.Option(min=1, max=MAX_POPULATION)] = 2,
-    four_dof_episodes: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 40,
+    four_dof_episodes: Annotated[int, _count(1)] = 40,
     advantage_k: Annotated[
         float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning; the thesis' 0.2).")
     ] = 1.0,
@@ -322,7 +326,7 @@ def hydra(
     render: Annotated[bool, typer.Option(help="Also check rendered vision (template matching).")] = True,
     render_ticks: Annotated[
         int,
-        typer.Option(min=3, max=MAX_BUDGET, help="Ticks per regime of the rendering check."),
+        _count(3, "Ticks per regime of the rendering check."),
     ] = 450,
     seed: int = 0,
     json_path: JsonOpt = None,
@@ -349,38 +353,32 @@ def nomad(
     ] = 8,
     episodes: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Servo training episodes (15 s each)."),
+        _count(1, "Servo training episodes (15 s each)."),
     ] = 30,
     eval_every: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Evaluate greedily every this many episodes."),
+        _count(1, "Evaluate greedily every this many episodes."),
     ] = 5,
     wander_episodes: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Learned wandering: 60 s episodes."),
+        _count(1, "Learned wandering: 60 s episodes."),
     ] = 15,
     forage_minutes: Annotated[
         int,
-        typer.Option(
-            min=1, max=MAX_BUDGET, help="Learning servoing while the hand-coded wandering forages: minutes."
-        ),
+        _count(1, "Learning servoing while the hand-coded wandering forages: minutes."),
     ] = 20,
     forage_balls: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Balls in the room while foraging."),
+        _count(1, "Balls in the room while foraging."),
     ] = 24,
-    forage_eval_minutes: Annotated[
-        int, typer.Option(min=1, max=MAX_BUDGET, help="Evaluate foraging servoing every N min.")
-    ] = 5,
-    thinks: Annotated[int, typer.Option(min=0, max=MAX_BUDGET, help="Experience replays per action.")] = 200,
+    forage_eval_minutes: Annotated[int, _count(1, "Evaluate foraging servoing every N min.")] = 5,
+    thinks: Annotated[int, _count(0, "Experience replays per action.")] = 200,
     advantage_k: Annotated[
         float, typer.Option(min=0.01, max=1.0, help="Advantage learning k (1 = Q-learning).")
     ] = 0.2,
     watch_phantoms: Annotated[
         int,
-        typer.Option(
-            min=0, max=MAX_BUDGET, help="Passive watching: phantom-goal copies per watched experience."
-        ),
+        _count(0, "Passive watching: phantom-goal copies per watched experience."),
     ] = 4,
     watch_mirror: Annotated[
         bool, typer.Option(help="Passive watching: also learn each experience mirrored.")
@@ -393,9 +391,7 @@ def nomad(
     render: Annotated[bool, typer.Option(help="Also check vision from rendered images (needs GL).")] = True,
     render_ticks: Annotated[
         int,
-        typer.Option(
-            min=1, max=MAX_BUDGET, help="Rendered-vision check: ticks of hand-coded wandering (2 robots)."
-        ),
+        _count(1, "Rendered-vision check: ticks of hand-coded wandering (2 robots)."),
     ] = 1200,
     learner: Annotated[
         str, typer.Option(help="The servo controllers learning from scratch: thesis or deep.")
@@ -428,7 +424,7 @@ def nomad(
 def safety(
     episodes: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Boat episodes recorded for the damaged logs."),
+        _count(1, "Boat episodes recorded for the damaged logs."),
     ] = 4,
     seconds: Annotated[
         float, typer.Option(min=6.0, help="Length of each real-time phase (restart, storm, frames).")
@@ -448,9 +444,7 @@ def safety(
 
 @app.command()
 def transport(
-    experiences: Annotated[
-        int, typer.Option(min=1000, max=MAX_BUDGET, help="Experiences in the throughput phase.")
-    ] = 200_000,
+    experiences: Annotated[int, _count(1000, "Experiences in the throughput phase.")] = 200_000,
     seconds: Annotated[float, typer.Option(min=1.0, help="Length of the real-time phase.")] = 30.0,
     rate_hz: Annotated[float, typer.Option(min=1.0, help="Tick rate of the real-time phase.")] = 15.0,
     busy: Annotated[bool, typer.Option(help="The server thinks continuously meanwhile.")] = True,
@@ -475,7 +469,7 @@ def transport(
 def dashboard(
     seconds: Annotated[float, typer.Option(min=1.0, help="Measured window per run.")] = 60.0,
     warmup: Annotated[float, typer.Option(min=1.0, help="Warm-up before each window (s).")] = 15.0,
-    repeats: Annotated[int, typer.Option(min=1, max=MAX_BUDGET, help="Off/on pairs of runs.")] = 2,
+    repeats: Annotated[int, _count(1, "Off/on pairs of runs.")] = 2,
     update_hz: Annotated[float, typer.Option(min=0.1, max=30.0, help="View updates per second.")] = 4.0,
     think: Annotated[
         str, typer.Option(help="The server's --think: budget (light) or continuous (busy).")
@@ -502,13 +496,13 @@ def relearn(
     ] = 2,
     episodes: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="30 s episodes of online learning."),
+        _count(1, "30 s episodes of online learning."),
     ] = 40,
     eval_every: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Episodes between greedy evaluations."),
+        _count(1, "Episodes between greedy evaluations."),
     ] = 5,
-    thinks: Annotated[int, typer.Option(min=1, max=MAX_BUDGET, help="Thinks per action.")] = 200,
+    thinks: Annotated[int, _count(1, "Thinks per action.")] = 200,
     advantage_k: Annotated[float, typer.Option(min=0.01, max=1.0, help="Advantage learning k.")] = 0.2,
     seed: int = 0,
     json_path: JsonOpt = None,
@@ -545,7 +539,7 @@ def passive(
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     log_targets: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Targets per logged boat and policy."),
+        _count(1, "Targets per logged boat and policy."),
     ] = 10,
     passive_thinks: Annotated[
         int | None,
@@ -553,17 +547,15 @@ def passive(
     ] = None,
     online_targets: Annotated[
         int,
-        typer.Option(min=10, max=MAX_BUDGET, help="Targets of the online conditions."),
+        _count(10, "Targets of the online conditions."),
     ] = 40,
     thinks: Annotated[
         int | None,
-        typer.Option(
-            min=0, max=MAX_BUDGET, help="Online replays per action (the learner's: thesis 200, deep 1)."
-        ),
+        _count(0, "Online replays per action (the learner's: thesis 200, deep 1)."),
     ] = None,
     eval_targets: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Targets of each greedy evaluation."),
+        _count(1, "Targets of each greedy evaluation."),
     ] = 10,
     bc_weight: Annotated[
         float, typer.Option(min=0.0, help="Passive learners' pull of the best wire to the logged actions.")
@@ -619,13 +611,13 @@ def vs_sb3(
     deep_options: Annotated[
         str, typer.Option(help="Deep learner config fields over its defaults (JSON).")
     ] = "",
-    seeds: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 3,
+    seeds: Annotated[int, _count(1)] = 3,
     eval_every: Annotated[
         int,
-        typer.Option(min=1, max=MAX_BUDGET, help="Steps between greedy evaluations."),
+        _count(1, "Steps between greedy evaluations."),
     ] = 2000,
-    eval_episodes: Annotated[int, typer.Option(min=1, max=MAX_BUDGET)] = 3,
-    thinks: Annotated[int, typer.Option(min=0, max=MAX_BUDGET, help="WFNN replays per action.")] = 200,
+    eval_episodes: Annotated[int, _count(1)] = 3,
+    thinks: Annotated[int, _count(0, "WFNN replays per action.")] = 200,
     reward_scale: Annotated[
         float, typer.Option(help="Rewards learnt from are multiplied by this (returns reported are not).")
     ] = 1.0,
