@@ -175,3 +175,14 @@ def render_problem() -> str | None:
     from sims.render import render_problem as probe
 
     return probe()
+
+
+def unchecked_frame(msg: object, sender: str, seq: int = 0, key: bytes | None = None) -> bytes:
+    """A frame of `msg` as `encode` frames it, without the checks that refuse what no receiver takes
+    (`protocol.Unsendable`): what a hostile or broken peer can still put on the bus."""
+    import msgpack
+
+    from wfnn_io import protocol
+
+    body = msgpack.packb(protocol._body(msg), use_bin_type=True)  # type: ignore[arg-type]
+    return protocol._framed(msg.TYPE, body, sender, seq, key)  # type: ignore[attr-defined]

@@ -32,6 +32,7 @@ from wfnn_common.learners import Weights as NetworkWeights
 from wfnn_common.learners import n_params, weights_from_flat
 from wfnn_io.bus import Bus, Inbox
 from wfnn_io.protocol import (
+    MAX_PRODUCED,
     Codec,
     Keys,
     MsgType,
@@ -230,10 +231,15 @@ class Downlink:
             view.spec_hash = status.spec_hash
             new_config = view.learner_config != status.learner_config and bool(status.learner_config)
             view.metrics = status.metrics
-            if self.id in status.stored_through:
+            through = status.stored_through.get(self.id)
+            if through is not None and through > MAX_PRODUCED:
+                # More than any client numbers (a forgery): taken, it would count everything as
+                # stored there, and re-sends to that server would stop for good.
+                self.rejected["status_beyond"] += 1
+            elif through is not None:
                 # What this start's own status says, not the most anything ever said: one forged
                 # ack of a huge number would otherwise stop re-sends to this server for good.
-                view.acked = status.stored_through[self.id]
+                view.acked = through
             latest = view.latest
             if (latest is not None and latest.version > status.weights_version
                     and time.monotonic() - latest.received >= self.config.status_timeout_s):  # fmt: skip

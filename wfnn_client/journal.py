@@ -27,7 +27,7 @@ from wfnn_io.logs import (
     set_aside,
 )
 from wfnn_io.persist import atomic_write_text, read_regular_text
-from wfnn_io.protocol import MAX_SEQ, check_id
+from wfnn_io.protocol import MAX_PRODUCED, MAX_SEQ, check_id
 from wfnn_io.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
@@ -43,7 +43,7 @@ MAX_SEQ would be written where no reader accepts them."""
 def _reserved(meta: dict[str, Any]) -> int:
     """A `client.json`'s reservation (-1 where it holds none)."""
     reserved = meta.get("reserved_through", -1)
-    return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_SEQ // 2 else -1
+    return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_PRODUCED else -1
 
 
 class Journal:
@@ -69,16 +69,29 @@ class Journal:
         """Last sequence number of each journaled batch, ascending."""
         self._where: list[Position] = []
         self.next_seq = 0
-        owner = ""
+        owner, spec = "", ""
         try:
             for pos, _, batch in self.log.entries():
-                owner = owner or batch.client
-                if batch.first_seq != self.next_seq:
+                owner, spec = owner or batch.client, spec or batch.spec_hash
+                if (batch.client, batch.spec_hash) != (owner, spec):
+                    # One client's, of one spec: a record of another run copied in would be sent,
+                    # and numbered on from, as this client's.
+                    raise ValueError(
+                        f"journal {directory}: the record at segment {pos.segment}, offset {pos.offset} "
+                        f"holds experiences of client {batch.client!r}, learner spec {batch.spec_hash}, "
+                        f"where the journal's first is client {owner!r}'s, spec {spec} (a segment of "
+                        "another run?): move it out, or use another record directory"
+                    )
+                if batch.first_seq > self.next_seq:
                     missing = (self.next_seq, batch.first_seq - 1)
                     log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d missing: "
                               "damaged, or numbers skipped past what servers held or an earlier run "
                               "reserved)",
                               pos, batch.first_seq, self.next_seq, *missing)  # fmt: skip
+                elif batch.first_seq < self.next_seq:
+                    log.error("journal batch at %s holds experiences %d-%d, of which those through %d are "
+                              "journaled before it: only what follows them is kept",
+                              pos, batch.first_seq, batch.last_seq, self.next_seq - 1)  # fmt: skip
                 if batch.last_seq >= self.next_seq:
                     self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
@@ -127,6 +140,11 @@ class Journal:
                 stored = check_id(json.loads(read_regular_text(meta))["client"], "client id")
             except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
                 set_aside(meta, f"unreadable ({exc})")
+        if stored and owner and stored != owner:
+            raise ValueError(
+                f"journal {directory}: its {CLIENT_JSON} names client {stored!r}, its records client "
+                f"{owner!r}: move one of them out, or use another record directory"
+            )
         stored = stored or owner
         if stored and asked is not None and asked != stored:
             raise ValueError(

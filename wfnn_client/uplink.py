@@ -24,7 +24,7 @@ from wfnn_client.link import RemoteConfig, ServerTable
 from wfnn_io.bus import Bus, Channel, Inbox
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
-    MAX_SEQ,
+    MAX_PRODUCED,
     Ack,
     ClientStatus,
     Codec,
@@ -203,7 +203,7 @@ class Uplink:
         with self.table.lock:
             heard = any(v.heard > 0 or v.acked >= 0 for v in self.table.views.values())
             held = max((v.acked for v in self.table.views.values()), default=-1)
-        if self.journal.next_seq <= held < MAX_SEQ // 2:  # beyond: no journal gets there (a forgery)
+        if self.journal.next_seq <= held < MAX_PRODUCED:  # beyond: no journal gets there (a forgery)
             self._skip_numbers(held)
         if self._numbering:
             return

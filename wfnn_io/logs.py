@@ -568,6 +568,9 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
         out.description_error = str(exc)
         config = None
     out.learner_config = config.to_dict() if config is not None else None
+    if config is not None and out.spec_hashes and config.spec_hash() not in out.spec_hashes:
+        out.description_error = (f"its learner config is of spec {config.spec_hash()}, its experiences of "
+                                 f"{', '.join(out.spec_hashes)} (a {LOG_JSON} of another log?)")  # fmt: skip
     return out
 
 
@@ -862,22 +865,26 @@ def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
 
 def merged(
     directories: Iterable[Path], key: bytes | None = None, spec: str = "", counts: ReadCounts | None = None,
-    dims: tuple[int, int] | None = None,
+    dims: tuple[int, int] | None = None, config: LearnerConfig | None = None,
 ) -> Iterator[ExperienceBatch]:  # fmt: skip
     """The batches of several logs, each client's experiences once (the first copy of each number).
 
     Logs of the same client (its journal and a server's store, say) overlap: what one has already
     given is trimmed from the others. Batches of a learner spec other than `spec`, or whose state
     and action widths are not `dims` (without them: the first batch's), are refused: a LogFormatError,
-    as a spec fixes its widths. What reading skips is counted in `counts`.
+    as a spec fixes its widths. The logs' learner `config`, where given, gives both (what is
+    written with the batches must describe them). What reading skips is counted in `counts`.
     """
+    if config is not None:
+        spec, dims = spec or config.spec_hash(), dims or (config.state_dim, config.action_dim)
     through: dict[str, set[int]] = {}
     for directory in directories:
         for batch in read_batches(directory, key, counts):
             spec = spec or batch.spec_hash
             if batch.spec_hash != spec:
+                whose = "the first's" if config is None else f"the spec of its {LOG_JSON}'s learner config"
                 raise LogFormatError(
-                    f"{directory}: experiences of learner spec {batch.spec_hash}, not {spec}"
+                    f"{directory}: experiences of learner spec {batch.spec_hash}, not {spec} ({whose})"
                 )
             have = (batch.state.shape[1], batch.action.shape[1])
             dims = dims or have
@@ -905,7 +912,7 @@ def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
     check_outside(out, sources)
     config = common_config(sources)
-    return write_log(out, merged(sources, key, dims=widths(config)), config)
+    return write_log(out, merged(sources, key, config=config), config)
 
 
 def widths(config: LearnerConfig | None) -> tuple[int, int] | None:
@@ -932,7 +939,7 @@ def split(
     names: dict[str, str] = {}
     done = 0
     # Read as merge and export read it: each experience once, and widths that fit their spec.
-    for batch in merged([source], key, dims=widths(config)):
+    for batch in merged([source], key, config=config):
         if by == "client":
             label = batch.client
         elif by == "behaviour":
@@ -963,7 +970,7 @@ def _directory_name(label: str, taken: set[str]) -> str:
 
 def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     """The experiences of logs (merged) as flat numpy arrays [N, ...] with their numbering."""
-    batches = list(merged(sources, key, dims=widths(common_config(sources))))
+    batches = list(merged(sources, key, config=common_config(sources)))
     if not batches:
         raise LogFormatError(f"no experiences in {', '.join(map(str, sources))}")
     clients = sorted({b.client for b in batches})

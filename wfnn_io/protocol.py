@@ -110,6 +110,12 @@ class FrameTooLarge(ProtocolError):
     reason = "oversized"
 
 
+class Unsendable(ProtocolError):
+    """A message its receivers would refuse (a field out of its bounds): refused when encoded."""
+
+    reason = "unsendable"
+
+
 class CorruptFrame(ProtocolError):
     """The CRC does not match: bits changed in transit or on disk."""
 
@@ -195,6 +201,11 @@ _B1_1, _U8_1, _U1_1 = _array("|b1", 1), _array("<u8", 1), _array("|u1", 1)
 
 MAX_SEQ = (1 << 62) - 1
 """The largest experience number (every count and acknowledgement of it fits an int64)."""
+MAX_PRODUCED = MAX_SEQ // 2
+"""More experiences than any client numbers (2^61: 73,000 years at a million a second). A figure
+beyond it that a peer tells of this client's experiences, without a key, is forged: one taken as
+what a server holds, or as what a client has produced, would make that client's later batches
+duplicates for good, as no numbering of its own gets past it."""
 _SEQ = {"range": (-1, MAX_SEQ)}
 """Field metadata: an experience number, or -1 for none (each value, for a map)."""
 MAX_VERSION = (1 << 64) - 1
@@ -480,8 +491,10 @@ def _check_scalar(name: str, kind: str, value: Any) -> Any:
             raise MalformedBody(f"{name}: expected a boolean, found {type(value).__name__}")
         return value
     if kind == "str":
-        if type(value) is not str or len(value) > MAX_STRING:
+        if type(value) is not str:
             raise MalformedBody(f"{name}: expected a string, found {type(value).__name__}")
+        if len(value) > MAX_STRING:
+            raise MalformedBody(f"{name}: {len(value)} characters, more than {MAX_STRING}")
         return value
     raise AssertionError(kind)
 
@@ -541,7 +554,27 @@ _DEFAULTS = {t: {f.name: f.default for f in dataclasses.fields(cls)} for t, cls 
 
 
 def to_body(msg: Message) -> dict[str, Any]:
-    """The msgpack-ready map of a message."""
+    """The msgpack-ready map of a message; Unsendable where its receivers would refuse it."""
+    body = _body(msg)
+    try:  # what `from_body` checks, but for the arrays' contents: no frame is sent that all drop
+        for name, kind, meta in _FIELDS[msg.TYPE]:
+            if name not in body:
+                continue
+            if kind == "array":
+                if len(body[name]["shape"]) != meta["ndim"]:
+                    raise MalformedBody(f"{name}: expected {meta['ndim']} dimensions, found shape "
+                                        f"{body[name]['shape']}")  # fmt: skip
+            else:
+                _check_bounds(name, _checked(name, kind, body[name]), meta)
+        if isinstance(msg, ExperienceBatch):
+            msg.validate()
+    except MalformedBody as exc:
+        raise Unsendable(f"{msg.TYPE.name} not sent: {exc}") from None
+    return body
+
+
+def _body(msg: Message) -> dict[str, Any]:
+    """`to_body` unchecked."""
     body: dict[str, Any] = {}
     for name, kind, meta in _FIELDS[msg.TYPE]:
         value = getattr(msg, name)
@@ -558,11 +591,15 @@ def to_body(msg: Message) -> dict[str, Any]:
         elif kind == "int":
             body[name] = int(value)
         else:
-            if kind == "str" and len(value) > MAX_STRING:  # a frame its receivers would refuse
-                raise FrameTooLarge(f"{msg.TYPE.name} field {name} of {len(value)} characters exceeds the "
-                                    f"limit of {MAX_STRING}")  # fmt: skip
             body[name] = value
     return body
+
+
+def _checked(name: str, kind: str, value: Any) -> Any:
+    """A decoded map's or scalar's value, checked (MalformedBody where its receivers refuse it)."""
+    if kind.startswith("dict:"):
+        return _check_dict(name, kind[5:], value)
+    return _check_scalar(name, kind, value)
 
 
 def from_body(msg_type: MsgType, body: Any) -> Message:
@@ -582,10 +619,8 @@ def from_body(msg_type: MsgType, body: Any) -> Message:
         v = body[name]
         if kind == "array":
             values[name] = _unpack_array(name, v, meta["dtype"], meta["ndim"])
-        elif kind.startswith("dict:"):
-            values[name] = _check_dict(name, kind[5:], v)
         else:
-            values[name] = _check_scalar(name, kind, v)
+            values[name] = _checked(name, kind, v)
         _check_bounds(name, values[name], meta)
     msg: Message = MESSAGES[msg_type](**values)
     if isinstance(msg, ExperienceBatch):
@@ -609,12 +644,16 @@ def _mac(key: bytes, data: bytes | memoryview) -> bytes:
 def encode(msg: Message, sender: str, seq: int, key: bytes | None = None) -> bytes:
     """One frame holding `msg`; with `key`, an HMAC-SHA256 tag is added."""
     check_id(sender, "sender id")
-    body = msgpack.packb(to_body(msg), use_bin_type=True)
-    limit = MAX_BODY[msg.TYPE]
+    return _framed(msg.TYPE, msgpack.packb(to_body(msg), use_bin_type=True), sender, seq, key)
+
+
+def _framed(msg_type: MsgType, body: bytes, sender: str, seq: int, key: bytes | None) -> bytes:
+    """The frame of a packed body (`encode`'s framing, which tests also give hostile bodies)."""
+    limit = MAX_BODY[msg_type]
     if len(body) > limit:
-        raise FrameTooLarge(f"{msg.TYPE.name} body of {len(body)} bytes exceeds the limit of {limit}")
+        raise FrameTooLarge(f"{msg_type.name} body of {len(body)} bytes exceeds the limit of {limit}")
     header = HEADER.pack(
-        MAGIC, PROTOCOL_VERSION, int(msg.TYPE), FLAG_MAC if key else 0, 0, sender.encode("ascii"), seq,
+        MAGIC, PROTOCOL_VERSION, int(msg_type), FLAG_MAC if key else 0, 0, sender.encode("ascii"), seq,
         len(body),
     )  # fmt: skip
     frame = header + body

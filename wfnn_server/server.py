@@ -62,6 +62,7 @@ from wfnn_io.persist import (
 )
 from wfnn_io.protocol import (
     EXP_NON_FINITE,
+    MAX_PRODUCED,
     MAX_SEQ,
     Ack,
     CameraView,
@@ -73,6 +74,7 @@ from wfnn_io.protocol import (
     ProtocolError,
     ServerStatus,
     SpecMismatch,
+    Unsendable,
     WeightSnapshot,
     load_key,
     take,
@@ -758,6 +760,11 @@ class ThinkServer:
                 self._heard, self._silent = heard, self._silent & set(heard)
                 self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
         said, before = kept(status), self.view.clients.get(status.client)
+        if said.produced_through > MAX_PRODUCED:
+            # More than any client numbers (a forgery): it would lift the bound on the losses that
+            # client may declare, and one declared up to it make its later batches duplicates.
+            self.rejected["status_beyond_produced"] += 1
+            said = dataclasses.replace(said, produced_through=-1)  # the figure heard before stays, below
         if before is not None and before.produced_through > said.produced_through:
             # An older status (replayed: a key does not stop that) never lowers what the client is
             # known to have produced, the bound on the losses it may declare.
@@ -1071,8 +1078,8 @@ class ThinkServer:
         self._status_sent = time.monotonic()
         try:
             frame = self.codec.encode(status)
-        except FrameTooLarge as exc:  # never the end of the learner: robots keep their last status
-            self.counters["publish/status_too_large"] += 1
+        except (FrameTooLarge, Unsendable) as exc:  # not the learner's end: robots keep the last status
+            self.counters["publish/status_unsent"] += 1
             log.error("status not sent: %s", exc)
             return
         self.bus.put(self.keys.server_status(self.id), frame, Channel.LATEST)
@@ -1097,7 +1104,7 @@ class ThinkServer:
         )
         try:
             frame = self.codec.encode(status)
-        except FrameTooLarge:
+        except (FrameTooLarge, Unsendable):
             return  # counted where the learner thread made it
         self.bus.put(self.keys.server_status(self.id), frame, Channel.LATEST)
         self.counters["publish/status_relayed"] += 1

@@ -4,6 +4,7 @@ Each test plays an attacker on the controller's keys, or a server restarted the 
 checks what the robot side and the think server make of it.
 """
 
+import dataclasses
 import json
 import logging
 import math
@@ -483,3 +484,48 @@ def test_an_ack_within_what_was_produced_does_not_hold_back_resends_past_the_nex
             assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
         finally:
             brain.stop()
+
+
+def test_a_forged_status_and_loss_declaration_neither_swallow_experiences_nor_stop_resends(tmp_path):
+    """Without a key, a client status claiming MAX_SEQ - 1 experiences produced lifted the bound on
+    declared losses; one batch then declared everything below it lost, and the server took every
+    later genuine batch as a duplicate (0 of 40 stored), while the client took the server's status
+    (stored through 4.6e18) as its acknowledgement and stopped re-sending: all_acked() was True."""
+    from wfnn_io.protocol import EXP_AFTER_LOSS, MAX_PRODUCED
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            feed(brain, 20)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
+            c = brain.id
+            claim = dataclasses.replace(
+                status_of(c, cfg.to_json(), cfg.spec_hash()), produced_through=MAX_SEQ - 1
+            )
+            hub.bus().put(KEYS.client_status(c), Codec(c).encode(claim), None)
+            assert wait(lambda: server.rejected["status_beyond_produced"] == 1)
+            forged = batch(cfg, MAX_SEQ - 1, 1, client=c)
+            forged.flags[:] = EXP_AFTER_LOSS
+            send(hub, forged, client=c)
+            assert wait(lambda: server.rejected["declared_beyond_produced"] >= 1)
+            feed(brain, 40, seed=2)
+            assert wait(lambda: server.store.stored_through.get(c) == 59 and brain.all_acked(), timeout=10.0)
+            assert server.counters["ingest/declared_lost"] == 0
+        finally:
+            brain.stop()
+    # A client never takes a server's status beyond what any client numbers as its acknowledgement.
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    brain = remote(tmp_path / "forged", hub, cfg)
+    brain.start()
+    try:
+        feed(brain, 5)
+        bus = hub.bus()
+        for _ in range(20):
+            announce(bus, "s9", cfg, started_ns=1, stored_through={brain.id: MAX_PRODUCED + 1})
+            time.sleep(0.05)
+        assert wait(lambda: brain.rejected["status_beyond"] >= 1)
+        assert not brain.all_acked()
+    finally:
+        brain.stop()

@@ -111,3 +111,64 @@ def test_closing_releases_the_reserved_numbers_before_the_lock(tmp_path):
     again = Journal(tmp_path / "j", "c1", fsync="never")
     assert again.next_seq == 10 and again.skipped_at_open == 0
     again.close()
+
+
+def test_a_journal_holding_records_of_another_client_or_spec_is_refused_naming_the_record(tmp_path):
+    """A segment of another run copied into a journal was continued: its batches were sent as this
+    client's, and "experiences 1600--1 missing" was logged for its numbering from 0 again."""
+    import shutil
+
+    import pytest
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg = small_config()
+    for n, (client, spec) in enumerate([("c2", None), ("c1", "0123456789abcdef")]):
+        journal = Journal(tmp_path / f"other{n}", client, fsync="never")
+        b = batch(cfg, 0, 5, client=client, spec=spec)
+        journal.append(Codec(client).encode(b), b.last_seq)
+        journal.close()
+        journal = Journal(tmp_path / f"j{n}", "c1", fsync="never")
+        b = batch(cfg, 0, 5)
+        journal.append(Codec("c1").encode(b), b.last_seq)
+        journal.close()
+        shutil.copy(tmp_path / f"other{n}" / "00000000.seg", tmp_path / f"j{n}" / "00000001.seg")
+        before = sorted((p.name, p.read_bytes()) for p in (tmp_path / f"j{n}").iterdir() if p.is_file())
+        with pytest.raises(ValueError, match=f"segment 1, offset 0 holds experiences of client '{client}'"):
+            Journal(tmp_path / f"j{n}")
+        after = sorted((p.name, p.read_bytes()) for p in (tmp_path / f"j{n}").iterdir() if p.is_file())
+        assert after == before  # refused unchanged
+
+
+def test_a_client_json_naming_another_client_than_the_records_is_refused(tmp_path):
+    """A run resumed under the id client.json named, numbering on from the other client's records."""
+    import pytest
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    b = batch(small_config(), 0, 5)
+    journal.append(Codec("c1").encode(b), b.last_seq)
+    journal.close()
+    (tmp_path / "j" / "client.json").write_text('{"client": "zzz"}')
+    with pytest.raises(ValueError, match="names client 'zzz', its records client 'c1'"):
+        Journal(tmp_path / "j")
+
+
+def test_a_batch_repeating_journaled_experiences_is_told_as_such(tmp_path, caplog):
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    for first, n in ((0, 5), (3, 4)):
+        b = batch(cfg, first, n)
+        journal.log.append(Codec("c1").encode(b))  # as a copied segment would hold it
+    journal.close()
+    journal = Journal(tmp_path / "j")
+    assert journal.next_seq == 7 and journal.frames_from(5, 5)[1] == 6
+    assert "holds experiences 3-6, of which those through 4 are journaled before it" in caplog.text
+    assert "missing" not in caplog.text
+    journal.close()

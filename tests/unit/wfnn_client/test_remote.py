@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sims.positioning import PositioningVec
-from tests.fakes import Hub, small_config
+from tests.fakes import Hub, small_config, unchecked_frame
 from tests.fakes import wait_for as wait
 from tests.unit.wfnn_server.test_server import KEYS, Listener, make_server
 from wfnn_client.brain import Experience, LocalBrain
@@ -174,7 +174,7 @@ def server_codec(server, key=None):
 
 
 def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1, key=None, diverged=False,
-          store="store1", published_ns=None, learned_through=None, started_ns=1):  # fmt: skip
+          store="store1", published_ns=None, learned_through=None, started_ns=1, checked=True):  # fmt: skip
     n = WFNN(cfg).params.flat.shape[1] if params is None else params.shape[1]
     snap = WeightSnapshot(
         server=server, incarnation=incarnation, store=store, started_ns=started_ns, version=version,
@@ -183,7 +183,9 @@ def forge(cfg, server="s1", version=10**6, params=None, spec=None, incarnation=1
         learned_through=learned_through or {},
         params=np.full((1, n), 0.5) if params is None else params,
     )  # fmt: skip
-    return server_codec(server, key).encode(snap)
+    codec = server_codec(server, key)
+    # Unchecked: a snapshot no receiver takes (as a hostile or broken server sends it)
+    return codec.encode(snap) if checked else unchecked_frame(snap, server, next(codec._seq), codec.key)
 
 
 def test_invalid_snapshots_never_drive_the_robot(tmp_path):
@@ -198,7 +200,9 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
         "non_finite": forge(cfg, params=np.full((1, n), np.nan), key=KEY),
         "misrouted": Codec("s2", KEY, "t").encode(Codec("s1").decode(forge(cfg), WeightSnapshot)[1]),
         "unannounced": forge(cfg, incarnation=7, key=KEY),  # not what s1's status says it is
-        "malformed": forge(cfg, version=-1, key=KEY),  # applied, it stopped the uplink (batches: uint64)
+        "malformed": forge(
+            cfg, version=-1, key=KEY, checked=False
+        ),  # applied, it stopped the uplink (batches: uint64)
     }
     for reason, frame in bad.items():  # one at a time: the downlink keeps only the newest per server
         bus.put(KEYS.weights("s1"), frame, None)

@@ -733,3 +733,25 @@ def test_a_record_of_the_other_learner_is_refused_naming_the_learners(tmp_path):
         Recorder(tmp_path / "log", LearnerConfig.for_task(BoatVec, learner="deep"))
     with pytest.raises(ValueError, match=r"\(another task or ranges\)"):
         Recorder(tmp_path / "log", LearnerConfig.for_task(CartPoleVec))
+
+
+def test_a_log_json_of_another_spec_than_the_records_is_told_and_never_written_on(tmp_path):
+    """A log.json of another log (a deep learner's config beside a thesis learner's records) was
+    shown as the log's own, and merge, split and export wrote it beside records it does not describe."""
+    import shutil
+
+    record(tmp_path / "boat", n=100)
+    record(tmp_path / "cartpole", task_type=CartPoleVec, n=10)
+    shutil.copy(tmp_path / "cartpole" / logs.LOG_JSON, tmp_path / "boat" / logs.LOG_JSON)
+    before = {p.name: p.read_bytes() for p in (tmp_path / "boat").iterdir() if p.is_file()}
+    summary = logs.summarise(tmp_path / "boat")
+    assert summary.experiences == 100 and "its learner config is of spec" in summary.description_error
+    for write in (
+        lambda: logs.merge([tmp_path / "boat"], tmp_path / "merged"),
+        lambda: logs.split(tmp_path / "boat", tmp_path / "parts"),
+        lambda: logs.export([tmp_path / "boat"], tmp_path / "out.npz"),
+    ):
+        with pytest.raises(logs.LogFormatError, match=r"the spec of its log\.json's learner config"):
+            write()
+    assert not any((tmp_path / name).exists() for name in ("merged", "parts", "out.npz"))
+    assert {p.name: p.read_bytes() for p in (tmp_path / "boat").iterdir() if p.is_file()} == before

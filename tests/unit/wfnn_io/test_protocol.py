@@ -34,6 +34,7 @@ from wfnn_io.protocol import (
     ServerStatus,
     Truncated,
     UnknownType,
+    Unsendable,
     VersionMismatch,
     WeightSnapshot,
     check_id,
@@ -852,5 +853,49 @@ def test_a_frame_whose_receivers_would_refuse_a_string_is_not_sent():
     for status in (make_server_status(), make_client_status()):
         fits = dataclasses.replace(status, learner_config="x" * MAX_STRING)
         assert decode(encode(fits, "srv1", 1)).message.learner_config == fits.learner_config
-        with pytest.raises(FrameTooLarge, match="learner_config of 65537 characters"):
+        with pytest.raises(Unsendable, match="learner_config: 65537 characters, more than 65536"):
             encode(dataclasses.replace(status, learner_config="x" * (MAX_STRING + 1)), "srv1", 1)
+
+
+HOSTILE = {
+    "int": [-(1 << 63), -2, -1, 0, (1 << 62), (1 << 63), (1 << 64) - 1],
+    "float": [float("nan"), float("inf"), -1e308],
+    "str": ["", "x" * 65, "x" * 65_537],
+    "dict:int": [{"k" * 257: 1}, {str(i): i for i in range(1025)}, {"a": 1 << 63}, {"a": -2}],
+    "dict:float": [{"k" * 257: 1.0}, {str(i): 1.0 for i in range(1025)}],
+}
+
+
+def test_a_message_is_sent_only_where_its_receivers_take_it():
+    """Encoding refuses (Unsendable) every field value that decoding refuses, so no sender puts a
+    frame on the bus that every receiver drops as malformed (a spec hash of 65 characters, a map of
+    1,025 figures or a key of 257 characters, an experience number beyond MAX_SEQ were sent)."""
+    from wfnn_io.protocol import _FIELDS, MESSAGES
+
+    makers = {MsgType.EXPERIENCES: make_batch, MsgType.ACK: make_ack, MsgType.WEIGHTS: make_weights,
+              MsgType.SERVER_STATUS: make_server_status, MsgType.CLIENT_STATUS: make_client_status,
+              MsgType.CAMERA_VIEW: make_camera_view}  # fmt: skip
+    checked = 0
+    for msg_type, make in makers.items():
+        for name, kind, _meta in _FIELDS[msg_type]:
+            for value in HOSTILE.get(kind, []):
+                try:
+                    msg = dataclasses.replace(make(), **{name: value})
+                except (MalformedBody, ValueError):
+                    continue  # refused where it is made
+                try:
+                    frame = encode(msg, "srv1", 1)
+                except (Unsendable, FrameTooLarge):
+                    continue
+                got = decode(frame).message  # anything sent is taken
+                assert type(got) is MESSAGES[msg_type]
+                checked += 1
+    assert checked > 20  # most hostile values that are sendable are taken, not skipped
+
+
+def test_an_experience_batch_of_mismatched_shapes_is_not_sent():
+    bad = dataclasses.replace(make_batch(n=5), reward=np.zeros(4))
+    with pytest.raises(Unsendable, match="expected shape"):
+        encode(bad, "robot1", 0)
+    with pytest.raises(Unsendable, match="dimensions"):
+        encode(dataclasses.replace(make_batch(n=5), reward=np.zeros((5, 1))), "robot1", 0)
