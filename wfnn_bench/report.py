@@ -231,6 +231,8 @@ def _run_figure(metrics: dict[str, Any]) -> bytes:
 RUN_FIGURES: tuple[tuple[str, str | tuple[str, ...]], ...] = (
     ("sim", "sim"), ("metric", "metric"), ("episodes", "episode"), ("first-10 median", "first10_median"),
     ("last-10 median", "last10_median"), ("experiences learned", "experiences_learned"),
+    ("of them refused (not finite or out of range)", "learn/rejected"),
+    ("task's own episodes", "task_episodes"), ("task's return, last-10 median", "task_returns_last10_median"),
     ("thinking in", "following"), ("wall time (s)", "wall_s"), ("control ticks", "ticks"),
     ("tick jitter p99 (ms)", "client/tick_jitter_ms_p99"), ("overruns", "client/overruns"),
     ("act latency p99 (ms)", "client/act_latency_ms_p99"),

@@ -581,6 +581,10 @@ def _run(
         "weights_saved": weights_saved,
         **final,
     }
+    returns = getattr(task, "returns", None)
+    if returns is not None:  # the task's own episodes (a Gymnasium task's), not the client's
+        metrics.update(task_episodes=len(returns), task_returns=[float(r) for r in returns],
+                       task_returns_last10_median=_median([float(r) for r in returns[-10:]]))  # fmt: skip
     if several is not None:
         metrics["behaviours"] = {
             sk.name: {"learner": sk.lcfg.to_dict(), "ticks_driving": int(driven[k])}

@@ -538,3 +538,27 @@ def test_an_observation_that_does_not_fit_the_space_in_the_range_probe_is_named_
     gym.register("WfnnTestMisShapedProbe-v0", entry_point=_MisShapedUnbounded, max_episode_steps=50)
     with pytest.raises(ValueError, match=r"MisShapedProbe-v0 returned an observation of shape \(5,\)"):
         GymVec("WfnnTestMisShapedProbe-v0")
+
+
+class _FallsEvery3(_Spaces):
+    """Pays 1 a step and ends its episode every third step (as a hopper that keeps falling)."""
+
+    def step(self, action):
+        self.t += 1
+        return self._obs(), 1.0, self.t % 3 == 0, False, {}
+
+
+def test_a_gym_runs_score_claims_no_return_and_the_tasks_own_returns_are_recorded(tmp_path):
+    """The score (mean reward per step) was named "x time limit = return": 1.0 here, read as a
+    return of 30 where each of the task's 10 episodes returned 3."""
+    from wfnn_bench.report import _run_sections
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+
+    gym.register("WfnnTestFalls-v0", entry_point=_FallsEvery3, max_episode_steps=30)
+    metrics = run(ClientConfig(sim="gym", env="WfnnTestFalls-v0", rate_hz=0, episodes=1, out=tmp_path / "r"))
+    assert metrics["scores"] == [1.0] and metrics["metric"] == "mean reward per step"
+    assert metrics["task_episodes"] == 10 and metrics["task_returns"] == [3.0] * 10
+    assert metrics["task_returns_last10_median"] == 3.0
+    rows = dict(_run_sections(tmp_path / "r")[0][0].rows)
+    assert rows["task's own episodes"] == "10" and rows["task's return, last-10 median"] == "3"
