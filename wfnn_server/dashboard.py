@@ -74,7 +74,17 @@ come twice a second)."""
 MAX_CONNECTIONS = 64
 """Connections served at once; more are closed as they arrive (each holds a thread)."""
 TIMEOUT_S = 30.0
-"""Socket timeout of a connection: an idle, half-sent or unread one ends after this long."""
+"""Socket timeout of a connection: an idle or half-sent one ends after this long, and one whose
+reader stops once the kernel's buffers (megabytes) are full."""
+STREAM_S = 300.0
+"""An event stream ends after this long (the page reconnects at once and is sent the history
+again): one whose reader never reads would otherwise hold its connection for tens of minutes
+before its buffers filled."""
+CPU_SHARE = 0.05
+"""Of one core, the most the dashboard's connections spend over time (at a burst of CPU_BURST_S);
+beyond it their requests wait. They share the interpreter's lock with the learner: viewers asking
+for the whole history back to back took 97% of its thinks. A page costs about 0.1% here."""
+CPU_BURST_S = 0.1
 HEAD_S = 10.0
 """A request's line and headers must arrive within this long: one trickled a byte at a time
 (each within the socket timeout) would hold its connection's slot for good."""
@@ -97,7 +107,8 @@ class Dashboard:
         """What the server publishes for views (never the server itself)."""
         self._lock = threading.Lock()
         self._seq = 0
-        self._samples: collections.deque[dict[str, Any]] = collections.deque(maxlen=config.history)
+        self._samples: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=config.history)
+        """(number, JSON) of each sample kept: encoded once, not in every request for the history."""
         self._cached: tuple[float, bytes] | None = None
         """(when, the view without samples as JSON bytes): made at most update_hz times a second."""
         self._grid: SurfaceGrid | None = None
@@ -113,6 +124,9 @@ class Dashboard:
         self.stopping = threading.Event()
         self.cpu_s = 0.0
         """CPU time spent by the dashboard (requests and sampling), seconds."""
+        self._budget = (CPU_BURST_S, time.monotonic())
+        """(CPU seconds the connections may still spend at once, when that was reckoned)."""
+        self._budget_lock = threading.Lock()
         self.requests = 0
         self._started = time.monotonic()  # the page trims by t: it must never run backwards
         self.page = resources.files("wfnn_server").joinpath("static", "dashboard.html").read_bytes()
@@ -174,10 +188,29 @@ class Dashboard:
         with self._lock:
             self._seq += 1
             sample["seq"] = self._seq
-            self._samples.append(sample)
+            self._samples.append((self._seq, orjson.dumps(sample)))
             self.cpu_s += time.thread_time() - t0
 
     # ------------------------------------------------------------------ the view (HTTP threads)
+    def wait_for_budget(self) -> bool:
+        """Wait until the connections' CPU budget (CPU_SHARE) allows more work; False if stopping."""
+        while True:
+            with self._budget_lock:
+                left, at = self._budget
+                now = time.monotonic()
+                left = min(CPU_BURST_S, left + (now - at) * CPU_SHARE)
+                self._budget = (left, now)
+            if left > 0.0:
+                return True
+            if self.stopping.wait(-left / CPU_SHARE):
+                return False
+
+    def spend(self, cpu_s: float) -> None:
+        """Charge a connection's CPU time to the budget."""
+        with self._budget_lock:
+            left, at = self._budget
+            self._budget = (left - cpu_s, at)
+
     def host_allowed(self, hosts: list[str]) -> bool:
         """Whether a request's Host headers (all of them) name this dashboard.
 
@@ -215,11 +248,12 @@ class Dashboard:
         with self._lock:
             # The newest first, back to `since`: work in proportion to what is new, not to the
             # history kept (a page that keeps up gets one or two samples an update).
-            samples = list(itertools.takewhile(lambda s: s["seq"] > since, reversed(self._samples)))[::-1]
-            extra = {"samples": samples, "requests": self.requests,
+            samples = list(itertools.takewhile(lambda s: s[0] > since, reversed(self._samples)))[::-1]
+            extra = {"requests": self.requests,
                      "cpu": {"dashboard_s": self.cpu_s, "process_s": time.process_time()}}  # fmt: skip
-        newest = samples[-1]["seq"] if samples else since
-        return orjson.dumps(extra)[:-1] + b"," + cached[1][1:], newest
+        newest = samples[-1][0] if samples else since
+        head = b'{"samples":[' + b",".join(s for _, s in samples) + b"]," + orjson.dumps(extra)[1:-1]
+        return head + b"," + cached[1][1:], newest
 
     def _shown_clients(self, clients: dict[str, Any]) -> list[str]:
         """The clients the page's table lists: all, or the VIEW_CLIENTS most recently heard.
@@ -417,9 +451,18 @@ class _Handler(BaseHTTPRequestHandler):
     server_version = "wfnn-dashboard"
     timeout = TIMEOUT_S  # an idle, half-sent or unread connection ends rather than holding its thread
     _head_timer: threading.Timer | None = None
+    _charged = 0.0
+    """This thread's CPU time when last charged to the dashboard's budget."""
 
     def handle_one_request(self) -> None:
-        """One request, its head (line and headers) due within HEAD_S or the connection is cut."""
+        """One request, its head (line and headers) due within HEAD_S or the connection is cut.
+
+        Served once the dashboard's CPU budget allows (`Dashboard.wait_for_budget`), and charged to it.
+        """
+        if not self.dashboard.wait_for_budget():
+            self.close_connection = True
+            return
+        self._charged = time.thread_time()
         timer = threading.Timer(HEAD_S, self._cut)
         timer.daemon = True
         self._head_timer = timer
@@ -428,6 +471,13 @@ class _Handler(BaseHTTPRequestHandler):
             super().handle_one_request()
         finally:
             timer.cancel()
+            self._charge()
+
+    def _charge(self) -> None:
+        """Charge this thread's CPU time since the last charge to the dashboard's budget."""
+        now = time.thread_time()
+        self.dashboard.spend(now - self._charged)
+        self._charged = now
 
     def _cut(self) -> None:
         try:
@@ -507,7 +557,11 @@ class _Handler(BaseHTTPRequestHandler):
             return
         period = 1.0 / d.config.update_hz
         next_at = time.monotonic()
-        while not d.stopping.is_set():
+        ends = next_at + STREAM_S
+        while not d.stopping.is_set() and time.monotonic() < ends:
+            self._charge()
+            if not d.wait_for_budget():
+                break
             body, since = d._view_json(since)
             try:
                 self.connection.sendall(b"data: " + body + b"\n\n")

@@ -412,3 +412,57 @@ def test_a_dashboard_on_every_interface_at_port_80_serves_an_ip_address_without_
         assert dashboard_module.Dashboard.host_allowed(d, [f"192.168.1.5:{port}"])
         assert not dashboard_module.Dashboard.host_allowed(d, [f"192.168.1.5:{port + 1}"])
         assert not dashboard_module.Dashboard.host_allowed(d, ["evil.example"])
+
+
+# ---------------------------------------------------------------------- what viewers may cost
+def test_viewers_asking_for_the_whole_history_back_to_back_spend_at_most_the_dashboards_cpu_share(running):
+    """They share the interpreter's lock with the learner: 8 connections polling /api/view?since=0
+    over a full history took a think server from 1.09 million thinks a second to 33 thousand."""
+    view = ViewModel(server="s1", incarnation=1, controller="c")
+    view.clients = {f"c{i:02d}": _status(f"c{i:02d}") for i in range(16)}
+    d = running(view, history=2400)
+    for _ in range(2400):
+        d._sample(_server_status())  # type: ignore[arg-type]
+    stop = threading.Event()
+    served = [0] * 4
+
+    def viewer(k: int) -> None:
+        with socket.create_connection(("127.0.0.1", d.port), timeout=10) as s:
+            request = b"GET /api/view?since=0 HTTP/1.1\r\nHost: 127.0.0.1:%d\r\n\r\n" % d.port
+            reader = s.makefile("rb")
+            while not stop.is_set():
+                s.sendall(request)
+                length = 0
+                while (line := reader.readline()) not in (b"\r\n", b""):
+                    if line.lower().startswith(b"content-length:"):
+                        length = int(line.split(b":")[1])
+                reader.read(length)
+                served[k] += 1
+
+    threads = [threading.Thread(target=viewer, args=(k,), daemon=True) for k in range(4)]
+    before, t0 = d.cpu_s, time.monotonic()
+    for t in threads:
+        t.start()
+    time.sleep(3.0)
+    stop.set()
+    for t in threads:
+        t.join(10)
+    spent, elapsed = d.cpu_s - before, time.monotonic() - t0
+    assert sum(served) >= 4  # served, only slower
+    # The share over the time, its burst, and one request of each connection begun within it.
+    assert spent <= dashboard_module.CPU_SHARE * elapsed + dashboard_module.CPU_BURST_S + 0.1, (spent, served)
+
+
+def test_an_event_stream_ends_after_its_longest_life(running, monkeypatch):
+    """One whose reader never read held its thread and slot for tens of minutes (the socket timeout
+    comes only once the kernel's buffers are full)."""
+    monkeypatch.setattr(dashboard_module, "STREAM_S", 1.0)
+    d = running(update_hz=30)
+    t0 = time.monotonic()
+    with socket.create_connection(("127.0.0.1", d.port), timeout=10) as s:
+        s.sendall(b"GET /api/stream HTTP/1.1\r\nHost: 127.0.0.1:%d\r\n\r\n" % d.port)
+        time.sleep(1.5)  # never read meanwhile
+        ended = False
+        while not ended and time.monotonic() - t0 < 5.0:  # then read to the end: it has ended
+            ended = not s.recv(1 << 16)
+    assert ended
