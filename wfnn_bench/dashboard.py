@@ -73,26 +73,39 @@ def _cpu_s(pid: int) -> float:
 
 
 class _Watcher:
-    """Watches the dashboard like the page: one server-sent-events stream, read in a thread."""
+    """Watches the dashboard like the page: a server-sent-events stream, read in a thread.
+
+    Where one ends, another begins at once, as the page does (a stream lasts `dashboard.STREAM_S`).
+    """
 
     def __init__(self, port: int) -> None:
-        self.connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
-        self.connection.request("GET", "/api/stream")
-        self.response = self.connection.getresponse()
+        self.port = port
+        self.closed = False
+        self.connection, self.response = self._connect()
         self.latest: dict[str, Any] = {}
         self.messages = 0
         self.bytes = 0
         self._thread = threading.Thread(target=self._read, daemon=True)
         self._thread.start()
 
+    def _connect(self) -> tuple[http.client.HTTPConnection, http.client.HTTPResponse]:
+        connection = http.client.HTTPConnection("127.0.0.1", self.port, timeout=10)
+        connection.request("GET", "/api/stream")
+        return connection, connection.getresponse()
+
     def _read(self) -> None:
         try:
-            for line in self.response:
-                if line.startswith(b"data: "):
-                    self.latest = json.loads(line[6:])
-                    self.messages += 1
-                    self.bytes += len(line)
-        except (OSError, ValueError):  # the server stopped
+            while True:
+                for line in self.response:
+                    if line.startswith(b"data: "):
+                        self.latest = json.loads(line[6:])
+                        self.messages += 1
+                        self.bytes += len(line)
+                if self.closed:
+                    return
+                self.connection.close()
+                self.connection, self.response = self._connect()
+        except (OSError, ValueError, http.client.HTTPException):  # the server stopped
             return
 
     def dashboard_cpu_s(self) -> float:
@@ -100,6 +113,7 @@ class _Watcher:
         return float(self.latest.get("cpu", {}).get("dashboard_s", 0.0))
 
     def close(self) -> None:
+        self.closed = True
         self.connection.close()
 
 

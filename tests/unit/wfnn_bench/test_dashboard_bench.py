@@ -31,3 +31,30 @@ def test_windows_that_saw_no_experience_are_left_out_not_divided_by(monkeypatch,
     result = bench.run(cfg)
     assert result["added_fraction_attributed"] == pytest.approx(0.0005 / 0.1995)
     assert result["added_fraction_ab"] == pytest.approx(2.0 / 1.9 - 1.0) and result["goal"]["met"] is True
+
+
+def test_the_benchmarks_watcher_follows_the_dashboard_past_the_end_of_a_stream(monkeypatch):
+    """A stream lasts dashboard.STREAM_S: a watcher that stopped there would report the dashboard's
+    CPU as of then for a longer window."""
+    import time
+
+    import wfnn_server.dashboard as dashboard_module
+    from tests.fakes import wait_for
+    from wfnn_bench.dashboard import _Watcher
+    from wfnn_server.config import DashboardConfig
+    from wfnn_server.dashboard import Dashboard
+    from wfnn_server.view import ViewModel
+
+    monkeypatch.setattr(dashboard_module, "STREAM_S", 0.3)
+    d = Dashboard(
+        DashboardConfig(port=0, update_hz=30), ViewModel(server="s1", incarnation=1, controller="c")
+    )
+    d.start()
+    watcher = _Watcher(d.port)
+    try:
+        time.sleep(1.0)  # three streams' lives
+        seen = watcher.messages
+        assert wait_for(lambda: watcher.messages > seen + 5, timeout=5.0)
+    finally:
+        watcher.close()
+        d.stop()
