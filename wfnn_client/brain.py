@@ -244,6 +244,7 @@ class LocalBrain:
         learner's own, its divergence monitor would reset them to random ones (and save those)."""
         self.recorder = recorder
         """Where every experience is recorded (an experience log), if anywhere."""
+        self._told_refused = False
 
     @property
     def following(self) -> str:
@@ -301,13 +302,27 @@ class LocalBrain:
         return True
 
     def metrics(self) -> dict[str, float]:
-        """Thinks, snapshots, resets, and experiences stored and refused (by the learner's sanity checks)."""
+        """Thinks, snapshots, resets, and experiences stored and refused (by the learner's sanity checks).
+
+        The first refusal is told in a warning: a task whose states leave their declared ranges has
+        every experience refused, and the run learns nothing.
+        """
+        refused, stored = float(self.learner.rejected.sum()), float(self.learner.buffer.count[0])
+        if refused and not self._told_refused:
+            self._told_refused = True
+            cfg = self.learner.config
+            log.warning("the learner refuses experiences (%d so far, %d stored): a reward, state or action "
+                        "that is not finite, a reward beyond 1e30, or a state beyond its declared range "
+                        "(%s to %s) by more than %g times its width: does the task leave its declared "
+                        "observation space?", refused, stored, np.array2string(np.asarray(cfg.state_low),
+                        precision=3, threshold=8), np.array2string(np.asarray(cfg.state_high), precision=3,
+                        threshold=8), cfg.valid_margin)  # fmt: skip
         return {
             "think/thinks": float(self.learner.thinks.sum()),
             "weights/version": float(self.mt.version if self.mt else self.learner.thinks[0]),
             "learn/divergence_resets": float(self.learner.resets.sum()),
-            "learn/experiences": float(self.learner.buffer.count[0]),
-            "learn/rejected": float(self.learner.rejected.sum()),
+            "learn/experiences": stored,
+            "learn/rejected": refused,
         }
 
     def report(self, metrics: dict[str, Any]) -> None:

@@ -562,3 +562,31 @@ def test_a_gym_runs_score_claims_no_return_and_the_tasks_own_returns_are_recorde
     assert metrics["task_returns_last10_median"] == 3.0
     rows = dict(_run_sections(tmp_path / "r")[0][0].rows)
     assert rows["task's own episodes"] == "10" and rows["task's return, last-10 median"] == "3"
+
+
+class _LeavesItsSpace(_FallsEvery3):
+    """Declares observations in [-0.1, 0.1] and gives ones near 1 (a task's bug)."""
+
+    observation_space = gym.spaces.Box(-0.1, 0.1, (3,), np.float64)
+
+    def _obs(self):
+        return np.array([1.0, 0.5, 1.0])
+
+    def step(self, action):
+        self.t += 1
+        return self._obs(), 1.0, False, False, {}
+
+
+def test_a_run_whose_every_experience_the_learner_refuses_is_told_so(tmp_path, caplog):
+    """It learned nothing, and only the summary line's count said so."""
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run
+
+    gym.register("WfnnTestLeaves-v0", entry_point=_LeavesItsSpace, max_episode_steps=20)
+    with caplog.at_level(logging.WARNING):
+        metrics = run(
+            ClientConfig(sim="gym", env="WfnnTestLeaves-v0", rate_hz=0, episodes=2, out=tmp_path / "r")
+        )
+    assert metrics["learn/rejected"] == 40 and metrics["learn/experiences"] == 0
+    told = [r.getMessage() for r in caplog.records if "the learner refuses experiences" in r.getMessage()]
+    assert len(told) == 1 and "declared observation space" in told[0]
