@@ -108,7 +108,10 @@ def _uri(png: bytes) -> str:
 
 def _fmt(value: Any) -> str:
     if isinstance(value, float):
-        return "-" if not np.isfinite(value) else f"{value:.4g}"
+        if not np.isfinite(value):
+            return "-"
+        # A count kept as a float (a learner's figures are) in full: 54321, not 5.432e+04.
+        return str(int(value)) if value.is_integer() and abs(value) < 1e15 else f"{value:.4g}"
     if isinstance(value, bool) or value is None:
         return {True: "yes", False: "no", None: "-"}[value]
     return str(value)

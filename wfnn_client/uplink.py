@@ -309,6 +309,10 @@ class Uplink:
         batch = cast(
             ExperienceBatch, decode(frame, expect=ExperienceBatch).message
         )  # our own disk: no tag check
+        if batch.first_seq <= acked + 1:
+            # It holds the experience after `acked` itself (a record overlapping a damaged one
+            # before it indexes only its later part): nothing before it is lost.
+            return frame
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
         log.error("experiences %d-%d are not in the journal (damaged, or numbers skipped past what servers "

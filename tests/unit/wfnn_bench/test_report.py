@@ -282,3 +282,16 @@ def test_a_runs_own_text_is_drawn_shortened_and_as_plain_text(tmp_path):
     assert result.exit_code == 0, result.output
     assert time.perf_counter() - t0 < 30.0
     assert (tmp_path / "run" / "report.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_counts_kept_as_floats_are_shown_in_full(tmp_path):
+    """A learner's counts are floats in metrics.json: 54,321 refused experiences read 5.432e+04."""
+    from wfnn_bench.report import _run_sections
+
+    (tmp_path / "metrics.json").write_text(json.dumps({
+        "sim": "gym", "metric": "mean reward per step", "scores": [1.0, 2.5], "experiences_learned": 54321,
+        "learn/rejected": 54321.0, "task_returns_last10_median": 0.123456, "wall_s": 2.5e20,
+    }))  # fmt: skip
+    rows = dict(_run_sections(tmp_path)[0][0].rows)
+    assert rows["of them refused (not finite or out of range)"] == "54321"
+    assert rows["task's return, last-10 median"] == "0.1235" and rows["wall time (s)"] == "2.5e+20"

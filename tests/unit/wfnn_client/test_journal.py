@@ -172,3 +172,33 @@ def test_a_batch_repeating_journaled_experiences_is_told_as_such(tmp_path, caplo
     assert "holds experiences 3-6, of which those through 4 are journaled before it" in caplog.text
     assert "missing" not in caplog.text
     journal.close()
+
+
+def test_a_resend_from_a_record_that_overlaps_a_damaged_one_declares_nothing_lost(tmp_path):
+    """The record holds the experiences after the acknowledged point: declaring them lost from
+    there made a batch whose lost_from follows its first experience, which no receiver takes (and
+    the uplink thread died on it)."""
+    import collections
+    import types
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+    from wfnn_client.uplink import Uplink
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    for first, n in ((0, 5), (5, 5), (3, 10)):  # the third overlaps the first two
+        journal.log.append(Codec("c1").encode(batch(cfg, first, n)))
+    journal.close()
+    journal = Journal(tmp_path / "j")
+    segment = tmp_path / "j" / "00000000.seg"
+    data = bytearray(segment.read_bytes())
+    data[journal._where[1].offset + 60] ^= 0xFF  # experiences 5-9 damaged after the open
+    segment.write_bytes(bytes(data))
+    frames, _ = journal.frames_from(5, 8)
+    assert not journal.holds(5)
+    uplink = types.SimpleNamespace(codec=Codec("c1"), counters=collections.Counter())
+    sent = Uplink._declare_loss(uplink, frames[0], "s1", 4)  # type: ignore[arg-type]
+    got = Codec("c1").decode(sent, ExperienceBatch)[1]
+    assert got.first_seq == 3 and got.lost_from == -1 and uplink.counters["uplink/declared_lost"] == 0
+    journal.close()
