@@ -58,3 +58,29 @@ def test_the_benchmarks_watcher_follows_the_dashboard_past_the_end_of_a_stream(m
     finally:
         watcher.close()
         d.stop()
+
+
+def test_the_window_waits_for_the_dashboards_first_surface_and_says_when_none_came(caplog):
+    """The first surface compiles the grid's kernel: in the window, the dashboard's count (as of a
+    message sent after the window began) exceeded the whole server's /proc time (charged before)."""
+    import logging
+    import time
+
+    from wfnn_bench.dashboard import _Watcher
+    from wfnn_server.config import DashboardConfig
+    from wfnn_server.dashboard import Dashboard
+    from wfnn_server.view import ViewModel
+
+    d = Dashboard(
+        DashboardConfig(port=0, update_hz=30), ViewModel(server="s1", incarnation=1, controller="c")
+    )
+    d.start()
+    watcher = _Watcher(d.port)
+    try:
+        t0 = time.monotonic()
+        with caplog.at_level(logging.WARNING):
+            watcher.wait_for_surface(0.3)  # no learner, no client: no surface ever
+        assert 0.3 <= time.monotonic() - t0 < 5.0 and "drew no action-value surface" in caplog.text
+    finally:
+        watcher.close()
+        d.stop()
