@@ -436,6 +436,8 @@ def run(config: ReportConfig) -> Path:
         title, out = f"wfnn benchmarks in {path}", config.out or path / "report.html"
     elif path.suffix == ".json" and path.exists():
         sections = [_bench_section(path)]
+        if not sections[0].rows and not sections[0].images:  # a report of nothing, said to be written
+            raise ReportError(f"{path}: no figures in it (a benchmark result is a JSON object of them)")
         title, out = f"wfnn benchmark {path.stem}", config.out or path.with_name(f"{path.stem}_report.html")
     else:
         raise ReportError(

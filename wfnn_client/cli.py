@@ -323,6 +323,8 @@ def client(
             "--rate-hz 0 (as fast as possible) or a lower rate", param_hint="--rate-hz",
         )  # fmt: skip
     rate = rate_hz if rate_hz is not None else (0.0 if lockstep else own_rate)
+    if exploration is not None and not exploration.strip():
+        raise typer.BadParameter("an exploration kind, not an empty string", param_hint="--exploration")
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):

@@ -242,6 +242,9 @@ class NetConfig:
             raise ValueError(f"max_message_bytes must be in [64 KiB, 1 GiB], got {self.max_message_bytes}")
         for endpoint in (*self.listen, *self.connect):
             parse_endpoint(endpoint)
+        for endpoint in self.connect:  # port 0 asks the system for a free port: one to listen on
+            if _port(endpoint) == 0:
+                raise ValueError(f"endpoint {shown(endpoint)!r}: port 0 is no port to connect to")
 
 
 class NetError(OSError):
@@ -286,6 +289,13 @@ def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
             f"endpoint {shown(endpoint)!r}: the address must be HOST:PORT (port 0-65535), got {address!r}"
         )
     return proto, hp["v6"] or hp["host"]
+
+
+def _port(endpoint: str) -> int | None:
+    """The port of a well-formed HOST:PORT endpoint (None for a local socket)."""
+    m = _ENDPOINT.fullmatch(endpoint.strip())
+    hp = _HOST_PORT.fullmatch(m["address"]) if m is not None else None
+    return int(hp["port"]) if hp is not None else None
 
 
 def is_loopback(endpoint: str) -> bool:

@@ -265,7 +265,7 @@ def _usage_error(exc: Exception) -> bool:
         exc.show()  # type: ignore[attr-defined]
     else:
         message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
-        print(f"error: {' '.join(message.split())} (--help lists the options)", file=sys.stderr)
+        print(f"error: {printable(' '.join(message.split()))} (--help lists the options)", file=sys.stderr)
     sys.exit(int(getattr(exc, "exit_code", 2)))
 
 

@@ -933,6 +933,8 @@ def split(
         raise ValueError(f"split by client, behaviour or count, not {by!r}")
     if by == "count" and every < 1:
         raise ValueError("split by count needs every >= 1")
+    if by != "count" and every:  # else silently ignored
+        raise ValueError(f"every is for split by count, not by {by}")
     check_outside(out, [source])
     config = common_config([source])  # an unreadable description: a warning, as for the other commands
     groups: dict[str, list[ExperienceBatch]] = {}

@@ -40,6 +40,21 @@ def status_line(status: ServerStatus) -> str:
     return " | ".join(parts)
 
 
+def _dashboard(port: int | None, host: str | None, hz: float | None) -> DashboardConfig | None:
+    """The dashboard's config from its options (None without a port: then the others are refused)."""
+    if port is None:
+        if host is not None or hz is not None:  # else silently ignored
+            raise typer.BadParameter(
+                "serves no dashboard without --dashboard PORT",
+                param_hint="--dashboard-host" if host is not None else "--dashboard-hz",
+            )
+        return None
+    config = DashboardConfig(port=port)
+    if host is not None:
+        config = dataclasses.replace(config, host=host)
+    return config if hz is None else dataclasses.replace(config, update_hz=hz)
+
+
 @app.command()
 def serve(
     controller: Annotated[
@@ -123,11 +138,14 @@ def serve(
         ),
     ] = None,
     dashboard_host: Annotated[
-        str, typer.Option(help="Interface the dashboard binds (loopback unless you mean to share it).")
-    ] = "127.0.0.1",
+        str | None,
+        typer.Option(
+            help="Interface the dashboard binds (loopback unless you mean to share it) [default: 127.0.0.1]."
+        ),
+    ] = None,
     dashboard_hz: Annotated[
-        float, typer.Option(min=0.1, max=30.0, help="Dashboard updates per second.")
-    ] = 4.0,
+        float | None, typer.Option(min=0.1, max=30.0, help="Dashboard updates per second [default: 4].")
+    ] = None,
     quiet: Annotated[bool, typer.Option(help="No live status line.")] = False,
     verbose: bool = False,
 ) -> None:
@@ -156,8 +174,7 @@ def serve(
         replay=tuple(replay_only or ()), replay_only=bool(replay_only),
         # Logs alone need no network: without an endpoint named, none is joined (no port taken).
         offline=bool(replay_only) and listen is None and not connect and zenoh_config is None,
-        dashboard=(DashboardConfig(port=dashboard, host=dashboard_host, update_hz=dashboard_hz)
-                   if dashboard is not None else None),
+        dashboard=_dashboard(dashboard, dashboard_host, dashboard_hz),
     )  # fmt: skip
     console.print(f"[bold]wfnn-server[/] {escape(one_line(config.summary()))}", soft_wrap=True)
     if verbose:  # the whole config (also in the data directory's server_config.json)

@@ -295,3 +295,10 @@ def test_counts_kept_as_floats_are_shown_in_full(tmp_path):
     rows = dict(_run_sections(tmp_path)[0][0].rows)
     assert rows["of them refused (not finite or out of range)"] == "54321"
     assert rows["task's return, last-10 median"] == "0.1235" and rows["wall time (s)"] == "2.5e+20"
+
+
+def test_a_json_without_figures_gets_no_report_said_to_be_written(tmp_path):
+    (tmp_path / "empty.json").write_text("{}")
+    with pytest.raises(ReportError, match="no figures in it"):
+        run(ReportConfig(path=tmp_path / "empty.json"))
+    assert not (tmp_path / "empty_report.html").exists()

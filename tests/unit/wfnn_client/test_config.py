@@ -632,3 +632,21 @@ def test_the_status_line_of_several_behaviours_shows_each_ones_weights_version()
     }
     assert "v0 from local" in status_line(one) and "thinks/s -" in status_line(one)
     assert "v7 from local" in status_line({**one, "weights/version": 7.0})
+
+
+def test_options_that_would_be_ignored_or_taken_as_the_default_are_refused(tmp_path, monkeypatch):
+    """An empty --exploration ran with the sim's default (and was taken as chosen); a server's
+    --dashboard-host and --dashboard-hz without --dashboard started no dashboard without a word."""
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+    from wfnn_server import cli as server_cli
+
+    result = CliRunner().invoke(cli.app, ["--sim", "boat", "--exploration", "", "--out", str(tmp_path / "r")])
+    assert result.exit_code == 2 and "--exploration" in result.output and not (tmp_path / "r").exists()
+    monkeypatch.setattr(server_cli, "run", lambda *args, **kwargs: {})  # a server that would start ends
+    for option in (["--dashboard-host", "0.0.0.0"], ["--dashboard-hz", "30"]):
+        args = ["--listen", "tcp/127.0.0.1:0", "--data-dir", str(tmp_path / "d"), *option]
+        result = CliRunner().invoke(server_cli.app, args)
+        assert result.exit_code == 2 and "serves no dashboard without --dashboard" in result.output
+    assert not (tmp_path / "d").exists()

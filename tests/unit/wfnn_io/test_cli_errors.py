@@ -163,3 +163,30 @@ def test_every_console_script_imports_its_tool_under_that_care():
         assert "." not in package  # a package's own light module, not the tool's
         main = getattr(importlib.import_module(package), name)
         assert main.__qualname__ == "tool.<locals>.main", target
+
+
+def test_a_usage_errors_control_characters_are_shown_as_escapes(capsys):
+    """A bad --env's name came back through Gymnasium's message with its ESC as it was: the
+    operator's terminal took the rest as a command (it set its title)."""
+    import pytest
+    import typer
+
+    from wfnn_io.cli_errors import guarded
+
+    def bad() -> None:
+        raise typer.BadParameter("cannot make 'Pend\x1b]0;pwned\x07ulum-v1'", param_hint="--env")
+
+    with pytest.raises(SystemExit) as stopped:
+        guarded(bad)()
+    err = capsys.readouterr().err
+    assert stopped.value.code == 2 and "\x1b" not in err and "\x07" not in err and "\\x1b]0;pwned" in err
+
+
+def test_a_connect_endpoint_of_port_0_is_refused_and_a_listen_one_taken():
+    import pytest
+
+    from wfnn_io.bus import NetConfig
+
+    NetConfig(listen=("tcp/127.0.0.1:0",))
+    with pytest.raises(ValueError, match="port 0 is no port to connect to"):
+        NetConfig(connect=("tcp/127.0.0.1:0",))

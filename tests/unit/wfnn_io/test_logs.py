@@ -755,3 +755,10 @@ def test_a_log_json_of_another_spec_than_the_records_is_told_and_never_written_o
             write()
     assert not any((tmp_path / name).exists() for name in ("merged", "parts", "out.npz"))
     assert {p.name: p.read_bytes() for p in (tmp_path / "boat").iterdir() if p.is_file()} == before
+
+
+def test_split_refuses_every_without_by_count(tmp_path):
+    record(tmp_path / "log", n=50)
+    with pytest.raises(ValueError, match="every is for split by count, not by client"):
+        logs.split(tmp_path / "log", tmp_path / "parts", every=3)
+    assert not (tmp_path / "parts").exists()
