@@ -140,11 +140,11 @@ def serve(
     dashboard_host: Annotated[
         str | None,
         typer.Option(
-            help="Interface the dashboard binds (loopback unless you mean to share it) [default: 127.0.0.1]."
+            help="Interface the dashboard binds (loopback unless you mean to share it) (default 127.0.0.1)."
         ),
     ] = None,
     dashboard_hz: Annotated[
-        float | None, typer.Option(min=0.1, max=30.0, help="Dashboard updates per second [default: 4].")
+        float | None, typer.Option(min=0.1, max=30.0, help="Dashboard updates per second (default 4).")
     ] = None,
     quiet: Annotated[bool, typer.Option(help="No live status line.")] = False,
     verbose: bool = False,
