@@ -124,6 +124,8 @@ class Downlink:
         self._applied_at: float | None = None
         """time.monotonic() when weights were last applied (None before the first)."""
         self._weightless_since: float | None = None
+        self._started = time.monotonic()
+        self._told_unheard = False
         self.longest_without_weights_s = 0.0
         """The longest stretch without newly applied weights after the first (a stretch still
         open counted as far as it has gone)."""
@@ -193,6 +195,30 @@ class Downlink:
                         take(data, self._take_snapshot, self.rejected, "snapshot")
             self._choose()
             self._watch_weights()
+            self._tell_unheard()
+
+    def _tell_unheard(self) -> None:
+        """Say once that the server `--follow` names is unheard while others are alive.
+
+        Its snapshots alone may drive the robot: without a word it acted on its safe action (or
+        its last weights) for the whole run, while the others stored everything.
+        """
+        follow = self.config.follow
+        if (
+            follow is None
+            or self._told_unheard
+            or time.monotonic() - self._started < self.config.status_timeout_s
+        ):
+            return
+        with self.table.lock:
+            pinned = self.table.views.get(follow)
+            others = sorted(v.server for v in self.table.views.values() if v.alive and v.server != follow)
+        if (pinned is None or pinned.heard == 0) and others:
+            self._told_unheard = True
+            log.warning("--follow %s: no status from it in %.0f s, while %s %s alive: acting on %s till then",
+                        follow, self.config.status_timeout_s, ", ".join(others[:5]),
+                        "is" if len(others) == 1 else "are",
+                        "the weights given" if self.current is not None else "the safe action")  # fmt: skip
 
     def _take_presence(self) -> None:
         """Tokens are hints: one that disappears marks its server gone until its next status."""

@@ -794,7 +794,14 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
         handle(frame)
     except ProtocolError as exc:
         rejected[prefix + exc.reason] += 1
-        log.debug("rejected %s: %s", what, exc)
+        if isinstance(exc, AuthError) and rejected[prefix + exc.reason] == 1:
+            # Told once: peers with different keys refuse each other's every frame, and a robot
+            # then acts on its safe action for the whole run with only counts to show for it.
+            log.warning("a %s failed its HMAC tag (%s): its sender has another --key-file or --controller "
+                        "than this one, or forged it; more are counted as rejected %r", what, exc,
+                        prefix + exc.reason)  # fmt: skip
+        else:
+            log.debug("rejected %s: %s", what, exc)
     except OSError:
         raise
     except Exception as exc:

@@ -529,3 +529,37 @@ def test_a_forged_status_and_loss_declaration_neither_swallow_experiences_nor_st
         assert not brain.all_acked()
     finally:
         brain.stop()
+
+
+def test_peers_with_different_keys_each_say_so_once_and_a_follow_of_an_unheard_server_is_told(
+    tmp_path, caplog
+):
+    """Each side only counted the other's refused frames: the robot acted on its safe action for
+    the whole run, told nothing but "none acknowledged" and "following -". A --follow naming a
+    server never heard, while another stored everything, was told nothing at all."""
+    (tmp_path / "ka").write_bytes(b"a" * 32)
+    (tmp_path / "kb").write_bytes(b"b" * 32)
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with caplog.at_level(logging.WARNING):
+        with make_server(tmp_path, hub, cfg, key_file=tmp_path / "kb") as server:
+            brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "ka")
+            brain.start()
+            try:
+                feed(brain, 20)
+                assert wait(lambda: brain.rejected["status_auth"] >= 3 and server.rejected["auth"] >= 3)
+            finally:
+                brain.stop()
+    told = [r.getMessage() for r in caplog.records if "failed its HMAC tag" in r.getMessage()]
+    assert len(told) == 2 and any("server status" in t for t in told), told  # one each side
+    caplog.clear()
+    hub = Hub()
+    (tmp_path / "f").mkdir()
+    with caplog.at_level(logging.WARNING), make_server(tmp_path / "f", hub, cfg):
+        brain = remote(tmp_path / "f", hub, cfg, follow="s9", status_timeout_s=0.5)
+        brain.start()
+        try:
+            feed(brain, 5)
+            assert wait(lambda: "--follow s9: no status from it" in caplog.text)
+            assert "while s1 is alive: acting on the safe action" in caplog.text
+        finally:
+            brain.stop()
