@@ -75,6 +75,18 @@ class TransportBenchConfig:
         check_seed(self.seed)
         if not 1.0 <= self.rate_hz <= 1000.0:  # a tick the client keeps (as the faults bench's)
             raise ValueError(f"rate_hz must be in [1, 1000], got {self.rate_hz}")
+        # The server is killed at 30% of the phase and restarted outage_down_s later; it needs a few
+        # seconds to start and take the re-sends before the client stops. A shorter phase never
+        # restarted it, and reported everything sent meanwhile as "missing after restart".
+        shortest = (self.outage_down_s + RESTART_S) / 0.7
+        if 0.0 < self.outage_seconds < shortest:
+            raise ValueError(f"outage_seconds must be 0 (no outage phase) or at least {shortest:.1f} (the "
+                             f"server is down {self.outage_down_s:g} s from 30% of it, then restarts), got "
+                             f"{self.outage_seconds:g}")  # fmt: skip
+
+
+RESTART_S = 3.0
+"""What the outage phase leaves a restarted server to start and take the client's re-sends."""
 
 
 def steps(cfg: TransportBenchConfig) -> int:

@@ -24,3 +24,16 @@ def test_journal_holds_counts_the_journaled_part_of_a_range(tmp_path):
     assert journal_holds(tmp_path / "j", 5, 5) == 0
     after = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in (tmp_path / "j").iterdir())
     assert after == before  # reading it changed nothing
+
+
+def test_an_outage_phase_too_short_for_its_restart_is_refused():
+    """`--outage-seconds 4` killed the server and ended before restarting it, then reported the 60
+    experiences sent meanwhile as "missing after restart"."""
+    import pytest
+
+    from wfnn_bench.transport import TransportBenchConfig
+
+    TransportBenchConfig(outage_seconds=0.0)  # no outage phase
+    TransportBenchConfig(outage_seconds=9.0)
+    with pytest.raises(ValueError, match=r"at least 8\.6"):
+        TransportBenchConfig(outage_seconds=4.0)
