@@ -310,6 +310,11 @@ def plot(result: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def _reached(value: Any) -> str:
+    """A figure of reaching the goal, "-" where it was never reached (None), as the other tables show it."""
+    return "-" if value is None else str(value)
+
+
 def rows(result: dict[str, Any], cfg: RelearnBenchConfig) -> list[tuple[str, Any]]:
     """The figures of `wfnn-bench relearn`'s table: (name, value) rows."""
     rows: list[tuple[str, Any]] = [("relearn_fraction (robot time after a reset, store kept / from scratch)",
@@ -319,11 +324,11 @@ def rows(result: dict[str, Any], cfg: RelearnBenchConfig) -> list[tuple[str, Any
             (f"controller {i}: pre-divergence / untrained error px",
              f"{c['pre_divergence_error_px']:.1f} / {c['untrained_error_px']:.1f}"),
             (f"controller {i}: robot s to reach: from scratch / store kept",
-             f"{c['online_robot_s_to_reach']} / {c['with_store_robot_s_to_reach']}"),
+             f"{_reached(c['online_robot_s_to_reach'])} / {_reached(c['with_store_robot_s_to_reach'])}"),
             (f"controller {i}: store alone: thinks to reach / best error px",
-             f"{c['store_only_thinks_to_reach']} / {c['store_only_best_error_px']:.1f}"),
+             f"{_reached(c['store_only_thinks_to_reach'])} / {c['store_only_best_error_px']:.1f}"),
             (f"controller {i}: store alone, passive learner: thinks / wall s to reach / best error px",
-             f"{c['store_only_passive_thinks_to_reach']} / "
+             f"{_reached(c['store_only_passive_thinks_to_reach'])} / "
              f"{fmt2(c['store_only_passive_wall_s_to_reach'])} / "
              f"{c['store_only_passive_best_error_px']:.1f}"),
         ]  # fmt: skip
