@@ -583,8 +583,9 @@ def _run(
     }
     returns = getattr(task, "returns", None)
     if returns is not None:  # the task's own episodes (a Gymnasium task's), not the client's
-        metrics.update(task_episodes=len(returns), task_returns=[float(r) for r in returns],
-                       task_returns_last10_median=_median([float(r) for r in returns[-10:]]))  # fmt: skip
+        task_returns = [float(r) for r in returns]
+        metrics.update(task_episodes=len(task_returns), task_returns=task_returns,
+                       task_returns_last10_median=_median(task_returns[-10:]))  # fmt: skip
     if several is not None:
         metrics["behaviours"] = {
             sk.name: {"learner": sk.lcfg.to_dict(), "ticks_driving": int(driven[k])}

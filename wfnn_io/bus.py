@@ -240,11 +240,10 @@ class NetConfig:
             raise ValueError("lease_ms must be >= 100 and retry_ms >= 10")
         if not 1 << 16 <= self.max_message_bytes <= 1 << 30:
             raise ValueError(f"max_message_bytes must be in [64 KiB, 1 GiB], got {self.max_message_bytes}")
-        for endpoint in (*self.listen, *self.connect):
+        for endpoint in self.listen:
             parse_endpoint(endpoint)
-        for endpoint in self.connect:  # port 0 asks the system for a free port: one to listen on
-            if _port(endpoint) == 0:
-                raise ValueError(f"endpoint {shown(endpoint)!r}: port 0 is no port to connect to")
+        for endpoint in self.connect:
+            parse_endpoint(endpoint, to_connect=True)
 
 
 class NetError(OSError):
@@ -268,8 +267,11 @@ def shown(endpoint: str) -> str:
     return endpoint if len(endpoint) <= SHOWN else f"{endpoint[:SHOWN]}... ({len(endpoint)} characters)"
 
 
-def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
-    """A Zenoh endpoint -> (protocol, host) (host None for a local socket); ValueError if malformed."""
+def parse_endpoint(endpoint: str, to_connect: bool = False) -> tuple[str, str | None]:
+    """A Zenoh endpoint -> (protocol, host) (host None for a local socket); ValueError if malformed.
+
+    One to connect to (`to_connect`) may not have port 0, which asks the system for a free port.
+    """
     if isinstance(endpoint, str) and len(endpoint) > MAX_ENDPOINT:
         raise ValueError(f"endpoint {shown(endpoint)!r} is longer than {MAX_ENDPOINT} characters")
     m = _ENDPOINT.fullmatch(endpoint.strip()) if isinstance(endpoint, str) else None
@@ -288,14 +290,9 @@ def parse_endpoint(endpoint: str) -> tuple[str, str | None]:
         raise ValueError(
             f"endpoint {shown(endpoint)!r}: the address must be HOST:PORT (port 0-65535), got {address!r}"
         )
+    if to_connect and int(hp["port"]) == 0:
+        raise ValueError(f"endpoint {shown(endpoint)!r}: port 0 is no port to connect to")
     return proto, hp["v6"] or hp["host"]
-
-
-def _port(endpoint: str) -> int | None:
-    """The port of a well-formed HOST:PORT endpoint (None for a local socket)."""
-    m = _ENDPOINT.fullmatch(endpoint.strip())
-    hp = _HOST_PORT.fullmatch(m["address"]) if m is not None else None
-    return int(hp["port"]) if hp is not None else None
 
 
 def is_loopback(endpoint: str) -> bool:

@@ -876,7 +876,7 @@ def merged(
     written with the batches must describe them). What reading skips is counted in `counts`.
     """
     if config is not None:
-        spec, dims = spec or config.spec_hash(), dims or (config.state_dim, config.action_dim)
+        spec, dims = spec or config.spec_hash(), dims or widths(config)
     through: dict[str, set[int]] = {}
     for directory in directories:
         for batch in read_batches(directory, key, counts):

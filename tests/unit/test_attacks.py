@@ -4,6 +4,7 @@ Each test plays an attacker on the controller's keys, or a server restarted the 
 checks what the robot side and the think server make of it.
 """
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -30,6 +31,22 @@ def feed(brain, n, seed=0):
     for _ in range(n):
         x = rng.uniform(-1, 1, 3)
         brain.learn(Experience(x, rng.uniform(-1, 1, 2), x, -0.1), None)
+
+
+@contextlib.contextmanager
+def streaming(tmp_path):
+    """A server and a started client (1 think an action) whose first 20 experiences it has stored and
+    acknowledged -> (hub, cfg, server, brain); both are stopped after."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            feed(brain, 20)
+            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
+            yield hub, cfg, server, brain
+        finally:
+            brain.stop()
 
 
 def status_of(client, cfg_json, spec):
@@ -242,23 +259,15 @@ def lose_one_live_batch(hub, brain):
 
 
 def test_one_forged_ack_of_a_huge_number_does_not_stop_resends(tmp_path):
-    hub, cfg = Hub(), small_config(thinks_per_action=1)
-    with make_server(tmp_path, hub, cfg) as server:
-        brain = remote(tmp_path, hub, cfg)
-        brain.start()
-        try:
-            feed(brain, 20)
-            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
-            forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
-                         started_ns=server.started_ns, stored_through=MAX_SEQ)  # fmt: skip
-            hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
-            assert wait(lambda: brain.rejected["ack_beyond"] == 1)
-            lose_one_live_batch(hub, brain)
-            feed(brain, 40, seed=2)
-            assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
-            assert wait(brain.all_acked)
-        finally:
-            brain.stop()
+    with streaming(tmp_path) as (hub, _, server, brain):
+        forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
+                     started_ns=server.started_ns, stored_through=MAX_SEQ)  # fmt: skip
+        hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
+        assert wait(lambda: brain.rejected["ack_beyond"] == 1)
+        lose_one_live_batch(hub, brain)
+        feed(brain, 40, seed=2)
+        assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
+        assert wait(brain.all_acked)
 
 
 def test_a_session_listens_on_loopback_unless_told_otherwise():
@@ -469,21 +478,13 @@ def test_a_flood_faster_than_the_server_handles_is_held_in_bounded_memory_and_re
 
 def test_an_ack_within_what_was_produced_does_not_hold_back_resends_past_the_next_status(tmp_path):
     """A status of the server's start says what it holds: a forged ack that says more is corrected."""
-    hub, cfg = Hub(), small_config(thinks_per_action=1)
-    with make_server(tmp_path, hub, cfg) as server:
-        brain = remote(tmp_path, hub, cfg)
-        brain.start()
-        try:
-            feed(brain, 20)
-            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
-            lose_one_live_batch(hub, brain)
-            forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
-                         started_ns=server.started_ns, stored_through=brain.produced_through)  # fmt: skip
-            hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
-            feed(brain, 40, seed=2)
-            assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
-        finally:
-            brain.stop()
+    with streaming(tmp_path) as (hub, _, server, brain):
+        lose_one_live_batch(hub, brain)
+        forged = Ack(client=brain.id, server="s1", incarnation=server.incarnation, store=server.store.id,
+                     started_ns=server.started_ns, stored_through=brain.produced_through)  # fmt: skip
+        hub.bus().put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
+        feed(brain, 40, seed=2)
+        assert wait(lambda: server.store.stored_through.get(brain.id) == 60, timeout=10.0)
 
 
 def test_a_forged_status_and_loss_declaration_neither_swallow_experiences_nor_stop_resends(tmp_path):
@@ -493,28 +494,20 @@ def test_a_forged_status_and_loss_declaration_neither_swallow_experiences_nor_st
     (stored through 4.6e18) as its acknowledgement and stopped re-sending: all_acked() was True."""
     from wfnn_io.protocol import EXP_AFTER_LOSS, MAX_PRODUCED
 
-    hub, cfg = Hub(), small_config(thinks_per_action=1)
-    with make_server(tmp_path, hub, cfg) as server:
-        brain = remote(tmp_path, hub, cfg)
-        brain.start()
-        try:
-            feed(brain, 20)
-            assert wait(lambda: server.store.stored_through.get(brain.id) == 19 and brain.all_acked())
-            c = brain.id
-            claim = dataclasses.replace(
-                status_of(c, cfg.to_json(), cfg.spec_hash()), produced_through=MAX_SEQ - 1
-            )
-            hub.bus().put(KEYS.client_status(c), Codec(c).encode(claim), None)
-            assert wait(lambda: server.rejected["status_beyond_produced"] == 1)
-            forged = batch(cfg, MAX_SEQ - 1, 1, client=c)
-            forged.flags[:] = EXP_AFTER_LOSS
-            send(hub, forged, client=c)
-            assert wait(lambda: server.rejected["declared_beyond_produced"] >= 1)
-            feed(brain, 40, seed=2)
-            assert wait(lambda: server.store.stored_through.get(c) == 59 and brain.all_acked(), timeout=10.0)
-            assert server.counters["ingest/declared_lost"] == 0
-        finally:
-            brain.stop()
+    with streaming(tmp_path) as (hub, cfg, server, brain):
+        c = brain.id
+        claim = dataclasses.replace(
+            status_of(c, cfg.to_json(), cfg.spec_hash()), produced_through=MAX_SEQ - 1
+        )
+        hub.bus().put(KEYS.client_status(c), Codec(c).encode(claim), None)
+        assert wait(lambda: server.rejected["status_beyond_produced"] == 1)
+        forged = batch(cfg, MAX_SEQ - 1, 1, client=c)
+        forged.flags[:] = EXP_AFTER_LOSS
+        send(hub, forged, client=c)
+        assert wait(lambda: server.rejected["declared_beyond_produced"] >= 1)
+        feed(brain, 40, seed=2)
+        assert wait(lambda: server.store.stored_through.get(c) == 59 and brain.all_acked(), timeout=10.0)
+        assert server.counters["ingest/declared_lost"] == 0
     # A client never takes a server's status beyond what any client numbers as its acknowledgement.
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     brain = remote(tmp_path / "forged", hub, cfg)
