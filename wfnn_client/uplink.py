@@ -315,9 +315,17 @@ class Uplink:
             return frame
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
-        log.error("experiences %d-%d are not in the journal (damaged, or numbers skipped past what servers "
-                  "held or an earlier run reserved); server %s is told they are lost",
-                  acked + 1, batch.first_seq - 1, server)  # fmt: skip
+        reserved_from = self._first_seq - self.journal.skipped_at_open
+        if reserved_from <= acked + 1 and batch.first_seq == self._first_seq:
+            # Only the numbers a crashed run reserved and never journaled (its start said so): the
+            # expected end of a crash, not damage.
+            log.warning("experiences %d-%d were reserved by a run that did not close its journal and "
+                        "never journaled; server %s is told they are lost", acked + 1,
+                        batch.first_seq - 1, server)  # fmt: skip
+        else:
+            log.error("experiences %d-%d are not in the journal (damaged, or numbers skipped past what "
+                      "servers held or an earlier run reserved); server %s is told they are lost",
+                      acked + 1, batch.first_seq - 1, server)  # fmt: skip
         self.counters["uplink/declared_lost"] += batch.first_seq - acked - 1
         # From where: a late or replayed declaration then gives up only these, never a hole the
         # server met since (after a restart) that this journal still holds.
