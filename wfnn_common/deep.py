@@ -97,9 +97,12 @@ class DeepWFNN(WFNN):
         if self._trainer is None:
             from wfnn_common.deep_torch import Trainer  # torch only where the learner thinks
 
-            seed = int(self._weights_rng.integers(1 << 62))
-            self._trainer = Trainer(self.config, self._theta0, seed)
+            self._trainer = Trainer(self.config, self._theta0, self._trainer_seed())
         return self._trainer
+
+    def _trainer_seed(self) -> int:
+        """The seed of the trainer's generator (the smoothing noise), from the weights' stream."""
+        return int(self._weights_rng.integers(1 << 62))
 
     def _sync(self) -> None:
         """Critic 1's trained weights become `params` (the weights `act` reads)."""
@@ -272,7 +275,15 @@ class DeepWFNN(WFNN):
             state = dict(self._trainer.state())
         if self.acted > 0:
             state["acted"] = np.asarray(self.acted, dtype=np.int64)
+        state.update(self.random_state())
         return {**state, "reward_scale": np.asarray(self._reward_scale, dtype=np.float64)}
+
+    def random_state(self) -> dict[str, NDArray[Any]]:
+        """The base's random streams and, once it trains, its trainer's (`random_noise`)."""
+        out = super().random_state()
+        if self._trainer is not None:
+            out["random_noise"] = self._trainer.generator_state()
+        return out
 
     def load_training_state(self, state: dict[str, Any]) -> None:
         """Resume from `training_state`'s arrays; ValueError if they do not fit this config.
@@ -341,9 +352,20 @@ class DeepWFNN(WFNN):
             critic1 = deep_net.in_task_units(critic1, self.shapes, *deep_net.value_scale(moments))
         if not np.array_equal(critic1.astype(np.float32), self.params.flat[0].astype(np.float32)):
             raise ValueError("training state theta: critic 1 is not the weights saved beside it")
+        load_random = self.random_state_loader(state)  # checked before anything changes
         state = {**state, **arrays}
         self._theta0 = np.asarray(state["theta"], dtype=np.float64)
-        self._train().load(state)
+        trainer = self._train()
+        noise = trainer.checked_generator_state(state["random_noise"]) if "random_noise" in state else None
+        trainer.load(state)
+        if load_random is not None:
+            # After the trainer is made: making it draws its seed from the weights' stream, which
+            # the saved learner had done before it saved that stream's state, where it had trained.
+            load_random()
+            if noise is not None:
+                trainer.generator.set_state(noise)
+            else:  # saved before its first update: seeded as it would have been
+                trainer.generator.manual_seed(self._trainer_seed())
         self._sync()
         self.rewarded([float(scale)])
         self.acted = int(acted)

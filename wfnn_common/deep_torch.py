@@ -470,6 +470,30 @@ class Trainer:
                 self._compiled = False
         return loss(self.critics, self.config, *args)
 
+    def generator_state(self) -> np.ndarray:
+        """Where the smoothing noise's generator stands, as bytes [n] uint8 (n fixed per device type)."""
+        return self.generator.get_state().numpy().copy()
+
+    def checked_generator_state(self, value: Any) -> torch.Tensor | None:
+        """`generator_state`'s bytes as the generator takes them (ValueError: no generator's state).
+
+        None where they are another device type's generator's (of another length): a checkpoint
+        moved between a CPU and a GPU keeps everything else.
+        """
+        words = np.asarray(value)
+        if words.dtype != np.uint8 or words.ndim != 1:
+            raise ValueError(f"training state random_noise: {words.dtype} {words.shape}, not a state")
+        if words.shape != tuple(self.generator.get_state().shape):
+            logger.info("training state random_noise is of another device type's generator: the "
+                        "smoothing noise is drawn afresh from its seed")  # fmt: skip
+            return None
+        state = torch.from_numpy(words.copy())
+        try:
+            torch.Generator(device=self.device).set_state(state)
+        except RuntimeError as exc:
+            raise ValueError(f"training state random_noise: {exc}") from exc
+        return state
+
     # ------------------------------------------------------------------ state
     def state(self) -> dict[str, np.ndarray]:
         """Everything training needs to resume: weights, targets, Adam's moments and step."""

@@ -17,7 +17,7 @@ them by the declared ranges.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -35,6 +35,37 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 """Largest finite float32: the deep learner trains in float32, where anything larger is infinite."""
+RANDOM_STATE = ("random_seed", "random_weights", "random_replay", "random_exploration", "exploration_noise")
+"""A learner's `random_state`: the seed its streams began from, its three generators' states
+(`generator_state`) and the exploration noise [population, action_dim]."""
+
+
+def generator_state(rng: np.random.Generator) -> NDArray[np.uint64]:
+    """A PCG64 generator's state as [6] uint64.
+
+    Its state and increment (128 bits each, high word first), whether a 32-bit half is buffered,
+    and that half.
+    """
+    bits = rng.bit_generator.state
+    if bits.get("bit_generator") != "PCG64":
+        raise ValueError(f"only PCG64 generators are saved, not {bits.get('bit_generator')}")
+    state, inc = bits["state"]["state"], bits["state"]["inc"]
+    words = (state >> 64, state & WORD, inc >> 64, inc & WORD, bits["has_uint32"], bits["uinteger"])
+    return np.array(words, dtype=np.uint64)
+
+
+def generator_state_from(value: Any, name: str) -> dict[str, Any]:
+    """Inverse of `generator_state`: the bit generator's state dict (ValueError if not one)."""
+    words = np.asarray(value)
+    if words.dtype != np.uint64 or words.shape != (6,) or int(words[4]) > 1 or int(words[5]) > 0xFFFFFFFF:
+        raise ValueError(f"training state {name}: {words.dtype} {words.shape}, not a generator's state")
+    w = [int(v) for v in words]
+    return {"bit_generator": "PCG64", "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
+            "has_uint32": w[4], "uinteger": w[5]}  # fmt: skip
+
+
+WORD = (1 << 64) - 1
+
 MAX_INDICES = 1 << 22
 """Most replay indices a minibatch think draws at once (64 MiB with their random numbers)."""
 MAX_REWARD = 1e30
@@ -604,14 +635,76 @@ class WFNN:
     def prepare_thinking(self) -> None:
         """Nothing to load: the compiled think comes from numba's cache at its first call."""
 
-    def training_state(self) -> dict[str, FloatArray]:
-        """What training needs beyond `params` to resume: nothing for the thesis' learner."""
-        return {}
+    def training_state(self) -> dict[str, NDArray[Any]]:
+        """What training needs beyond `params` to resume: its random streams (`random_state`)."""
+        return self.random_state()
 
     def load_training_state(self, state: dict[str, Any]) -> None:
-        """Inverse of `training_state` (the thesis' learner has none to load)."""
-        if state:
-            raise ValueError(f"the thesis' learner has no training state, got {sorted(state)[:5]}")
+        """Inverse of `training_state`; ValueError for anything else.
+
+        A file saved without it (or before it was saved) leaves the streams as the seed starts them.
+        """
+        other = sorted(set(state) - set(RANDOM_STATE))
+        if other:
+            raise ValueError(f"the thesis' learner has no training state {other[:5]}")
+        self.load_random_state(state)
+
+    def random_state(self) -> dict[str, NDArray[Any]]:
+        """Where the random streams stand, and the exploration noise.
+
+        The streams: weights (after a reset), replay sampling and exploration. A learner resumed
+        from them draws what this one would have drawn next, so that a run stopped and resumed
+        goes on as one that never stopped.
+        """
+        return {
+            "random_seed": np.asarray(self.config.seed, dtype=np.int64),
+            "random_weights": generator_state(self._weights_rng),
+            "random_replay": generator_state(self._replay_rng),
+            "random_exploration": generator_state(self.explorer.rng),
+            "exploration_noise": self.explorer.noise.copy(),
+        }
+
+    def load_random_state(self, state: dict[str, Any]) -> None:
+        """Inverse of `random_state`, all or none of it.
+
+        ValueError, and nothing changed, for arrays that are not such a state; where none is
+        given, the streams stay as they are.
+        """
+        load = self.random_state_loader(state)
+        if load is not None:
+            load()
+
+    def random_state_loader(self, state: dict[str, Any]) -> Callable[[], None] | None:
+        """`load_random_state`'s checks now (ValueError); what it changes, to call (None: nothing).
+
+        Streams that began from another seed than this learner's config gives (a run resumed with
+        another --seed) are not taken: that seed's own streams are what the run asked for.
+        """
+        given = [key for key in RANDOM_STATE if key in state]
+        if not given:
+            return None
+        if len(given) != len(RANDOM_STATE):
+            raise ValueError(f"training state has part of the random state ({', '.join(given)})")
+        seed = np.asarray(state["random_seed"])
+        if seed.dtype.kind not in "iu" or seed.shape != ():
+            raise ValueError(f"training state random_seed: {seed.dtype} {seed.shape}, not a seed")
+        if int(seed) != self.config.seed:
+            return None
+        noise = np.asarray(state["exploration_noise"])
+        shape = self.explorer.noise.shape
+        if noise.dtype.kind != "f" or noise.shape != shape or not np.isfinite(noise).all():
+            raise ValueError(f"training state exploration_noise: {noise.dtype} {noise.shape}, expected "
+                             f"finite {shape}")  # fmt: skip
+        streams = [(self._weights_rng, "random_weights"), (self._replay_rng, "random_replay"),
+                   (self.explorer.rng, "random_exploration")]  # fmt: skip
+        states = [generator_state_from(state[key], key) for _, key in streams]
+
+        def load() -> None:
+            for (rng, _), bits in zip(streams, states, strict=True):
+                rng.bit_generator.state = bits
+            self.explorer.noise[...] = noise
+
+        return load
 
     def snapshot(self) -> Params:
         """A copy of the current weights (safe to read while thinking continues)."""

@@ -697,3 +697,52 @@ def test_a_deep_population_takes_its_members_rows_as_given_not_reshaped():
         population.act(rows, explore=False, params=make_population(_api_config("deep"), 2).snapshot())
     assert population.act(rows, explore=False).action.shape == (3, 1)
     assert population.learn(rows, np.zeros((3, 1)), rows, np.zeros(3)).tolist() == [True] * 3
+
+
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_learner_resumed_from_its_training_state_goes_on_as_one_that_never_stopped(tmp_path, learner):
+    """Its random streams (replay sampling, exploration, the deep learner's smoothing noise and
+    warm-up) are resumed where they stood: they started again from the seed, and a run stopped
+    and resumed (a think server's restart) sampled, explored and learned otherwise."""
+    from wfnn_io.persist import load_checkpoint, save_weights
+
+    options = {"deep": {"warmup": 30}} if learner == "deep" else {}
+    cfg = with_options(small_config(learner=learner, thinks_per_action=3, seed=4), options)
+    exp = random_experiences(np.random.default_rng(1), 60, 3, 2)
+    states = np.random.default_rng(2).uniform(-1, 1, (40, 3))
+
+    def go_on(brain, rows):  # explore and learn (some of the warm-up), then think
+        acted = [brain.act(states[i]).action for i in rows]
+        for i in rows:
+            brain.learn(exp.state[i], exp.action[i], exp.next_state[i], exp.reward[i], exp.terminal[i])
+        brain.think(12)
+        return np.array(acted)
+
+    first = make_learner(cfg)
+    go_on(first, range(20))
+    save_weights(tmp_path / "ck.npz", cfg, first.params, {}, training=first.training_state())
+    ck_cfg, params, _, training = load_checkpoint(tmp_path / "ck.npz")
+    resumed = make_learner(ck_cfg, params=params)
+    resumed.load_training_state(training)
+    for i in range(20):  # the replay memory, as a server reloads it from its store
+        resumed.learn(exp.state[i], exp.action[i], exp.next_state[i], exp.reward[i], exp.terminal[i])
+    np.testing.assert_array_equal(go_on(resumed, range(20, 40)), go_on(first, range(20, 40)))
+    np.testing.assert_array_equal(resumed.params.flat, first.params.flat)
+    # Resumed with another seed, the learner keeps that seed's own streams.
+    reseeded = make_learner(replace(ck_cfg, seed=5), params=params)
+    streams = {k: v.copy() for k, v in reseeded.random_state().items()}
+    reseeded.load_training_state(training)
+    for key in ("random_seed", "random_replay", "random_exploration", "exploration_noise"):
+        np.testing.assert_array_equal(reseeded.random_state()[key], streams[key])
+    assert int(streams["random_seed"]) == 5 and not np.array_equal(streams["random_replay"],
+                                                                   training["random_replay"])  # fmt: skip
+    # Damaged or partial random state is refused, and changes nothing.
+    resumed = make_learner(ck_cfg, params=params)
+    before = {k: v.copy() for k, v in resumed.training_state().items()}
+    for bad in ({**training, "random_replay": training["random_replay"][:5]},
+                {**training, "exploration_noise": np.full_like(training["exploration_noise"], np.nan)},
+                {k: v for k, v in training.items() if k != "random_weights"}):  # fmt: skip
+        with pytest.raises(ValueError, match=r"random|noise"):
+            resumed.load_training_state(bad)
+        for key, value in resumed.training_state().items():
+            np.testing.assert_array_equal(value, before[key])
