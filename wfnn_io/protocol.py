@@ -506,6 +506,10 @@ MAX_MAP_ENTRIES = 1024
 and at most a few hundred clients, and a receiver keeps the newest of each sender's."""
 MAX_KEY_CHARS = 256
 """Longest key of a map field."""
+MAX_NDIM = 2
+"""Most dimensions of an array field (its shape is the only list a body holds)."""
+UTF8_MAX_BYTES = 4
+"""Most bytes of one character in UTF-8 (string limits count characters, msgpack's bytes)."""
 
 
 def _check_dict(name: str, kind: str, value: Any) -> dict[str, Any]:
@@ -610,8 +614,9 @@ def from_body(msg_type: MsgType, body: Any) -> Message:
     names = {name for name, _, _ in fields}
     required = {name for name, _, meta in fields if not meta.get("optional")}
     if not required <= set(body) <= names:
-        missing, extra = sorted(required - set(body)), sorted(set(body) - names)
-        raise MalformedBody(f"{MESSAGES[msg_type].__name__}: missing fields {missing}, unexpected {extra}")
+        missing, extra = sorted(required - set(body)), set(body) - names
+        listed = sorted(extra)[:8] + ([f"... {len(extra)} in all"] if len(extra) > 8 else [])
+        raise MalformedBody(f"{MESSAGES[msg_type].__name__}: missing fields {missing}, unexpected {listed}")
     values: dict[str, Any] = {}
     for name, kind, meta in fields:
         if name not in body:
@@ -718,9 +723,13 @@ def check_frame(
 
 def _decode(frame: bytes, key: bytes | None, expect: type[Any] | None, mac: MacPolicy) -> Frame:
     sender, seq, msg_type, body_len = _check(frame, key, expect, mac)
+    # Bounded as the checks after it bound every field (arrays' shapes are the only lists): a
+    # forged body of a million map keys otherwise took seconds to unpack, holding the interpreter's
+    # lock from a robot's control tick, before its fields were refused.
     body = msgpack.unpackb(
         memoryview(frame)[HEADER.size : HEADER.size + body_len], raw=False, strict_map_key=True,
-        use_list=True,
+        use_list=True, max_map_len=MAX_MAP_ENTRIES, max_array_len=MAX_NDIM,
+        max_str_len=UTF8_MAX_BYTES * MAX_STRING, max_ext_len=0,
     )  # fmt: skip
     return Frame(sender, seq, from_body(msg_type, body))
 

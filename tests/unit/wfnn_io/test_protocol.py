@@ -899,3 +899,34 @@ def test_an_experience_batch_of_mismatched_shapes_is_not_sent():
         encode(bad, "robot1", 0)
     with pytest.raises(Unsendable, match="dimensions"):
         encode(dataclasses.replace(make_batch(n=5), reward=np.zeros((5, 1))), "robot1", 0)
+
+
+def test_a_body_larger_than_any_field_allows_is_refused_as_it_is_unpacked():
+    """A forged status of 100,000 map keys (about 1 MiB) took a quarter of a second to unpack, and
+    an experience body of a million several seconds, holding the interpreter's lock from a robot's
+    control tick, before its fields were refused; the refusal then listed every key."""
+    from wfnn_io.protocol import _FIELDS, MAX_MAP_ENTRIES, MAX_NDIM, MAX_STRING
+
+    status = to_body(make_client_status())
+    hostile = [
+        {**status, **{f"k{i:06d}": None for i in range(100_000)}},  # a huge map
+        {**status, "metrics": {f"m{i}": 1.0 for i in range(MAX_MAP_ENTRIES + 1)}},
+        {**status, "spec_hash": "x" * (4 * MAX_STRING + 1)},  # a string beyond any field's characters
+        {**status, "junk": [None] * 200_000},  # a list (only arrays' shapes are lists)
+    ]
+    for body in hostile:
+        frame = raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.CLIENT_STATUS)
+        with pytest.raises(MalformedBody, match="exceeds max_") as refused:
+            decode(frame)
+        assert len(str(refused.value)) < 300
+    # Unexpected fields within the limits are named, at most 8 of them, and counted.
+    body = {**status, **{f"k{i:03d}": None for i in range(500)}}
+    with pytest.raises(MalformedBody, match=r"unexpected \['k000'.*'k007', '\.\.\. 500 in all'\]"):
+        decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.CLIENT_STATUS))
+    # What the fields allow still unpacks: the longest string in characters of 4 bytes each, the
+    # most map entries, and every array field's dimensions.
+    longest = dataclasses.replace(make_client_status(), learner_config="\U0001f600" * MAX_STRING)
+    assert decode(Codec("robot1").encode(longest)).message.learner_config == longest.learner_config
+    full = dataclasses.replace(make_client_status(), metrics={f"m{i}": 1.0 for i in range(MAX_MAP_ENTRIES)})
+    assert decode(Codec("robot1").encode(full)).message.metrics == full.metrics
+    assert max(meta["ndim"] for f in _FIELDS.values() for _, kind, meta in f if kind == "array") <= MAX_NDIM
