@@ -884,12 +884,12 @@ class ThinkServer:
                     self._loaded_fills.discard(key)
                     self.schedule.owe(0, batch.client, batch.last_seq)  # done once that budget is paid
                 else:
-                    ok = self._learn_batch(learner, batch)
+                    stored = ok = self._learn_batch(learner, batch)
                     thought = self._thought_holes.get(batch.client)
                     if fill and thought:  # thought before a record of it was damaged: learned, not owed
                         ok = ok & ~_in_ranges(batch.first_seq, batch.last_seq, thought)
                     self.schedule.owe(tpa * int(np.count_nonzero(ok)), batch.client, batch.last_seq)
-                    self._observe(learner, batch)
+                    self._observe(learner, batch, stored)
                 queued = self._queued_through.get(batch.client, -1)
                 self._hand_over(batch.client, batch.first_seq, batch.last_seq)
                 self._queued_through[batch.client] = max(batch.last_seq, queued)
@@ -910,20 +910,22 @@ class ThinkServer:
                 if not holes[client]:
                     del holes[client]
 
-    def _observe(self, learner: Learner, batch: ExperienceBatch) -> None:
+    def _observe(self, learner: Learner, batch: ExperienceBatch, stored: NDArray[np.bool_]) -> None:
         """Q of the actions the current weights choose in the new states; divergence; staleness.
 
-        Only the learnable rows count: a non-finite or flagged experience is never learned, so it
-        neither feeds the published figures nor becomes the state the dashboard draws.
+        Only the experiences the learner stored [N] count: a non-finite or flagged one, or one its
+        sanity limits refused (a reward of 1e300), is never learned, so it neither feeds the
+        published figures nor becomes the state the dashboard draws. Values and the state drawn
+        are of finite next states only: a terminal experience's need not be one.
         """
-        keep = batch.learnable()
         if batch.weights_source == f"{self.id}:{self.incarnation}":
             self._staleness.extend((self.version - batch.weights_version.astype(np.int64)).tolist())
+        self._rewards.extend(batch.reward[stored].tolist())
+        keep = stored & np.isfinite(batch.next_state).all(axis=1)
         if not keep.any():
             return
         values = learner.greedy_values(batch.next_state[keep])[0]
         self._q_chosen.extend(values.tolist())
-        self._rewards.extend(batch.reward[keep].tolist())
         # Newest last (a view shows the newest state sent), and only heard clients kept.
         others = {c: v for c, v in self.view.latest_state.items() if c != batch.client and c in self._recent}
         self.view.latest_state = {**others, batch.client: batch.next_state[keep][-1].copy()}

@@ -464,6 +464,20 @@ def test_only_learnable_rows_feed_the_figures_and_the_state_the_dashboard_draws(
             s.metrics["learn/reward_mean"] for s in listener.statuses if "learn/reward_mean" in s.metrics
         ]
         assert means[0] == pytest.approx(b.reward[0])
+        # Finite experiences the learner's sanity limits refuse (a state far outside its range, a
+        # reward beyond 1e30) count no more than non-finite ones; a terminal experience's reward
+        # counts, but its next state, which need not be one (NaN), is neither valued nor drawn.
+        listener.statuses.clear()
+        late = batch(cfg, 3, 4)
+        late.reward[:] = [-0.5, 1e300, -0.25, -0.75]
+        late.state[0, 0] = 50.0
+        late.next_state[3], late.terminal[3] = np.nan, True
+        send(hub, late)
+        assert listener.wait(lambda: server.learner.buffer.count[0] == 3)  # rows 2 and 3, and row 0 before
+        assert listener.wait(lambda: any("learn/reward_mean" in s.metrics for s in listener.statuses))
+        means = [s.metrics.get("learn/reward_mean") for s in listener.statuses]
+        assert next(m for m in means if m is not None) == pytest.approx(-0.5)
+        np.testing.assert_array_equal(server.view.latest_state["c1"], late.next_state[2])
 
 
 def test_a_refused_start_leaves_the_last_server_config_as_it_was(tmp_path):
