@@ -228,8 +228,10 @@ def test_each_behaviours_log_names_the_behaviour_that_chose_the_others_actions(t
     from wfnn_client import run as client_run
     from wfnn_io.logs import read_batches
 
-    foraging = {"nomad": NomadConfig(behaviour="wander"), "forage": ForageConfig()}
-    config = ClientConfig(sim="nomad", episodes=1, rate_hz=0.0, duration_s=6.0, lockstep=True, out=tmp_path,
+    # 24 balls, so that the episode (600 ticks) finds a target on any machine: with the default 6,
+    # one machine's arithmetic (AMD EPYC) wandered the whole episode past them all.
+    foraging = {"nomad": NomadConfig(behaviour="wander", balls=24), "forage": ForageConfig()}
+    config = ClientConfig(sim="nomad", episodes=1, rate_hz=0.0, duration_s=60.0, lockstep=True, out=tmp_path,
                           **foraging)  # fmt: skip
     client_run.run(config)
     sources = {}
