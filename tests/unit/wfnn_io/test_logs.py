@@ -92,6 +92,24 @@ def test_export_keeps_a_file_already_at_its_output_unless_told_to_replace_it(tmp
         assert data["state"].shape[0] == 20
 
 
+def test_export_never_writes_inside_a_log_or_beside_a_servers_store(tmp_path):
+    """`--replace` onto a segment of a live server's store left the server appending to the
+    replaced file, and what it had acknowledged was gone from the store; onto its checkpoint,
+    what it had learned."""
+    record(tmp_path / "a", n=20)
+    record(tmp_path / "srv" / "store", n=30, client="robot2")
+    checkpoint = tmp_path / "srv" / "checkpoint.npz"
+    checkpoint.write_bytes(b"weights")
+    segment = sorted((tmp_path / "srv" / "store").glob("*.seg"))[0]
+    before = segment.read_bytes()
+    for out in (segment, tmp_path / "srv" / "store" / "new.npz", checkpoint, tmp_path / "srv" / "e.npz"):
+        with pytest.raises(logs.LogFormatError, match="write somewhere else"):
+            logs.export([tmp_path / "a"], out, replace=True)
+    assert segment.read_bytes() == before and checkpoint.read_bytes() == b"weights"
+    assert not (tmp_path / "srv" / "e.npz").exists() and not (tmp_path / "srv" / "store" / "new.npz").exists()
+    assert logs.export([tmp_path / "a"], tmp_path / "e.npz") == 20  # anywhere else, as before
+
+
 def test_a_file_made_while_a_new_one_is_written_is_kept(tmp_path, monkeypatch):
     """The check before the write is not all: the name is taken in one step, or not at all."""
     target = tmp_path / "out.npz"
