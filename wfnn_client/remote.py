@@ -112,6 +112,7 @@ class RemoteBrain:
         self._loop_metrics: dict[str, float] = {}
         self._threads: list[threading.Thread] = []
         self.error: BaseException | None = None
+        self._failure_lock = threading.Lock()
 
     # ------------------------------------------------------------------ what the halves hold
     @property
@@ -191,8 +192,14 @@ class RemoteBrain:
                  self.journal.next_seq)  # fmt: skip
 
     def _failed(self, exc: BaseException) -> None:
-        """A thread ended by `exc` (called in its handler): kept for `check`, and logged."""
-        self.error = exc
+        """A thread ended by `exc` (called in its handler): kept for `check`, and logged.
+
+        The first failure is kept: it is the cause, and the threads failing after it (the same
+        full disk, another file) name only their own symptom.
+        """
+        with self._failure_lock:
+            if self.error is None:
+                self.error = exc
         log_failure(log, "client thread failed", exc)
 
     def stop(self, flush_timeout_s: float = 2.0) -> None:

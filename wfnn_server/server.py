@@ -238,6 +238,7 @@ class ThinkServer:
         """Held where `_heard` is replaced (ingest thread) and where `_silent` is updated from it
         (learner thread), so that neither loses the other's change."""
         self.error: BaseException | None = None
+        self._failure_lock = threading.Lock()
         self.view = ViewModel(server=self.id, incarnation=self.incarnation, controller=config.controller)
         """What read-only views (the dashboard) may look at; replaced field by field, never in place."""
         self.dashboard: Dashboard | None = None
@@ -602,8 +603,14 @@ class ThinkServer:
         return self
 
     def _failed(self, exc: BaseException) -> None:
-        """A thread ended by `exc` (called in its handler): kept, logged, and the others stop."""
-        self.error = exc
+        """A thread ended by `exc` (called in its handler): kept, logged, and the others stop.
+
+        The first failure is kept: it is the cause, and the threads failing after it (the same
+        full disk, another file) name only their own symptom.
+        """
+        with self._failure_lock:
+            if self.error is None:
+                self.error = exc
         log_failure(log, "server thread failed; stopping", exc)
         self._stop.set()
 

@@ -1126,3 +1126,16 @@ def test_a_followed_servers_figures_never_make_this_clients_status_one_the_proto
     finally:
         brain.stop()
         server.stop()
+
+
+def test_a_client_keeps_its_first_thread_failure_as_its_error(tmp_path):
+    """As a server does: the cause, not the symptoms that follow it in other threads."""
+    brain = remote(tmp_path, Hub(), small_config())
+    first = OSError(28, "No space left on device", str(tmp_path / "journal" / "00000000.seg"))
+    brain._failed(first)
+    brain._failed(RuntimeError("the downlink's bus is closed"))
+    assert brain.error is first
+    with pytest.raises(RuntimeError, match="client thread failed") as failed:
+        brain.check()
+    assert failed.value.__cause__ is first
+    brain.journal.close()

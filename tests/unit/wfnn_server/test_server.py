@@ -1111,3 +1111,15 @@ def test_the_learner_takes_queued_batches_a_bounded_time_at_once_and_the_queue_i
         assert server.store.count == 40 and server.counters["ingest/learner_behind"] == 1
     finally:
         server.stop()
+
+
+def test_a_server_keeps_its_first_thread_failure_as_its_error(tmp_path):
+    """A full disk failed the store's write, then the learner's config write: the run ended naming
+    the second file, not the write that stopped the server."""
+    hub, cfg = Hub(), small_config()
+    server = make_server(tmp_path, hub, cfg)
+    first = OSError(28, "No space left on device", str(tmp_path / "store" / "00000000.seg"))
+    server._failed(first)
+    server._failed(OSError(28, "No space left on device", str(tmp_path / "learner_config.json")))
+    assert server.error is first and server._stop.is_set()
+    server.store.close()
