@@ -131,7 +131,7 @@ def _atomic_write(
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_short(path.name), suffix=".tmp")
     except OSError as exc:  # named by the file asked for, not the temporary one beside it
-        raise _about(exc, path) from exc
+        raise naming_file(exc, path) from exc
     try:
         # mkstemp makes the file 0600; the new file gets the mode the old one had, or the mode
         # open() would give it, so that a lab's shared results stay readable to the group.
@@ -152,7 +152,7 @@ def _atomic_write(
             _link_new(Path(tmp), path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)
-        raise _about(exc, path) from exc
+        raise naming_file(exc, path) from exc
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -217,7 +217,7 @@ def _check_replaceable(path: Path) -> None:
         raise OSError(errno.EINVAL, "exists and is not a regular file", str(path))
 
 
-def _about(exc: OSError, path: Path) -> OSError:
+def naming_file(exc: OSError, path: Path) -> OSError:
     """`exc` naming `path` (what the user asked to write) where it names another file or none.
 
     A temporary file's name means nothing to the user; and a write or close that failed (a full
@@ -337,7 +337,7 @@ def writable(path: Path) -> None:
             probe.write(bytes(PROBE_BYTES))
             probe.flush()
     except OSError as exc:
-        raise _about(exc, path) from exc
+        raise naming_file(exc, path) from exc
 
 
 def save_figure(fig: Any, path: Path, dpi: int) -> None:

@@ -25,6 +25,7 @@ or `never` (the OS decides; survives a process crash, not a power cut).
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import itertools
 import logging
@@ -38,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from wfnn_io.persist import sync_dir
+from wfnn_io.persist import naming_file, sync_dir
 from wfnn_io.protocol import crc32c
 
 log = logging.getLogger(__name__)
@@ -122,8 +123,22 @@ def segment_numbers(directory: Path) -> list[int]:
     directory = Path(directory)
     if not directory.is_dir():
         return []
-    stems = (p.stem for p in directory.glob(f"*{SUFFIX}"))
-    return sorted(int(s) for s in stems if s.isascii() and s.isdigit() and segment_name(int(s)) == s + SUFFIX)
+    numbers: set[int] = set()
+    for _ in range(LISTINGS):
+        for stem in (p.stem for p in directory.glob(f"*{SUFFIX}")):
+            if stem.isascii() and stem.isdigit() and segment_name(int(stem)) == stem + SUFFIX:
+                numbers.add(int(stem))
+        if not numbers or max(numbers) - min(numbers) + 1 == len(numbers):
+            break
+        # A gap: a directory is listed in several reads, and a segment a writer created meanwhile
+        # can move an earlier name past the reader (a reader beside a live log skipped a whole
+        # segment, silently). Listed again, what is there is found; a gap that stays is a
+        # segment that is not there.
+    return sorted(numbers)
+
+
+LISTINGS = 3
+"""Listings of a log's directory at most, while segment numbers are missing between its first and last."""
 
 
 def _check_segment(path: Path, owner: bool) -> None:
@@ -250,6 +265,19 @@ def read_records(
             if report is not None:
                 report.records += 1
             yield Position(n, offset), data[offset + RECORD.size : end]
+
+
+@contextlib.contextmanager
+def _naming(path: Path) -> Iterator[None]:
+    """An OSError raised inside names `path`.
+
+    A write, flush or fsync that fails (a full disk) names no file, where the tools' one-line
+    errors must say which one failed.
+    """
+    try:
+        yield
+    except OSError as exc:
+        raise naming_file(exc, path) from exc
 
 
 LOCK = ".lock"
@@ -399,7 +427,7 @@ class SegmentLog:
             except FileExistsError:
                 kept = quarantine / f"{n:08d}-{valid_end:010d}.{k}.torn"
         try:
-            with os.fdopen(fd, "wb") as f, open(path, "rb") as torn:
+            with _naming(kept), os.fdopen(fd, "wb") as f, open(path, "rb") as torn:
                 torn.seek(valid_end)
                 shutil.copyfileobj(torn, f, 1 << 20)  # in pieces: a tail may be longer than any segment
                 f.flush()
@@ -429,13 +457,14 @@ class SegmentLog:
         if self._size > 0 and self._size + RECORD.size + len(payload) > self.segment_bytes:
             self._rotate()
         pos = Position(self._segment, self._size)
-        self._file.write(RECORD.pack(len(payload), crc32c(payload)) + payload)
-        self._size += RECORD.size + len(payload)
-        self._dirty = True
-        if self.fsync == "always":
-            self.sync()
-        else:
-            self._file.flush()  # in the OS: survives a crash of this process
+        with _naming(self.directory / segment_name(self._segment)):
+            self._file.write(RECORD.pack(len(payload), crc32c(payload)) + payload)
+            self._size += RECORD.size + len(payload)
+            self._dirty = True
+            if self.fsync == "always":
+                self.sync()
+            else:
+                self._file.flush()  # in the OS: survives a crash of this process
         return pos
 
     def flush(self) -> None:
@@ -457,9 +486,10 @@ class SegmentLog:
         """Make every appended record durable (fsync unless the policy is `never`)."""
         if not self._dirty:
             return
-        self._file.flush()
-        if self.fsync != "never":
-            os.fsync(self._file.fileno())
+        with _naming(self.directory / segment_name(self._segment)):
+            self._file.flush()
+            if self.fsync != "never":
+                os.fsync(self._file.fileno())
         self._dirty = False
         self._last_sync = time.monotonic()
 

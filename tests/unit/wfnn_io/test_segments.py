@@ -608,3 +608,58 @@ def test_segments_a_never_syncing_writer_left_are_all_synced_when_the_log_is_ope
     monkeypatch.setattr(os, "fsync", spy)
     SegmentLog(tmp_path, fsync="interval").close()
     assert inodes <= synced_files
+
+
+def test_a_write_that_fails_names_the_segment(tmp_path):
+    """A full disk failed a record's write, flush or fsync with an error naming no file, and the
+    tools' one-line errors ("No space left on device") did not say which of their files it was."""
+    import errno
+
+    from wfnn_io.cli_errors import describe
+
+    class Full:
+        def __init__(self, file):
+            self.file = file
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self.file, name)
+
+    log = SegmentLog(tmp_path / "log", fsync="always")
+    log.append(b"kept")
+    log._file = Full(log._file)
+    with pytest.raises(OSError) as failed:
+        log.append(b"lost")
+    segment = str(tmp_path / "log" / "00000000.seg")
+    assert failed.value.errno == errno.ENOSPC and failed.value.filename == segment
+    assert describe(failed.value) == f"{segment}: No space left on device"
+    log._file = log._file.file
+    log.close()
+    with SegmentLog(tmp_path / "log") as again:
+        assert [payload for _, payload in again.read()] == [b"kept"]
+
+
+def test_a_segment_a_listing_missed_beside_a_live_writer_is_listed_again(tmp_path, monkeypatch):
+    """A directory listed while a writer creates segments can miss an earlier one: a reader beside
+    a live log skipped a whole segment, with no word of damage."""
+    import pathlib
+
+    log = SegmentLog(tmp_path / "log", segment_bytes=64, fsync="never")
+    for k in range(6):
+        log.append(bytes([k]) * 40)  # a segment each
+    log.close()
+    real, calls = pathlib.Path.glob, []
+
+    def racing(self, pattern, *args, **kw):  # the first listing misses segment 2
+        calls.append(pattern)
+        found = list(real(self, pattern, *args, **kw))
+        return [p for p in found if p.name != "00000002.seg"] if len(calls) == 1 else found
+
+    monkeypatch.setattr(pathlib.Path, "glob", racing)
+    assert segments.segment_numbers(tmp_path / "log") == [0, 1, 2, 3, 4, 5] and len(calls) == 2
+    assert [payload[0] for _, payload in segments.read_records(tmp_path / "log")] == list(range(6))
+    (tmp_path / "log" / "00000002.seg").unlink()  # really gone: listed as it is, three times at most
+    calls.clear()
+    assert segments.segment_numbers(tmp_path / "log") == [0, 1, 3, 4, 5] and len(calls) == segments.LISTINGS
