@@ -556,3 +556,43 @@ def test_peers_with_different_keys_each_say_so_once_and_a_follow_of_an_unheard_s
             assert "while s1 is alive: acting on the safe action" in caplog.text
         finally:
             brain.stop()
+
+
+def test_with_a_key_a_replayed_client_status_is_refused_and_a_restarted_client_heard(tmp_path):
+    """The tag covers a frame's number, but the server took any status: an old one replayed made
+    a stopped client heard again and put back its old figures (weights version, following)."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    (tmp_path / "key").write_bytes(b"k" * 32)
+    statuses: list[bytes] = []
+
+    def record(key, payload):
+        if "/status/client/" in key:
+            statuses.append(bytes(payload))
+        return payload
+
+    hub.tap = record
+    with make_server(tmp_path, hub, cfg, key_file=tmp_path / "key") as server:
+        brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
+        brain.start()
+        try:
+            assert wait(lambda: brain.following == "s1")
+            feed(brain, 30)
+            assert wait(brain.all_acked)
+            assert wait(lambda: server.view.clients[brain.id].produced_through == 29)
+            assert wait(lambda: server.view.clients[brain.id].following == "s1")
+        finally:
+            brain.stop()
+        assert statuses
+        newest = server.view.clients[brain.id]
+        for frame in statuses[:3]:  # the first ones: before any experience, following no one
+            hub.bus().put(KEYS.client_status(brain.id), frame, None)
+        assert wait(lambda: server.rejected["status_replayed"] == 3)
+        assert server.view.clients[brain.id] == newest
+        # The same client restarted (its journal numbers on) is heard once it has something new.
+        again = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")
+        again.start()
+        try:
+            feed(again, 5)
+            assert wait(lambda: server.view.clients[brain.id].produced_through == 34)
+        finally:
+            again.stop()
