@@ -796,14 +796,28 @@ class ThinkServer:
             return
         try:
             cfg = LearnerConfig.from_json(status.learner_config)
-            if self._overridden(cfg).spec_hash() != status.spec_hash:
-                raise ConfigError(f"its spec is {cfg.spec_hash()}, the status says {status.spec_hash}")
         except ConfigError as exc:
             self.rejected["config"] += 1
             log.error("client %s announced a learner config that is refused: %s", status.client, exc)
             return
         if cfg.to_json() in self._unusable:  # refused once already, and said so then
             self.rejected["config"] += 1
+            return
+        try:
+            overridden = self._overridden(cfg)
+        except ConfigError as exc:  # this server's own flags, not the client's config (--alpha 5: no deep lr)
+            self.rejected["config"] += 1
+            self._unusable.add(cfg.to_json())
+            given = self.config.overrides
+            flags = ", ".join(f"{f.name} {getattr(given, f.name)}" for f in dataclasses.fields(given)
+                              if getattr(given, f.name) not in (None, ""))  # fmt: skip
+            log.error("client %s's learner config cannot take this server's overrides (%s): %s; restart "
+                      "the server without them", status.client, flags, exc)  # fmt: skip
+            return
+        if overridden.spec_hash() != status.spec_hash:
+            self.rejected["config"] += 1
+            log.error("client %s announced a learner config that is refused: its spec is %s, the status "
+                      "says %s", status.client, cfg.spec_hash(), status.spec_hash)  # fmt: skip
             return
         log.info("adopting the learner config of client %s", status.client)
         self._pending_config = cfg

@@ -1123,3 +1123,19 @@ def test_a_server_keeps_its_first_thread_failure_as_its_error(tmp_path):
     server._failed(OSError(28, "No space left on device", str(tmp_path / "learner_config.json")))
     assert server.error is first and server._stop.is_set()
     server.store.close()
+
+
+def test_a_clients_config_its_own_overrides_break_is_refused_naming_them_once(tmp_path, caplog):
+    """`--alpha 5` (a thesis rate) met a deep client's config: the server logged at every status
+    that the client had announced a refused config, which it had not (its lr was 3e-4)."""
+    import logging
+
+    hub, cfg = Hub(), small_config(learner="deep")
+    with caplog.at_level(logging.ERROR), make_server(tmp_path, hub, None, alpha=5.0) as server:
+        for _ in range(3):
+            announce(hub, cfg)
+        assert wait_for(lambda: server.rejected["config"] == 3)
+        assert server.learner is None and server._pending_config is None
+    told = [r.getMessage() for r in caplog.records if "learner config" in r.getMessage()]
+    assert len(told) == 1 and "cannot take this server's overrides (learning_rate 5.0)" in told[0], told
+    assert "announced a learner config that is refused" not in caplog.text
