@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from sims.boat import BoatVec, handcoded_boat
+from sims.cartpole import CartPoleVec
 from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import Controllers, PolicyShare, parse_mix, source_names
 from wfnn_client.run import SetupError, learner_config, run
@@ -79,11 +80,20 @@ def test_episodes_are_drawn_by_share_and_each_controller_acts_as_itself(tmp_path
 def test_a_controller_the_task_lacks_or_weights_of_another_task_are_refused(tmp_path):
     with pytest.raises(ValueError, match="no hand-coded controller"):
         _controllers("handcoded")
-    other = learner_config(BoatVec(1), ClientConfig(sim="boat"))
-    other = type(other).from_dict({**other.to_dict(), "n_hidden": 3})
+    other = learner_config(CartPoleVec(1), ClientConfig(sim="cartpole"))
     save_weights(tmp_path / "other.npz", other, WFNN(other).params, {})
-    with pytest.raises(ValueError, match="learner spec"):
+    with pytest.raises(ValueError, match="another task's ranges"):
         _controllers(f"weights:{tmp_path / 'other.npz'}")
+    # Another network for this task drives (a deep controller for the thesis learner, a smaller
+    # network): it is made from its own config (it was refused as of another learner spec).
+    boat = learner_config(BoatVec(1), ClientConfig(sim="boat"))
+    deep = learner_config(BoatVec(1), ClientConfig(sim="boat", learner="deep"))
+    for name, cfg in (("small", type(boat).from_dict({**boat.to_dict(), "n_hidden": 3})), ("deep", deep)):
+        saved, policy = make_learner(cfg), f"weights:{tmp_path / name}.npz"
+        save_weights(tmp_path / f"{name}.npz", cfg, saved.params, {})
+        x = np.linspace(-0.5, 0.5, cfg.state_dim)
+        acted = _controllers(policy)[0].act(policy, x)
+        np.testing.assert_array_equal(acted.result.action, saved.act(x, explore=False).action)
     with pytest.raises(ValueError, match="cannot load"):
         _controllers(f"weights:{tmp_path / 'missing.npz'}")
     boat = learner_config(BoatVec(1), ClientConfig(sim="boat"))
