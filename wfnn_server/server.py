@@ -76,7 +76,6 @@ from wfnn_io.protocol import (
     SpecMismatch,
     Unsendable,
     WeightSnapshot,
-    decode,
     load_key,
     take,
 )
@@ -230,8 +229,6 @@ class ThinkServer:
         self._loss_logged: dict[str, float] = {}
         """When each client's last declared loss was logged (one line per client per LOSS_LOG_S)."""
         self._heard: dict[str, float] = {}
-        self._status_order: dict[str, tuple[int, int]] = {}
-        """Per heard client, with a key: (produced_through, frame number) of its newest status taken."""
         """Per client: when its heartbeat (status) last arrived (monotonic); at most MAX_HEARD."""
         self._recent: dict[str, float] = {}
         """Per client: when its heartbeat or an admitted batch last arrived; what MAX_LISTED picks from."""
@@ -758,21 +755,10 @@ class ThinkServer:
             raise SpecMismatch(f"spec {batch.spec_hash} is not {cfg.spec_hash()}")
 
     def _client_status(self, frame: bytes) -> None:
-        sender, seq, message = decode(frame, self.codec.key, ClientStatus)
-        status = cast(ClientStatus, message)
+        sender, status = self.codec.decode(frame, ClientStatus)
         if sender != status.client:
             raise _Refused("sender", f"status from {sender} names client {status.client}")
         self._allowed(status.client)
-        if self.codec.key is not None:
-            # The tag covers the frame's number, but not across a client's runs (each counts from
-            # 0): ordered by what it has produced first, which its journal carries across runs. An
-            # older status replayed made a stopped client heard again, its figures go back and
-            # its following read "". A client restarted with nothing new to say waits for its
-            # first experience (a tick).
-            order, last = (status.produced_through, seq), self._status_order.get(status.client)
-            if last is not None and order <= last:
-                raise _Refused("status_replayed", f"status of client {status.client} older than one taken")
-            self._status_order[status.client] = order
         self.counters["ingest/client_status"] += 1
         self._recent = _noted(self._recent, status.client, 2 * MAX_LISTED)
         with self._heard_lock:
@@ -780,7 +766,6 @@ class ThinkServer:
             if heard is not self._heard:  # clients forgotten: they leave the dashboard too
                 self._heard, self._silent = heard, self._silent & set(heard)
                 self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
-                self._status_order = {c: o for c, o in self._status_order.items() if c in self._heard}
         said, before = kept(status), self.view.clients.get(status.client)
         if said.produced_through > MAX_PRODUCED:
             # More than any client numbers (a forgery): it would lift the bound on the losses that
