@@ -1003,11 +1003,11 @@ def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bo
     if Path(out).is_dir():
         raise IsADirectoryError(21, "is a directory (export writes one .npz file)", str(out))
     folder = Path(out).resolve().parent
-    if is_log(folder) or (folder / LOG_JSON).exists() or (folder / LOCK).exists():
+    if is_log(folder):  # a live one has its segment from the start
         # Any log, not only those read: a live server's store went on appending to the segment
         # an export replaced, and what it had acknowledged was gone from the store.
         raise LogFormatError(f"{out} is inside the log {folder}; write somewhere else")
-    if is_log(folder / "store") or (folder / SERVER_CONFIG_JSON).exists():
+    if is_log(folder / "store"):
         # Nor beside a server's store: --replace over its checkpoint lost what it had learned.
         raise LogFormatError(f"{out} is in a think server's data directory {folder}; write somewhere else")
     if not replace and os.path.lexists(out):  # before the logs are read, which may take long

@@ -108,6 +108,12 @@ def test_export_never_writes_inside_a_log_or_beside_a_servers_store(tmp_path):
     assert segment.read_bytes() == before and checkpoint.read_bytes() == b"weights"
     assert not (tmp_path / "srv" / "e.npz").exists() and not (tmp_path / "srv" / "store" / "new.npz").exists()
     assert logs.export([tmp_path / "a"], tmp_path / "e.npz") == 20  # anywhere else, as before
+    # A folder is judged by what it holds, not by its files' names: a user's own learner_config.json
+    # (for --learner-config) or log.json beside the output is no log.
+    (tmp_path / "proj").mkdir()
+    (tmp_path / "proj" / "learner_config.json").write_text("{}")
+    (tmp_path / "proj" / "log.json").write_text('{"note": 1}')
+    assert logs.export([tmp_path / "a"], tmp_path / "proj" / "all.npz") == 20
 
 
 def test_a_file_made_while_a_new_one_is_written_is_kept(tmp_path, monkeypatch):
