@@ -615,7 +615,8 @@ def from_body(msg_type: MsgType, body: Any) -> Message:
     required = {name for name, _, meta in fields if not meta.get("optional")}
     if not required <= set(body) <= names:
         missing, extra = sorted(required - set(body)), set(body) - names
-        listed = sorted(extra)[:8] + ([f"... {len(extra)} in all"] if len(extra) > 8 else [])
+        # By repr: msgpack gives str and bytes keys alike, which do not compare.
+        listed = sorted(extra, key=repr)[:8] + ([f"... {len(extra)} in all"] if len(extra) > 8 else [])
         raise MalformedBody(f"{MESSAGES[msg_type].__name__}: missing fields {missing}, unexpected {listed}")
     values: dict[str, Any] = {}
     for name, kind, meta in fields:

@@ -923,6 +923,10 @@ def test_a_body_larger_than_any_field_allows_is_refused_as_it_is_unpacked():
     body = {**status, **{f"k{i:03d}": None for i in range(500)}}
     with pytest.raises(MalformedBody, match=r"unexpected \['k000'.*'k007', '\.\.\. 500 in all'\]"):
         decode(raw_frame(msgpack.packb(body, use_bin_type=True), msg_type=MsgType.CLIENT_STATUS))
+    # Keys of both kinds msgpack gives (str and bytes, which do not compare) are listed all the same.
+    with pytest.raises(MalformedBody, match="unexpected"):
+        decode(raw_frame(msgpack.packb({**status, b"zz": 1, "yy": 2}, use_bin_type=True),
+                         msg_type=MsgType.CLIENT_STATUS))  # fmt: skip
     # What the fields allow still unpacks: the longest string in characters of 4 bytes each, the
     # most map entries, and every array field's dimensions.
     longest = dataclasses.replace(make_client_status(), learner_config="\U0001f600" * MAX_STRING)
