@@ -364,8 +364,10 @@ class DeepWFNN(WFNN):
             load_random()
             if noise is not None:
                 trainer.generator.set_state(noise)
-            else:  # saved before its first update: seeded as it would have been
+            elif "random_noise" not in state:  # saved before its first update: seeded as it would be
                 trainer.generator.manual_seed(self._trainer_seed())
+            # (another device type's: the trainer keeps the seed it was made with, and the restored
+            # weights' stream stays where it was saved)
         self._sync()
         self.rewarded([float(scale)])
         self.acted = int(acted)

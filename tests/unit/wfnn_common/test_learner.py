@@ -728,6 +728,11 @@ def test_a_learner_resumed_from_its_training_state_goes_on_as_one_that_never_sto
         resumed.learn(exp.state[i], exp.action[i], exp.next_state[i], exp.reward[i], exp.terminal[i])
     np.testing.assert_array_equal(go_on(resumed, range(20, 40)), go_on(first, range(20, 40)))
     np.testing.assert_array_equal(resumed.params.flat, first.params.flat)
+    if learner == "deep":  # another device type's noise generator: the rest resumed all the same
+        moved = make_learner(ck_cfg, params=params)
+        moved.load_training_state({**training, "random_noise": np.zeros(16, dtype=np.uint8)})
+        for key in ("random_weights", "random_replay", "random_exploration"):
+            np.testing.assert_array_equal(moved.random_state()[key], training[key])
     # Resumed with another seed, the learner keeps that seed's own streams.
     reseeded = make_learner(replace(ck_cfg, seed=5), params=params)
     streams = {k: v.copy() for k, v in reseeded.random_state().items()}
