@@ -671,6 +671,7 @@ def test_every_bit_flipped_in_a_checkpoints_directory_is_refused_or_loads_what_w
     training state), and the rest loaded without them: a server resumed with reset critics."""
     import struct
 
+    from wfnn_common.learner import RANDOM_STATE
     from wfnn_common.learners import make_learner
     from wfnn_io.persist import PersistError, save_weights
 
@@ -679,7 +680,7 @@ def test_every_bit_flipped_in_a_checkpoints_directory_is_refused_or_loads_what_w
     path = tmp_path / "checkpoint.npz"
     save_weights(path, cfg, learner.params, {"thinks": 3}, training=learner.training_state())
     saved, original = checkpoint_content(path), path.read_bytes()
-    assert saved[3].keys() == {"theta", "target", "reward_scale"}
+    assert saved[3].keys() == {"theta", "target", "reward_scale", *RANDOM_STATE}
     directory = struct.unpack_from("<I", original, original.rindex(b"PK\x05\x06") + 16)[0]
     loaded = refused = 0
     for i in range(directory, len(original)):
