@@ -12,7 +12,7 @@ Nothing here imports torch: the robot side makes learners to act with.
 from __future__ import annotations
 
 from contextlib import AbstractContextManager
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -94,6 +94,19 @@ class Learner(Protocol):
 
     def load_training_state(self, state: dict[str, Any]) -> None:
         """Resume from `training_state`'s arrays (ValueError if they do not fit)."""
+
+
+W = TypeVar("W")
+
+
+def ready_to_act(params: W) -> W:
+    """`params`, with what `act` derives from them made now (the deep learner's layout).
+
+    The thread that hands new weights to a robot's tick calls this: made in the tick's first `act`
+    on them, a large network's layout (tens of milliseconds) made that tick late.
+    """
+    getattr(params, "act_layout", None)  # made once and kept by the weights; the thesis' have none
+    return params
 
 
 def make_learner(config: LearnerConfig, population: int = 1, params: Weights | None = None) -> Learner:

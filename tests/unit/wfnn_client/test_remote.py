@@ -1139,3 +1139,24 @@ def test_a_client_keeps_its_first_thread_failure_as_its_error(tmp_path):
         brain.check()
     assert failed.value.__cause__ is first
     brain.journal.close()
+
+
+def test_a_deep_learners_snapshot_is_made_ready_to_act_before_the_tick_gets_it(tmp_path):
+    """Its act layout was made in the tick's first act on new weights: 30 ms for a network of
+    1,024 x 1,024, a late tick at every new snapshot. The downlink's thread makes it now; so does
+    a local think thread's publishing."""
+    from wfnn_client.think_thread import ActLearnThinkMT
+    from wfnn_common.learners import make_learner
+
+    hub, cfg = Hub(), small_config(learner="deep", thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg):
+        brain = remote(tmp_path, hub, cfg)
+        brain.start()
+        try:
+            assert wait(lambda: brain.following == "s1" and brain.current is not None)
+            assert "act_layout" in vars(brain.current.params)  # made (a cached property) before the tick acts
+        finally:
+            brain.stop()
+    local = ActLearnThinkMT(make_learner(cfg))
+    local._publish()
+    assert "act_layout" in vars(local._snapshot)
