@@ -310,8 +310,9 @@ class Downlink:
                 view.alive = alive
 
     def _take_snapshot(self, data: bytes) -> None:
-        # Only frames `_on_snapshot` checked (CRC and tag) wait here: the tag is not checked twice.
-        sender, seq, message = decode(data, expect=WeightSnapshot)
+        # Only frames `_on_snapshot` checked (CRC and tag) wait here: neither is checked twice (a
+        # pass over a large snapshot holds the interpreter's lock from the tick).
+        sender, seq, message = decode(data, expect=WeightSnapshot, crc_checked=True)
         snap = cast(WeightSnapshot, message)
         reason = self._invalid(sender, seq, snap)
         if reason:

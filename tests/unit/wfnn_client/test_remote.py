@@ -1160,3 +1160,26 @@ def test_a_deep_learners_snapshot_is_made_ready_to_act_before_the_tick_gets_it(t
     local = ActLearnThinkMT(make_learner(cfg))
     local._publish()
     assert "act_layout" in vars(local._snapshot)
+
+
+def test_a_snapshot_is_crc_checked_once_on_its_way_to_the_tick(tmp_path, monkeypatch):
+    """The bus's thread checked its CRC and the downlink's decoded it and computed it again: a
+    second pass over a large snapshot, holding the interpreter's lock from the tick."""
+    from wfnn_io import protocol
+
+    hub, cfg = Hub(), small_config()
+    n = WFNN(cfg).params.flat.shape[1]
+    brain = remote(tmp_path, hub, cfg)
+    brain.start()
+    try:
+        bus = hub.bus()
+        announce(bus, "s1", cfg, started_ns=1)
+        frame = forge(cfg, version=1, params=np.full((1, n), 0.1))
+        passes: list[int] = []
+        real = protocol.crc32c
+        monkeypatch.setattr(protocol, "crc32c", lambda data: passes.append(len(data)) or real(data))
+        bus.put(KEYS.weights("s1"), frame, None)
+        assert wait(lambda: brain.current is not None and brain.current.version == 1)
+        assert passes.count(len(frame) - 4) == 1  # one pass, over all but the CRC itself
+    finally:
+        brain.stop()
