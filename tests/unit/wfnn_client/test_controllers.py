@@ -137,9 +137,10 @@ def test_a_deep_learners_saved_weights_drive_as_a_behaviour_policy(tmp_path):
     x = np.array([1.0, -0.5, 0.1, 0.0, 0.2, 0.0, 0.0])
     acted = mix.act(f"weights:{tmp_path / 'deep.npz'}", x)
     np.testing.assert_array_equal(acted.result.action, saved.act(x, explore=False).action)
-    # The thesis' learner's spec is another: its controllers refuse the deep weights, naming both.
-    with pytest.raises(ValueError, match=r"learner spec .*the deep learner's, not the thesis learner's"):
-        _controllers(f"weights:{tmp_path / 'deep.npz'}")
+    # The thesis' learner's spec is another, the task the same: they drive for it too.
+    policy = f"weights:{tmp_path / 'deep.npz'}"
+    for_thesis = _controllers(policy)[0].act(policy, x)
+    np.testing.assert_array_equal(for_thesis.result.action, acted.result.action)
 
 
 def test_a_learner_that_cannot_think_here_is_refused_before_its_journal_is_made(tmp_path):
