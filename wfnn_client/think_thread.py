@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from wfnn_common.learner import ActResult
-from wfnn_common.learners import Learner, ready_to_act
+from wfnn_common.learners import Learner
 from wfnn_common.network import Params
 from wfnn_common.schedule import ThinkSchedule
 
@@ -173,7 +173,6 @@ class ActLearnThinkMT:
             log.debug("think thread stopped", exc_info=True)
 
     def _publish(self) -> None:
-        # Made ready for `act` here, not in the tick; then one reference swap: atomic for readers.
-        self._snapshot = ready_to_act(self.learner.snapshot())
+        self._snapshot = self.learner.snapshot()  # one reference swap: atomic for readers
         self._published_thinks = int(self.learner.thinks.sum())
         self.version += 1
