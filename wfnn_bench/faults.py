@@ -164,9 +164,11 @@ class _Case:
             argv += ["--zenoh-config", str(self.tls["side"])]
         self.servers[host] = self.hosts.start(host, argv, host)
 
-    def client_argv(self, duration_s: float) -> list[str]:
+    def client_argv(self, duration_s: float, lockstep: bool = False) -> list[str]:
+        """The robot's command: HyDrA in real time, or (`lockstep`) the boat as fast as it learns."""
+        sim, rate = ("boat", "0") if lockstep else ("hydra", f"{self.cfg.rate_hz:g}")
         argv = [
-            str(BIN / "wfnn-client"), "--sim", "hydra", "--rate-hz", f"{self.cfg.rate_hz:g}",
+            str(BIN / "wfnn-client"), "--sim", sim, "--rate-hz", rate, *(["--lockstep"] if lockstep else []),
             "--episodes", "1000000", "--duration", f"{duration_s:.1f}", "--controller", CONTROLLER,
             "--server", f"{self.proto}/{self.hosts.hub_address('robot')}:{PORT}", "--key-file", str(self.key),
             "--out", str(self.work / "robot"), "--json-stats", str(self.work / "robot.json"),

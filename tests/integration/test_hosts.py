@@ -6,6 +6,8 @@ them afterwards. They are skipped, saying why, where namespaces cannot be made (
 these run them short and check behaviour: nothing lost, the tick kept, learning back after.
 """
 
+import itertools
+import json
 import subprocess
 import sys
 import time
@@ -188,3 +190,38 @@ def test_nothing_is_lost_and_the_tick_holds_across_hosts_under_a_fault(tmp_path,
         assert got["experiences_missing_per_server"]["think2"] == 0  # the late server caught up
     if case in ("b", "c"):
         assert got["without_weights_s"] >= cfg.fault_s(case) - 0.5  # nothing reached the robot meanwhile
+
+
+def test_in_lockstep_a_server_whose_link_goes_down_does_not_cut_the_robot_off_the_other(tmp_path):
+    # Lock-step sends experiences as fast as the followed server learns, so the router's queue to
+    # a server whose link went down fills within the lease; a send that blocks there held the
+    # router's forwarding of the robot's experiences and status to the healthy server too, for
+    # Zenoh's 5 s (the robot went 3.7 s without weights and dropped both servers).
+    cfg = faults.FaultsBenchConfig(cases=("d",))
+    with hosts.Hosts(("robot", "think1", "think2"), logs=tmp_path / "logs") as h:
+        run = faults._Case("d", cfg, h, tmp_path)
+        run.start_router()
+        run.start_server("think1")
+        run.start_server("think2")
+        time.sleep(1.0)
+        robot = h.start("robot", run.client_argv(30.0, lockstep=True), "robot")
+        assert faults._wait_for(tmp_path / "logs" / "robot.log", r"following server", robot, 60.0)
+        time.sleep(6.0)
+        followed = run.followed()
+        down = next(s for s in run.servers if s != followed)
+        start = time.time()
+        h.partition(down)
+        time.sleep(10.0)
+        end = time.time()
+        h.heal(down)
+        assert robot.wait(timeout=120) == 0
+        for proc in run.servers.values():
+            h.stop(proc)
+    log = (tmp_path / "logs" / "robot.log").read_text()
+    assert f"server {down} is gone" in log  # the fault was seen
+    assert f"server {followed} is gone" not in log
+    trace = json.loads((tmp_path / "robot.json").read_text())["trace"]
+    applied = sorted(float(t) for t, server, _, _ in trace["snapshots_applied"] if server == followed)
+    during = [t for t in applied if start - 1.0 <= t <= end]
+    assert during and during[0] < start and during[-1] > end - 1.0
+    assert max(b - a for a, b in itertools.pairwise(during)) < 2.0  # the healthy server's weights kept coming

@@ -1,7 +1,10 @@
 """The Zenoh bus itself: two sessions on loopback (multicast scouting off), in one process."""
 
+import json
 import threading
 import time
+
+import pytest
 
 from wfnn_io import bus as bus_module
 from wfnn_io.bus import Channel, NetConfig, ZenohBus
@@ -71,3 +74,12 @@ def test_a_peer_that_stops_reading_acks_does_not_hold_the_acking_thread():
         release.set()
         stalled.close()
         sender.close()
+
+
+def test_a_link_that_takes_nothing_is_closed_after_block_close_ms_not_zenohs_5_s():
+    """A blocked send holds everything behind it (see `NetConfig.block_close_ms`)."""
+    key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+    assert json.loads(bus_module.zenoh_config(NetConfig()).get_json(key)) == 1_000_000  # microseconds
+    assert json.loads(bus_module.zenoh_config(NetConfig(block_close_ms=250)).get_json(key)) == 250_000
+    with pytest.raises(ValueError, match="block_close_ms"):
+        NetConfig(block_close_ms=0)
