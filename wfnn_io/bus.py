@@ -227,7 +227,7 @@ class NetConfig:
     """A link that takes no experience (sent blocking) for this long is closed (Zenoh's own
     default is 5 s). A blocked send holds what comes after it: a client's status and its
     experiences to every other server, and a router's forwarding of them. At 5 s, one server's
-    link going down in lock-step cut the robot off its healthy server for 5 s, past the lease.
+    link going down in lock-step cut the robot off its healthy server for 3-4 s.
     Sustained traffic over a link slower than a batch (64 KB) in this time (about 0.5 Mbit/s) has
     the link closed and reopened: what it did not take comes again from the journal."""
     shared_memory: bool = True
