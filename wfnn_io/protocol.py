@@ -508,6 +508,9 @@ MAX_KEY_CHARS = 256
 """Longest key of a map field."""
 MAX_NDIM = 2
 """Most dimensions of an array field (its shape is the only list a body holds)."""
+MAX_CONTAINERS = 64
+"""Most maps and lists in one body: a body is one map, each array a map and its shape's list,
+each map field one more (an experience batch, the most, has 15)."""
 UTF8_MAX_BYTES = 4
 """Most bytes of one character in UTF-8 (string limits count characters, msgpack's bytes)."""
 
@@ -732,11 +735,21 @@ def _decode(
     sender, seq, msg_type, body_len = _check(frame, key, expect, mac, crc_checked)
     # Bounded as the checks after it bound every field (arrays' shapes are the only lists): a
     # forged body of a million map keys otherwise took seconds to unpack, holding the interpreter's
-    # lock from a robot's control tick, before its fields were refused.
+    # lock from a robot's control tick, before its fields were refused; so did one of millions of
+    # short lists nested in each other, which the lengths alone do not bound.
+    containers = 0
+
+    def counted(container: Any) -> Any:
+        nonlocal containers
+        containers += 1
+        if containers > MAX_CONTAINERS:
+            raise MalformedBody(f"more than {MAX_CONTAINERS} maps and lists in the body")
+        return container
+
     body = msgpack.unpackb(
         memoryview(frame)[HEADER.size : HEADER.size + body_len], raw=False, strict_map_key=True,
         use_list=True, max_map_len=MAX_MAP_ENTRIES, max_array_len=MAX_NDIM,
-        max_str_len=UTF8_MAX_BYTES * MAX_STRING, max_ext_len=0,
+        max_str_len=UTF8_MAX_BYTES * MAX_STRING, max_ext_len=0, object_hook=counted, list_hook=counted,
     )  # fmt: skip
     return Frame(sender, seq, from_body(msg_type, body))
 

@@ -934,3 +934,27 @@ def test_a_body_larger_than_any_field_allows_is_refused_as_it_is_unpacked():
     full = dataclasses.replace(make_client_status(), metrics={f"m{i}": 1.0 for i in range(MAX_MAP_ENTRIES)})
     assert decode(Codec("robot1").encode(full)).message.metrics == full.metrics
     assert max(meta["ndim"] for f in _FIELDS.values() for _, kind, meta in f if kind == "array") <= MAX_NDIM
+
+
+def test_a_body_of_many_short_lists_nested_in_each_other_is_refused_as_it_is_unpacked():
+    """Within every length limit, a complete binary tree of 2-element lists (1 MiB) took about a
+    second to unpack, and 16 MiB seven, holding the interpreter's lock from the control tick."""
+    from wfnn_io.protocol import _FIELDS, MAX_CONTAINERS
+
+    tree = b"\xc0"  # nil
+    while len(tree) < 256 << 10:  # within every message's body limit
+        tree = b"\x92" + tree + tree  # a list of two of the tree
+    for msg_type, message in [
+        (MsgType.CLIENT_STATUS, make_client_status()),
+        (MsgType.WEIGHTS, make_weights()),
+    ]:
+        packed = msgpack.packb({**to_body(message), "junk": 0}, use_bin_type=True)
+        body = packed[:-1] + tree  # "junk": the tree in place of its 0 (one byte)
+        with pytest.raises(MalformedBody, match=f"more than {MAX_CONTAINERS} maps and lists"):
+            decode(raw_frame(body, msg_type=msg_type))
+    # The most a message holds: an experience batch, one map, and a map and a list per array.
+    arrays = max(sum(kind == "array" for _, kind, _ in f) for f in _FIELDS.values())
+    maps = max(sum(kind.startswith("dict") for _, kind, _ in f) for f in _FIELDS.values())
+    assert 1 + 2 * arrays + maps <= MAX_CONTAINERS
+    batch = make_batch(n=5)
+    assert decode(Codec("robot1").encode(batch)).message.reward.shape == (5,)
