@@ -32,6 +32,21 @@ class Transition(NamedTuple):
     learnable: BoolArray
 
 
+def actions(action: Any, n: int, dim: int) -> FloatArray:
+    """`action` as [n, dim] float64, else a ValueError saying why.
+
+    np.clip keeps NaN: one NaN action left a boat's state NaN for good, and a cart-pole's then
+    never failed (NaN compares False) and was paid 0, the best reward; and indexing the first
+    column took actions of any width.
+    """
+    u = np.asarray(action, dtype=np.float64)
+    if u.shape != (n, dim):
+        raise ValueError(f"actions must be of shape [{n}, {dim}], got {list(u.shape)}")
+    if np.isnan(u).any():
+        raise ValueError("an action is not a number (NaN)")
+    return u
+
+
 class VecTask(Protocol):
     """n independent instances of one task, advanced together as arrays."""
 
@@ -162,7 +177,11 @@ class TaskEnv(gym.Env[FloatArray, FloatArray]):
 
     def step(self, action: FloatArray) -> tuple[FloatArray, float, bool, bool, dict[str, Any]]:
         """Gymnasium step: (obs, reward, terminated, truncated, info)."""
-        tr = self.task.step(np.asarray(action, dtype=np.float64).reshape(1, -1))
+        u = np.asarray(action, dtype=np.float64)
+        width = len(self.task.action_low)
+        if u.size != width or np.isnan(u).any():  # a scalar serves a 1-D action
+            raise ValueError(f"the action must be {width} numbers (not NaN), got {str(action)[:60]}")
+        tr = self.task.step(u.reshape(1, -1))
         self._steps += 1
         info = {"learnable": bool(tr.learnable[0])}
         return (

@@ -22,7 +22,7 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import TaskEnv, Transition
+from sims.base import TaskEnv, Transition, actions
 from wfnn_common.config import check_fields
 from wfnn_common.symmetry import Symmetry
 
@@ -154,7 +154,7 @@ class BoatVec:
     def step(self, action: FloatArray) -> Transition:
         """One Euler step of Eq 3.7 with thrusts [n, 2] (clipped to [-1, 1]); reward Eq 3.8."""
         cfg = self.config
-        thrust = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        thrust = np.clip(actions(action, self.n, 2), -1.0, 1.0)
         a, b = thrust[:, 0], thrust[:, 1]
         dt = cfg.dt
         c, s = np.cos(self.heading), np.sin(self.heading)

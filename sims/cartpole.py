@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import TaskEnv, Transition
+from sims.base import TaskEnv, Transition, actions
 from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
@@ -86,7 +86,7 @@ class CartPoleVec:
         fresh start.
         """
         cfg = self.config
-        force = np.clip(np.asarray(action, dtype=np.float64)[:, 0], -cfg.max_force, cfg.max_force)
+        force = np.clip(actions(action, self.n, 1)[:, 0], -cfg.max_force, cfg.max_force)
         x, x_dot, theta, theta_dot = self.state.T
         total = cfg.cart_mass + cfg.pole_mass
         sin, cos = np.sin(theta), np.cos(theta)

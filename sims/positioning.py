@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import TaskEnv, Transition
+from sims.base import TaskEnv, Transition, actions
 from wfnn_common.config import check_fields
 
 FloatArray = NDArray[np.float64]
@@ -71,7 +71,7 @@ class PositioningVec:
     def step(self, action: FloatArray) -> Transition:
         """Move by the commanded velocity; maybe jump the target (then not learnable)."""
         cfg = self.config
-        u = np.clip(np.asarray(action, dtype=np.float64)[:, 0], -1.0, 1.0)
+        u = np.clip(actions(action, self.n, 1)[:, 0], -1.0, 1.0)
         self.velocity = cfg.gain * u
         self.position = self.position + cfg.dt * self.velocity
         error = self.target - self.position

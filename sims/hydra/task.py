@@ -485,9 +485,12 @@ class HydraVec:
         offset = 2 * len(cfg.joint_index)
         for k, a in enumerate(cfg.axis_index):
             half = cfg.vision.width / 2 if AXES[a].endswith("_x") else cfg.vision.height / 2
-            x, dx = np.nan_to_num(state[:, offset + 2 * k]), np.nan_to_num(state[:, offset + 2 * k + 1])
+            x, dx = state[:, offset + 2 * k], np.nan_to_num(state[:, offset + 2 * k + 1])
+            # A lost target costs half the image, as `pixel_error` charges it: read as 0, losing
+            # it was paid the best reward a Gymnasium learner could get (never learned here: a
+            # transition to a lost target is not learnable).
             parts += [
-                cfg.position_weight * np.abs(x) / half,
+                cfg.position_weight * np.where(np.isnan(x), 1.0, np.abs(x) / half),
                 cfg.velocity_weight * np.abs(dx) / cfg.pixel_velocity_range,
             ]
         return np.stack(parts, axis=1) if parts else np.zeros((self.n, 0))
@@ -509,7 +512,7 @@ class HydraVec:
 
 
 class HydraEnv(TaskEnv):
-    """Gymnasium HyDrA: episodes of `max_steps` ticks; lost-target pixels read as 0 (info says so).
+    """Gymnasium HyDrA: episodes of `max_steps` ticks; lost-target pixels read as 0, cost half the image.
 
     `render_mode="rgb_array"`: `render()` returns the left and right camera views side by side,
     with the tracker's output drawn.

@@ -148,6 +148,21 @@ def test_lost_targets_make_invalid_states_and_unlearnable_transitions():
     assert seen_lost and seen_valid and task.recentred[0] >= 1
 
 
+def test_a_lost_target_costs_half_the_image_not_nothing():
+    """Its pixels read as 0: losing the target was paid the best reward (a Gymnasium learner
+    slewing away scored -0.2 to -63 against a tracker's -96 to -136)."""
+    env = HydraEnv()
+    env.reset(seed=0)
+    cfg = env.unwrapped.task.config
+    lost = []
+    for _ in range(12):
+        _, reward, *_ = env.step(env.action_space.high)  # turn away at full speed: the target is lost
+        if np.isnan(env.unwrapped.task.pixels[0]).any():
+            lost.append(reward)
+            assert env.unwrapped.task.pixel_error()[0] == cfg.vision.width / 2
+    assert lost and max(lost) <= -cfg.position_weight
+
+
 def test_static_targets_step_and_the_step_is_not_learned():
     cfg = HydraConfig(regime="static", static_hold_s=(0.5, 0.5), static_hidden_s=0.1)
     task = HydraVec(1, cfg)

@@ -17,6 +17,26 @@ def test_gymnasium_check_env(make):
     assert env.observation_space.contains(obs)
 
 
+@pytest.mark.parametrize("make", [BoatEnv, CartPoleEnv, PositioningEnv])
+def test_a_nan_or_missing_action_or_one_of_another_width_is_refused_and_changes_nothing(make):
+    """np.clip keeps NaN: a boat's state stayed NaN for good, and a cart-pole then never failed and
+    was paid 0, the best reward; a cart-pole took the first of any number of actions."""
+    env = make()
+    env.reset(seed=0)
+    width = env.action_space.shape[0]
+    for bad in ([np.nan] * width, None, [0.0] * (width + 2)):
+        with pytest.raises(ValueError, match="action"):
+            env.step(bad)
+    after, reward, *_ = env.step(np.zeros(width))
+    assert np.isfinite(after).all() and np.isfinite(reward)
+    task = env.unwrapped.task
+    task.reset(np.random.default_rng(0))
+    for bad in (np.full((1, width), np.nan), np.zeros((1, width + 1)), np.zeros((2, width))):
+        with pytest.raises(ValueError, match="action"):
+            task.step(bad)
+    assert np.isfinite(task.observe()).all()
+
+
 def test_boat_one_euler_step_of_eq37_and_reward_eq38():
     boat = BoatVec(1, BoatConfig(dt=0.5))
     boat.reset(np.random.default_rng(0))
