@@ -353,10 +353,17 @@ class DeepWFNN(WFNN):
         if not np.array_equal(critic1.astype(np.float32), self.params.flat[0].astype(np.float32)):
             raise ValueError("training state theta: critic 1 is not the weights saved beside it")
         load_random = self.random_state_loader(state)  # checked before anything changes
+        if load_random is not None and trained and "random_noise" not in state:
+            # Only a state saved before the first update lacks it (the trainer is then seeded).
+            raise ValueError("training state random_noise: missing, though the learner had trained")
+        noise = None
+        if "random_noise" in state:  # checked before anything changes, as the rest is
+            from wfnn_common.deep_torch import checked_generator_state
+
+            noise = checked_generator_state(state["random_noise"], self.config.deep.device)
         state = {**state, **arrays}
         self._theta0 = np.asarray(state["theta"], dtype=np.float64)
         trainer = self._train()
-        noise = trainer.checked_generator_state(state["random_noise"]) if "random_noise" in state else None
         trainer.load(state)
         if load_random is not None:
             # After the trainer is made: making it draws its seed from the weights' stream, which

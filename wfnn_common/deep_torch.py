@@ -71,6 +71,8 @@ warnings.filterwarnings("ignore", message="grad and param do not obey the gradie
 Losses = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 """What `loss` gives: (loss, critic 1's Q(x, u) [B], targets y [B])."""
 
+CUDA_GENERATOR_BYTES = 16
+"""Length of a CUDA generator's state (Philox: its seed and offset), told from a CPU's (mt19937)."""
 SEPARATION_EPS = 0.1
 """Distance added in the separation term, so that wires close together get a bounded push (wires
 that coincide exactly have no direction apart: their pair adds nothing to the gradient)."""
@@ -474,26 +476,6 @@ class Trainer:
         """Where the smoothing noise's generator stands, as bytes [n] uint8 (n fixed per device type)."""
         return self.generator.get_state().numpy().copy()
 
-    def checked_generator_state(self, value: Any) -> torch.Tensor | None:
-        """`generator_state`'s bytes as the generator takes them (ValueError: no generator's state).
-
-        None where they are another device type's generator's (of another length): a checkpoint
-        moved between a CPU and a GPU keeps everything else.
-        """
-        words = np.asarray(value)
-        if words.dtype != np.uint8 or words.ndim != 1:
-            raise ValueError(f"training state random_noise: {words.dtype} {words.shape}, not a state")
-        if words.shape != tuple(self.generator.get_state().shape):
-            logger.info("training state random_noise is of another device type's generator: the "
-                        "smoothing noise is drawn afresh from its seed")  # fmt: skip
-            return None
-        state = torch.from_numpy(words.copy())
-        try:
-            torch.Generator(device=self.device).set_state(state)
-        except RuntimeError as exc:
-            raise ValueError(f"training state random_noise: {exc}") from exc
-        return state
-
     # ------------------------------------------------------------------ state
     def state(self) -> dict[str, np.ndarray]:
         """Everything training needs to resume: weights, targets, Adam's moments and step."""
@@ -524,3 +506,34 @@ class Trainer:
             self.adam_m.copy_(torch.as_tensor(state["adam_m"], dtype=torch.float32))
             self.adam_v.copy_(torch.as_tensor(state["adam_v"], dtype=torch.float32))
             self.adam_step = int(state["adam_step"])
+
+
+def checked_generator_state(value: Any, device: str | torch.device) -> torch.Tensor | None:
+    """A saved generator's bytes as `device`'s generator takes them (ValueError: no generator's state).
+
+    None where they are another device type's generator's (a CPU's or a CUDA device's, told by
+    their length): a checkpoint moved between a CPU and a GPU keeps everything else. Bytes of
+    any other length are damage.
+    """
+    words = np.asarray(value)
+    if words.dtype != np.uint8 or words.ndim != 1:
+        raise ValueError(f"training state random_noise: {words.dtype} {words.shape}, not a state")
+    try:
+        own = int(torch.Generator(device=device).get_state().shape[0])
+    except RuntimeError as exc:
+        raise ValueError(f"deep.device {str(device)[:40]}: {str(exc).splitlines()[0][:200]}") from None
+    if words.shape[0] != own:
+        lengths = {int(torch.Generator().get_state().shape[0]), CUDA_GENERATOR_BYTES}
+        if words.shape[0] not in lengths:
+            known = " or ".join(map(str, sorted(lengths)))
+            raise ValueError(f"training state random_noise: {words.shape[0]} bytes, no generator's "
+                             f"state (a CPU's or a CUDA device's is {known})")  # fmt: skip
+        logger.warning("training state random_noise is of another device type's generator: the "
+                       "smoothing noise is drawn afresh from its seed")  # fmt: skip
+        return None
+    state = torch.from_numpy(words.copy())
+    try:
+        torch.Generator(device=device).set_state(state)
+    except RuntimeError as exc:
+        raise ValueError(f"training state random_noise: {exc}") from exc
+    return state

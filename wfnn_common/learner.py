@@ -17,6 +17,7 @@ them by the declared ranges.
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
@@ -30,6 +31,8 @@ from wfnn_common.network import Params, Scaler, Shapes, forward, init_params, la
 from wfnn_common.replay import Experiences, ReplayBuffer
 from wfnn_common.update import UpdateStats, squash_reward, wfnn_update
 from wfnn_common.wirefit import wirefit_q
+
+log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -59,12 +62,16 @@ def generator_state_from(value: Any, name: str) -> dict[str, Any]:
     words = np.asarray(value)
     if words.dtype != np.uint64 or words.shape != (6,) or int(words[4]) > 1 or int(words[5]) > 0xFFFFFFFF:
         raise ValueError(f"training state {name}: {words.dtype} {words.shape}, not a generator's state")
+    if not int(words[3]) & 1:  # PCG64's increment is odd; one of 0 draws 0 for ever
+        raise ValueError(f"training state {name}: an even increment, not a generator's state")
     w = [int(v) for v in words]
     return {"bit_generator": "PCG64", "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
             "has_uint32": w[4], "uinteger": w[5]}  # fmt: skip
 
 
 WORD = (1 << 64) - 1
+NOISE_DEVIATIONS = 20
+"""The most smooth exploration noise a saved state may hold, in deviations (sigma)."""
 
 MAX_INDICES = 1 << 22
 """Most replay indices a minibatch think draws at once (64 MiB with their random numbers)."""
@@ -695,6 +702,14 @@ class WFNN:
         if noise.dtype.kind != "f" or noise.shape != shape or not np.isfinite(noise).all():
             raise ValueError(f"training state exploration_noise: {noise.dtype} {noise.shape}, expected "
                              f"finite {shape}")  # fmt: skip
+        # The smooth noise's deviation is sigma: 20 of them is no state it reaches (1e300 held the
+        # actions at their limit for thousands of ticks). Such noise restarts from 0, as at an
+        # episode's start: a run resumed with a smaller sigma may hold it too.
+        bound = NOISE_DEVIATIONS * self.config.exploration.sigma
+        if np.abs(noise).max(initial=0.0) > bound:
+            log.warning("training state exploration_noise is beyond %g (%d times exploration.sigma): "
+                        "the noise restarts from 0", bound, NOISE_DEVIATIONS)  # fmt: skip
+            noise = np.zeros(shape)
         streams = [(self._weights_rng, "random_weights"), (self._replay_rng, "random_replay"),
                    (self.explorer.rng, "random_exploration")]  # fmt: skip
         states = [generator_state_from(state[key], key) for _, key in streams]

@@ -744,10 +744,22 @@ def test_a_learner_resumed_from_its_training_state_goes_on_as_one_that_never_sto
     # Damaged or partial random state is refused, and changes nothing.
     resumed = make_learner(ck_cfg, params=params)
     before = {k: v.copy() for k, v in resumed.training_state().items()}
-    for bad in ({**training, "random_replay": training["random_replay"][:5]},
-                {**training, "exploration_noise": np.full_like(training["exploration_noise"], np.nan)},
-                {k: v for k, v in training.items() if k != "random_weights"}):  # fmt: skip
+    zeroed = np.zeros(6, dtype=np.uint64)  # state and increment 0: PCG64 then draws 0 for ever
+    bad_states = [{**training, "random_replay": training["random_replay"][:5]},
+                  {**training, "exploration_noise": np.full_like(training["exploration_noise"], np.nan)},
+                  {k: v for k, v in training.items() if k != "random_weights"},
+                  {**training, "random_exploration": zeroed}]  # fmt: skip
+    if learner == "deep":  # bytes of no generator, and none from a learner that had trained
+        bad_states += [{**training, "random_noise": training["random_noise"][:-1]},
+                       {k: v for k, v in training.items() if k != "random_noise"}]  # fmt: skip
+    for bad in bad_states:
         with pytest.raises(ValueError, match=r"random|noise"):
             resumed.load_training_state(bad)
         for key, value in resumed.training_state().items():
             np.testing.assert_array_equal(value, before[key])
+    # Smooth noise no run reaches (1e300 held the actions at their limit for thousands of ticks)
+    # restarts from 0, as at an episode's start.
+    resumed.load_training_state(
+        {**training, "exploration_noise": np.full_like(training["exploration_noise"], 1e300)}
+    )
+    assert not resumed.random_state()["exploration_noise"].any()
