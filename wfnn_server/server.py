@@ -347,9 +347,21 @@ class ThinkServer:
         path = self.data_dir / LEARNER_JSON
         if path.exists():
             try:
-                return LearnerConfig.from_json(read_regular_text(path), str(path))
+                held = LearnerConfig.from_json(read_regular_text(path), str(path))
             except (OSError, ConfigError, UnicodeDecodeError) as exc:  # not text: as unreadable
                 set_aside(path, f"unreadable ({exc})")
+            else:
+                # A copy edited by hand into another spec set the checkpoints aside (the training
+                # lost) and left every stored experience unlearned, without a word.
+                checkpoint = self._checkpoints_config()
+                if checkpoint is not None and checkpoint[0].spec_hash() != held.spec_hash():
+                    raise ConfigError(
+                        f"data directory {self.data_dir}: {LEARNER_JSON} is spec {held.spec_hash()} "
+                        f"({held.spec_difference(checkpoint[0])}), its {checkpoint[1]} spec "
+                        f"{checkpoint[0].spec_hash()}: put the file back as it was, or move the "
+                        "checkpoints out to start that learner afresh"
+                    )
+                return held
         saved = self._checkpoints_config()
         if saved is None:
             return None

@@ -710,6 +710,23 @@ def test_a_learner_config_of_another_spec_than_the_data_directorys_is_refused(tm
         assert again.learner is not None and int(again.learner.thinks[0]) == int(server.learner.thinks[0])
 
 
+def test_a_saved_learner_config_edited_into_another_spec_is_refused_and_changes_nothing(tmp_path):
+    """It set the checkpoints aside (the training lost) and left the stored experiences unlearned."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, batch(cfg, 0, 10))
+        assert Listener(hub).wait(lambda: server.store.count == 10 and server.replayed())
+    data = tmp_path / "s1"
+    (data / "learner_config.json").write_text(small_config(state_dim=4).to_json())
+    before = {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()}
+    with pytest.raises(ConfigError, match=r"learner_config\.json is spec .* its checkpoint\.npz spec"):
+        make_server(tmp_path, hub).start()
+    assert {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()} == before
+    (data / "learner_config.json").write_text(cfg.to_json())  # put back: the training resumes
+    with make_server(tmp_path, hub) as again:
+        assert again.learner is not None and int(again.learner.thinks[0]) == int(server.learner.thinks[0])
+
+
 def test_a_start_refused_at_its_dashboard_port_leaves_the_count_of_starts_as_it_was(tmp_path):
     import socket
 
