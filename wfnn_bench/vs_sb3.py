@@ -309,7 +309,11 @@ def check_tasks(cfg: VsSb3Config) -> None:
         task = GymVec(env_id, seed=cfg.seed)
         try:
             for learner in learners:
-                learner_config(task, learner, cfg.seed, cfg)
+                made = learner_config(task, learner, cfg.seed, cfg)
+                if made.learner == "deep":  # else found only when its first run starts, after the others
+                    from wfnn_common.deep_torch import check_device
+
+                    check_device(made.deep.device)
         except ValueError as exc:
             raise ValueError(f"{env_id}: {exc}") from exc
         finally:

@@ -290,6 +290,15 @@ def keep_freed_memory() -> None:
         pass
 
 
+def check_device(name: str) -> torch.device:
+    """The torch device `deep.device` names, where torch sees it (else a ValueError)."""
+    device = torch.device(name)
+    seen = torch.cuda.is_available() and (device.index or 0) < torch.cuda.device_count()
+    if device.type == "cuda" and not seen:
+        raise ValueError(f"deep.device {name}: torch sees no such CUDA device here")
+    return device
+
+
 class Trainer:
     """The critics' weights, targets and Adam state, and the minibatch update.
 
@@ -301,11 +310,7 @@ class Trainer:
     def __init__(self, config: LearnerConfig, theta: np.ndarray, seed: int) -> None:
         d = config.deep
         self.config = config
-        self.device = torch.device(d.device)
-        if self.device.type == "cuda" and (
-            not torch.cuda.is_available() or (self.device.index or 0) >= torch.cuda.device_count()
-        ):
-            raise ValueError(f"deep.device {d.device}: torch sees no such CUDA device here")
+        self.device = check_device(d.device)
         if self.device.type == "cpu":
             # One core: the result then does not depend on how many threads the process (or the
             # thread thinking in it) gets, so a server and an in-process learner agree exactly.

@@ -1,6 +1,8 @@
 """vs-sb3: its greedy evaluation (mean return and mean episode length) and its SB3 runs."""
 
+import json
 import tempfile
+from dataclasses import replace
 
 import gymnasium as gym
 import numpy as np
@@ -86,6 +88,14 @@ def test_a_learner_config_that_cannot_be_built_stops_the_run_before_it_starts():
     with pytest.raises(ValueError, match="Pendulum-v1: n_wires"):
         run(cfg, heard.append)
     assert heard == []  # the thesis' learner never started
+    # A device torch does not see was found only as the deep learner's first run started.
+    import torch
+
+    missing = f"cuda:{torch.cuda.device_count()}"
+    cfg = replace(cfg, deep_options=json.dumps({"deep": {"device": missing}}))
+    with pytest.raises(ValueError, match=f"Pendulum-v1: deep.device {missing}: torch sees no such"):
+        run(cfg, heard.append)
+    assert heard == []
 
 
 @pytest.mark.parametrize(
