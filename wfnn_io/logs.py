@@ -1002,11 +1002,14 @@ def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bo
     check_outside(out, sources)
     if Path(out).is_dir():
         raise IsADirectoryError(21, "is a directory (export writes one .npz file)", str(out))
+    # Any folder above it, not only its own: --replace over a store's quarantined tail (in a
+    # subfolder of the store) lost what the store had set aside.
+    for folder in Path(out).resolve().parents:
+        if is_log(folder):  # a live one has its segment from the start
+            # Any log, not only those read: a live server's store went on appending to the segment
+            # an export replaced, and what it had acknowledged was gone from the store.
+            raise LogFormatError(f"{out} is inside the log {folder}; write somewhere else")
     folder = Path(out).resolve().parent
-    if is_log(folder):  # a live one has its segment from the start
-        # Any log, not only those read: a live server's store went on appending to the segment
-        # an export replaced, and what it had acknowledged was gone from the store.
-        raise LogFormatError(f"{out} is inside the log {folder}; write somewhere else")
     if is_log(folder / "store"):
         # Nor beside a server's store: --replace over its checkpoint lost what it had learned.
         raise LogFormatError(f"{out} is in a think server's data directory {folder}; write somewhere else")

@@ -246,6 +246,15 @@ def test_no_output_is_written_inside_a_log_being_read(tmp_path):
     with pytest.raises(logs.LogFormatError, match="inside the log"):
         logs.export([tmp_path / "data" / "store"], tmp_path / "data" / "learner_config.json")
     assert not (tmp_path / "data" / "learner_config.json").exists()
+    # Nor in a log's subfolder, from another log: --replace over a store's quarantined tail lost
+    # what the store had set aside.
+    torn = tmp_path / "data" / "store" / "quarantine" / "00000000-0000000018.torn"
+    torn.parent.mkdir()
+    torn.write_bytes(b"set aside")
+    record(tmp_path / "other")
+    with pytest.raises(logs.LogFormatError, match="inside the log"):
+        logs.export([tmp_path / "other"], torn, replace=True)
+    assert torn.read_bytes() == b"set aside"
 
 
 def test_a_merge_that_fails_leaves_no_log_behind_and_can_be_run_again(tmp_path):
