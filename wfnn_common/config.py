@@ -48,7 +48,8 @@ class ExplorationConfig:
     def __post_init__(self) -> None:
         check_fields(self)
         if self.kind not in ("none", "uniform", "gaussian", "smooth"):
-            raise ConfigError(f"exploration.kind must be none, uniform, gaussian or smooth: {self.kind!r}")
+            kinds = "none, uniform, gaussian or smooth"
+            raise ConfigError(f"exploration.kind must be {kinds}, got {self.kind!r:.60}")
         if not 0.0 <= self.p <= 1.0:
             raise ConfigError(f"exploration.p must be in [0, 1], got {self.p}")
         if not 0.0 <= self.sigma <= 100.0:
@@ -166,7 +167,7 @@ class DeepConfig:
             raise ConfigError(f"deep must be a JSON object, got {type(data).__name__}")
         unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
-            raise ConfigError(f"unknown DeepConfig fields: {sorted(map(str, unknown))[:10]}")
+            raise ConfigError(f"unknown DeepConfig fields: {_names(unknown)}")
         data = dict(data)
         if isinstance(data.get("hidden"), list):
             data["hidden"] = tuple(data["hidden"])
@@ -197,6 +198,12 @@ MAX_WIRES = 1024
 MAX_THINKS = 1_000_000
 _RANGES = ("state_low", "state_high", "action_low", "action_high")
 """The spec's fields that say what the network's inputs and outputs mean (`spec_difference`)."""
+
+
+def _names(unknown: set[Any]) -> str:
+    """Unknown field names in a refusal: the first 10, none longer than 40 characters."""
+    names = sorted(str(name)[:40] for name in unknown)
+    return str(names[:10]) + (f" ({len(names)} in all)" if len(names) > 10 else "")
 
 
 def _shown(value: Any) -> str:
@@ -321,7 +328,7 @@ class LearnerConfig:
     def __post_init__(self) -> None:
         check_fields(self)
         if self.learner not in LEARNERS:
-            raise ConfigError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+            raise ConfigError(f"learner must be one of {LEARNERS}, got {self.learner!r:.60}")
         if not isinstance(self.deep, DeepConfig):
             raise ConfigError(f"deep must be a DeepConfig, got {self.deep!r}")
         if not isinstance(self.exploration, ExplorationConfig):
@@ -499,7 +506,7 @@ class LearnerConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - known
         if unknown:
-            raise ConfigError(f"unknown LearnerConfig fields: {sorted(map(str, unknown))[:10]}")
+            raise ConfigError(f"unknown LearnerConfig fields: {_names(unknown)}")
         try:
             exploration = data.pop("exploration", None)
             if "deep" in data and not isinstance(data["deep"], DeepConfig):
@@ -512,7 +519,7 @@ class LearnerConfig:
             if isinstance(exploration, dict):
                 unknown = set(exploration) - {f.name for f in dataclasses.fields(ExplorationConfig)}
                 if unknown:
-                    raise ConfigError(f"unknown ExplorationConfig fields: {sorted(map(str, unknown))[:10]}")
+                    raise ConfigError(f"unknown ExplorationConfig fields: {_names(unknown)}")
                 data["exploration"] = ExplorationConfig(**exploration)
             elif exploration is not None:
                 data["exploration"] = exploration

@@ -18,6 +18,7 @@ from __future__ import annotations
 import bisect
 import collections
 import dataclasses
+import hashlib
 import itertools
 import logging
 import os
@@ -113,6 +114,9 @@ LOSS_LOG_S = 10.0
 can send them as fast as frames go (each is counted in `ingest/declared_lost` all the same)."""
 MAX_CAMERAS = 16
 """Clients whose newest camera picture is kept for the dashboard (the most recent ones)."""
+REFUSED_LOGGED = 256
+"""Announced config texts refused and logged, each once (every heartbeat repeats it; forged ones
+may each differ): past this many, they are only counted (`rejected/config`)."""
 MAX_HEARD = 4096
 """Clients whose heartbeats (and dashboard statuses) are kept: the most recently heard."""
 LOGGED_CLIENTS = 16
@@ -253,6 +257,8 @@ class ThinkServer:
         self._pending_config: LearnerConfig | None = None
         self._unusable: set[str] = set()
         """Adopted configs (as JSON) that no learner could be made from (not adopted again)."""
+        self._refused_texts: set[bytes] = set()
+        """Digests of announced config texts refused as they were read, each logged once."""
         self._seconds_per_think: float | None = None
         """How long one think took lately (None until measured): sizes each think call."""
         self.version = 0
@@ -795,7 +801,10 @@ class ThinkServer:
             cfg = LearnerConfig.from_json(status.learner_config)
         except ConfigError as exc:
             self.rejected["config"] += 1
-            log.error("client %s announced a learner config that is refused: %s", status.client, exc)
+            digest = hashlib.blake2b(status.learner_config.encode(), digest_size=16).digest()
+            if digest not in self._refused_texts and len(self._refused_texts) < REFUSED_LOGGED:
+                self._refused_texts.add(digest)  # logged at every heartbeat, a line of up to 60 KB each
+                log.error("client %s announced a learner config that is refused: %.300s", status.client, exc)
             return
         if cfg.to_json() in self._unusable:  # refused once already, and said so then
             self.rejected["config"] += 1

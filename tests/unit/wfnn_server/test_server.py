@@ -1156,3 +1156,19 @@ def test_a_clients_config_its_own_overrides_break_is_refused_naming_them_once(tm
     told = [r.getMessage() for r in caplog.records if "learner config" in r.getMessage()]
     assert len(told) == 1 and "cannot take this server's overrides (learning_rate 5.0)" in told[0], told
     assert "announced a learner config that is refused" not in caplog.text
+
+
+def test_a_config_text_refused_as_it_is_read_is_logged_once_and_shortened(tmp_path, caplog):
+    """Every heartbeat repeats it: 20 statuses of a 60 KB learner name logged 1.2 MB, in lines of 60 KB."""
+    import logging
+
+    hub = Hub()
+    hostile = small_config().to_dict() | {"learner": "x" * 60_000}
+    status = ClientStatus(client="c1", spec_hash="0" * 16, learner_config=json.dumps(hostile), following="",
+                          weights_version=0, produced_through=-1, acked={}, metrics={})  # fmt: skip
+    with caplog.at_level(logging.ERROR), make_server(tmp_path, hub, None) as server:
+        for _ in range(5):
+            hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+        assert wait_for(lambda: server.rejected["config"] == 5)
+    told = [r.getMessage() for r in caplog.records if "announced a learner config" in r.getMessage()]
+    assert len(told) == 1 and len(told[0]) < 500, [len(t) for t in told]
