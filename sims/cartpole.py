@@ -38,6 +38,13 @@ class CartPoleConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        positive = ("g", "cart_mass", "pole_mass", "half_length", "dt", "max_angle", "track_limit")
+        for name in (*positive, "max_force"):  # masses or a length of 0 gave NaN states that never failed
+            if not 0.0 < getattr(self, name) <= 1e6:
+                raise ValueError(f"cart-pole: {name} must be in (0, 1e6], got {getattr(self, name)}")
+        for name in ("cart_friction", "pole_friction", "reset_noise"):
+            if not 0.0 <= getattr(self, name) <= 1e6:
+                raise ValueError(f"cart-pole: {name} must be in [0, 1e6], got {getattr(self, name)}")
 
 
 class CartPoleVec:

@@ -36,6 +36,18 @@ class PositioningConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        jump, weight = self.jump_probability, self.velocity_weight
+        checks = [
+            (0.0 < self.dt <= 100.0 and 0.0 < self.gain <= 100.0, f"dt and gain must be in (0, 100], got "
+                                                                  f"{self.dt} and {self.gain}"),
+            (0.0 < self.target_range <= 1e3, f"target_range must be in (0, 1000], got {self.target_range}"),
+            (0.0 <= jump <= 1.0, f"jump_probability must be in [0, 1], got {jump}"),
+            # Negative, it paid rewards above 0, the largest the task declares.
+            (0.0 <= weight <= 1e3, f"velocity_weight must be in [0, 1000], got {weight}"),
+        ]  # fmt: skip
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"positioning: {message}")
 
 
 class PositioningVec:

@@ -4,7 +4,7 @@ from gymnasium.utils.env_checker import check_env
 
 from sims.boat import BoatConfig, BoatEnv, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleConfig, CartPoleEnv, CartPoleVec
-from sims.positioning import PositioningEnv, PositioningVec, handcoded_positioning
+from sims.positioning import PositioningConfig, PositioningEnv, PositioningVec, handcoded_positioning
 from wfnn_bench import boat as boat_bench
 from wfnn_bench.boat import BoatBenchConfig, Hold, handcoded_sweep, run_condition, run_protocol
 
@@ -35,6 +35,21 @@ def test_a_nan_or_missing_action_or_one_of_another_width_is_refused_and_changes_
         with pytest.raises(ValueError, match="action"):
             task.step(bad)
     assert np.isfinite(task.observe()).all()
+
+
+@pytest.mark.parametrize(
+    "make, field, value",
+    [(CartPoleConfig, "pole_mass", 0.0), (CartPoleConfig, "half_length", 0.0), (CartPoleConfig, "dt", -0.02),
+     (CartPoleConfig, "max_angle", -1.0), (CartPoleConfig, "max_force", -10.0),
+     (CartPoleConfig, "reset_noise", -1.0),
+     (PositioningConfig, "velocity_weight", -5.0), (PositioningConfig, "jump_probability", 2.0),
+     (PositioningConfig, "dt", 0.0), (PositioningConfig, "target_range", -1.0)],
+)  # fmt: skip
+def test_task_settings_no_such_system_has_are_refused(make, field, value):
+    """Masses or a length of 0 gave NaN states that never failed; a negative velocity weight paid
+    rewards above 0, the largest the task declares."""
+    with pytest.raises(ValueError, match=field):
+        make(**{field: value})
 
 
 def test_boat_one_euler_step_of_eq37_and_reward_eq38():
