@@ -116,7 +116,7 @@ class NomadForage:
         low, high = self.task.state_bounds(self._behaviour(name))
         t = self.task
         return Ranges(low, high, t.action_low, t.action_high, valid_margin=getattr(t, "valid_margin", None),
-                      max_reward=getattr(t, "max_reward", 0.0))  # fmt: skip
+                      max_reward=t.max_reward_of(self._behaviour(name)))  # fmt: skip
 
     def driving(self) -> NDArray[np.int64]:
         """0 (servo) where pursuit dominates, else 1 (wander) [n]."""

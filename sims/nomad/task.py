@@ -133,6 +133,20 @@ class NomadVec:
         return self.world.placed
 
     # ------------------------------------------------------------------ declared ranges
+    def max_reward_of(self, behaviour: Behaviour | None = None) -> float:
+        """The largest reward a behaviour earns (None: the configured one).
+
+        Servoing's are penalties (0 at best); wandering also pays for forward speed, up to
+        `forward_weight` a step: declared 0 (the default for a task), the thesis' learner judged
+        values above its threshold for rewards of at most 0 diverged, and reset its weights.
+        """
+        return 0.0 if (behaviour or self.config.behaviour) == "servo" else float(self.config.forward_weight)
+
+    @property
+    def max_reward(self) -> float:
+        """The largest reward the configured behaviour earns (`LearnerConfig.for_task`)."""
+        return self.max_reward_of()
+
     def state_bounds(self, behaviour: Behaviour | None = None) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """Declared (low, high) ends of a behaviour's state variables (None: the configured one)."""
         cfg, v = self.config, self.config.vision

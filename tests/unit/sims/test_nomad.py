@@ -8,6 +8,7 @@ from sims.nomad import (
     ForageConfig,
     NomadConfig,
     NomadEnv,
+    NomadForage,
     NomadVec,
     WanderConfig,
     handcoded_wander,
@@ -35,6 +36,22 @@ def test_state_action_and_reward_sizes_of_both_behaviours():
         assert task.reward_components(x, np.zeros((2, 2)), tr.state).shape == (2, 3)
     with pytest.raises(ValueError, match="behaviour"):
         NomadConfig(behaviour="dance")  # type: ignore[arg-type]
+
+
+def test_wandering_declares_the_reward_its_forward_speed_earns():
+    """Declared as none above 0, a wander run's values above 0.5 were judged diverged (a reset seen
+    in 45 s of a default run) though forward speed pays up to `forward_weight` a step."""
+    from wfnn_common.config import POSITIVE_REWARD_THRESHOLD
+
+    task = NomadVec(1, NomadConfig(behaviour="wander"))
+    rewards = [task.step(np.array([[task.action_high[0], 0.0]])).reward[0] for _ in range(60)]
+    assert 0.0 < max(rewards) <= task.max_reward == task.config.forward_weight
+    assert LearnerConfig.for_task(task).divergence_threshold == POSITIVE_REWARD_THRESHOLD
+    servo = NomadVec(1, NomadConfig(behaviour="servo"))
+    assert servo.max_reward == 0.0 and LearnerConfig.for_task(servo).divergence_threshold == 0.5
+    forage = NomadForage(task)
+    declared = [forage.ranges(name).max_reward for name in ("servo", "wander")]
+    assert declared == [0.0, task.config.forward_weight]
 
 
 @pytest.mark.parametrize("behaviour", ["servo", "wander"])
