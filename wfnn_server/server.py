@@ -410,7 +410,10 @@ class ThinkServer:
                 f"the logs were recorded for learner spec {described.spec_hash()}, this server's is {spec}"
             )
         spec = spec or (described.spec_hash() if described is not None else "")
-        dims = widths(known or described)
+        chosen = known or described
+        if chosen is not None:  # this server's flags on it: else refused once the logs were stored
+            self._overridden(chosen)
+        dims = widths(chosen)
         counts = ReadCounts()
         offered = sum(len(b) for b in merged(directories, self._key, spec, counts, dims))
         if counts.damage:

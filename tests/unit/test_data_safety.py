@@ -894,3 +894,17 @@ def test_checking_that_an_output_can_be_written_makes_nothing(tmp_path):
     (tmp_path / "results").symlink_to(tmp_path / "not_mounted" / "results")
     with pytest.raises(FileExistsError, match="a file is in the way"):
         writable(tmp_path / "results" / "x.json")
+
+
+def test_a_replay_only_start_whose_flags_the_logs_config_refuses_stores_nothing(tmp_path):
+    """`--alpha 5` (a thesis rate) over a deep learner's logs was refused only after the logs were
+    stored: a data directory left holding them, with no learner config, which a later start on it
+    would fill from whatever client came first."""
+    from wfnn_common.config import ConfigError
+
+    cfg = small_config(learner="deep")
+    journal(tmp_path / "j", cfg)
+    with pytest.raises(ConfigError, match="lr"):
+        make_server(tmp_path, Hub(), None, replay=(tmp_path / "j",), replay_only=True, alpha=5.0)
+    store = tmp_path / "s1" / "store"
+    assert not store.exists() or not any(p.stat().st_size for p in store.glob("*.seg"))
