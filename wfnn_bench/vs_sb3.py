@@ -111,6 +111,8 @@ class VsSb3Config:
                 raise ValueError(
                     "deep options set the deep learner's fields; choose learners with --learners"
                 )
+            if "seed" in options:  # it gave every seed's run the one learner seed
+                raise ValueError("deep options set no seed: each run's is --seed plus its index")
             if "wfnn" not in self.algorithms or "deep" not in self.learners:
                 raise ValueError("deep options given, but the deep learner does not run (--learners deep)")
 

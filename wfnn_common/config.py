@@ -508,6 +508,8 @@ class LearnerConfig:
         if unknown:
             raise ConfigError(f"unknown LearnerConfig fields: {_names(unknown)}")
         try:
+            if "exploration" in data and data["exploration"] is None:  # else the thesis' default, for either
+                raise ConfigError("exploration must be an object of ExplorationConfig fields, got null")
             exploration = data.pop("exploration", None)
             if "deep" in data and not isinstance(data["deep"], DeepConfig):
                 data["deep"] = DeepConfig.from_dict(data["deep"])

@@ -77,7 +77,11 @@ class Symmetry:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Symmetry:
-        """Inverse of `dataclasses.asdict` (JSON lists become tuples)."""
+        """Inverse of `dataclasses.asdict` (JSON lists become tuples); unknown keys are refused."""
+        fields = {"name", "state_index", "state_sign", "action_index", "action_sign"}
+        if isinstance(data, dict) and set(data) - fields:  # a typo ("statesign") was dropped unseen
+            unknown = sorted(str(k)[:40] for k in set(data) - fields)[:10]
+            raise ValueError(f"not a symmetry: unknown fields {unknown}")
         try:
             return cls(
                 name=data["name"],

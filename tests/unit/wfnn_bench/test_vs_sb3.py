@@ -105,6 +105,7 @@ def test_a_learner_config_that_cannot_be_built_stops_the_run_before_it_starts():
         ({"seed": (1 << 62) - 2}, "must lie in"),
         ({"seed": 1 << 32, "algorithms": ("wfnn", "sac")}, "SB3 takes seeds up to"),
         ({"deep_options": '{"learner": "thesis"}', "learners": ("deep",)}, "--learners"),
+        ({"deep_options": '{"seed": 5}', "learners": ("deep",)}, "set no seed"),  # every run's would be 5
         ({"deep_options": '{"n_wires": 4}', "learners": ("thesis",)}, "does not run"),
         ({"deep_options": '{"n_wires": 4}', "learners": ("deep",), "algorithms": ("sac",)}, "does not run"),
         ({"reward_scale": 0.0}, "reward scale"),

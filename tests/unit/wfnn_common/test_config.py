@@ -6,7 +6,7 @@ import pytest
 
 from sims.boat import BoatVec
 from tests.fakes import small_config
-from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig
+from wfnn_common.config import ConfigError, ExplorationConfig, LearnerConfig, with_options
 
 
 def test_thesis_defaults():
@@ -239,6 +239,21 @@ def test_numbers_beyond_any_float_are_a_config_error_not_an_overflow(patch):
     """They escaped as OverflowError: a traceback for a client's status, exit 1 naming no field."""
     with pytest.raises(ConfigError):
         LearnerConfig.from_dict({**small_config().to_dict(), **patch})
+
+
+def test_a_null_exploration_and_a_symmetry_field_no_symmetry_has_are_refused():
+    """A null exploration gave the thesis' default (uniform), the deep learner's too; a symmetry's
+    misspelt field was dropped without a word."""
+    deep = small_config(learner="deep").to_dict()
+    with pytest.raises(ConfigError, match="exploration must be an object"):
+        LearnerConfig.from_dict({**deep, "exploration": None})
+    with pytest.raises(ConfigError, match="exploration must be an object"):
+        with_options(small_config(learner="deep"), {"exploration": None})
+    mirror = {"name": "m", "state_index": [0, 1, 2], "state_sign": [1, 1, 1], "action_index": [0, 1],
+              "action_sign": [1, 1]}  # fmt: skip
+    assert LearnerConfig.from_dict({**deep, "symmetries": [mirror]}).symmetries[0].name == "m"
+    with pytest.raises(ConfigError, match=r"unknown fields \['statesign'\]"):
+        LearnerConfig.from_dict({**deep, "symmetries": [{**mirror, "statesign": [1, 1, 1]}]})
 
 
 def test_a_config_a_status_cannot_carry_is_refused():
