@@ -30,7 +30,6 @@ import fcntl
 import itertools
 import logging
 import os
-import shutil
 import stat
 import struct
 import time
@@ -427,11 +426,24 @@ class SegmentLog:
             except FileExistsError:
                 kept = quarantine / f"{n:08d}-{valid_end:010d}.{k}.torn"
         try:
-            with _naming(kept), os.fdopen(fd, "wb") as f, open(path, "rb") as torn:
-                torn.seek(valid_end)
-                shutil.copyfileobj(torn, f, 1 << 20)  # in pieces: a tail may be longer than any segment
-                f.flush()
-                os.fsync(f.fileno())
+            # In pieces (a tail may be longer than any segment), each failure naming its own file:
+            # a segment that could not be read was reported as its quarantine copy, just deleted.
+            with os.fdopen(fd, "wb") as f:
+                with _naming(path):
+                    torn = open(path, "rb")  # closed below
+                with torn:
+                    with _naming(path):
+                        torn.seek(valid_end)
+                    while True:
+                        with _naming(path):
+                            piece = torn.read(1 << 20)
+                        if not piece:
+                            break
+                        with _naming(kept):
+                            f.write(piece)
+                with _naming(kept):
+                    f.flush()
+                    os.fsync(f.fileno())
         except BaseException:  # a full disk: no partial copy left to pass for the tail (it is still in place)
             kept.unlink(missing_ok=True)
             raise
@@ -469,7 +481,8 @@ class SegmentLog:
 
     def flush(self) -> None:
         """Hand appended records to the OS (readers in this process see them)."""
-        self._file.flush()
+        with _naming(self.directory / segment_name(self._segment)):
+            self._file.flush()
 
     @property
     def dirty(self) -> bool:

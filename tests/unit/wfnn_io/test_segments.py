@@ -641,6 +641,58 @@ def test_a_write_that_fails_names_the_segment(tmp_path):
         assert [payload for _, payload in again.read()] == [b"kept"]
 
 
+def test_a_flush_and_a_torn_tail_that_cannot_be_read_name_their_own_file(tmp_path, monkeypatch):
+    """A failed flush named no file; a segment whose torn tail could not be read was reported as
+    its quarantine copy, a file just deleted."""
+    import errno
+
+    from wfnn_io import segments
+
+    class Failing:
+        def __init__(self, file):
+            self.file = file
+
+        def flush(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def seek(self, *args):
+            raise OSError(errno.EIO, "Input/output error")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.file.close()
+
+        def __getattr__(self, name):
+            return getattr(self.file, name)
+
+    segment = tmp_path / "log" / "00000000.seg"
+    log = SegmentLog(tmp_path / "log", fsync="never")
+    log.append(b"kept")
+    log._file = Failing(log._file)
+    with pytest.raises(OSError) as failed:
+        log.flush()
+    assert failed.value.filename == str(segment)
+    log._file = log._file.file
+    log.close()
+    with open(segment, "ab") as f:
+        f.write(b"torn tail")
+    real_open = open
+
+    def failing_open(path, *args, **kwargs):
+        return Failing(real_open(path, *args, **kwargs))
+
+    monkeypatch.setattr(segments, "open", failing_open, raising=False)
+    with pytest.raises(OSError) as failed:
+        SegmentLog(tmp_path / "log")
+    assert failed.value.errno == errno.EIO and failed.value.filename == str(segment)
+    assert not list((tmp_path / "log" / "quarantine").glob("*.torn"))
+    monkeypatch.undo()
+    with SegmentLog(tmp_path / "log") as again:
+        assert [payload for _, payload in again.read()] == [b"kept"]
+
+
 def test_a_segment_a_listing_missed_beside_a_live_writer_is_listed_again(tmp_path, monkeypatch):
     """A directory listed while a writer creates segments can miss an earlier one: a reader beside
     a live log skipped a whole segment, with no word of damage."""
