@@ -1,3 +1,4 @@
+import os
 import types
 
 import pytest
@@ -524,12 +525,25 @@ def test_a_repair_the_disk_cannot_take_leaves_no_empty_tail_in_quarantine(tmp_pa
     with open(seg_path(tmp_path, 0), "ab") as f:
         f.write(tail)
 
-    def full_disk(source, target, length=0):
-        raise OSError(28, "No space left on device")
+    real_fdopen = os.fdopen
 
-    monkeypatch.setattr(segments.shutil, "copyfileobj", full_disk)
-    with pytest.raises(OSError, match="No space"):
+    class Full:  # the quarantine copy's writes fail
+        def __init__(self, fd, mode):
+            self.file = real_fdopen(fd, mode)
+
+        def write(self, data):
+            raise OSError(28, "No space left on device")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.file.close()
+
+    monkeypatch.setattr(segments.os, "fdopen", Full)
+    with pytest.raises(OSError, match="No space") as failed:
         SegmentLog(tmp_path, fsync="always")
+    assert failed.value.filename.endswith(".torn")  # the copy that failed, not the segment
     assert quarantined(tmp_path) == []
     monkeypatch.undo()  # space again: the tail goes to quarantine under its first name
     with SegmentLog(tmp_path, fsync="always") as log:
