@@ -655,6 +655,14 @@ def with_options(config: LearnerConfig, options: dict[str, Any]) -> LearnerConfi
         # other's (a deep learner with the thesis' gamma, thinks and squashed rewards).
         raise ConfigError(f"learner options cannot change the learner ({config.learner} to {wanted}): "
                           "choose it with --learner")  # fmt: skip
+    # A field this learner never reads was taken and recorded, and the run learned without it
+    # (`alpha` for the deep learner, whose step is `deep.lr`).
+    unread = [k for k in options if k in THESIS_ONLY_FIELDS] if config.learner == "deep" else []
+    if config.learner == "thesis" and "deep" in options:
+        unread = ["deep"]
+    if unread:
+        hint = "choose it with --learner deep" if unread == ["deep"] else "its own: deep.lr, deep.hidden"
+        raise ConfigError(f"learner options {unread} are not the {config.learner} learner's ({hint})")
     data = config.to_dict()
     data.pop("symmetries")  # kept as objects: to_dict's form of them is not what from_dict takes
     for key, value in options.items():

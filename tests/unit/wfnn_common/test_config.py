@@ -256,6 +256,19 @@ def test_a_null_exploration_and_a_symmetry_field_no_symmetry_has_are_refused():
         LearnerConfig.from_dict({**deep, "symmetries": [{**mirror, "statesign": [1, 1, 1]}]})
 
 
+def test_options_the_learner_never_reads_are_refused():
+    """`alpha` (the thesis' step) was taken for a deep learner and recorded, which learned with its
+    own `deep.lr`; `deep` options for the thesis learner were dropped from what it saved."""
+    deep, thesis = small_config(learner="deep"), small_config()
+    for options in ({"alpha": 0.001}, {"n_hidden": 500, "gamma": 0.9}, {"update": "minibatch"}):
+        with pytest.raises(ConfigError, match=r"are not the deep learner's \(its own: deep.lr"):
+            with_options(deep, options)
+    with pytest.raises(ConfigError, match=r"are not the thesis learner's \(choose it with --learner"):
+        with_options(thesis, {"deep": {"lr": 0.5}})
+    assert with_options(deep, {"deep": {"lr": 1e-3}, "gamma": 0.9}).deep.lr == 1e-3
+    assert with_options(thesis, {"alpha": 0.1}).alpha == 0.1
+
+
 def test_a_config_a_status_cannot_carry_is_refused():
     """680 symmetries made a config whose JSON no protocol string holds: a server adopted and
     saved it, and every status it sent after, restarts included, was refused by every client."""
