@@ -20,7 +20,7 @@ from sims.hydra.vision import VisionConfig
 from sims.nomad import ForageConfig, NomadConfig
 from sims.nomad.config import BEHAVIOURS as NOMAD_BEHAVIOURS
 from sims.nomad.vision import NomadVisionConfig
-from wfnn_client.config import MAX_RATE_HZ, ClientConfig
+from wfnn_client.config import MAX_RATE_HZ, MIN_RATE_HZ, ClientConfig
 from wfnn_client.controllers import LEARNER, parse_mix
 from wfnn_client.run import jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
@@ -321,6 +321,11 @@ def client(
         raise typer.BadParameter(
             f"the task's own rate is {own_rate:g} Hz, above real time's limit of {MAX_RATE_HZ:g} Hz: give "
             "--rate-hz 0 (as fast as possible) or a lower rate", param_hint="--rate-hz",
+        )  # fmt: skip
+    if rate_hz is None and not lockstep and 0.0 < own_rate < MIN_RATE_HZ:  # else blamed on a flag not given
+        raise typer.BadParameter(
+            f"the task's own rate is {own_rate:g} Hz, below real time's limit of {MIN_RATE_HZ:g} Hz: give "
+            "--rate-hz 0 (as fast as possible) or a higher rate", param_hint="--rate-hz",
         )  # fmt: skip
     rate = rate_hz if rate_hz is not None else (0.0 if lockstep else own_rate)
     if exploration is not None and not exploration.strip():

@@ -590,3 +590,21 @@ def test_a_run_whose_every_experience_the_learner_refuses_is_told_so(tmp_path, c
     assert metrics["learn/rejected"] == 40 and metrics["learn/experiences"] == 0
     told = [r.getMessage() for r in caplog.records if "the learner refuses experiences" in r.getMessage()]
     assert len(told) == 1 and "declared observation space" in told[0]
+
+
+class _Slow(_Spaces):
+    dt = 1e6  # one step a million seconds
+
+
+def test_a_task_slower_than_real_time_allows_is_told_so_not_blamed_on_a_flag_not_given(tmp_path):
+    """Its rate was refused as `--rate-hz 1e-06`, which the user never gave."""
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+
+    gym.register("WfnnTestSlow-v0", entry_point=_Slow, max_episode_steps=5)
+    argv = ["--env", "WfnnTestSlow-v0", "--episodes", "1", "--out", str(tmp_path / "r")]
+    result = CliRunner().invoke(cli.app, argv)
+    said = " ".join(result.output.replace("│", " ").split())  # out of the error's box
+    assert result.exit_code == 2 and "the task's own rate is 1e-06 Hz, below real time's limit" in said, said
+    assert not (tmp_path / "r").exists()
