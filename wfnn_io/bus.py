@@ -229,7 +229,8 @@ class NetConfig:
     experiences to every other server, and a router's forwarding of them. At 5 s, one server's
     link going down in lock-step cut the robot off its healthy server for 3-4 s.
     Sustained traffic over a link slower than a batch (64 KB) in this time (about 0.5 Mbit/s) has
-    the link closed and reopened: what it did not take comes again from the journal."""
+    the link closed and reopened: what it did not take comes again from the journal. A
+    `zenoh_config` file that sets `wait_before_close` keeps its own."""
     shared_memory: bool = True
     """Let processes on one host pass large messages through shared memory (Zenoh's default);
     False forces TCP, as between hosts."""
@@ -387,6 +388,7 @@ def zenoh_config(net: NetConfig) -> Any:
     """A `zenoh.Config` for `net`."""
     import zenoh
 
+    text = ""
     if net.zenoh_config:  # checked before Zenoh reads it (a FIFO there would hold the tool for good)
         try:
             text = read_regular_text(net.zenoh_config, MAX_ZENOH_CONFIG_BYTES)
@@ -430,7 +432,8 @@ def zenoh_config(net: NetConfig) -> Any:
     conf.insert_json5("transport/link/tx/lease", str(net.lease_ms))
     conf.insert_json5("transport/link/tx/keep_alive", "4")
     block = "transport/link/tx/queue/congestion_control/block/wait_before_close"
-    conf.insert_json5(block, str(net.block_close_ms * 1000))  # microseconds
+    if "wait_before_close" not in text:  # a `zenoh_config` file's own is kept (for a slow link)
+        conf.insert_json5(block, str(net.block_close_ms * 1000))  # microseconds
     conf.insert_json5("transport/link/rx/max_message_size", str(net.max_message_bytes))
     return conf
 

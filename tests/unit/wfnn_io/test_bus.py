@@ -83,3 +83,15 @@ def test_a_link_that_takes_nothing_is_closed_after_block_close_ms_not_zenohs_5_s
     assert json.loads(bus_module.zenoh_config(NetConfig(block_close_ms=250)).get_json(key)) == 250_000
     with pytest.raises(ValueError, match="block_close_ms"):
         NetConfig(block_close_ms=0)
+
+
+def test_a_zenoh_config_files_own_wait_before_close_is_kept(tmp_path):
+    """A deployment on a slow link raised it in its file; wfnn's 1 s replaced it without a word."""
+    key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+    own = tmp_path / "slow.json5"
+    own.write_text("{ transport: { link: { tx: { queue: { congestion_control: { block: "
+                   "{ wait_before_close: 10000000 } } } } } } }")  # fmt: skip
+    assert json.loads(bus_module.zenoh_config(NetConfig(zenoh_config=str(own))).get_json(key)) == 10_000_000
+    other = tmp_path / "other.json5"
+    other.write_text("{ transport: { link: { tx: { lease: 5000 } } } }")
+    assert json.loads(bus_module.zenoh_config(NetConfig(zenoh_config=str(other))).get_json(key)) == 1_000_000
