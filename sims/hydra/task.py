@@ -30,7 +30,7 @@ import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import TaskEnv, Transition
+from sims.base import TaskEnv, Transition, actions
 from sims.hydra.model import (
     GROUP_DISCS,
     GROUP_HEAD,
@@ -299,7 +299,7 @@ class HydraVec:
     def step(self, action: FloatArray) -> Transition:
         """One 15 Hz tick: ramp the joints toward the commanded velocities, track, reward."""
         cfg = self.config
-        action = np.asarray(action, dtype=np.float64).reshape(self.n, len(cfg.joint_index))
+        action = actions(action, self.n, len(cfg.joint_index))
         vmax = np.asarray(cfg.max_velocity)
         before_tracked = self.tracked.copy()
         before_valid = self.valid()

@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
-from sims.base import TaskEnv, Transition
+from sims.base import TaskEnv, Transition, actions
 from sims.nomad.behaviours import ir_veto
 from sims.nomad.config import Behaviour, NomadConfig
 from sims.nomad.model import NomadModelConfig, NomadParts, nomad_mjcf
@@ -248,7 +248,7 @@ class NomadVec:
     def step(self, action: FloatArray) -> Transition:
         """One 10 Hz action: ramp toward the commanded velocities, sense, reward."""
         cfg = self.config
-        action = np.asarray(action, dtype=np.float64).reshape(self.n, 2)
+        action = actions(action, self.n, 2)
         limits = np.asarray(cfg.max_velocity)
         target = np.clip(action, -limits, limits)
         state = self.observe()

@@ -4,6 +4,8 @@ from gymnasium.utils.env_checker import check_env
 
 from sims.boat import BoatConfig, BoatEnv, BoatVec, handcoded_boat
 from sims.cartpole import CartPoleConfig, CartPoleEnv, CartPoleVec
+from sims.hydra import HydraEnv
+from sims.nomad import NomadEnv
 from sims.positioning import PositioningConfig, PositioningEnv, PositioningVec, handcoded_positioning
 from wfnn_bench import boat as boat_bench
 from wfnn_bench.boat import BoatBenchConfig, Hold, handcoded_sweep, run_condition, run_protocol
@@ -17,7 +19,7 @@ def test_gymnasium_check_env(make):
     assert env.observation_space.contains(obs)
 
 
-@pytest.mark.parametrize("make", [BoatEnv, CartPoleEnv, PositioningEnv])
+@pytest.mark.parametrize("make", [BoatEnv, CartPoleEnv, PositioningEnv, HydraEnv, NomadEnv])
 def test_a_nan_or_missing_action_or_one_of_another_width_is_refused_and_changes_nothing(make):
     """np.clip keeps NaN: a boat's state stayed NaN for good, and a cart-pole then never failed and
     was paid 0, the best reward; a cart-pole took the first of any number of actions."""
