@@ -153,6 +153,8 @@ class TaskEnv(gym.Env[FloatArray, FloatArray]):
     def __init__(self, task: VecTask, max_steps: int) -> None:
         if task.n != 1:
             raise ValueError("TaskEnv wraps a task with n == 1")
+        if not 1 <= max_steps <= 10**9:  # 0 or fewer truncated every episode at its first step
+            raise ValueError(f"max_steps must be in [1, 1e9], got {max_steps}")
         self.task = task
         self.max_steps = max_steps
         self.max_reward: float | None = getattr(task, "max_reward", 0.0)

@@ -1,4 +1,4 @@
-"""Any Gymnasium task with Box observations and actions, as a task the client can drive.
+"""Any Gymnasium task with 1-D Box observations and actions, as a task the client can drive.
 
 `GymVec(env_id)` wraps one environment (n = 1) behind the `sims.base.VecTask` interface:
 states are observations, actions are clipped to the action space, and an episode that ends

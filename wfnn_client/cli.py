@@ -246,7 +246,7 @@ def client(
     env: Annotated[
         str | None,
         typer.Option(
-            help="A Gymnasium task with Box observations and actions (e.g. Pendulum-v1); sets --sim gym."
+            help="A Gymnasium task with 1-D Box observations and actions (e.g. Pendulum-v1); sets --sim gym."
         ),
     ] = None,
     joints: Annotated[str, typer.Option(help="hydra: included joints (pan,tilt,left,right).")] = "right",

@@ -39,7 +39,7 @@ class ClientConfig:
     boat_dt: float = 0.1
     """Boat time per action (see sims.boat)."""
     env: str | None = None
-    """`sim` gym: the Gymnasium task id (Box observations and actions), e.g. Pendulum-v1."""
+    """`sim` gym: the Gymnasium task id (1-D Box observations and actions), e.g. Pendulum-v1."""
     hydra: HydraConfig = field(default_factory=HydraConfig)
     """HyDrA's joints, image axes and target regime (`sim` hydra)."""
     nomad: NomadConfig = field(default_factory=NomadConfig)

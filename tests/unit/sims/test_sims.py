@@ -54,6 +54,13 @@ def test_task_settings_no_such_system_has_are_refused(make, field, value):
         make(**{field: value})
 
 
+def test_episodes_of_no_step_are_refused():
+    """max_steps 0 or below truncated every episode at its first step."""
+    for steps in (0, -5):
+        with pytest.raises(ValueError, match="max_steps"):
+            CartPoleEnv(max_steps=steps)
+
+
 def test_boat_one_euler_step_of_eq37_and_reward_eq38():
     boat = BoatVec(1, BoatConfig(dt=0.5))
     boat.reset(np.random.default_rng(0))
