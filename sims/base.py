@@ -179,11 +179,8 @@ class TaskEnv(gym.Env[FloatArray, FloatArray]):
 
     def step(self, action: FloatArray) -> tuple[FloatArray, float, bool, bool, dict[str, Any]]:
         """Gymnasium step: (obs, reward, terminated, truncated, info)."""
-        u = np.asarray(action, dtype=np.float64)
-        width = len(self.task.action_low)
-        if u.size != width or np.isnan(u).any():  # a scalar serves a 1-D action
-            raise ValueError(f"the action must be {width} numbers (not NaN), got {str(action)[:60]}")
-        tr = self.task.step(u.reshape(1, -1))
+        # A NaN, missing or mis-sized action is refused by the task's own `actions` check.
+        tr = self.task.step(np.asarray(action, dtype=np.float64).reshape(1, -1))
         self._steps += 1
         info = {"learnable": bool(tr.learnable[0])}
         return (

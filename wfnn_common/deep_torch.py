@@ -523,10 +523,8 @@ def checked_generator_state(value: Any, device: str | torch.device) -> torch.Ten
     words = np.asarray(value)
     if words.dtype != np.uint8 or words.ndim != 1:
         raise ValueError(f"training state random_noise: {words.dtype} {words.shape}, not a state")
-    try:
-        own = int(torch.Generator(device=device).get_state().shape[0])
-    except RuntimeError as exc:
-        raise ValueError(f"deep.device {str(device)[:40]}: {str(exc).splitlines()[0][:200]}") from None
+    generator = torch.Generator(device=check_device(str(device)))
+    own = int(generator.get_state().shape[0])
     if words.shape[0] != own:
         lengths = {int(torch.Generator().get_state().shape[0]), CUDA_GENERATOR_BYTES}
         if words.shape[0] not in lengths:
@@ -538,7 +536,7 @@ def checked_generator_state(value: Any, device: str | torch.device) -> torch.Ten
         return None
     state = torch.from_numpy(words.copy())
     try:
-        torch.Generator(device=device).set_state(state)
+        generator.set_state(state)  # a scratch generator: only checked here
     except RuntimeError as exc:
         raise ValueError(f"training state random_noise: {exc}") from exc
     return state
