@@ -316,6 +316,10 @@ def _run_sections_of(directory: Path, metrics: dict[str, Any]) -> tuple[list[Sec
     return sections, figure
 
 
+SERVER_CONFIG = "server_config.json"
+"""What a think server writes first into its data directory (`wfnn_server.server.SERVER_JSON`; not
+imported: the server's module brings in both learners)."""
+
 REPORT_SOFTWARE = "wfnn report"
 """The PNG text chunk ("Software") that marks a report's own figure."""
 
@@ -424,6 +428,10 @@ def run(config: ReportConfig) -> Path:
     if path.is_dir() and os.path.lexists(path / "metrics.json"):  # a dangling link too: a run's, unreadable
         sections, figure = _run_sections(path)
         title, out = f"wfnn run {path.name}", config.out or path / "report.html"
+    elif path.is_dir() and (is_log(path / "store") or os.path.lexists(path / SERVER_CONFIG)):
+        # Its JSON files are a server's configs, no benchmarks, and a server's data is never written to.
+        raise ReportError(f"{path} is a think server's data directory: its figures are in its status and "
+                          "dashboard (a client run's report covers what it learned)")  # fmt: skip
     elif is_log(path):  # its log.json and client.json are no benchmarks, and logs are never written to
         raise ReportError(f"{path} is an experience log: wfnn-logs inspect summarises it (a run's report "
                           "covers the logs in it)")  # fmt: skip

@@ -302,3 +302,28 @@ def test_a_json_without_figures_gets_no_report_said_to_be_written(tmp_path):
     with pytest.raises(ReportError, match="no figures in it"):
         run(ReportConfig(path=tmp_path / "empty.json"))
     assert not (tmp_path / "empty_report.html").exists()
+
+
+def test_a_think_servers_data_directory_is_refused_and_left_as_it_was(tmp_path):
+    # Its JSON files are the server's configs, which were read as benchmarks, and the report was
+    # written into the server's data directory.
+    from tests.unit.wfnn_server.test_store import batch
+    from wfnn_server.config import ServerConfig
+    from wfnn_server.server import SERVER_JSON, record
+    from wfnn_server.store import ExperienceStore
+
+    assert SERVER_JSON == "server_config.json"  # what the report recognises a server's directory by
+    stored, fresh = tmp_path / "stored", tmp_path / "fresh"
+    for data in (stored, fresh):
+        data.mkdir()
+        record(ServerConfig(controller="t", server_id="s1", data_dir=data))
+    (stored / "learner_config.json").write_text(json.dumps({"learner": "thesis"}))
+    store = ExperienceStore(stored / "store", "s1", fsync="never")
+    store.append(batch(0, 3))
+    store.close()
+    (stored / SERVER_JSON).unlink()  # the store alone marks it too (a server of an older version)
+    for data in (stored, fresh):
+        before = {p: p.read_bytes() for p in data.rglob("*") if p.is_file()}
+        result = CliRunner().invoke(app, ["report", str(data)])
+        assert result.exit_code == 2 and "think server's data directory" in result.output
+        assert {p: p.read_bytes() for p in data.rglob("*") if p.is_file()} == before
