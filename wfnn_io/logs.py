@@ -79,7 +79,6 @@ from wfnn_io.segments import (
     Position,
     ReadReport,
     SegmentLog,
-    check_free,
     read_records,
     take_lock,
 )
@@ -383,7 +382,17 @@ class ExperienceLog:
             """Whether opening it made its folder (a new log)."""
         except FileExistsError:
             self.made = False
-        check_free(self.directory)  # a log in use: refused before its log.json is set aside or rewritten
+        # Held from here: a log in use is refused before its log.json is set aside or rewritten, and
+        # of two opening a new log at once, the one refused has written nothing.
+        lock = take_lock(self.directory)
+        try:
+            self._open(config, lock, fsync, fsync_interval_s, segment_bytes)
+        except BaseException:
+            os.close(lock)
+            raise
+
+    def _open(self, config: LearnerConfig | None, lock: int, fsync: FsyncPolicy, fsync_interval_s: float,
+              segment_bytes: int) -> None:  # fmt: skip
         damaged = ""
         try:
             info = read_log_json(self.directory)
@@ -422,7 +431,7 @@ class ExperienceLog:
             write_log_json(self.directory, config or recorded, self.id)
         self.segments = SegmentLog(
             self.directory, fsync=fsync, fsync_interval_s=fsync_interval_s, segment_bytes=segment_bytes,
-            marker=MAGIC,
+            marker=MAGIC, lock=lock,
         )  # fmt: skip
         self.counts = ReadCounts()
         """What the last full read met (damage skipped, frames refused)."""

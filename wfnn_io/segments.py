@@ -354,12 +354,18 @@ class SegmentLog:
         fsync: FsyncPolicy = "interval",
         fsync_interval_s: float = 0.02,
         marker: bytes = b"",
+        lock: int | None = None,
     ) -> None:
+        # `lock`: the directory's lock, where the caller took it (`take_lock`) to read and write
+        # files beside the segments first; the log owns it from here.
         if fsync not in ("always", "interval", "never"):
+            if lock is not None:
+                os.close(lock)
             raise ValueError(f"fsync must be always, interval or never, got {fsync!r}")
         self.directory = Path(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
-        self._lock = take_lock(self.directory)
+        if lock is None:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        self._lock = take_lock(self.directory) if lock is None else lock
         try:
             self._open(segment_bytes, fsync, fsync_interval_s, marker)
         except BaseException:

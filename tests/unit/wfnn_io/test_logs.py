@@ -795,3 +795,26 @@ def test_split_refuses_every_without_by_count(tmp_path):
     with pytest.raises(ValueError, match="every is for split by count, not by client"):
         logs.split(tmp_path / "log", tmp_path / "parts", every=3)
     assert not (tmp_path / "parts").exists()
+
+
+def test_a_second_opener_of_a_new_log_is_refused_before_it_writes_its_description(tmp_path, monkeypatch):
+    """Both opened a new log at once: each wrote its log.json before taking the lock, and the one
+    refused could leave its own (another id, another learner config) under the other's segments."""
+    directory = tmp_path / "log"
+    boat, cartpole = LearnerConfig.for_task(BoatVec), LearnerConfig.for_task(CartPoleVec)
+    real = logs.write_log_json
+    second = []
+
+    def write_log_json(folder, config, log_id):
+        if not second:  # another writer opens the same new log while the first writes its log.json
+            second.append(True)
+            with pytest.raises(segments.LogError, match="in use by another writer"):
+                logs.ExperienceLog(folder, cartpole, fsync="never")
+        return real(folder, config, log_id)
+
+    monkeypatch.setattr(logs, "write_log_json", write_log_json)
+    opened = logs.ExperienceLog(directory, boat, fsync="never")
+    assert second
+    info = logs.read_log_json(directory)
+    assert info["id"] == opened.id
+    assert LearnerConfig.from_dict(info["learner_config"]).spec_hash() == boat.spec_hash()
