@@ -209,6 +209,10 @@ def set_aside(path: Path, why: str) -> Path:
     return kept
 
 
+MAX_CONFLICTS_LOGGED = 10
+"""Clients named in `ReadCounts.warn_conflicts` (ids come from the network)."""
+
+
 @dataclass
 class ReadCounts:
     """What reading a log met besides batches."""
@@ -217,6 +221,18 @@ class ReadCounts:
     """Records read and damaged spans skipped (segment, offset, length)."""
     refused: Counter[str] = field(default_factory=Counter)
     """Intact records (segment CRC) whose frame was refused, by reason (`auth`, `malformed`, ...)."""
+    conflicts: Counter[str] = field(default_factory=Counter)
+    """Per client: experiences left out by `merged` as copies of a number already given, whose values
+    differ from that one's (two runs under one client id, not the same experience sent twice)."""
+
+    def warn_conflicts(self) -> None:
+        """Log, per client, the experiences left out under a number another experience had."""
+        for client, n in self.conflicts.most_common(MAX_CONFLICTS_LOGGED):
+            log.warning("client %s: %d experiences are numbered as other experiences of that client read "
+                        "before them (two runs under one client id?); only the first of each number is "
+                        "kept", client, n)  # fmt: skip
+        if len(self.conflicts) > MAX_CONFLICTS_LOGGED:
+            log.warning("and %d more clients so", len(self.conflicts) - MAX_CONFLICTS_LOGGED)
 
     @property
     def unreadable(self) -> int:
@@ -879,14 +895,17 @@ def merged(
     """The batches of several logs, each client's experiences once (the first copy of each number).
 
     Logs of the same client (its journal and a server's store, say) overlap: what one has already
-    given is trimmed from the others. Batches of a learner spec other than `spec`, or whose state
-    and action widths are not `dims` (without them: the first batch's), are refused: a LogFormatError,
-    as a spec fixes its widths. The logs' learner `config`, where given, gives both (what is
-    written with the batches must describe them). What reading skips is counted in `counts`.
+    given is trimmed from the others. A copy left out whose values differ from the one given is
+    counted in `counts.conflicts` (two runs under one client id). Batches of a learner spec other
+    than `spec`, or whose state and action widths are not `dims` (without them: the first batch's),
+    are refused: a LogFormatError, as a spec fixes its widths. The logs' learner `config`, where
+    given, gives both (what is written with the batches must describe them). What reading skips
+    is counted in `counts`.
     """
     if config is not None:
         spec, dims = spec or config.spec_hash(), dims or widths(config)
-    through: dict[str, set[int]] = {}
+    given: dict[str, dict[int, int]] = {}
+    """Per client: the digest of the values of each experience given, by number."""
     for directory in directories:
         for batch in read_batches(directory, key, counts):
             spec = spec or batch.spec_hash
@@ -903,11 +922,18 @@ def merged(
                     f"have {have[0]} state and {have[1]} action variables; their learner spec has "
                     f"{dims[0]} and {dims[1]}"
                 )
-            seen = through.setdefault(batch.client, set())
-            keep = np.array([s not in seen for s in range(batch.first_seq, batch.last_seq + 1)])
+            seen = given.setdefault(batch.client, {})
+            numbers = range(batch.first_seq, batch.last_seq + 1)
+            digests = _digests(batch)
+            keep = np.array([s not in seen for s in numbers])
+            if counts is not None and not keep.all():
+                pairs = zip(numbers, digests, keep, strict=True)
+                differ = sum(1 for s, d, k in pairs if not k and seen[s] != d)
+                if differ:
+                    counts.conflicts[batch.client] += differ
             if not keep.any():
                 continue
-            seen.update(range(batch.first_seq, batch.last_seq + 1))
+            seen.update((s, d) for s, d, k in zip(numbers, digests, keep, strict=True) if k)
             if keep.all():
                 yield batch
                 continue
@@ -917,11 +943,26 @@ def merged(
                 yield batch.slice(int(start), int(stop))
 
 
+def _digests(batch: ExperienceBatch) -> list[int]:
+    """A digest of each experience's values [N] (state, action, next state, reward, terminal).
+
+    Not its flags or weights version: a server marks what it cannot learn, and that is the same
+    experience.
+    """
+    n = len(batch)
+    values = np.concatenate([batch.state, batch.action, batch.next_state, batch.reward.reshape(n, 1),
+                             batch.terminal.reshape(n, 1)], axis=1, dtype=np.float64)  # fmt: skip
+    return [hash(row.tobytes()) for row in values]
+
+
 def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
     check_outside(out, sources)
     config = common_config(sources)
-    return write_log(out, merged(sources, key, config=config), config)
+    counts = ReadCounts()
+    written = write_log(out, merged(sources, key, config=config, counts=counts), config)
+    counts.warn_conflicts()
+    return written
 
 
 def widths(config: LearnerConfig | None) -> tuple[int, int] | None:
@@ -950,7 +991,8 @@ def split(
     names: dict[str, str] = {}
     done = 0
     # Read as merge and export read it: each experience once, and widths that fit their spec.
-    for batch in merged([source], key, config=config):
+    counts = ReadCounts()
+    for batch in merged([source], key, config=config, counts=counts):
         if by == "client":
             label = batch.client
         elif by == "behaviour":
@@ -961,6 +1003,7 @@ def split(
             names[label] = _directory_name(label, set(names.values()))
         groups.setdefault(names[label], []).append(batch)
         done += len(batch)
+    counts.warn_conflicts()
     return _write_logs(Path(out), groups, config, "wfnn-logs") if groups else {}
 
 
@@ -981,7 +1024,9 @@ def _directory_name(label: str, taken: set[str]) -> str:
 
 def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     """The experiences of logs (merged) as flat numpy arrays [N, ...] with their numbering."""
-    batches = list(merged(sources, key, config=common_config(sources)))
+    counts = ReadCounts()
+    batches = list(merged(sources, key, config=common_config(sources), counts=counts))
+    counts.warn_conflicts()
     if not batches:
         raise LogFormatError(f"no experiences in {', '.join(map(str, sources))}")
     clients = sorted({b.client for b in batches})

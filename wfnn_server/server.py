@@ -416,6 +416,7 @@ class ThinkServer:
         dims = widths(chosen)
         counts = ReadCounts()
         offered = sum(len(b) for b in merged(directories, self._key, spec, counts, dims))
+        counts.warn_conflicts()
         if counts.damage:
             log.warning("the logs hold %d damaged spans (%d bytes), skipped", len(counts.damage),
                         counts.report.skipped_bytes)  # fmt: skip

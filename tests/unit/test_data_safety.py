@@ -109,6 +109,25 @@ def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_expe
         server.store.close()
 
 
+def test_replay_only_names_the_experiences_of_another_run_under_the_same_numbers(tmp_path, caplog):
+    """Two runs' journals under one client id: only the first of each number can be stored, and the
+    other run's experiences were left out without a word."""
+    cfg = small_config(thinks_per_action=1)
+    journal(tmp_path / "j", cfg)
+    other = Journal(tmp_path / "k", "c1", fsync="never", learner_config=cfg)
+    b = batch(cfg, 0, 30, seed=1000)  # numbers 0-29 again, other values
+    other.append(Codec("c1").encode(b), b.last_seq)
+    other.close()
+    with caplog.at_level(logging.WARNING, logger="wfnn_io.logs"):
+        server = make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j", tmp_path / "k"), replay_only=True)
+    try:
+        assert server.imported == BATCHES * PER_BATCH
+        said = [r.getMessage() for r in caplog.records if "client c1" in r.getMessage()]
+        assert len(said) == 1 and "30 experiences are numbered as other experiences" in said[0]
+    finally:
+        server.store.close()
+
+
 def test_replay_only_of_logs_with_nothing_readable_is_refused_writing_nothing(tmp_path):
     """It saved a checkpoint of untrained weights and ended as if it had learned."""
     cfg = small_config(thinks_per_action=1)

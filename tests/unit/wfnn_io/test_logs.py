@@ -818,3 +818,24 @@ def test_a_second_opener_of_a_new_log_is_refused_before_it_writes_its_descriptio
     info = logs.read_log_json(directory)
     assert info["id"] == opened.id
     assert LearnerConfig.from_dict(info["learner_config"]).spec_hash() == boat.spec_hash()
+
+
+def test_experiences_of_two_runs_under_one_client_id_are_counted_and_named_when_merged(tmp_path, caplog):
+    """Only the first copy of each number is kept; the other run's experiences under the same numbers
+    were dropped without a word, as if they were the same experiences sent twice."""
+    record(tmp_path / "a", n=300, client="twin")
+    record(tmp_path / "b", n=200, client="twin", seed=1)  # another run: numbers 0-199 again
+    record(tmp_path / "same", n=300, client="twin")  # the same experiences (a journal and a store)
+    counts = logs.ReadCounts()
+    sources = [tmp_path / "a", tmp_path / "same", tmp_path / "b"]
+    kept = sum(len(b) for b in logs.merged(sources, counts=counts))
+    assert kept == 300 and counts.conflicts == {"twin": 200}
+    with caplog.at_level("WARNING", logger="wfnn_io.logs"):
+        assert logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "ab") == 300
+        assert logs.export([tmp_path / "a", tmp_path / "b"], tmp_path / "ab.npz") == 300
+    said = [r.getMessage() for r in caplog.records if "client twin" in r.getMessage()]
+    assert len(said) == 2 and all("200 experiences are numbered as other experiences" in m for m in said)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="wfnn_io.logs"):
+        logs.merge([tmp_path / "a", tmp_path / "same"], tmp_path / "asame")
+    assert not [r for r in caplog.records if "numbered as other" in r.getMessage()]
