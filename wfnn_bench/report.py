@@ -320,6 +320,12 @@ SERVER_CONFIG = "server_config.json"
 """What a think server writes first into its data directory (`wfnn_server.server.SERVER_JSON`; not
 imported: the server's module brings in both learners)."""
 
+
+def _servers_data(folder: Path) -> bool:
+    """Whether `folder` is a think server's data directory (its store, or its config)."""
+    return folder.is_dir() and (is_log(folder / "store") or os.path.lexists(folder / SERVER_CONFIG))
+
+
 REPORT_SOFTWARE = "wfnn report"
 """The PNG text chunk ("Software") that marks a report's own figure."""
 
@@ -428,9 +434,10 @@ def run(config: ReportConfig) -> Path:
     if path.is_dir() and os.path.lexists(path / "metrics.json"):  # a dangling link too: a run's, unreadable
         sections, figure = _run_sections(path)
         title, out = f"wfnn run {path.name}", config.out or path / "report.html"
-    elif path.is_dir() and (is_log(path / "store") or os.path.lexists(path / SERVER_CONFIG)):
+    elif _servers_data(path) or (path.suffix == ".json" and _servers_data(path.parent)):
         # Its JSON files are a server's configs, no benchmarks, and a server's data is never written to.
-        raise ReportError(f"{path} is a think server's data directory: its figures are in its status and "
+        where = path if path.is_dir() else path.parent
+        raise ReportError(f"{where} is a think server's data directory: its figures are in its status and "
                           "dashboard (a client run's report covers what it learned)")  # fmt: skip
     elif is_log(path):  # its log.json and client.json are no benchmarks, and logs are never written to
         raise ReportError(f"{path} is an experience log: wfnn-logs inspect summarises it (a run's report "
@@ -451,8 +458,9 @@ def run(config: ReportConfig) -> Path:
         raise ReportError(
             f"{path}: give a run directory (with metrics.json), a benchmark JSON or a folder of them"
         )
-    if is_log(out.parent):
-        raise ReportError(f"{out}: a report is never written into an experience log; give --out elsewhere")
+    if is_log(out.parent) or _servers_data(out.parent):
+        what = "an experience log" if is_log(out.parent) else "a think server's data directory"
+        raise ReportError(f"{out}: a report is never written into {what}; give --out elsewhere")
     if out.suffix.lower() not in (".html", ".htm"):  # never over a benchmark's JSON or PNG it reads
         raise ReportError(f"--out {out}: the report is HTML; name a .html file")
     if os.path.lexists(out) and not _a_report(out):

@@ -287,16 +287,23 @@ def _in_use(directory: Path) -> LogError:
     return LogError(f"{directory}: in use by another writer (a run, server or merge has it open)")
 
 
+def _not_regular(directory: Path) -> LogError:
+    return LogError(f"{directory / LOCK} is not a regular file: move it away to use this log")
+
+
 def _open_lock(directory: Path, flags: int) -> int:
     """`directory`'s LOCK file opened without waiting -> its descriptor; LogError unless a regular file.
 
     A FIFO there would block the open for good, beyond the reach of SIGTERM (Python retries an
     interrupted open), and a directory or device cannot stand for the lock.
     """
-    fd = os.open(directory / LOCK, flags | os.O_NONBLOCK, 0o644)
+    try:
+        fd = os.open(directory / LOCK, flags | os.O_NONBLOCK, 0o644)
+    except IsADirectoryError:  # opened for writing; for reading, fstat tells below
+        raise _not_regular(directory) from None
     try:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise LogError(f"{directory / LOCK} is not a regular file: move it away to use this log")
+            raise _not_regular(directory)
     except BaseException:
         os.close(fd)
         raise
@@ -357,10 +364,9 @@ class SegmentLog:
         lock: int | None = None,
     ) -> None:
         # `lock`: the directory's lock, where the caller took it (`take_lock`) to read and write
-        # files beside the segments first; the log owns it from here.
+        # files beside the segments first; the log owns it once opened (a failed open leaves it
+        # to the caller, who closes it once).
         if fsync not in ("always", "interval", "never"):
-            if lock is not None:
-                os.close(lock)
             raise ValueError(f"fsync must be always, interval or never, got {fsync!r}")
         self.directory = Path(directory)
         if lock is None:
@@ -369,7 +375,8 @@ class SegmentLog:
         try:
             self._open(segment_bytes, fsync, fsync_interval_s, marker)
         except BaseException:
-            os.close(self._lock)
+            if lock is None:
+                os.close(self._lock)
             raise
 
     def _open(self, segment_bytes: int, fsync: FsyncPolicy, fsync_interval_s: float, marker: bytes) -> None:

@@ -327,3 +327,10 @@ def test_a_think_servers_data_directory_is_refused_and_left_as_it_was(tmp_path):
         result = CliRunner().invoke(app, ["report", str(data)])
         assert result.exit_code == 2 and "think server's data directory" in result.output
         assert {p: p.read_bytes() for p in data.rglob("*") if p.is_file()} == before
+    # Nor a file of one, nor a report of something else written into one.
+    (tmp_path / "bench.json").write_text(json.dumps({"median": 1.5}))
+    for args in (["report", str(fresh / SERVER_JSON)], ["report", str(stored / "learner_config.json")],
+                 ["report", str(tmp_path / "bench.json"), "--out", str(fresh / "r.html")]):  # fmt: skip
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 2 and "think server's data directory" in result.output, args
+    assert sorted(p.name for p in fresh.iterdir()) == [SERVER_JSON]

@@ -1,5 +1,6 @@
 """Experience logs: recording, summary, merge, split, export, and refusing what does not fit."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -356,6 +357,7 @@ def test_a_split_that_fails_in_a_later_part_leaves_none(tmp_path, monkeypatch):
 
 KILLED_AT_RENAME = """
 import os, sys
+import os
 from pathlib import Path
 from wfnn_io import logs
 
@@ -839,3 +841,19 @@ def test_experiences_of_two_runs_under_one_client_id_are_counted_and_named_when_
     with caplog.at_level("WARNING", logger="wfnn_io.logs"):
         logs.merge([tmp_path / "a", tmp_path / "same"], tmp_path / "asame")
     assert not [r for r in caplog.records if "numbered as other" in r.getMessage()]
+
+
+def test_a_log_whose_segments_cannot_be_opened_is_refused_with_its_own_error(tmp_path):
+    """The lock, handed to the segments, was closed by both when they failed: the second close's
+    'Bad file descriptor' replaced the reason (and could close another thread's file)."""
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / segments.segment_name(0))
+    with pytest.raises(segments.LogError, match="not a regular file"):
+        logs.ExperienceLog(fifo, fsync="never")
+    locked = tmp_path / "locked"
+    (locked / segments.LOCK).mkdir(parents=True)
+    with pytest.raises(segments.LogError, match="is not a regular file: move it away"):
+        logs.ExperienceLog(locked, fsync="never")
+    with pytest.raises(ValueError, match="fsync must be"):
+        logs.ExperienceLog(tmp_path / "bad", fsync="sometimes")
