@@ -76,9 +76,9 @@ def as_recorded(experience: Experience, acted: Acted | None) -> tuple[Experience
 
 def experience_batch(
     client: str, spec_hash: str, first_seq: int, source: str, experiences: Sequence[Experience],
-    versions: Sequence[int],
+    versions: Sequence[int], journal: str = "",
 ) -> ExperienceBatch:  # fmt: skip
-    """Experiences numbered from `first_seq`, all chosen by weights of `source`, as one batch."""
+    """Experiences numbered from `first_seq` by `journal`, all chosen by weights of `source`: one batch."""
     e = experiences
     return ExperienceBatch(
         client=client, spec_hash=spec_hash, first_seq=first_seq, weights_source=source,
@@ -86,7 +86,7 @@ def experience_batch(
         next_state=np.stack([x.next_state for x in e]), reward=np.array([x.reward for x in e]),
         terminal=np.array([x.terminal for x in e], dtype=np.bool_),
         weights_version=np.array(versions, dtype=np.uint64),
-        flags=np.array([x.flags for x in e], dtype=np.uint8),
+        flags=np.array([x.flags for x in e], dtype=np.uint8), journal=journal,
     )  # fmt: skip
 
 

@@ -263,9 +263,12 @@ class Downlink:
                 # stored there, and re-sends to that server would stop for good.
                 self.rejected["status_beyond"] += 1
             elif through is not None:
-                # What this start's own status says, not the most anything ever said: one forged
-                # ack of a huge number would otherwise stop re-sends to this server for good.
-                view.acked = through
+                view.held = through
+                journal = status.journals.get(self.id, "")
+                if not journal or journal == self.table.journal:
+                    # What this start's own status says, not the most anything ever said: one forged
+                    # ack of a huge number would otherwise stop re-sends to this server for good.
+                    view.acked = through
             latest = view.latest
             if (latest is not None and latest.version > status.weights_version
                     and time.monotonic() - latest.received >= self.config.status_timeout_s):  # fmt: skip

@@ -122,7 +122,10 @@ class ServerView:
     asked: bool = False
     """The query for its newest weights was sent (once per announced store and incarnation)."""
     acked: int = -1
-    """Every experience numbered <= this is stored in its store."""
+    """Every experience numbered <= this is stored in its store (of this client's journal's)."""
+    held: int = -1
+    """The newest experience of this client id its status says it stores, of whichever journal:
+    numbering goes past it (`Uplink._check_numbering`), though another journal's are none of ours."""
     latest: Weights | None = None
     suspect_until: float = 0.0
     metrics: dict[str, float] = field(default_factory=dict)
@@ -150,8 +153,11 @@ class ServerTable:
     restarts what was acknowledged and which snapshots may be followed (`announced`).
     """
 
-    def __init__(self, keyed: bool = False) -> None:
+    def __init__(self, keyed: bool = False, journal: str = "") -> None:
         self.lock = threading.Lock()
+        self.journal = journal
+        """This client's journal's identity: acks and statuses of another journal under this client
+        id tell nothing of what is stored of ours."""
         self.views: dict[str, ServerView] = {}
         """Per server id; its views are read and changed under `lock`."""
         self.keyed = keyed
@@ -235,7 +241,7 @@ class ServerTable:
         elif view.store:
             log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,
                         store, view.store)  # fmt: skip
-        view.acked, view.window_end, view.last_resend = -1, -1, 0.0
+        view.acked, view.held, view.window_end, view.last_resend = -1, -1, -1, 0.0
         view.store, view.incarnation, view.started_ns = store, incarnation, started_ns
         view.born = math.inf  # the new start's age is told by its own statuses
         view.latest, view.asked = None, False

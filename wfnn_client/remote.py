@@ -98,7 +98,7 @@ class RemoteBrain:
         self.codec = Codec(self.id, key, config.controller)
         self.spec_hash = learner.config.spec_hash()
         self._config_json = learner.config.to_json()
-        self.table = ServerTable(keyed=key is not None)
+        self.table = ServerTable(keyed=key is not None, journal=self.journal.log.id)
         self.rejected: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
         self.uplink = Uplink(config, bus, self.codec, self.journal, self.spec_hash, self.table, self._status,
@@ -325,4 +325,5 @@ class RemoteBrain:
             client=self.id, spec_hash=self.spec_hash, learner_config=self._config_json,
             following=self.following, weights_version=weights.version if weights else 0,
             produced_through=self.produced_through, acked=acked, metrics=_carried({**own, **loop}),
+            journal=self.table.journal,
         )  # fmt: skip

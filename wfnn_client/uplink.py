@@ -202,7 +202,7 @@ class Uplink:
         now = time.monotonic()
         with self.table.lock:
             heard = any(v.heard > 0 or v.acked >= 0 for v in self.table.views.values())
-            held = max((v.acked for v in self.table.views.values()), default=-1)
+            held = max((max(v.acked, v.held) for v in self.table.views.values()), default=-1)
         if self.journal.next_seq <= held < MAX_PRODUCED:  # beyond: no journal gets there (a forgery)
             self._skip_numbers(held)
         if self._numbering:
@@ -235,7 +235,8 @@ class Uplink:
         ):
             items.append(self._pending.popleft())
         batch = experience_batch(self.id, self.spec_hash, self.journal.next_seq, first.source,
-                                 [p.experience for p in items], [p.version for p in items])  # fmt: skip
+                                 [p.experience for p in items], [p.version for p in items],
+                                 self.table.journal)  # fmt: skip
         frame = self.codec.encode(batch)
         self.journal.reserve(batch.last_seq)  # durable before it is published (a server may keep it)
         self.journal.append(frame, batch.last_seq)
@@ -247,6 +248,11 @@ class Uplink:
         sender, ack = self.codec.decode(data, Ack)
         if ack.client != self.id or sender != ack.server:
             self.rejected["ack_misrouted"] += 1
+            return
+        if ack.journal and ack.journal != self.table.journal:
+            # The server takes another journal under this client id (a second client given it, or
+            # a recording replayed): what it stored is none of this journal's experiences.
+            self.rejected["ack_other_journal"] += 1
             return
         if ack.stored_through > self.produced_through:
             # Acks answer what this client sent: beyond it is forged (a server holding more than

@@ -39,12 +39,13 @@ from numpy.typing import NDArray
 log = logging.getLogger(__name__)
 
 MAGIC = b"WFNN"
-PROTOCOL_VERSION = 6
+PROTOCOL_VERSION = 7
 """Version 2 added the store identity to `Ack`, `WeightSnapshot` and `ServerStatus`; version 3 the
 server's effective learner config to `ServerStatus`; version 4 the start (`started_ns`) to `Ack`
 and `WeightSnapshot`; version 5 the optional `lost_from` to `ExperienceBatch` (a version 4 reader
 would refuse a declaration carrying it as malformed: it is told of the version instead); version
-6 the optional `uptime_ms` to `ServerStatus`."""
+6 the optional `uptime_ms` to `ServerStatus`; version 7 the optional journal identity to
+`ExperienceBatch`, `Ack` and `ClientStatus`, and the journals a server takes to `ServerStatus`."""
 FLAG_MAC = 0x01
 HEADER = struct.Struct("<4sBBBB16sQI")
 """magic, version, type, flags, reserved, sender, seq, body_len."""
@@ -138,6 +139,12 @@ class SpecMismatch(ProtocolError):
     """The message is for a learner of another spec (network shape or state/action ranges)."""
 
     reason = "spec"
+
+
+def _check_journal(journal: str) -> None:
+    """A journal identity: "" (not said) or a log id (1-16 of [A-Za-z0-9_.-])."""
+    if journal and not _ID_PATTERN.fullmatch(journal):
+        raise MalformedBody(f"journal: not a log id: {journal[:40]!r}")
 
 
 def check_id(name: str, what: str = "id") -> str:
@@ -263,6 +270,10 @@ class ExperienceBatch:
     """With EXP_AFTER_LOSS: the first experience its sender declares lost (the ones through
     first_seq - 1 are too), its acknowledged point + 1 then; -1: from whatever its receiver lacks
     first. Not in the body at -1 (frames that declare nothing are as before)."""
+    journal: str = field(default="", metadata=_OPTIONAL)
+    """The identity of the client's journal that numbered them (its log id; "": not said, as in
+    logs written before version 7). Two runs under one client id number their experiences alike:
+    a server takes one journal of a client at a time (`ServerStatus.journals`)."""
 
     def __len__(self) -> int:
         return int(self.reward.shape[0])
@@ -279,6 +290,7 @@ class ExperienceBatch:
         if n < 1 or not 0 <= self.first_seq <= MAX_SEQ - n + 1:
             raise MalformedBody(f"experience batch needs N >= 1 and 0 <= first_seq, last_seq <= MAX_SEQ, "
                                 f"got {n}, {self.first_seq}")  # fmt: skip
+        _check_journal(self.journal)
         if not (self.lost_from == -1 or 0 <= self.lost_from < self.first_seq):
             raise MalformedBody(
                 f"lost_from must be -1 or before first_seq {self.first_seq}, got {self.lost_from}"
@@ -332,6 +344,12 @@ class Ack:
     server's status announces (a store restored from a backup counts its incarnations again)."""
     stored_through: int = field(metadata=_SEQ)
     """-1: nothing stored yet."""
+    journal: str = field(default="", metadata=_OPTIONAL)
+    """The client's journal whose experiences the server takes now (`ExperienceBatch.journal`):
+    a client takes acks only of its own ("": none taken yet)."""
+
+    def __post_init__(self) -> None:
+        _check_journal(self.journal)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -383,10 +401,15 @@ class ServerStatus:
     """Milliseconds since this start, by the server's monotonic clock (-1: not told). How long a
     server has been alive is told by this, not by `started_ns`: wall clocks are set back and differ
     between hosts."""
+    journals: dict[str, str] = field(default_factory=dict, metadata=_OPTIONAL)
+    """Per client listed in `stored_through`: the journal whose experiences it takes now. A client
+    of another journal under that id numbers past what is stored, but none of it is its own."""
 
     def __post_init__(self) -> None:
         if self.uptime_ms < -1:
             raise MalformedBody(f"uptime_ms must be -1 or at least 0, got {self.uptime_ms}")
+        for journal in self.journals.values():
+            _check_journal(journal)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -405,9 +428,13 @@ class ClientStatus:
     acked: dict[str, int] = field(metadata=_SEQ)
     metrics: dict[str, float]
 
+    journal: str = field(default="", metadata=_OPTIONAL)
+    """Its journal's identity (`ExperienceBatch.journal`)."""
+
     def __post_init__(self) -> None:
         if self.following not in ("", "local") and not _ID_PATTERN.fullmatch(self.following):
             raise MalformedBody(f"following: not a server id, 'local' or '': {self.following[:40]!r}")
+        _check_journal(self.journal)
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -528,8 +555,8 @@ def _check_dict(name: str, kind: str, value: Any) -> dict[str, Any]:
     }
 
 
-_KINDS = {"int": "int", "float": "float", "bool": "bool", "str": "str",
-          "dict[str, int]": "dict:int", "dict[str, float]": "dict:float"}  # fmt: skip
+_KINDS = {"int": "int", "float": "float", "bool": "bool", "str": "str", "dict[str, int]": "dict:int",
+          "dict[str, float]": "dict:float", "dict[str, str]": "dict:str"}  # fmt: skip
 
 
 def _check_bounds(name: str, value: Any, meta: dict[str, Any]) -> None:
@@ -557,7 +584,11 @@ def _fields(cls: type[Any]) -> list[tuple[str, str, dict[str, Any]]]:
 
 
 _FIELDS = {t: _fields(cls) for t, cls in MESSAGES.items()}
-_DEFAULTS = {t: {f.name: f.default for f in dataclasses.fields(cls)} for t, cls in MESSAGES.items()}
+_DEFAULTS = {
+    t: {f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        for f in dataclasses.fields(cls)}
+    for t, cls in MESSAGES.items()
+}  # fmt: skip
 
 
 def to_body(msg: Message) -> dict[str, Any]:
@@ -593,6 +624,8 @@ def _body(msg: Message) -> dict[str, Any]:
             body[name] = {str(k): int(v) for k, v in value.items()}
         elif kind == "dict:float":
             body[name] = {str(k): float(v) for k, v in value.items()}
+        elif kind == "dict:str":
+            body[name] = {str(k): str(v) for k, v in value.items()}
         elif kind == "float":
             body[name] = float(value)
         elif kind == "int":

@@ -21,6 +21,7 @@ import dataclasses
 import hashlib
 import itertools
 import logging
+import math
 import os
 import queue
 import threading
@@ -117,6 +118,9 @@ MAX_CAMERAS = 16
 REFUSED_LOGGED = 256
 """Announced config texts refused and logged, each once (every heartbeat repeats it; forged ones
 may each differ): past this many, they are only counted (`rejected/config`)."""
+JOURNAL_HOLD_S = 3.0
+"""How long a client's journal must be silent before another journal of that client is taken
+(`ThinkServer._check_journal`)."""
 MAX_HEARD = 4096
 """Clients whose heartbeats (and dashboard statuses) are kept: the most recently heard."""
 LOGGED_CLIENTS = 16
@@ -236,6 +240,11 @@ class ThinkServer:
         """Per client: when its heartbeat (status) last arrived (monotonic); at most MAX_HEARD."""
         self._recent: dict[str, float] = {}
         """Per client: when its heartbeat or an admitted batch last arrived; what MAX_LISTED picks from."""
+        self._journals: dict[str, str] = {}
+        """Per client: the journal whose experiences are taken (`_check_journal`; ingest thread)."""
+        self._journal_heard: dict[str, float] = {}
+        """Per client: when its taken journal was last heard (a batch or a status); at most MAX_HEARD."""
+        self._journal_logged: set[tuple[str, str]] = set()
         self._silent: set[str] = set()
         """Clients logged as silent (heartbeat older than CLIENT_TIMEOUT_S), until heard again."""
         self._heard_lock = threading.Lock()
@@ -702,6 +711,7 @@ class ThinkServer:
             raise _Refused("sender", f"frame from {sender} carries experiences of {batch.client}")
         self._allowed(batch.client)
         self._check_spec(batch)
+        self._check_journal(batch.client, batch.journal)
         if self._to_learn_bytes >= LEARN_QUEUE_BYTES:
             # The learner is behind by that much: this batch is neither stored nor acknowledged,
             # and its client sends it again from its journal (as one the inbox dropped), so that
@@ -750,6 +760,37 @@ class ThinkServer:
         self._recent = _noted(self._recent, batch.client, 2 * MAX_LISTED)
         self._wake.set()
 
+    def _check_journal(self, client: str, journal: str) -> None:
+        """Take `client`'s experiences of `journal`, unless another journal of it was heard just now.
+
+        Two runs under one client id number their experiences alike: a second client given the
+        same --client-id, or batches of another run recorded and replayed (a key does not tell
+        them from fresh ones). Mixed in one store, each run's experiences under a number the other
+        had would be dropped as copies and acknowledged. So one journal of a client is taken at a
+        time: another is refused until the taken one has been silent for JOURNAL_HOLD_S (a run
+        ended; its statuses come every half second). "" (a frame of a journal written before
+        journals were named) is taken whichever is.
+        """
+        if not journal:
+            return
+        taken = self._journals.get(client)
+        if taken is not None and taken != journal:
+            silent = time.monotonic() - self._journal_heard.get(client, -math.inf)
+            if silent < JOURNAL_HOLD_S:
+                if (client, journal) not in self._journal_logged and len(self._journal_logged) < MAX_LISTED:
+                    self._journal_logged.add((client, journal))
+                    log.error("client %s: experiences of its journal %s refused while its journal %s is "
+                              "streaming (two clients given one --client-id, or a recording of another run "
+                              "replayed)", client, journal, taken)  # fmt: skip
+                raise _Refused("journal_in_use", f"client {client}: journal {taken} is streaming")
+            log.warning("client %s: taking its journal %s (journal %s silent for %.1f s)", client, journal,
+                        taken, silent)  # fmt: skip
+        self._journals[client] = journal
+        heard = _noted(self._journal_heard, client, MAX_HEARD)
+        if heard is not self._journal_heard:  # clients forgotten: their journals too
+            self._journals = {c: j for c, j in self._journals.items() if c in heard}
+        self._journal_heard = heard
+
     def _declared_lost(self, batch: ExperienceBatch, lost: int) -> None:
         if not lost:
             return
@@ -788,6 +829,8 @@ class ThinkServer:
             if heard is not self._heard:  # clients forgotten: they leave the dashboard too
                 self._heard, self._silent = heard, self._silent & set(heard)
                 self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
+        if status.journal and self._journals.get(status.client) == status.journal:
+            self._journal_heard = _noted(self._journal_heard, status.client, MAX_HEARD)  # still streaming
         said, before = kept(status), self.view.clients.get(status.client)
         if said.produced_through > MAX_PRODUCED:
             # More than any client numbers (a forgery): it would lift the bound on the losses that
@@ -845,7 +888,8 @@ class ThinkServer:
 
     def _ack(self, client: str, through: int) -> None:
         ack = Ack(client=client, server=self.id, incarnation=self.incarnation, store=self.store.id,
-                  started_ns=self.started_ns, stored_through=through)  # fmt: skip
+                  started_ns=self.started_ns, stored_through=through,
+                  journal=self._journals.get(client, ""))  # fmt: skip
         self.bus.put(self.keys.ack(client, self.id), self.codec.encode(ack), Channel.CONTROL)
 
     # ------------------------------------------------------------------ learner thread
@@ -1116,11 +1160,13 @@ class ThinkServer:
             for p in (50, 90, 99):
                 metrics[f"learn/staleness_versions_p{p}"] = float(np.percentile(lag, p))
             self._staleness.clear()
+        listed, journals = self._listed(self.store.durable_through), self._journals
         status = ServerStatus(
             server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
             spec_hash=self.spec_hash, learner_config=self._config_json, weights_version=self.version,
-            stored_through=self._listed(self.store.durable_through), rejected=dict(self.rejected),
-            metrics=metrics, uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0),
+            stored_through=listed, rejected=dict(self.rejected), metrics=metrics,
+            uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0),
+            journals={c: j for c in listed if (j := journals.get(c))},
         )  # fmt: skip
         self.view.last_status = status
         self._status_sent = time.monotonic()

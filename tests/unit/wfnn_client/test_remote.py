@@ -1176,3 +1176,31 @@ def test_a_snapshot_is_crc_checked_once_on_its_way_to_the_tick(tmp_path, monkeyp
         assert passes.count(len(frame) - 4) == 1  # one pass, over all but the CRC itself
     finally:
         brain.stop()
+
+
+def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path):
+    """Both numbered alike: the store took each one's experiences under numbers the other had not
+    sent yet, dropped the rest as copies, and both clients were told all of theirs were stored."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        first = remote(tmp_path, hub, cfg, client_id="twin", journal_dir=tmp_path / "a")
+        second = remote(tmp_path, hub, cfg, client_id="twin", journal_dir=tmp_path / "b")
+        first.start()
+        second.start()
+        try:
+            for _ in range(20):  # both stream at once, each its own rewards
+                for brain, reward in ((first, -0.1), (second, -0.9)):
+                    for _ in range(5):
+                        brain.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), reward), None)
+                time.sleep(0.05)
+            assert wait(lambda: first.all_acked() or second.all_acked())
+            taken, refused = (first, second) if first.all_acked() else (second, first)
+            reward = -0.1 if taken is first else -0.9
+            assert wait(lambda: server.store.count == taken.produced_through + 1)
+            stored = [b for b in server.store.batches() if b.client == "twin"]
+            assert all((b.reward == reward).all() for b in stored), "two runs mixed in one store"
+            assert not refused.all_acked() and refused.rejected["ack_other_journal"] > 0
+            assert server.rejected["journal_in_use"] > 0
+        finally:
+            first.stop()
+            second.stop()

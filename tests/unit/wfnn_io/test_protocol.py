@@ -958,3 +958,27 @@ def test_a_body_of_many_short_lists_nested_in_each_other_is_refused_as_it_is_unp
     assert 1 + 2 * arrays + maps <= MAX_CONTAINERS
     batch = make_batch(n=5)
     assert decode(Codec("robot1").encode(batch)).message.reward.shape == (5,)
+
+
+def test_a_journals_identity_travels_in_batches_acks_and_statuses_and_is_checked():
+    """Two runs under one client id are told apart by it; frames that name none are as before."""
+    plain = make_batch(first_seq=10)
+    assert "journal" not in to_body(plain)
+    named = dataclasses.replace(plain, journal="0123456789abcdef")
+    assert decode(Codec("robot1", KEY).encode(named), KEY).message.journal == "0123456789abcdef"
+    assert named.slice(2).journal == "0123456789abcdef"
+    ack = Ack(client="robot1", server="s1", incarnation=1, store="st", started_ns=1, stored_through=3,
+              journal="j1")  # fmt: skip
+    assert decode(Codec("s1").encode(ack)).message.journal == "j1"
+    status = ServerStatus(
+        server="s1", incarnation=1, store="st", started_ns=1, spec_hash="", learner_config="",
+        weights_version=0, stored_through={"robot1": 3}, rejected={}, metrics={}, journals={"robot1": "j1"},
+    )  # fmt: skip
+    assert decode(Codec("s1").encode(status)).message.journals == {"robot1": "j1"}
+    assert "journals" not in to_body(dataclasses.replace(status, journals={}))
+    for bad in ("a/b", "x" * 17, 5):
+        body = {**to_body(plain), "journal": bad}
+        with pytest.raises(MalformedBody, match="journal"):
+            decode(raw_frame(msgpack.packb(body, use_bin_type=True)))
+    with pytest.raises(MalformedBody, match="journal"):
+        dataclasses.replace(status, journals={"robot1": "../x"})

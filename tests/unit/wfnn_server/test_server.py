@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import logging
 import time
@@ -1172,3 +1173,43 @@ def test_a_config_text_refused_as_it_is_read_is_logged_once_and_shortened(tmp_pa
         assert wait_for(lambda: server.rejected["config"] == 5)
     told = [r.getMessage() for r in caplog.records if "announced a learner config" in r.getMessage()]
     assert len(told) == 1 and len(told[0]) < 500, [len(t) for t in told]
+
+
+def test_one_journal_of_a_client_is_taken_at_a_time(tmp_path, monkeypatch):
+    """Two runs under one client id (a second client given it, or a recording of another run
+    replayed) number alike: mixed in one store, each one's experiences under the other's numbers
+    were dropped as copies and acknowledged."""
+    import wfnn_server.server as server_module
+
+    monkeypatch.setattr(server_module, "JOURNAL_HOLD_S", 1.0)
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    listener = Listener(hub)
+    ours = dataclasses.replace(batch(cfg, 0, 10), journal="ja")
+    with make_server(tmp_path, hub, cfg) as server:
+        send(hub, ours)
+        assert listener.wait(lambda: listener.acked() == 9)
+        other = dataclasses.replace(batch(cfg, 5, 10, seed=1), journal="jb")  # 5-9 under our numbers
+        send(hub, other)
+        assert listener.wait(lambda: server.rejected["journal_in_use"] == 1)
+        assert server.store.count == 10 and server.store.stored_through == {"c1": 9}
+        assert all(a.journal == "ja" for a in listener.acks)
+        assert listener.wait(lambda: any(s.journals == {"c1": "ja"} for s in listener.statuses))
+        # Its statuses keep a journal taken while it sends nothing.
+        status = ClientStatus(
+            client="c1", spec_hash=cfg.spec_hash(), learner_config=cfg.to_json(), following="",
+            weights_version=0, produced_through=9, acked={}, metrics={}, journal="ja",
+        )  # fmt: skip
+        for _ in range(6):
+            hub.bus().put(KEYS.client_status("c1"), Codec("c1").encode(status), None)
+            time.sleep(0.25)
+        send(hub, other)
+        assert listener.wait(lambda: server.rejected["journal_in_use"] == 2)
+        # Silent for the hold: the other run is taken (an ended run's successor under that id).
+        time.sleep(1.1)
+        later = dataclasses.replace(batch(cfg, 10, 5, seed=2), journal="jb")
+        send(hub, later)
+        assert listener.wait(lambda: listener.acked() == 14)
+        assert server.store.count == 15 and listener.acks[-1].journal == "jb"
+        # Frames of journals written before journals were named are taken whichever is.
+        send(hub, batch(cfg, 15, 5))
+        assert listener.wait(lambda: listener.acked() == 19)
