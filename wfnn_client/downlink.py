@@ -269,6 +269,11 @@ class Downlink:
                     # What this start's own status says, not the most anything ever said: one forged
                     # ack of a huge number would otherwise stop re-sends to this server for good.
                     view.acked = through
+                elif view.other_journal != journal:
+                    view.other_journal = journal
+                    log.error("server %s takes the experiences of another journal (%s) of client id %s: this "
+                              "client's are refused there while it streams (give each client its own "
+                              "--client-id)", status.server, journal, self.id)  # fmt: skip
             latest = view.latest
             if (latest is not None and latest.version > status.weights_version
                     and time.monotonic() - latest.received >= self.config.status_timeout_s):  # fmt: skip

@@ -126,6 +126,8 @@ class ServerView:
     held: int = -1
     """The newest experience of this client id its status says it stores, of whichever journal:
     numbering goes past it (`Uplink._check_numbering`), though another journal's are none of ours."""
+    other_journal: str = ""
+    """Another journal of this client id its status last said it takes (logged once each)."""
     latest: Weights | None = None
     suspect_until: float = 0.0
     metrics: dict[str, float] = field(default_factory=dict)

@@ -1178,7 +1178,7 @@ def test_a_snapshot_is_crc_checked_once_on_its_way_to_the_tick(tmp_path, monkeyp
         brain.stop()
 
 
-def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path):
+def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path, caplog):
     """Both numbered alike: the store took each one's experiences under numbers the other had not
     sent yet, dropped the rest as copies, and both clients were told all of theirs were stored."""
     hub, cfg = Hub(), small_config(thinks_per_action=1)
@@ -1201,6 +1201,11 @@ def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path):
             assert all((b.reward == reward).all() for b in stored), "two runs mixed in one store"
             assert not refused.all_acked() and refused.rejected["ack_other_journal"] > 0
             assert server.rejected["journal_in_use"] > 0
+
+            def said():
+                return [r.getMessage() for r in caplog.records if "another journal" in r.getMessage()]
+
+            assert wait(lambda: said()) and len(said()) == 1 and "its own --client-id" in said()[0]
         finally:
             first.stop()
             second.stop()
