@@ -42,6 +42,7 @@ from wfnn_io.protocol import (
     check_frame,
     decode,
     max_frame,
+    older_peer,
     take,
 )
 
@@ -80,6 +81,8 @@ class Downlink:
         self.keys = Keys(config.controller)
         self.codec = codec
         self.id = codec.sender
+        self._older: set[str] = set()
+        """Servers told to speak an older protocol version (`older_peer`)."""
         self.spec_hash = learner_config.spec_hash()
         self._config_json = learner_config.to_json()
         self._n_params = n_params(learner_config)
@@ -235,6 +238,7 @@ class Downlink:
         if sender != status.server:
             self.rejected["status_misrouted"] += 1
             return
+        older_peer(data, f"server {status.server}", self._older, "this client's experiences and status")
         with self.table.lock:
             new = status.server not in self.table.views
             view = self.table.view(status.server)
@@ -264,7 +268,7 @@ class Downlink:
                 self.rejected["status_beyond"] += 1
             elif through is not None:
                 view.held = through
-                journal = status.journals.get(self.id, "")
+                journal = view.taken_journal = status.journals.get(self.id, "")
                 if not journal or journal == self.table.journal:
                     # What this start's own status says, not the most anything ever said: one forged
                     # ack of a huge number would otherwise stop re-sends to this server for good.

@@ -126,8 +126,11 @@ class ServerView:
     held: int = -1
     """The newest experience of this client id its status says it stores, of whichever journal:
     numbering goes past it (`Uplink._check_numbering`), though another journal's are none of ours."""
+    taken_journal: str = ""
+    """The journal of this client id its latest status says it takes now ("": none streaming). While
+    it is another's, this client's experiences are refused there: none is re-sent to it."""
     other_journal: str = ""
-    """Another journal of this client id its status last said it takes (logged once each)."""
+    """The last other journal of this client id said to be taken (logged once each)."""
     latest: Weights | None = None
     suspect_until: float = 0.0
     metrics: dict[str, float] = field(default_factory=dict)
@@ -244,6 +247,7 @@ class ServerTable:
             log.warning("server %s now has store %s (was %s): re-sending what it lacks", view.server,
                         store, view.store)  # fmt: skip
         view.acked, view.held, view.window_end, view.last_resend = -1, -1, -1, 0.0
+        view.taken_journal = ""
         view.store, view.incarnation, view.started_ns = store, incarnation, started_ns
         view.born = math.inf  # the new start's age is told by its own statuses
         view.latest, view.asked = None, False

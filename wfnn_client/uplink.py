@@ -276,8 +276,11 @@ class Uplink:
         while self._sent and now - self._sent[0][0] >= cfg.resend_after_s:
             self._overdue = self._sent.popleft()[1]
         with self.table.lock:  # only servers whose MAC-checked status says they are alive and of this spec
+            # Not to one taking another journal of this client id: it refuses ours (and the numbers
+            # up to what it holds were skipped, not lost: declared lost, they would be given up).
             views = [(v, v.store, v.acked, v.window_end, v.last_resend) for v in self.table.views.values()
-                     if v.alive and v.spec_hash == self.spec_hash]  # fmt: skip
+                     if v.alive and v.spec_hash == self.spec_hash
+                     and v.taken_journal in ("", self.table.journal)]  # fmt: skip
         for view, store, acked, window_end, last_resend in views:
             if acked >= self._overdue:
                 continue

@@ -856,7 +856,12 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
         handle(frame)
     except ProtocolError as exc:
         rejected[prefix + exc.reason] += 1
-        if isinstance(exc, AuthError) and rejected[prefix + exc.reason] == 1:
+        if isinstance(exc, VersionMismatch) and rejected[prefix + exc.reason] == 1:
+            # Told once, as a tag that fails: a peer of another wfnn version is otherwise silent.
+            log.warning("a %s was refused (%s): its sender runs another wfnn version; run one version on "
+                        "both sides; more are counted as rejected %r", what, exc,
+                        prefix + exc.reason)  # fmt: skip
+        elif isinstance(exc, AuthError) and rejected[prefix + exc.reason] == 1:
             # Told once: peers with different keys refuse each other's every frame, and a robot
             # then acts on its safe action for the whole run with only counts to show for it.
             log.warning("a %s failed its HMAC tag (%s): its sender has another --key-file or --controller "
@@ -871,6 +876,22 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
         if rejected["error"] <= 10:
             log.error("a %s could not be handled (%s: %s); counted as rejected 'error'", what,
                       type(exc).__name__, exc, exc_info=exc)  # fmt: skip
+
+
+def older_peer(frame: bytes, peer: str, told: set[str], what: str) -> None:
+    """Say once per peer (at most MAX_TOLD) that `frame` is of an older protocol version than this build's.
+
+    This build reads such frames, but the peer cannot read this build's: `what` says what it misses.
+    """
+    version = frame[4] if len(frame) > 4 else PROTOCOL_VERSION
+    if version < PROTOCOL_VERSION and peer not in told and len(told) < MAX_TOLD:
+        told.add(peer)
+        log.warning("%s speaks protocol version %d, older than this one's %d: it cannot read %s (run one "
+                    "wfnn version on both sides)", peer, version, PROTOCOL_VERSION, what)  # fmt: skip
+
+
+MAX_TOLD = 256
+"""Peers `older_peer` names (ids can be forged)."""
 
 
 def controller_key(key: bytes, controller: str) -> bytes:

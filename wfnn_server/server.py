@@ -79,6 +79,7 @@ from wfnn_io.protocol import (
     Unsendable,
     WeightSnapshot,
     load_key,
+    older_peer,
     take,
 )
 from wfnn_io.segments import check_free
@@ -245,6 +246,8 @@ class ThinkServer:
         self._journal_heard: dict[str, float] = {}
         """Per client: when its taken journal was last heard (a batch or a status); at most MAX_HEARD."""
         self._journal_logged: set[tuple[str, str]] = set()
+        self._older: set[str] = set()
+        """Clients told to speak an older protocol version (`older_peer`)."""
         self._silent: set[str] = set()
         """Clients logged as silent (heartbeat older than CLIENT_TIMEOUT_S), until heard again."""
         self._heard_lock = threading.Lock()
@@ -822,6 +825,7 @@ class ThinkServer:
         if sender != status.client:
             raise _Refused("sender", f"status from {sender} names client {status.client}")
         self._allowed(status.client)
+        older_peer(frame, f"client {status.client}", self._older, "this server's acks and weights")
         self.counters["ingest/client_status"] += 1
         self._recent = _noted(self._recent, status.client, 2 * MAX_LISTED)
         with self._heard_lock:
@@ -1160,13 +1164,16 @@ class ThinkServer:
             for p in (50, 90, 99):
                 metrics[f"learn/staleness_versions_p{p}"] = float(np.percentile(lag, p))
             self._staleness.clear()
-        listed, journals = self._listed(self.store.durable_through), self._journals
+        listed = self._listed(self.store.durable_through)
+        journals, heard, now = self._journals, self._journal_heard, time.monotonic()
+        # Only journals streaming now: a run that ended holds nothing a successor must wait for.
+        streaming = {c: j for c in listed if (j := journals.get(c))
+                     and now - heard.get(c, -math.inf) < JOURNAL_HOLD_S}  # fmt: skip
         status = ServerStatus(
             server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
             spec_hash=self.spec_hash, learner_config=self._config_json, weights_version=self.version,
             stored_through=listed, rejected=dict(self.rejected), metrics=metrics,
-            uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0),
-            journals={c: j for c in listed if (j := journals.get(c))},
+            uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0), journals=streaming,
         )  # fmt: skip
         self.view.last_status = status
         self._status_sent = time.monotonic()

@@ -1200,6 +1200,8 @@ def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path, capl
             stored = [b for b in server.store.batches() if b.client == "twin"]
             assert all((b.reward == reward).all() for b in stored), "two runs mixed in one store"
             assert not refused.all_acked() and refused.rejected["ack_other_journal"] > 0
+            # The numbers it skipped past the other's are not lost, and nothing is re-sent to be refused.
+            assert refused.counters["uplink/declared_lost"] == 0 == refused.counters["uplink/resent_frames"]
             assert server.rejected["journal_in_use"] > 0
 
             def said():
@@ -1209,3 +1211,29 @@ def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path, capl
         finally:
             first.stop()
             second.stop()
+
+
+def test_a_run_under_the_client_id_of_one_that_ended_is_taken_without_a_word(tmp_path, caplog, monkeypatch):
+    """A fresh journal under an old client id, after its run ended: not refused, nothing declared lost."""
+    import wfnn_server.server as server_module
+
+    monkeypatch.setattr(server_module, "JOURNAL_HOLD_S", 0.5)
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        first = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run1")
+        first.start()
+        for _ in range(30):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(first.all_acked)
+        first.stop()
+        time.sleep(1.0)
+        again = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run2")
+        again.start()
+        try:
+            for _ in range(20):
+                again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
+            assert wait(lambda: again.all_acked() and server.store.count == 50)
+            assert again.counters["uplink/declared_lost"] == 0 and server.rejected["journal_in_use"] == 0
+            assert not [r for r in caplog.records if "takes the experiences of another" in r.getMessage()]
+        finally:
+            again.stop()

@@ -982,3 +982,33 @@ def test_a_journals_identity_travels_in_batches_acks_and_statuses_and_is_checked
             decode(raw_frame(msgpack.packb(body, use_bin_type=True)))
     with pytest.raises(MalformedBody, match="journal"):
         dataclasses.replace(status, journals={"robot1": "../x"})
+
+
+def test_a_peer_of_another_protocol_version_is_named_once(caplog):
+    """Peers of two wfnn versions refused each other's every frame, or read only one way, silently."""
+    from collections import Counter
+
+    from wfnn_io.protocol import older_peer, take
+
+    status = ClientStatus(client="robot1", spec_hash="", learner_config="", following="", weights_version=0,
+                          produced_through=-1, acked={}, metrics={})  # fmt: skip
+    newer = raw_frame(msgpack.packb(to_body(status), use_bin_type=True), MsgType.CLIENT_STATUS,
+                      version=PROTOCOL_VERSION + 1)  # fmt: skip
+    rejected: Counter[str] = Counter()
+    with caplog.at_level("WARNING", logger="wfnn_io.protocol"):
+        for _ in range(3):
+            take(newer, lambda frame: decode(frame, expect=ClientStatus), rejected, "client status")
+    assert rejected["version"] == 3
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "another wfnn version" in said[0]
+    caplog.clear()
+    older = raw_frame(msgpack.packb(to_body(status), use_bin_type=True), MsgType.CLIENT_STATUS,
+                      version=PROTOCOL_VERSION - 1)  # fmt: skip
+    assert decode(older).message.client == "robot1"  # read, as before
+    told: set[str] = set()
+    with caplog.at_level("WARNING", logger="wfnn_io.protocol"):
+        for peer in ("client a", "client a", "client b"):
+            older_peer(older, peer, told, "its acks")
+        older_peer(Codec("robot1").encode(status), "client c", told, "its acks")  # this version: nothing
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and all(f"older than this one's {PROTOCOL_VERSION}" in m for m in said)
