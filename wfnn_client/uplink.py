@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections import Counter
@@ -39,6 +40,8 @@ from wfnn_io.protocol import (
 
 log = logging.getLogger(__name__)
 
+SKIP_LOG_S = 30.0
+"""Numbers skipped past what servers hold are logged at most this often (the rest counted)."""
 ACK_INBOX_BYTES = 4 << 20
 """Acks received and not yet handled, at most (each is under 200 bytes)."""
 
@@ -82,6 +85,8 @@ class Uplink:
         """Experiences queued by `add` (the tick's thread is the only one to change it)."""
         self._skipped = 0
         """Numbers skipped because servers already hold them (`_skip_numbers`, this thread only)."""
+        self._skip_logged = -math.inf
+        """When a skip was last logged (`_skip_numbers`)."""
         counters["uplink/numbers_reserved_skipped"] = journal.skipped_at_open
         self._numbering = False
         """Whether batches may be numbered yet (`_check_numbering`)."""
@@ -219,9 +224,13 @@ class Uplink:
     def _skip_numbers(self, held: int) -> None:
         """Continue numbering after `held`, which a server holds beyond this journal's numbers."""
         skipped = held + 1 - self.journal.next_seq
-        log.error("servers hold experiences of client %s through %d, beyond this journal's %d (its newest "
-                  "records were lost, or another journal had this client id): numbering continues at %d",
-                  self.id, held, self.journal.next_seq - 1, held + 1)  # fmt: skip
+        now = time.monotonic()
+        if now - self._skip_logged >= SKIP_LOG_S:  # again and again while another journal streams
+            self._skip_logged = now
+            log.error("servers hold experiences of client %s through %d, beyond this journal's %d (its "
+                      "newest records were lost, or another journal had this client id): numbering continues "
+                      "at %d (more are counted as uplink/numbers_skipped)", self.id, held,
+                      self.journal.next_seq - 1, held + 1)  # fmt: skip
         self.journal.skip_to(held + 1)
         self._skipped += skipped
         self.counters["uplink/numbers_skipped"] += skipped
@@ -303,15 +312,20 @@ class Uplink:
                      view.server)  # fmt: skip
 
     def _tagged(self, frame: bytes) -> bytes:
-        """A journaled frame as this client sends now: tagged with its key.
+        """A journaled frame as this client sends now: tagged with its key, naming its journal.
 
-        A journal written without a key, or with another, would have its re-sends refused for good.
+        A journal written without a key, or with another, would have its re-sends refused for good;
+        so would frames naming another identity than the journal's now (written before protocol 7,
+        or before a damaged `log.json` gave the journal a new one), refused as another journal's.
         """
         key = self.codec.key
-        if key is None or tag_verifies(frame, key):
+        batch = cast(
+            ExperienceBatch, decode(frame, expect=ExperienceBatch).message
+        )  # our own disk: no tag check
+        if batch.journal == self.table.journal and (key is None or tag_verifies(frame, key)):
             return frame
         self.counters["uplink/retagged_frames"] += 1
-        return self.codec.encode(decode(frame, expect=ExperienceBatch).message)
+        return self.codec.encode(dataclasses.replace(batch, journal=self.table.journal))
 
     def _declare_loss(self, frame: bytes, server: str, acked: int) -> bytes:
         """The journaled batch `frame`, re-encoded to declare the experiences after `acked` before it lost."""

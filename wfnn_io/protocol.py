@@ -856,7 +856,7 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
         handle(frame)
     except ProtocolError as exc:
         rejected[prefix + exc.reason] += 1
-        if isinstance(exc, VersionMismatch) and rejected[prefix + exc.reason] == 1:
+        if isinstance(exc, VersionMismatch) and _first_told(frame):
             # Told once, as a tag that fails: a peer of another wfnn version is otherwise silent.
             log.warning("a %s was refused (%s): its sender runs another wfnn version; run one version on "
                         "both sides; more are counted as rejected %r", what, exc,
@@ -876,6 +876,19 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
         if rejected["error"] <= 10:
             log.error("a %s could not be handled (%s: %s); counted as rejected 'error'", what,
                       type(exc).__name__, exc, exc_info=exc)  # fmt: skip
+
+
+_VERSIONS_TOLD: set[int] = set()
+"""Protocol versions of refused frames this process has named (`take`)."""
+
+
+def _first_told(frame: bytes) -> bool:
+    """Whether `frame`'s protocol version is one this process has not yet named (now it has)."""
+    version = frame[4]
+    if version in _VERSIONS_TOLD:
+        return False
+    _VERSIONS_TOLD.add(version)  # at most 256 values
+    return True
 
 
 def older_peer(frame: bytes, peer: str, told: set[str], what: str) -> None:

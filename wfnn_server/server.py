@@ -27,7 +27,7 @@ import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -1165,15 +1165,12 @@ class ThinkServer:
                 metrics[f"learn/staleness_versions_p{p}"] = float(np.percentile(lag, p))
             self._staleness.clear()
         listed = self._listed(self.store.durable_through)
-        journals, heard, now = self._journals, self._journal_heard, time.monotonic()
-        # Only journals streaming now: a run that ended holds nothing a successor must wait for.
-        streaming = {c: j for c in listed if (j := journals.get(c))
-                     and now - heard.get(c, -math.inf) < JOURNAL_HOLD_S}  # fmt: skip
         status = ServerStatus(
             server=self.id, incarnation=self.incarnation, store=self.store.id, started_ns=self.started_ns,
             spec_hash=self.spec_hash, learner_config=self._config_json, weights_version=self.version,
             stored_through=listed, rejected=dict(self.rejected), metrics=metrics,
-            uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0), journals=streaming,
+            uptime_ms=int((time.monotonic() - self._started_monotonic) * 1000.0),
+            journals=self._streaming(listed),
         )  # fmt: skip
         self.view.last_status = status
         self._status_sent = time.monotonic()
@@ -1186,6 +1183,17 @@ class ThinkServer:
         self.bus.put(self.keys.server_status(self.id), frame, Channel.LATEST)
         for listener in self.view.status_listeners:
             listener(status)
+
+    def _streaming(self, clients: Iterable[str]) -> dict[str, str]:
+        """The journal taken of each of `clients` that is streaming now (heard within JOURNAL_HOLD_S).
+
+        A run that ended holds nothing a successor must wait for. Read by either thread: the
+        ingest thread replaces or adds to these dicts, and only their entries are looked up here.
+        """
+        journals, heard, now = self._journals, self._journal_heard, time.monotonic()
+        return {
+            c: j for c in clients if (j := journals.get(c)) and now - heard.get(c, -math.inf) < JOURNAL_HOLD_S
+        }
 
     def _relay_status(self) -> None:
         """The learner thread's last status again, with what is stored now (ingest thread).
@@ -1200,8 +1208,9 @@ class ThinkServer:
         self._status_sent = time.monotonic()
         # The weights version too: snapshots go out more often than statuses, and a client drops a
         # snapshot whose version no status has reached within its status timeout as forged.
+        listed = self._listed(self.store.durable_through)
         status = dataclasses.replace(
-            last, stored_through=self._listed(self.store.durable_through), weights_version=self.version
+            last, stored_through=listed, weights_version=self.version, journals=self._streaming(listed)
         )
         try:
             frame = self.codec.encode(status)

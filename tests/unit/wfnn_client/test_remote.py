@@ -1199,10 +1199,15 @@ def test_two_clients_given_one_client_id_are_not_mixed_in_a_store(tmp_path, capl
             assert wait(lambda: server.store.count == taken.produced_through + 1)
             stored = [b for b in server.store.batches() if b.client == "twin"]
             assert all((b.reward == reward).all() for b in stored), "two runs mixed in one store"
-            assert not refused.all_acked() and refused.rejected["ack_other_journal"] > 0
-            # The numbers it skipped past the other's are not lost, and nothing is re-sent to be refused.
-            assert refused.counters["uplink/declared_lost"] == 0 == refused.counters["uplink/resent_frames"]
-            assert server.rejected["journal_in_use"] > 0
+            assert wait(lambda: server.rejected["journal_in_use"] > 0)  # its numbering waits for the servers
+            assert wait(lambda: refused.rejected["ack_other_journal"] > 0) and not refused.all_acked()
+            # Nothing is re-sent there to be refused, nor the numbers it skipped past the other's
+            # declared lost, once the server's status says it takes the other journal.
+            assert wait(lambda: refused.table.views["s1"].taken_journal == taken.table.journal)
+            before = refused.counters["uplink/declared_lost"], refused.counters["uplink/resent_frames"]
+            time.sleep(1.0)  # five re-send periods
+            after = refused.counters["uplink/declared_lost"], refused.counters["uplink/resent_frames"]
+            assert after == before
 
             def said():
                 return [r.getMessage() for r in caplog.records if "another journal" in r.getMessage()]
@@ -1235,5 +1240,30 @@ def test_a_run_under_the_client_id_of_one_that_ended_is_taken_without_a_word(tmp
             assert wait(lambda: again.all_acked() and server.store.count == 50)
             assert again.counters["uplink/declared_lost"] == 0 and server.rejected["journal_in_use"] == 0
             assert not [r for r in caplog.records if "takes the experiences of another" in r.getMessage()]
+        finally:
+            again.stop()
+
+
+def test_a_journal_given_a_new_identity_still_fills_a_server_with_its_earlier_frames(tmp_path):
+    """A damaged log.json gives a journal a new identity; its frames kept the old one, and a server
+    taking the new one refused them as another journal's, for good."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    alone = remote(tmp_path, hub, cfg, client_id="robot1", batch_max=1, status_timeout_s=0.3)
+    alone.start()
+    for _ in range(100):  # no server: journaled only, 100 frames
+        alone.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+    assert wait(lambda: alone.produced_through == 99 and alone.uplink.queued == 0)
+    alone.stop()
+    (tmp_path / "journal" / "log.json").write_text("{not json")
+    with make_server(tmp_path, hub, cfg) as server:
+        again = remote(tmp_path, hub, cfg, client_id="robot1", batch_max=1)
+        again.start()
+        try:
+            assert again.table.journal != alone.table.journal
+            for _ in range(20):
+                again.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
+                time.sleep(0.02)
+            assert wait(lambda: again.all_acked() and server.store.count == 120, timeout=20.0)
+            assert server.rejected["journal_in_use"] == 0
         finally:
             again.stop()

@@ -1213,3 +1213,9 @@ def test_one_journal_of_a_client_is_taken_at_a_time(tmp_path, monkeypatch):
         # Frames of journals written before journals were named are taken whichever is.
         send(hub, batch(cfg, 15, 5))
         assert listener.wait(lambda: listener.acked() == 19)
+        # A status relayed while the learner thread is busy names the journal taken now, not its last.
+        server.view.last_status = dataclasses.replace(server.view.last_status, journals={})
+        listener.statuses.clear()
+        server._relay_status()
+        time.sleep(0.2)
+        assert listener.statuses and all(s.journals == {"c1": "jb"} for s in listener.statuses)
