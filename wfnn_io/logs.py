@@ -905,7 +905,7 @@ def merged(
     if config is not None:
         spec, dims = spec or config.spec_hash(), dims or widths(config)
     given: dict[str, dict[int, int]] = {}
-    """Per client: the digest of the values of each experience given, by number."""
+    """Per client: the digest of the values of each experience given, by number (0 without `counts`)."""
     for directory in directories:
         for batch in read_batches(directory, key, counts):
             spec = spec or batch.spec_hash
@@ -924,7 +924,7 @@ def merged(
                 )
             seen = given.setdefault(batch.client, {})
             numbers = range(batch.first_seq, batch.last_seq + 1)
-            digests = _digests(batch)
+            digests = _digests(batch) if counts is not None else [0] * len(batch)  # compared only to count
             keep = np.array([s not in seen for s in numbers])
             if counts is not None and not keep.all():
                 pairs = zip(numbers, digests, keep, strict=True)

@@ -789,8 +789,12 @@ class ThinkServer:
             log.warning("client %s: taking its journal %s (journal %s silent for %.1f s)", client, journal,
                         taken, silent)  # fmt: skip
         self._journals[client] = journal
+        self._journal_streams(client)
+
+    def _journal_streams(self, client: str) -> None:
+        """Note `client`'s taken journal heard now (at most MAX_HEARD clients: the forgotten lose theirs)."""
         heard = _noted(self._journal_heard, client, MAX_HEARD)
-        if heard is not self._journal_heard:  # clients forgotten: their journals too
+        if heard is not self._journal_heard:
             self._journals = {c: j for c, j in self._journals.items() if c in heard}
         self._journal_heard = heard
 
@@ -834,7 +838,7 @@ class ThinkServer:
                 self._heard, self._silent = heard, self._silent & set(heard)
                 self.view.clients = {c: v for c, v in self.view.clients.items() if c in self._heard}
         if status.journal and self._journals.get(status.client) == status.journal:
-            self._journal_heard = _noted(self._journal_heard, status.client, MAX_HEARD)  # still streaming
+            self._journal_streams(status.client)  # still streaming
         said, before = kept(status), self.view.clients.get(status.client)
         if said.produced_through > MAX_PRODUCED:
             # More than any client numbers (a forgery): it would lift the bound on the losses that

@@ -699,17 +699,22 @@ def test_a_restarted_server_holding_less_than_it_acknowledged_is_sent_the_rest(t
     brain.stop()
 
 
+def a_run_that_ended(tmp_path, hub, cfg, n):
+    """Client robot1's run of n experiences (reward -0.1) in journal run1, all stored, then stopped."""
+    first = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run1")
+    first.start()
+    for _ in range(n):
+        first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+    assert wait(first.all_acked)
+    first.stop()
+
+
 def test_new_experiences_are_numbered_past_what_the_servers_hold(tmp_path):
     """A journal that lost its newest records (or a new one with an old client id) never numbers
     new experiences as ones a server stored already: it would drop them as re-sends, and ack them."""
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
-        first = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run1")
-        first.start()
-        for _ in range(50):
-            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
-        assert wait(first.all_acked)
-        first.stop()
+        a_run_that_ended(tmp_path, hub, cfg, 50)
         again = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run2",
                        status_timeout_s=0.5)  # fmt: skip
         time.sleep(0.7)  # built long before it starts (a learner compiling): the wait counts from the start
@@ -1225,12 +1230,7 @@ def test_a_run_under_the_client_id_of_one_that_ended_is_taken_without_a_word(tmp
     monkeypatch.setattr(server_module, "JOURNAL_HOLD_S", 0.5)
     hub, cfg = Hub(), small_config(thinks_per_action=1)
     with make_server(tmp_path, hub, cfg) as server:
-        first = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run1")
-        first.start()
-        for _ in range(30):
-            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
-        assert wait(first.all_acked)
-        first.stop()
+        a_run_that_ended(tmp_path, hub, cfg, 30)
         time.sleep(1.0)
         again = remote(tmp_path, hub, cfg, client_id="robot1", journal_dir=tmp_path / "run2")
         again.start()
