@@ -140,6 +140,13 @@ class ClientConfig:
             raise ValueError("server needs `local`, an endpoint, or a listen endpoint servers connect to")
         if "local" in self.server and len(self.server) > 1:
             raise ValueError("server is either `local` or endpoints, not both")
+        if self.net.mode == "client" and len(self.server) > 1:
+            # A client-mode session has one link (the first endpoint that answers): the other
+            # servers would hear nothing, and the run would say nothing of it.
+            raise ValueError(
+                "in client mode a session links to one endpoint only: give one router (the servers "
+                "connect to it), or use peer mode to reach several servers"
+            )
         if self.camera_every < 0:
             raise ValueError(f"camera_every must be >= 0, got {self.camera_every}")
         if self.camera_every and SIMS[self.sim].views is None:

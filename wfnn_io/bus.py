@@ -33,6 +33,7 @@ import logging
 import queue
 import re
 import threading
+import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -258,6 +259,14 @@ class NetError(OSError):
     """The network cannot be joined as configured (a bad endpoint, a port in use, ...)."""
 
 
+class Stopped(Exception):
+    """A client-mode session's wait for its router ended by its `stop` (a signal, say)."""
+
+
+RETRY_OPEN_S = 1.0
+"""A client-mode session tries its router at most this often."""
+
+
 _ENDPOINT = re.compile(r"(?P<proto>[a-z0-9-]+)/(?P<address>[^?#]+)(?P<rest>[?#].*)?")
 _HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:\[\]]+)):(?P<port>\d{1,5})")
 
@@ -412,8 +421,11 @@ def zenoh_config(net: NetConfig) -> Any:
     conf.insert_json5("mode", json.dumps(net.mode))
     if net.listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(net.listen)))
-    elif not net.zenoh_config and net.mode != "client":
-        # Zenoh's own default is every interface ([::]); a robot listens on loopback unless told.
+    elif net.mode != "client" and conf.get_json("listen/endpoints") == zenoh.Config().get_json(
+        "listen/endpoints"
+    ):
+        # Zenoh's own default is every interface ([::]); a robot listens on loopback unless told,
+        # by an option or by the file (a file that names no endpoint is no word to listen everywhere).
         port = 7447 if net.mode == "router" else 0
         conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     if net.connect:
@@ -448,12 +460,13 @@ def _zenoh_message(exc: BaseException) -> str:
 class ZenohBus:
     """`Bus` over one Zenoh session."""
 
-    def __init__(self, net: NetConfig) -> None:
+    def __init__(self, net: NetConfig, stop: threading.Event | None = None) -> None:
+        """Join the network; a client-mode session waits for its router until `stop` is set (`Stopped`)."""
         import zenoh
 
         self._zenoh = zenoh
         self.net = net
-        self.session = self._open()
+        self.session = self._open(stop)
         self._publishers: OrderedDict[tuple[str, Channel], Any] = OrderedDict()
         """Publishers declared, least recently used first (at most MAX_PUBLISHERS)."""
         self._entities: list[Any] = []
@@ -462,11 +475,11 @@ class ZenohBus:
         self.oversized: Counter[str] = Counter()
         """Payloads dropped for their size before being copied, per key prefix."""
 
-    def _open(self) -> Any:
+    def _open(self, stop: threading.Event | None) -> Any:
         """Open the session.
 
         A client-mode session cannot connect later, so it is retried here, a second at a time,
-        saying what it waits for (Ctrl-C or SIGTERM end the wait).
+        saying what it waits for, until `stop` is set (`Stopped`) or a signal's handler raises.
         """
         zenoh, net = self._zenoh, self.net
         conf = zenoh_config(net)
@@ -478,17 +491,27 @@ class ZenohBus:
                 raise NetError(
                     f"cannot join the Zenoh network (listening on {where}): {_zenoh_message(exc)}"
                 ) from None
+        _, routers = endpoints(net)
+        if not routers:  # else each try failed at once: a loop at full speed that waited for nothing
+            raise NetError("client mode needs an endpoint to connect to (a router's), in the options or "
+                           "the Zenoh config's connect/endpoints")  # fmt: skip
         conf.insert_json5("connect/timeout_ms", "1000")
         conf.insert_json5("connect/exit_on_failure", "true")
         waited = 0
         while True:
+            started = time.monotonic()
             try:
                 return zenoh.open(conf)
             except zenoh.ZError as exc:
                 if waited % 10 == 0:
                     log.warning("client mode: no router answers at %s yet (%s); retrying",
-                                ", ".join(net.connect) or "(no endpoint)", exc)  # fmt: skip
+                                ", ".join(shown(e) for e in routers), _zenoh_message(exc))  # fmt: skip
                 waited += 1
+            rest = max(0.0, RETRY_OPEN_S - (time.monotonic() - started))  # a refusal comes at once
+            if stop is None:
+                time.sleep(rest)
+            elif stop.wait(rest):
+                raise Stopped(f"stopped while waiting for a router at {', '.join(shown(e) for e in routers)}")
 
     def _publisher(self, key: str, channel: Channel) -> Any:
         z = self._zenoh

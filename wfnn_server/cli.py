@@ -157,7 +157,8 @@ def serve(
     log_printably()
     # A config that does not hold (a ValueError), a data directory, key or endpoint that cannot be
     # used, or logs that cannot be replayed end in one `error:` line and exit 2 (`main`).
-    default_listen = ("tcp/127.0.0.1:7447",) if mode == "router" else ()
+    # A Zenoh file's own endpoints are kept (the bus listens on loopback where it names none).
+    default_listen = ("tcp/127.0.0.1:7447",) if mode == "router" and zenoh_config is None else ()
     net = NetConfig(
         mode=mode,  # type: ignore[arg-type]  # checked by NetConfig
         listen=tuple(listen) if listen is not None else default_listen,

@@ -156,6 +156,9 @@ class ServerConfig:
         keyed = ", key" if self.key_file else ""
         if self.offline:
             net = "no network"
+        if self.net.zenoh_config:
+            net = ", ".join((net, f"the rest as {self.net.zenoh_config} says")) if net else (
+                f"endpoints as {self.net.zenoh_config} says")  # fmt: skip
         return (f"{self.server_id} (controller {self.controller}, {self.net.mode}{keyed}) "
                 f"{net or 'no endpoints'}; data directory {self.data_dir}; {learner}{replay}")  # fmt: skip
 

@@ -38,7 +38,7 @@ from wfnn_common.config import ConfigError, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
-from wfnn_io.cli_errors import log_failure
+from wfnn_io.cli_errors import Terminated, log_failure
 from wfnn_io.logs import (
     LogFormatError,
     ReadCounts,
@@ -1381,16 +1381,19 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
     `on_status(status)` is called with each `ServerStatus` published (for a status line), and
     `on_started(server)` once it serves (its dashboard, if any, is bound by then). The signals
     are caught from the start: one that arrives while the server is still starting stops it
-    cleanly as soon as it has started. The figures: experiences stored and imported, thinks.
+    cleanly as soon as it has started (in client mode, one during the wait for the router ends the
+    run there, `Terminated`). The figures: experiences stored and imported, thinks.
     """
     import signal
 
-    from wfnn_io.bus import ZenohBus
+    from wfnn_io.bus import Stopped, ZenohBus
 
     stop = threading.Event()
+    signals: list[int] = []
 
     def on_signal(signum: int, _: Any) -> None:
         log.info("signal %d: checkpointing and stopping", signum)
+        signals.append(signum)
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
@@ -1399,7 +1402,10 @@ def run(config: ServerConfig, on_status: Any = None, on_started: Any = None) -> 
     serving = False
     try:
         prepare(config)
-        bus: Bus = OfflineBus() if config.offline else ZenohBus(config.net)
+        try:  # in client mode, a wait for the router that a signal ends as it ends a run
+            bus: Bus = OfflineBus() if config.offline else ZenohBus(config.net, stop)
+        except Stopped:
+            raise Terminated(signals[-1] if signals else signal.SIGTERM) from None
         try:
             server = ThinkServer(config, bus)
         except BaseException:

@@ -688,3 +688,44 @@ def test_a_benchmark_stopped_in_its_outage_phase_ends_at_once_and_leaves_no_file
     assert bench.returncode == 128 + signal.SIGTERM, output
     assert time.monotonic() - stopped < 15  # the outage phase had 19 s to go
     assert list((tmp_path / "tmp").iterdir()) == []
+
+
+def test_a_client_mode_server_waiting_for_its_router_stops_on_sigterm_and_one_with_none_is_refused(tmp_path):
+    """Its wait for a router took no signal (a service manager's stop waited for SIGKILL), and with
+    no endpoint at all it tried again at full speed, for good."""
+    import signal
+    import time
+
+    from wfnn_server.spawn import endpoint, free_port
+
+    args = ["--id", "c0", "--mode", "client", "--data-dir", tmp_path / "none", "--quiet"]
+    proc = subprocess.run([BIN / "wfnn-server", *args], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "client mode needs an endpoint to connect to" in proc.stdout + proc.stderr
+    assert not (tmp_path / "none").exists()
+    server = subprocess.Popen([BIN / "wfnn-server", "--id", "c1", "--mode", "client", "--connect",
+                               endpoint(free_port()), "--data-dir", tmp_path / "data", "--quiet"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              env={**os.environ, "COLUMNS": "400"})  # fmt: skip
+    try:
+        time.sleep(4.0)  # past its first tries
+        cpu = sum(map(int, Path(f"/proc/{server.pid}/stat").read_text().rsplit(")", 1)[1].split()[11:13]))
+        assert cpu / os.sysconf("SC_CLK_TCK") < 2.0, "it spun while it waited"
+        server.send_signal(signal.SIGTERM)
+        output, _ = server.communicate(timeout=10)
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+    assert server.returncode == 128 + signal.SIGTERM, output
+    assert "no router answers at tcp/127.0.0.1:" in output and ".rs:" not in output
+
+
+def test_a_client_in_client_mode_takes_one_server(tmp_path):
+    """A client-mode session links to one endpoint: the second server heard nothing, unsaid."""
+    proc = subprocess.run(
+        [BIN / "wfnn-client", "--sim", "boat", "--mode", "client", "--server", "tcp/127.0.0.1:7447",
+         "--server", "tcp/127.0.0.1:7448", "--out", tmp_path / "run"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "links to one endpoint only" in proc.stdout + proc.stderr
+    assert not (tmp_path / "run").exists()

@@ -556,3 +556,32 @@ def test_peers_with_different_keys_each_say_so_once_and_a_follow_of_an_unheard_s
             assert "while s1 is alive: acting on the safe action" in caplog.text
         finally:
             brain.stop()
+
+
+@pytest.mark.parametrize("mode, default", [("peer", "tcp/127.0.0.1:0"), ("router", "tcp/127.0.0.1:7447")])
+def test_a_zenoh_file_naming_no_listen_endpoint_listens_on_loopback_and_one_naming_some_is_kept(
+    tmp_path, mode, default
+):
+    """A file without a listen section took Zenoh's default, every interface; one with endpoints
+    had a router-mode server listen on 7447 instead."""
+    bare, named = tmp_path / "bare.json5", tmp_path / "named.json5"
+    bare.write_text("{ transport: { link: { tx: { lease: 3000 } } } }")
+    named.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:46174"] } }')
+    assert endpoints(NetConfig(mode=mode, zenoh_config=str(bare)))[0] == [default]
+    assert check_exposure(NetConfig(mode=mode, zenoh_config=str(bare)), False, False) == []
+    assert endpoints(NetConfig(mode=mode, zenoh_config=str(named)))[0] == ["tcp/127.0.0.1:46174"]
+
+
+def test_a_router_mode_servers_cli_keeps_its_zenoh_files_endpoints(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import wfnn_server.cli as server_cli
+
+    named = tmp_path / "named.json5"
+    named.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:46174"] } }')
+    seen = []
+    monkeypatch.setattr(server_cli, "run", lambda config, **_: seen.append(config) or {})
+    for extra in ([], ["--zenoh-config", str(named)]):
+        CliRunner().invoke(server_cli.app, ["--data-dir", str(tmp_path / "d"), "--quiet", *extra])
+    assert [endpoints(c.net)[0] for c in seen] == [["tcp/127.0.0.1:7447"], ["tcp/127.0.0.1:46174"]]
+    assert "endpoints as" in seen[1].summary() and "listen tcp/127.0.0.1:7447" in seen[0].summary()
