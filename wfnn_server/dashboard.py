@@ -481,7 +481,23 @@ class _Handler(BaseHTTPRequestHandler):
             super().handle_one_request()
         finally:
             timer.cancel()
+            # The timer holds this handler (its `_cut`): a cycle that kept the connection's socket
+            # open until the cyclic collector ran.
+            self._head_timer = None
             self._charge()
+
+    def finish(self) -> None:
+        """Close the connection's files, the reading one too where writing fails (a reset peer).
+
+        The standard finish closed the writing file first; a reset made that raise, and the
+        reading file kept the socket open after the connection ended.
+        """
+        try:
+            super().finish()
+        except OSError:
+            pass  # the peer went: nothing is left to send it
+        finally:
+            self.rfile.close()
 
     def _charge(self) -> None:
         """Charge this thread's CPU time since the last charge to the dashboard's budget."""

@@ -152,6 +152,11 @@ def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
     return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
 
 
+def _digest(cfg: LearnerConfig) -> bytes:
+    """A learner config's digest (its JSON's), kept in place of the text (up to 64 KB each)."""
+    return hashlib.blake2b(cfg.to_json().encode(), digest_size=16).digest()
+
+
 class _OtherSpec(PersistError):
     """A readable checkpoint of another learner spec than the server's."""
 
@@ -267,8 +272,9 @@ class ThinkServer:
         self._config_json = ""
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
-        self._unusable: set[str] = set()
-        """Adopted configs (as JSON) that no learner could be made from (not adopted again)."""
+        self._unusable: set[bytes] = set()
+        """Digests of configs (as JSON) that no learner could be made from (not adopted again), each
+        logged once; at most REFUSED_LOGGED (any sender may announce configs, each other than the last)."""
         self._refused_texts: set[bytes] = set()
         """Digests of announced config texts refused as they were read, each logged once."""
         self._seconds_per_think: float | None = None
@@ -861,19 +867,19 @@ class ThinkServer:
                 self._refused_texts.add(digest)  # logged at every heartbeat, a line of up to 60 KB each
                 log.error("client %s announced a learner config that is refused: %.300s", status.client, exc)
             return
-        if cfg.to_json() in self._unusable:  # refused once already, and said so then
+        if _digest(cfg) in self._unusable:  # refused once already, and said so then
             self.rejected["config"] += 1
             return
         try:
             overridden = self._overridden(cfg)
         except ConfigError as exc:  # this server's own flags, not the client's config (--alpha 5: no deep lr)
             self.rejected["config"] += 1
-            self._unusable.add(cfg.to_json())
-            given = self.config.overrides
-            flags = ", ".join(f"{f.name} {getattr(given, f.name)}" for f in dataclasses.fields(given)
-                              if getattr(given, f.name) not in (None, ""))  # fmt: skip
-            log.error("client %s's learner config cannot take this server's overrides (%s): %s; restart "
-                      "the server without them", status.client, flags, exc)  # fmt: skip
+            if self._unusable_once(cfg):
+                given = self.config.overrides
+                flags = ", ".join(f"{f.name} {getattr(given, f.name)}" for f in dataclasses.fields(given)
+                                  if getattr(given, f.name) not in (None, ""))  # fmt: skip
+                log.error("client %s's learner config cannot take this server's overrides (%s): %.300s; "
+                          "restart the server without them", status.client, flags, exc)  # fmt: skip
             return
         if overridden.spec_hash() != status.spec_hash:
             self.rejected["config"] += 1
@@ -883,6 +889,17 @@ class ThinkServer:
         log.info("adopting the learner config of client %s", status.client)
         self._pending_config = cfg
         self._wake.set()
+
+    def _unusable_once(self, cfg: LearnerConfig) -> bool:
+        """Note a config no learner can be made from; -> whether to log it.
+
+        It is logged the first time, while fewer than REFUSED_LOGGED are noted: past that, only counted.
+        """
+        digest = _digest(cfg)
+        if digest in self._unusable or len(self._unusable) >= REFUSED_LOGGED:
+            return False
+        self._unusable.add(digest)
+        return True
 
     def _camera_view(self, frame: bytes) -> None:
         sender, view = self.codec.decode(frame, CameraView)
@@ -918,9 +935,10 @@ class ThinkServer:
                     last_thinks = self._thinks()
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
                     self.rejected["config"] += 1
-                    self._unusable.add(pending.to_json())
-                    log.error("the adopted learner config cannot make a learner (%s); waiting for another",
-                              str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)  # fmt: skip
+                    if self._unusable_once(pending):
+                        why = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+                        log.error("the adopted learner config cannot make a learner (%s); waiting for "
+                                  "another", why)  # fmt: skip
                 finally:
                     # Only now: while the learner was built (seconds, for torch), the adopted config
                     # kept another client's from being adopted and checked the batches that came.

@@ -1159,6 +1159,24 @@ def test_a_clients_config_its_own_overrides_break_is_refused_naming_them_once(tm
     assert "announced a learner config that is refused" not in caplog.text
 
 
+def test_configs_that_cannot_be_used_are_noted_and_logged_up_to_a_bound(tmp_path, caplog, monkeypatch):
+    """Each config refused was kept whole and logged, every one of them: a sender announcing one
+    config after another (each seed another) grew the server without bound."""
+    import dataclasses
+    import logging
+
+    import wfnn_server.server as server_module
+
+    monkeypatch.setattr(server_module, "REFUSED_LOGGED", 3)
+    hub, cfg = Hub(), small_config(learner="deep")
+    with caplog.at_level(logging.ERROR), make_server(tmp_path, hub, None, alpha=5.0) as server:
+        for seed in range(6):
+            announce(hub, dataclasses.replace(cfg, seed=seed))
+        assert wait_for(lambda: server.rejected["config"] == 6)
+        assert len(server._unusable) == 3 and all(len(d) == 16 for d in server._unusable)
+    assert len([r for r in caplog.records if "cannot take this server's overrides" in r.getMessage()]) == 3
+
+
 def test_a_config_text_refused_as_it_is_read_is_logged_once_and_shortened(tmp_path, caplog):
     """Every heartbeat repeats it: 20 statuses of a 60 KB learner name logged 1.2 MB, in lines of 60 KB."""
     import logging
