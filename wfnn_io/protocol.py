@@ -479,20 +479,29 @@ def _pack_array(a: NDArray[Any], dtype: str) -> dict[str, Any]:
     return {"dtype": dtype, "shape": list(arr.shape), "data": arr.tobytes()}
 
 
+_ARRAY_KEYS = frozenset({"dtype", "shape", "data"})
+_DTYPE_OF = {name: np.dtype(name) for name in _DTYPES}
+_NATIVE = {name: dt.newbyteorder("=") for name, dt in _DTYPE_OF.items()}
+"""Each dtype taken, made once (not at every array of every frame: a store's restart decodes all)."""
+
+
 def _unpack_array(name: str, value: Any, dtype: str, ndim: int) -> NDArray[Any]:
-    if not isinstance(value, dict) or set(value) != {"dtype", "shape", "data"}:
+    if not isinstance(value, dict) or value.keys() != _ARRAY_KEYS:
         raise MalformedBody(f"{name}: expected an array map {{dtype, shape, data}}")
     found, shape, data = value["dtype"], value["shape"], value["data"]
     if found != dtype or found not in _DTYPES:
         raise MalformedBody(f"{name}: expected dtype {dtype}, found {found!r}")
     if not isinstance(shape, list) or len(shape) != ndim:
         raise MalformedBody(f"{name}: expected {ndim} dimensions, found shape {shape!r}")
-    if not all(type(d) is int and 0 <= d < 1 << 31 for d in shape):
-        raise MalformedBody(f"{name}: bad shape {shape!r}")
+    count = 1
+    for d in shape:
+        if type(d) is not int or not 0 <= d < 1 << 31:
+            raise MalformedBody(f"{name}: bad shape {shape!r}")
+        count *= d
     if not isinstance(data, bytes):
         raise MalformedBody(f"{name}: data must be bytes")
-    dt = np.dtype(dtype)
-    if len(data) != int(np.prod(shape, dtype=np.int64)) * dt.itemsize:
+    dt = _DTYPE_OF[dtype]
+    if len(data) != count * dt.itemsize:
         raise MalformedBody(f"{name}: {len(data)} bytes do not hold shape {shape} of {dtype}")
     arr = np.frombuffer(data, dtype=dt).reshape(shape)
     if dtype == "|b1":
@@ -501,7 +510,7 @@ def _unpack_array(name: str, value: Any, dtype: str, ndim: int) -> NDArray[Any]:
             raise MalformedBody(f"{name}: booleans must be 0 or 1")
         arr = arr.view(np.bool_)
     # Native byte order and writable, so receivers may use it as any array.
-    return arr.astype(dt.newbyteorder("="), copy=True)
+    return arr.astype(_NATIVE[dtype], copy=True)
 
 
 def _check_scalar(name: str, kind: str, value: Any) -> Any:
@@ -584,6 +593,9 @@ def _fields(cls: type[Any]) -> list[tuple[str, str, dict[str, Any]]]:
 
 
 _FIELDS = {t: _fields(cls) for t, cls in MESSAGES.items()}
+_NAMES = {t: frozenset(name for name, _, _ in fields) for t, fields in _FIELDS.items()}
+_REQUIRED = {t: frozenset(name for name, _, meta in fields if not meta.get("optional"))
+             for t, fields in _FIELDS.items()}  # fmt: skip
 _DEFAULTS = {
     t: {f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
         for f in dataclasses.fields(cls)}
@@ -646,11 +658,10 @@ def from_body(msg_type: MsgType, body: Any) -> Message:
     """Check a decoded body against its message type's fields; -> the message."""
     if type(body) is not dict:
         raise MalformedBody(f"body must be a map, found {type(body).__name__}")
-    fields = _FIELDS[msg_type]
-    names = {name for name, _, _ in fields}
-    required = {name for name, _, meta in fields if not meta.get("optional")}
-    if not required <= set(body) <= names:
-        missing, extra = sorted(required - set(body)), set(body) - names
+    fields, names, required = _FIELDS[msg_type], _NAMES[msg_type], _REQUIRED[msg_type]
+    given = body.keys()
+    if not (required <= given and given <= names):
+        missing, extra = sorted(required - given), set(given) - names
         # By repr: msgpack gives str and bytes keys alike, which do not compare.
         listed = sorted(extra, key=repr)[:8] + ([f"... {len(extra)} in all"] if len(extra) > 8 else [])
         raise MalformedBody(f"{MESSAGES[msg_type].__name__}: missing fields {missing}, unexpected {listed}")
