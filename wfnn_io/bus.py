@@ -393,6 +393,17 @@ def nesting(text: str) -> int:
     return deepest
 
 
+def _names_listen(conf: Any, text: str) -> bool:
+    """Whether a Zenoh config read from `text` names its listen endpoints (an empty list too).
+
+    Zenoh fills in its default where the file says nothing, so a value equal to the default was
+    written only where the file spells out the default's address ([::]).
+    """
+    import zenoh
+
+    return conf.get_json("listen/endpoints") != zenoh.Config().get_json("listen/endpoints") or "[::]" in text
+
+
 def zenoh_config(net: NetConfig) -> Any:
     """A `zenoh.Config` for `net`."""
     import zenoh
@@ -421,9 +432,7 @@ def zenoh_config(net: NetConfig) -> Any:
     conf.insert_json5("mode", json.dumps(net.mode))
     if net.listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(net.listen)))
-    elif net.mode != "client" and conf.get_json("listen/endpoints") == zenoh.Config().get_json(
-        "listen/endpoints"
-    ):
+    elif net.mode != "client" and not _names_listen(conf, text):
         # Zenoh's own default is every interface ([::]); a robot listens on loopback unless told,
         # by an option or by the file (a file that names no endpoint is no word to listen everywhere).
         port = 7447 if net.mode == "router" else 0

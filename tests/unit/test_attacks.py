@@ -570,6 +570,14 @@ def test_a_zenoh_file_naming_no_listen_endpoint_listens_on_loopback_and_one_nami
     assert endpoints(NetConfig(mode=mode, zenoh_config=str(bare)))[0] == [default]
     assert check_exposure(NetConfig(mode=mode, zenoh_config=str(bare)), False, False) == []
     assert endpoints(NetConfig(mode=mode, zenoh_config=str(named)))[0] == ["tcp/127.0.0.1:46174"]
+    # Zenoh's default written out is a word to listen there; an empty list, to listen nowhere.
+    spelled, empty = tmp_path / "spelled.json5", tmp_path / "empty.json5"
+    spelled.write_text('{ listen: { endpoints: { peer: ["tcp/[::]:0"], router: ["tcp/[::]:7447"] } } }')
+    empty.write_text("{ listen: { endpoints: [] } }")
+    assert endpoints(NetConfig(mode=mode, zenoh_config=str(spelled)))[0] == [
+        {"peer": "tcp/[::]:0", "router": "tcp/[::]:7447"}[mode]
+    ]
+    assert endpoints(NetConfig(mode=mode, zenoh_config=str(empty)))[0] == []
 
 
 def test_a_router_mode_servers_cli_keeps_its_zenoh_files_endpoints(tmp_path, monkeypatch):
