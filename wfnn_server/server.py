@@ -26,7 +26,7 @@ import os
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -272,9 +272,11 @@ class ThinkServer:
         self._config_json = ""
         """The effective learner config as JSON, announced in every status."""
         self._pending_config: LearnerConfig | None = None
-        self._unusable: set[bytes] = set()
-        """Digests of configs (as JSON) that no learner could be made from (not adopted again), each
-        logged once; at most REFUSED_LOGGED (any sender may announce configs, each other than the last)."""
+        self._unusable: OrderedDict[bytes, None] = OrderedDict()
+        """Digests of configs (as JSON) that no learner could be made from (not adopted again), the
+        REFUSED_LOGGED noted last (any sender may announce configs, each other than the last)."""
+        self._unusable_logged = 0
+        """Such configs logged (each once, the first REFUSED_LOGGED; the rest only counted)."""
         self._refused_texts: set[bytes] = set()
         """Digests of announced config texts refused as they were read, each logged once."""
         self._seconds_per_think: float | None = None
@@ -893,13 +895,19 @@ class ThinkServer:
     def _unusable_once(self, cfg: LearnerConfig) -> bool:
         """Note a config no learner can be made from; -> whether to log it.
 
-        It is logged the first time, while fewer than REFUSED_LOGGED are noted: past that, only counted.
+        It is logged the first time, while fewer than REFUSED_LOGGED were: past that, only counted.
+        The last ones noted are kept, so that one announced at every heartbeat is not tried again
+        (for a deep learner, seconds of torch each time).
         """
         digest = _digest(cfg)
-        if digest in self._unusable or len(self._unusable) >= REFUSED_LOGGED:
+        if digest in self._unusable:
+            self._unusable.move_to_end(digest)
             return False
-        self._unusable.add(digest)
-        return True
+        self._unusable[digest] = None
+        if len(self._unusable) > REFUSED_LOGGED:
+            self._unusable.popitem(last=False)
+        self._unusable_logged += 1
+        return self._unusable_logged <= REFUSED_LOGGED
 
     def _camera_view(self, frame: bytes) -> None:
         sender, view = self.codec.decode(frame, CameraView)

@@ -1174,6 +1174,9 @@ def test_configs_that_cannot_be_used_are_noted_and_logged_up_to_a_bound(tmp_path
             announce(hub, dataclasses.replace(cfg, seed=seed))
         assert wait_for(lambda: server.rejected["config"] == 6)
         assert len(server._unusable) == 3 and all(len(d) == 16 for d in server._unusable)
+        announce(hub, dataclasses.replace(cfg, seed=5))  # the last noted: refused at once
+        assert wait_for(lambda: server.rejected["config"] == 7)
+        assert list(server._unusable)[-1] == server_module._digest(dataclasses.replace(cfg, seed=5))
     assert len([r for r in caplog.records if "cannot take this server's overrides" in r.getMessage()]) == 3
 
 
