@@ -114,7 +114,7 @@ def throughput(
     (work / "learner.json").write_text(lcfg.to_json())
     port = free_port()
     tag = "shm" if shared_memory else "tcp"
-    shm = [] if shared_memory else ["--no-shared-memory"]
+    shm = ["--shared-memory"] if shared_memory else ["--no-shared-memory"]
     server = ServerProcess(work / f"srv1-{tag}", port, "--learner-config", str(work / "learner.json"), *shm,
                            controller=CONTROLLER).start()  # fmt: skip
     try:

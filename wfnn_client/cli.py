@@ -186,7 +186,13 @@ def client(
     zenoh_config: Annotated[
         Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
     ] = None,
-    shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
+    shared_memory: Annotated[
+        bool,
+        typer.Option(
+            help="Zenoh shared memory between local processes (off: Zenoh keeps a restarted "
+            "peer's segments mapped, ~18 MB each start)."
+        ),
+    ] = False,
     controller: Annotated[
         str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
     ] = "default",

@@ -232,9 +232,11 @@ class NetConfig:
     Sustained traffic over a link slower than a batch (64 KB) in this time (about 0.5 Mbit/s) has
     the link closed and reopened: what it did not take comes again from the journal. A
     `zenoh_config` file that sets `wait_before_close` keeps its own."""
-    shared_memory: bool = True
-    """Let processes on one host pass large messages through shared memory (Zenoh's default);
-    False forces TCP, as between hosts."""
+    shared_memory: bool = False
+    """Let processes on one host pass large messages through shared memory (Zenoh's default).
+    Off by default: Zenoh 1.10 keeps every peer process's segments mapped after it exits (two per
+    process start, about 18 MB), so a robot whose local server restarted grew by that much each
+    time; and it made no consistent difference to throughput here (`wfnn-bench transport`)."""
     zenoh_config: str | None = None
     """A Zenoh JSON5 config file applied first (TLS, user/password, ...); the fields above override."""
     max_message_bytes: int = MAX_FRAME + 1024

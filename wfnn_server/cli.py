@@ -67,7 +67,13 @@ def serve(
     zenoh_config: Annotated[
         Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
     ] = None,
-    shared_memory: Annotated[bool, typer.Option(help="Zenoh shared memory between local processes.")] = True,
+    shared_memory: Annotated[
+        bool,
+        typer.Option(
+            help="Zenoh shared memory between local processes (off: Zenoh keeps a restarted "
+            "peer's segments mapped, ~18 MB each start)."
+        ),
+    ] = False,
     data_dir: Annotated[
         Path, typer.Option(parser=path_given, help="Store, checkpoint and config directory.")
     ] = Path("wfnn-data"),

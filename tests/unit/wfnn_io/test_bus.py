@@ -100,3 +100,37 @@ def test_a_zenoh_config_files_own_wait_before_close_is_kept(tmp_path):
     other = tmp_path / "other.json5"
     other.write_text("{ transport: { link: { tx: { lease: 5000 } } } }")
     assert json.loads(bus_module.zenoh_config(NetConfig(zenoh_config=str(other))).get_json(key)) == 1_000_000
+
+
+@pytest.mark.multiprocess
+def test_a_peer_process_that_exits_leaves_nothing_mapped_by_default():
+    """With Zenoh's shared memory on, every start of a peer process (a think server restarted) left
+    two of its segments mapped here for good, about 18 MB: a robot grew by that at each restart."""
+    import subprocess
+    import sys
+
+    def mapped() -> int:
+        with open("/proc/self/maps") as maps:
+            return sum(".zenoh" in line for line in maps)
+
+    port = free_port()
+    receiver = ZenohBus(NetConfig(listen=(endpoint(port),)))
+    got: list[int] = []
+    receiver.subscribe("wfnn/t/**", lambda key, payload: got.append(len(payload)))
+    before = mapped()
+    sender = (
+        "import time\n"
+        "from wfnn_io.bus import Channel, NetConfig, ZenohBus\n"
+        f"bus = ZenohBus(NetConfig(connect=({endpoint(port)!r},)))\n"
+        "for _ in range(40):\n"
+        "    bus.put('wfnn/t/x', bytes(200_000), Channel.DATA)\n"
+        "    time.sleep(0.05)\n"
+        "bus.close()\n"
+    )
+    try:
+        for _ in range(2):
+            subprocess.run([sys.executable, "-c", sender], check=True, timeout=60)
+        assert got, "nothing arrived from the peer processes"
+        assert mapped() == before
+    finally:
+        receiver.close()
