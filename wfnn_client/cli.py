@@ -26,7 +26,7 @@ from wfnn_client.run import jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
 from wfnn_common.config import ExplorationConfig
-from wfnn_io.bus import NetConfig
+from wfnn_io.bus import SHARED_MEMORY_HELP, NetConfig
 from wfnn_io.cli_errors import (
     STATUS_LINE_EVERY_S,
     Every,
@@ -186,13 +186,7 @@ def client(
     zenoh_config: Annotated[
         Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
     ] = None,
-    shared_memory: Annotated[
-        bool,
-        typer.Option(
-            help="Zenoh shared memory between local processes (off: Zenoh keeps a restarted "
-            "peer's segments mapped, ~18 MB each start)."
-        ),
-    ] = False,
+    shared_memory: Annotated[bool, typer.Option(help=SHARED_MEMORY_HELP)] = NetConfig.shared_memory,
     controller: Annotated[
         str, typer.Option(help="Controller name (keys wfnn/<controller>/...).")
     ] = "default",

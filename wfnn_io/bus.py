@@ -232,7 +232,7 @@ class NetConfig:
     Sustained traffic over a link slower than a batch (64 KB) in this time (about 0.5 Mbit/s) has
     the link closed and reopened: what it did not take comes again from the journal. A
     `zenoh_config` file that sets `wait_before_close` keeps its own."""
-    shared_memory: bool = False
+    shared_memory: bool = False  # the CLIs' default too (`SHARED_MEMORY_HELP`)
     """Let processes on one host pass large messages through shared memory (Zenoh's default).
     Off by default: Zenoh 1.10 keeps every peer process's segments mapped after it exits (two per
     process start, about 18 MB), so a robot whose local server restarted grew by that much each
@@ -255,6 +255,13 @@ class NetConfig:
             parse_endpoint(endpoint)
         for endpoint in self.connect:
             parse_endpoint(endpoint, to_connect=True)
+
+
+SHARED_MEMORY_HELP = (
+    "Zenoh shared memory between local processes (off: Zenoh keeps a restarted peer's segments mapped, "
+    "~18 MB each start)."
+)
+"""`--shared-memory`'s help, the client's and the server's."""
 
 
 class NetError(OSError):
@@ -327,12 +334,16 @@ def is_loopback(endpoint: str) -> bool:
 
 def endpoints(net: NetConfig) -> tuple[list[str], list[str]]:
     """The endpoints a session of `net` listens on and connects to (the Zenoh file's included)."""
-    conf = zenoh_config(net)
+    return _endpoints(zenoh_config(net), net.mode)
+
+
+def _endpoints(conf: Any, mode: str) -> tuple[list[str], list[str]]:
+    """The listen and connect endpoints a `zenoh.Config` gives a session of `mode`."""
 
     def read(path: str) -> list[str]:
         value = json.loads(conf.get_json(path))
         if isinstance(value, dict):  # per-mode lists: {"router": [...], "peer": [...]}
-            value = value.get(net.mode, [])
+            value = value.get(mode, [])
         return [str(v) for v in value or []]
 
     return read("listen/endpoints"), read("connect/endpoints")
@@ -502,10 +513,11 @@ class ZenohBus:
                 raise NetError(
                     f"cannot join the Zenoh network (listening on {where}): {_zenoh_message(exc)}"
                 ) from None
-        _, routers = endpoints(net)
+        _, routers = _endpoints(conf, net.mode)  # the config just made, not one made again
         if not routers:  # else each try failed at once: a loop at full speed that waited for nothing
             raise NetError("client mode needs an endpoint to connect to (a router's), in the options or "
                            "the Zenoh config's connect/endpoints")  # fmt: skip
+        where = ", ".join(shown(e) for e in routers)
         conf.insert_json5("connect/timeout_ms", "1000")
         conf.insert_json5("connect/exit_on_failure", "true")
         waited = 0
@@ -515,14 +527,14 @@ class ZenohBus:
                 return zenoh.open(conf)
             except zenoh.ZError as exc:
                 if waited % 10 == 0:
-                    log.warning("client mode: no router answers at %s yet (%s); retrying",
-                                ", ".join(shown(e) for e in routers), _zenoh_message(exc))  # fmt: skip
+                    log.warning("client mode: no router answers at %s yet (%s); retrying", where,
+                                _zenoh_message(exc))  # fmt: skip
                 waited += 1
             rest = max(0.0, RETRY_OPEN_S - (time.monotonic() - started))  # a refusal comes at once
             if stop is None:
                 time.sleep(rest)
             elif stop.wait(rest):
-                raise Stopped(f"stopped while waiting for a router at {', '.join(shown(e) for e in routers)}")
+                raise Stopped(f"stopped while waiting for a router at {where}")
 
     def _publisher(self, key: str, channel: Channel) -> Any:
         z = self._zenoh

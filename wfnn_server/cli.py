@@ -14,7 +14,7 @@ from rich.logging import RichHandler
 from rich.markup import escape
 from rich.status import Status
 
-from wfnn_io.bus import NetConfig
+from wfnn_io.bus import SHARED_MEMORY_HELP, NetConfig
 from wfnn_io.cli_errors import STATUS_LINE_EVERY_S, Every, guarded, log_printably, one_line, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import ServerStatus
@@ -67,13 +67,7 @@ def serve(
     zenoh_config: Annotated[
         Path | None, typer.Option(parser=path_given, help="Zenoh JSON5 config (TLS, auth...).")
     ] = None,
-    shared_memory: Annotated[
-        bool,
-        typer.Option(
-            help="Zenoh shared memory between local processes (off: Zenoh keeps a restarted "
-            "peer's segments mapped, ~18 MB each start)."
-        ),
-    ] = False,
+    shared_memory: Annotated[bool, typer.Option(help=SHARED_MEMORY_HELP)] = NetConfig.shared_memory,
     data_dir: Annotated[
         Path, typer.Option(parser=path_given, help="Store, checkpoint and config directory.")
     ] = Path("wfnn-data"),

@@ -869,14 +869,15 @@ class ThinkServer:
                 self._refused_texts.add(digest)  # logged at every heartbeat, a line of up to 60 KB each
                 log.error("client %s announced a learner config that is refused: %.300s", status.client, exc)
             return
-        if _digest(cfg) in self._unusable:  # refused once already, and said so then
+        digest = _digest(cfg)
+        if digest in self._unusable:  # refused once already, and said so then
             self.rejected["config"] += 1
             return
         try:
             overridden = self._overridden(cfg)
         except ConfigError as exc:  # this server's own flags, not the client's config (--alpha 5: no deep lr)
             self.rejected["config"] += 1
-            if self._unusable_once(cfg):
+            if self._unusable_once(digest):
                 given = self.config.overrides
                 flags = ", ".join(f"{f.name} {getattr(given, f.name)}" for f in dataclasses.fields(given)
                                   if getattr(given, f.name) not in (None, ""))  # fmt: skip
@@ -892,14 +893,13 @@ class ThinkServer:
         self._pending_config = cfg
         self._wake.set()
 
-    def _unusable_once(self, cfg: LearnerConfig) -> bool:
-        """Note a config no learner can be made from; -> whether to log it.
+    def _unusable_once(self, digest: bytes) -> bool:
+        """Note a config no learner can be made from, by its `_digest`; -> whether to log it.
 
         It is logged the first time, while fewer than REFUSED_LOGGED were: past that, only counted.
         The last ones noted are kept, so that one announced at every heartbeat is not tried again
         (for a deep learner, seconds of torch each time).
         """
-        digest = _digest(cfg)
         if digest in self._unusable:
             self._unusable.move_to_end(digest)
             return False
@@ -943,7 +943,7 @@ class ThinkServer:
                     last_thinks = self._thinks()
                 except (ValueError, RuntimeError, MemoryError) as exc:  # a client's config, not ours
                     self.rejected["config"] += 1
-                    if self._unusable_once(pending):
+                    if self._unusable_once(_digest(pending)):
                         why = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
                         log.error("the adopted learner config cannot make a learner (%s); waiting for "
                                   "another", why)  # fmt: skip
