@@ -871,6 +871,7 @@ class ThinkServer:
             return
         digest = _digest(cfg)
         if digest in self._unusable:  # refused once already, and said so then
+            self._unusable.move_to_end(digest)  # announced again: noted last, so kept past others
             self.rejected["config"] += 1
             return
         try:

@@ -1177,6 +1177,12 @@ def test_configs_that_cannot_be_used_are_noted_and_logged_up_to_a_bound(tmp_path
         announce(hub, dataclasses.replace(cfg, seed=5))  # the last noted: refused at once
         assert wait_for(lambda: server.rejected["config"] == 7)
         assert list(server._unusable)[-1] == server_module._digest(dataclasses.replace(cfg, seed=5))
+        # One announced at every heartbeat among a stream of others stays noted (never rebuilt).
+        announce(hub, dataclasses.replace(cfg, seed=3))  # the oldest noted: refused, noted last
+        announce(hub, dataclasses.replace(cfg, seed=6))
+        announce(hub, dataclasses.replace(cfg, seed=7))
+        assert wait_for(lambda: server.rejected["config"] == 10)
+        assert server_module._digest(dataclasses.replace(cfg, seed=3)) in server._unusable
     assert len([r for r in caplog.records if "cannot take this server's overrides" in r.getMessage()]) == 3
 
 
