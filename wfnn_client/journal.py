@@ -10,12 +10,13 @@ sends nothing, records its experiences in the same format (`wfnn_client.brain.Re
 
 from __future__ import annotations
 
-import bisect
 import json
 import logging
 import secrets
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from wfnn_common.config import LearnerConfig
 from wfnn_io.logs import (
@@ -63,11 +64,7 @@ class Journal:
         directory = Path(directory)
         self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
                                  segment_bytes=segment_bytes)  # fmt: skip
-        self._first: list[int] = []
-        """First sequence number of each journaled batch, ascending."""
-        self._last: list[int] = []
-        """Last sequence number of each journaled batch, ascending."""
-        self._where: list[Position] = []
+        self._index = _Index()
         self.next_seq = 0
         owner, spec = "", ""
         try:
@@ -93,7 +90,7 @@ class Journal:
                               "journaled before it: only what follows them is kept",
                               pos, batch.first_seq, batch.last_seq, self.next_seq - 1)  # fmt: skip
                 if batch.last_seq >= self.next_seq:
-                    self._index(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
+                    self._add(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
             self.controllers = journal_controllers(meta)
@@ -175,15 +172,13 @@ class Journal:
         if through > self.reserved_through:
             self._write_meta(through + RESERVE_BLOCK, closed=False)
 
-    def _index(self, first_seq: int, last_seq: int, pos: Position) -> None:
-        self._first.append(first_seq)
-        self._last.append(last_seq)
-        self._where.append(pos)
+    def _add(self, first_seq: int, last_seq: int, pos: Position) -> None:
+        self._index.append(first_seq, last_seq, pos)
         self.next_seq = last_seq + 1
 
     def append(self, frame: bytes, last_seq: int) -> None:
         """Journal one encoded batch whose last experience is `last_seq` (it continues the journal)."""
-        self._index(self.next_seq, last_seq, self.log.append(frame))
+        self._add(self.next_seq, last_seq, self.log.append(frame))
 
     def skip_to(self, seq: int) -> None:
         """Number the next batch from `seq` (the numbers before it, not journaled, are not held)."""
@@ -192,34 +187,35 @@ class Journal:
     @property
     def last_held(self) -> int:
         """The newest experience the journal holds (-1: none)."""
-        return self._last[-1] if self._last else -1
+        return self._index.last_held()
 
     def holds(self, seq: int) -> bool:
         """Whether experience `seq` is in the journal (False in a gap that damage left)."""
-        i = bisect.bisect_left(self._last, seq)
-        return i < len(self._last) and self._first[i] <= seq
+        i = self._index.find(seq)
+        return i < len(self._index) and self._index.first(i) <= seq
 
     def frames_from(self, seq: int, max_frames: int) -> tuple[list[bytes], int]:
         """Up to `max_frames` journaled frames, from the one holding experience `seq`.
 
         Returns the frames and the last experience they hold (-1 when there are none).
         """
-        j = bisect.bisect_left(self._last, seq)
+        index = self._index
+        j = index.find(seq)
         out: list[bytes] = []
         last = -1
-        while j < len(self._where) and len(out) < max_frames:
-            frame = self.log.frame_at(self._where[j])
+        while j < len(index) and len(out) < max_frames:
+            frame = self.log.frame_at(index.where(j))
             if frame is None:
                 # Damaged since it was indexed (counted by the reader): no longer held, so that a
                 # re-send from it declares its experiences lost instead of waiting for them forever.
-                log.error("journal record at %s (experiences %d-%d) is no longer readable", self._where[j],
-                          self._first[j], self._last[j])  # fmt: skip
-                del self._first[j], self._last[j], self._where[j]
+                log.error("journal record at %s (experiences %d-%d) is no longer readable", index.where(j),
+                          index.first(j), index.last(j))  # fmt: skip
+                index.delete(j)
                 if out:  # the frames sent stop at the gap: the next re-send declares it
                     break
                 continue
             out.append(frame)
-            last = self._last[j]
+            last = index.last(j)
             j += 1
         return out, last
 
@@ -244,3 +240,51 @@ class Journal:
                 self._write_meta(self.next_seq - 1, closed=True)
         finally:
             self.log.close()
+
+
+class _Index:
+    """Each journaled batch's first and last experience and where its record starts, in order.
+
+    In arrays, 32 bytes a batch (and room to grow): as Python lists of ints and `Position`s it
+    took about 230, and a client journals a batch per tick at up to 100 Hz (`batch_period_s`),
+    so a day's run at 50 Hz held about 1 GB of index. It covers the whole journal: a server
+    that joins late catches up from its start.
+    """
+
+    def __init__(self) -> None:
+        self._rows = np.zeros((4, 1024), dtype=np.int64)
+        """first, last, segment and offset (rows) of each batch (columns), the first `_n` in use."""
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, first_seq: int, last_seq: int, pos: Position) -> None:
+        if self._n == self._rows.shape[1]:
+            grown = np.zeros((4, 2 * self._n), dtype=np.int64)
+            grown[:, : self._n] = self._rows
+            self._rows = grown
+        self._rows[:, self._n] = (first_seq, last_seq, pos.segment, pos.offset)
+        self._n += 1
+
+    def find(self, seq: int) -> int:
+        """The first batch whose last experience is at or after `seq` (`len` where none is)."""
+        return int(np.searchsorted(self._rows[1, : self._n], seq, side="left"))
+
+    def first(self, j: int) -> int:
+        return int(self._rows[0, j])
+
+    def last(self, j: int) -> int:
+        return int(self._rows[1, j])
+
+    def last_held(self) -> int:
+        """The last experience of the last batch (-1: none)."""
+        return int(self._rows[1, self._n - 1]) if self._n else -1
+
+    def where(self, j: int) -> Position:
+        return Position(int(self._rows[2, j]), int(self._rows[3, j]))
+
+    def delete(self, j: int) -> None:
+        """Forget batch `j` (its record is damaged)."""
+        self._rows[:, j : self._n - 1] = self._rows[:, j + 1 : self._n]
+        self._n -= 1

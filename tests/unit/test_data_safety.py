@@ -25,7 +25,7 @@ def journal(directory, cfg, key=None, client="c1"):
     for i in range(BATCHES):
         b = batch(cfg, i * PER_BATCH, PER_BATCH, client=client)
         j.append(codec.encode(b), b.last_seq)
-    where = list(j._where)
+    where = [j._index.where(i) for i in range(len(j._index))]
     j.close()
     return where
 

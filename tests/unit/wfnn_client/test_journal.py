@@ -35,7 +35,7 @@ def test_a_record_damaged_after_it_was_indexed_is_no_longer_held(tmp_path):
         b = batch(cfg, first, 5)
         journal.append(Codec("c1").encode(b), b.last_seq)
     journal.sync()
-    where = journal._where[1]
+    where = journal._index.where(1)
     segment = tmp_path / "j" / f"{where.segment:08d}.seg"
     data = bytearray(segment.read_bytes())
     data[where.offset + 40] ^= 0xFF  # inside the record of experiences 5-9
@@ -193,7 +193,7 @@ def test_a_resend_from_a_record_that_overlaps_a_damaged_one_declares_nothing_los
     journal = Journal(tmp_path / "j")
     segment = tmp_path / "j" / "00000000.seg"
     data = bytearray(segment.read_bytes())
-    data[journal._where[1].offset + 60] ^= 0xFF  # experiences 5-9 damaged after the open
+    data[journal._index.where(1).offset + 60] ^= 0xFF  # experiences 5-9 damaged after the open
     segment.write_bytes(bytes(data))
     frames, _ = journal.frames_from(5, 8)
     assert not journal.holds(5)
@@ -202,3 +202,28 @@ def test_a_resend_from_a_record_that_overlaps_a_damaged_one_declares_nothing_los
     got = Codec("c1").decode(sent, ExperienceBatch)[1]
     assert got.first_seq == 3 and got.lost_from == -1 and uplink.counters["uplink/declared_lost"] == 0
     journal.close()
+
+
+def test_the_index_finds_every_batch_past_its_growth_and_after_a_damaged_one_is_forgotten(tmp_path):
+    """The index is kept in arrays that grow (a day's run at 50 Hz journals millions of batches)."""
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg, codec = small_config(), Codec("c1")
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    for i in range(2_500):  # past the initial capacity, twice
+        b = batch(cfg, 2 * i, 2)
+        journal.append(codec.encode(b), b.last_seq)
+    assert journal.last_held == 4_999 and journal.holds(0) and journal.holds(4_999)
+    assert not journal.holds(5_000)
+    frames, last = journal.frames_from(4_097, 3)
+    firsts = [codec.decode(f, ExperienceBatch)[1].first_seq for f in frames]
+    assert firsts == [4_096, 4_098, 4_100] and last == 4_101
+    journal._index.delete(2_048)  # experiences 4,096-4,097 forgotten, as after damage
+    assert not journal.holds(4_096) and not journal.holds(4_097) and journal.holds(4_098)
+    frames, last = journal.frames_from(4_096, 2)
+    assert [codec.decode(f, ExperienceBatch)[1].first_seq for f in frames] == [4_098, 4_100] and last == 4_101
+    journal.close()
+    again = Journal(tmp_path / "j")
+    assert again.next_seq == 5_000 and again.holds(4_096) and len(again._index) == 2_500
+    again.close()
