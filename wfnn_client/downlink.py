@@ -40,6 +40,7 @@ from wfnn_io.protocol import (
     ServerStatus,
     WeightSnapshot,
     check_frame,
+    count_rejected,
     decode,
     max_frame,
     older_peer,
@@ -153,8 +154,8 @@ class Downlink:
         server = Keys.last(key)
         try:  # one frame per server waits to be decoded: junk must not push out a genuine snapshot
             sender, seq = check_frame(data, self.codec.key, WeightSnapshot)
-        except ProtocolError as exc:
-            self.rejected[exc.reason] += 1
+        except ProtocolError as exc:  # told as every other frame's refusal is (`take`)
+            count_rejected(exc, data, self.rejected, "weight snapshot")
             return
         if sender != server:
             self.rejected["misrouted"] += 1

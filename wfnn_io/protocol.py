@@ -866,20 +866,7 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
     try:
         handle(frame)
     except ProtocolError as exc:
-        rejected[prefix + exc.reason] += 1
-        if isinstance(exc, VersionMismatch) and _first_told(frame):
-            # Told once, as a tag that fails: a peer of another wfnn version is otherwise silent.
-            log.warning("a %s was refused (%s): its sender runs another wfnn version; run one version on "
-                        "both sides; more are counted as rejected %r", what, exc,
-                        prefix + exc.reason)  # fmt: skip
-        elif isinstance(exc, AuthError) and rejected[prefix + exc.reason] == 1:
-            # Told once: peers with different keys refuse each other's every frame, and a robot
-            # then acts on its safe action for the whole run with only counts to show for it.
-            log.warning("a %s failed its HMAC tag (%s): its sender has another --key-file or --controller "
-                        "than this one, or forged it; more are counted as rejected %r", what, exc,
-                        prefix + exc.reason)  # fmt: skip
-        else:
-            log.debug("rejected %s: %s", what, exc)
+        count_rejected(exc, frame, rejected, what, prefix)
     except OSError:
         raise
     except Exception as exc:
@@ -887,6 +874,26 @@ def take(frame: bytes, handle: Callable[[bytes], object], rejected: Counter[str]
         if rejected["error"] <= 10:
             log.error("a %s could not be handled (%s: %s); counted as rejected 'error'", what,
                       type(exc).__name__, exc, exc_info=exc)  # fmt: skip
+
+
+def count_rejected(
+    exc: ProtocolError, frame: bytes, rejected: Counter[str], what: str, prefix: str = ""
+) -> None:
+    """Count a refused frame as `prefix` + its reason; the first of another version or tag is told."""
+    rejected[prefix + exc.reason] += 1
+    if isinstance(exc, VersionMismatch) and _first_told(frame):
+        # Told once, as a tag that fails: a peer of another wfnn version is otherwise silent.
+        log.warning("a %s was refused (%s): its sender runs another wfnn version; run one version on "
+                    "both sides; more are counted as rejected %r", what, exc,
+                    prefix + exc.reason)  # fmt: skip
+    elif isinstance(exc, AuthError) and rejected[prefix + exc.reason] == 1:
+        # Told once: peers with different keys refuse each other's every frame, and a robot
+        # then acts on its safe action for the whole run with only counts to show for it.
+        log.warning("a %s failed its HMAC tag (%s): its sender has another --key-file or --controller "
+                    "than this one, or forged it; more are counted as rejected %r", what, exc,
+                    prefix + exc.reason)  # fmt: skip
+    else:
+        log.debug("rejected %s: %s", what, exc)
 
 
 _VERSIONS_TOLD: set[int] = set()

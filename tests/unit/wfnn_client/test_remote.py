@@ -220,6 +220,24 @@ def test_invalid_snapshots_never_drive_the_robot(tmp_path):
     brain.stop()
 
 
+def test_snapshots_that_fail_their_tag_are_told_once_as_other_frames_are(tmp_path, caplog):
+    """Statuses and acks refused by the key were told in a warning; snapshots were only counted."""
+    import logging
+
+    hub, cfg = Hub(), small_config()
+    with caplog.at_level(logging.WARNING):
+        brain, bus = keyed(tmp_path, hub, cfg)
+        try:
+            announce(bus, "s1", cfg, started_ns=1, key=KEY)
+            for version in (1, 2, 3):
+                bus.put(KEYS.weights("s1"), forge(cfg, version=version), None)  # untagged
+                assert wait(lambda v=version: brain.rejected["auth"] == v)
+        finally:
+            brain.stop()
+    told = [r.getMessage() for r in caplog.records if "failed its HMAC tag" in r.getMessage()]
+    assert len(told) == 1 and "weight snapshot" in told[0], told
+
+
 def announce(bus, server, cfg, started_ns, key=None, incarnation=1, store="store1", token=True,
              stored_through=None):  # fmt: skip
     """A server's liveliness token and heartbeat, as a real one publishes them."""
