@@ -281,6 +281,7 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             hint = f": --learner {kind}" if kind != lcfg.learner and same_task else ""  # helps only then
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, this task needs "
                              f"{lcfg.spec_hash()} ({saved_cfg.spec_difference(lcfg)}{hint})")  # fmt: skip
+        lcfg = _resumed(saved_cfg, lcfg, config, path)
         try:
             learner = make_learner(lcfg, params=params)
             learner.load_training_state(training)
@@ -292,6 +293,31 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
                 raise ValueError(f"{path}: its thinks are not a count: {str(thinks)[:40]!r}")
             learner.thinks[:] = thinks
     return lcfg, learner
+
+
+def _resumed(saved: LearnerConfig, chosen: LearnerConfig, config: ClientConfig, path: Path) -> LearnerConfig:
+    """The learner config saved with resumed weights, with what this run's command line sets over it.
+
+    The training goes on as it was configured (its discount, rates, warm-up...): the command
+    line's defaults do not replace them. Its overrides (`--thinks`, `--advantage-k`,
+    `--bc-weight`, `--learner-options`), `--symmetries` and the exploration it gives apply, and
+    where the updates run (`PLACEMENT`: this host's choice) is this run's.
+    """
+    from wfnn_client.downlink import config_differences
+
+    changes: dict[str, Any] = {}
+    if config.symmetries:
+        changes["symmetries"] = chosen.symmetries
+    if config.exploration is not None:
+        changes["exploration"] = chosen.exploration
+    if saved.learner == "deep":
+        here = chosen.deep
+        changes["deep"] = dataclasses.replace(saved.deep, device=here.device, compile=here.compile)
+    resumed = config.overrides.apply(dataclasses.replace(saved, **changes))
+    differ = config_differences(saved.to_json(), resumed.to_json())
+    log.info("%s: resuming its learner config%s", path,
+             f", with {', '.join(differ)} as this command line sets them" if differ else "")  # fmt: skip
+    return resumed
 
 
 def _run(

@@ -578,6 +578,33 @@ def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path,
     assert meta["thinks"] == second["think/thinks"]
 
 
+@pytest.mark.parametrize("learner", ["thesis", "deep"])
+def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_options_given(tmp_path, learner):
+    """A resume built the config from the command line: its defaults replaced the saved discount,
+    rates and warm-up without a word, though the training state went on."""
+    import json
+
+    from wfnn_client.run import run as run_client
+    from wfnn_io.persist import load_checkpoint
+
+    def client(out, options, **kw):
+        return ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=1, thinks_per_action=1, out=out,
+                            learner=learner, learner_options=json.dumps(options), **kw)  # fmt: skip
+
+    own = {"deep": {"warmup": 50, "lr": 1e-3}} if learner == "deep" else {"alpha": 0.05}
+    run_client(client(tmp_path / "a", {"gamma": 0.95, **own}))
+    weights = tmp_path / "a" / "weights.npz"
+    run_client(client(tmp_path / "b", {}, weights=weights, advantage_k=0.5))  # nothing else said
+    saved, _, _, _ = load_checkpoint(tmp_path / "b" / "weights.npz")
+    assert saved.gamma == 0.95 and saved.advantage_k == 0.5  # kept, and the option given applied
+    if learner == "deep":
+        assert saved.deep.warmup == 50 and saved.deep.lr == 1e-3
+    else:
+        assert saved.alpha == 0.05
+    run_client(client(tmp_path / "c", {"gamma": 0.9}, weights=weights))
+    assert load_checkpoint(tmp_path / "c" / "weights.npz")[0].gamma == 0.9
+
+
 def test_huge_figures_print_in_powers_of_ten_and_usual_ones_with_their_places():
     """A diverging task's score of 1e300 printed 300 digits in the status and summary lines."""
     from wfnn_client.cli import status_line
