@@ -106,13 +106,14 @@ def is_log(directory: Path) -> bool:
     return directory.is_dir() and any(directory.glob("*.seg")) and not _unfinished(directory)
 
 
-def remove_empty_log(directory: Path, also: Collection[str] = ()) -> bool:
+def remove_empty_log(directory: Path, also: Collection[str] = (), records: bool = False) -> bool:
     """Remove a log that holds no record (what a refused start made); -> whether it was removed.
 
     Only a folder of empty segments, its lock, its `log.json` and the files named in `also` (its
     owner's own, such as a journal's `client.json`) goes; anything else in it, or one byte in a
     segment, and it is left whole. So is a log another process has open (its lock is held): one
-    that started beside the refused one and took the folder.
+    that started beside the refused one and took the folder. With `records`, segments that hold
+    records go too (a copy the refused start made of logs that still hold them).
     """
     directory = Path(directory)
     if not directory.is_dir() or directory.is_symlink():
@@ -127,7 +128,8 @@ def remove_empty_log(directory: Path, also: Collection[str] = ()) -> bool:
         for entry in entries:
             if entry.is_symlink() or not entry.is_file():
                 return False
-            if entry.name not in own and not (entry.suffix == ".seg" and entry.stat().st_size == 0):
+            segment = entry.suffix == ".seg" and (records or entry.stat().st_size == 0)
+            if entry.name not in own and not segment:
                 return False
         for entry in entries:
             entry.unlink()
@@ -205,6 +207,7 @@ def set_aside(path: Path, why: str) -> Path:
     """Rename an unreadable file beside itself (`NAME.unreadable-<unix time>`): kept, never deleted."""
     kept = path.with_name(f"{path.name}.unreadable-{time.time_ns()}")
     os.replace(path, kept)
+    why = why.replace(f"{path}: ", "")  # where the reason names the file too: said once
     log.error("%s: %s; kept as %s", path, why, kept.name)
     return kept
 

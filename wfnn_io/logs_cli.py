@@ -87,8 +87,9 @@ def inspect(
     for why, n in summary.refused.most_common():
         table.add_row(f"[red]records refused ({escape(why)})[/]", f"{n:,}")
     for d in summary.damage:
-        table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]",
-                      f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
+        where = (f"segment {d.segment}: not there" if d.kind == "missing"
+                 else f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
+        table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]", where)
     console.print(table)
 
 

@@ -78,9 +78,11 @@ class Damage:
     segment: int
     offset: int
     length: int
-    kind: Literal["corrupt", "tail"]
+    kind: Literal["corrupt", "tail", "missing"]
     """`tail`: it runs to the end of the last segment (a torn write, or one in progress); `corrupt`:
-    anywhere else (a segment is synced before the next one begins, so none ends torn)."""
+    anywhere else (a segment is synced before the next one begins, so none ends torn); `missing`:
+    the whole segment is not there, between two that are (offset and length 0: its size is not
+    known)."""
 
 
 @dataclass
@@ -242,9 +244,16 @@ def read_records(
     """
     directory = Path(directory)
     numbers = segment_numbers(directory)
+    before: int | None = None
     for n in numbers:
         if start is not None and n < start.segment:
             continue
+        if report is not None and before is not None and n > before + 1:
+            # Deleted or never copied: what it held is not read, and nothing else would say so.
+            report.damage.extend(Damage(m, 0, 0, "missing") for m in range(before + 1, n))
+            log.warning("%s: segments %s to %s are missing: what they held is not read", directory,
+                        segment_name(before + 1), segment_name(n - 1))  # fmt: skip
+        before = n
         _check_segment(directory / segment_name(n), owner=False)
         data, size = read_segment(directory / segment_name(n))
         records, damage = scan(data, marker)

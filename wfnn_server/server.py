@@ -127,6 +127,10 @@ MAX_HEARD = 4096
 LOGGED_CLIENTS = 16
 """Clients named in the log per check as silent, or as heard again (the rest counted in one line)."""
 LEARNER_JSON = "learner_config.json"
+REPLAY_ONLY_NO_CONFIG = (
+    "replay-only: no learner config (give --learner-config, or logs that record one: a client's "
+    "journal, or a server's DATA_DIR/store beside its learner_config.json)"
+)
 
 
 def lower_priority(nice: int) -> None:
@@ -209,7 +213,7 @@ class ThinkServer:
             self._set_up(config)
         except BaseException:  # a start refused (bad logs or config): the store closed, unlocked
             self.store.close()
-            self.store.remove_if_new()
+            self.store.remove_if_new(served=False)  # nothing served yet: what it holds, the logs hold
             raise
 
     def _set_up(self, config: ServerConfig) -> None:
@@ -306,9 +310,7 @@ class ThinkServer:
         # --learner-config or an earlier run's, else the config the logs say they were recorded for
         cfg = self._initial_config() or replay_config
         if config.replay_only and cfg is None:
-            raise LogFormatError(
-                "replay-only: no learner config (give --learner-config, or logs whose log.json records one)"
-            )
+            raise LogFormatError(REPLAY_ONLY_NO_CONFIG)
         if config.replay_only and self.store.count == 0:  # else it saved untrained weights, and exited 0
             raise LogFormatError("replay-only: the logs hold no readable experience, nor does the store")
         if cfg is not None:
@@ -433,6 +435,8 @@ class ThinkServer:
         chosen = known or described
         if chosen is not None:  # this server's flags on it: else refused once the logs were stored
             self._overridden(chosen)
+        elif self.config.replay_only:  # refused before the logs are read through and stored
+            raise LogFormatError(REPLAY_ONLY_NO_CONFIG)
         dims = widths(chosen)
         counts = ReadCounts()
         offered = sum(len(b) for b in merged(directories, self._key, spec, counts, dims))

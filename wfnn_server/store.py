@@ -275,15 +275,17 @@ class ExperienceStore:
         """Sync and close the log."""
         self.log.close()
 
-    def remove_if_new(self) -> None:
+    def remove_if_new(self, served: bool = True) -> None:
         """After `close`, for a refused start: the folder this store made goes, if still empty.
 
         Left as it is where it was there before, holds a record, or another server has opened it
-        meanwhile (`remove_empty_log`); a failure to remove it is not what to report.
+        meanwhile (`remove_empty_log`); a failure to remove it is not what to report. A start
+        refused before it served (`served` false) took no frame: what this store holds came from
+        the logs it imported, which still hold it, and it goes with its records.
         """
         if self.made:
             with contextlib.suppress(OSError):
-                remove_empty_log(self.log.directory)
+                remove_empty_log(self.log.directory, records=not served)
 
 
 def _size(holes: Iterable[Hole]) -> int:

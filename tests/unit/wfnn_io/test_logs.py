@@ -11,7 +11,7 @@ from sims.cartpole import CartPoleVec
 from wfnn_client.brain import Experience, Recorder
 from wfnn_common.config import LearnerConfig
 from wfnn_io import logs, persist, segments
-from wfnn_io.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL
+from wfnn_io.protocol import EXP_EXPLORED, EXP_VETO_ACTUAL, Codec
 
 
 def record(directory, task_type=BoatVec, n=300, client="robot1", source="local", seed=0):
@@ -206,6 +206,23 @@ def test_inspect_prints_the_names_a_log_holds_verbatim(tmp_path):
     for source in HOSTILE_SOURCES[:4]:
         assert f"chosen by {source}" in result.output
     assert "[1]: 80 experiences" in result.output  # the title keeps the path's brackets
+
+
+def test_inspect_names_a_segment_missing_between_others(tmp_path):
+    from typer.testing import CliRunner
+
+    from wfnn_io.logs_cli import app
+
+    config, _ = record(tmp_path / "full", n=300)
+    log = logs.ExperienceLog(tmp_path / "log", config, segment_bytes=4_000)
+    for _, _, batch in logs.ExperienceLog(tmp_path / "full").entries():
+        log.append(Codec(batch.client).encode(batch))
+    log.close()
+    assert len(list((tmp_path / "log").glob("*.seg"))) >= 3
+    (tmp_path / "log" / "00000001.seg").unlink()
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "damaged, skipped (missing)" in result.output and "segment 1: not there" in result.output
 
 
 @pytest.mark.parametrize("damage", [{"learner_config": {"state_low": "wrong"}}, {"id": 7}])
@@ -857,3 +874,15 @@ def test_a_log_whose_segments_cannot_be_opened_is_refused_with_its_own_error(tmp
         logs.ExperienceLog(locked, fsync="never")
     with pytest.raises(ValueError, match="fsync must be"):
         logs.ExperienceLog(tmp_path / "bad", fsync="sometimes")
+
+
+def test_a_file_set_aside_is_named_once_where_the_reason_names_it_too(tmp_path, caplog):
+    """ "PATH: PATH: unreadable (...)" and "PATH: unreadable (PATH: not JSON ...)" named it twice."""
+    import logging
+
+    path = tmp_path / "log.json"
+    path.write_text("{")
+    with caplog.at_level(logging.ERROR):
+        kept = logs.set_aside(path, f"unreadable ({path}: not JSON)")
+    assert kept.exists() and not path.exists()
+    assert caplog.text.count(str(path)) == 1 and "unreadable (not JSON)" in caplog.text

@@ -89,6 +89,21 @@ def test_rotation_to_new_segments(tmp_path):
         assert again.position.segment == 5
 
 
+def test_a_segment_missing_between_others_is_reported_as_damage(tmp_path):
+    """A deleted middle segment was read past without a word: its records were simply not there."""
+    with SegmentLog(tmp_path, segment_bytes=120, fsync="always") as log:
+        for p in payloads(10, size=40):
+            log.append(p)
+    seg_path(tmp_path, 1).unlink()
+    seg_path(tmp_path, 2).unlink()
+    report = segments.ReadReport()
+    assert len(list(segments.read_records(tmp_path, report=report))) == 6
+    assert [(d.segment, d.kind) for d in report.damage] == [(1, "missing"), (2, "missing")]
+    report = segments.ReadReport()
+    list(segments.read_records(tmp_path, start=Position(3, 0), report=report))  # read from after them
+    assert report.damage == []
+
+
 def test_record_larger_than_segment_gets_its_own_segment(tmp_path):
     with SegmentLog(tmp_path, segment_bytes=16) as log:
         assert log.append(b"a" * 100) == Position(0, 0)  # an empty segment takes any record

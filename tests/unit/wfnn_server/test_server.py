@@ -1077,6 +1077,39 @@ def test_a_start_refused_while_setting_up_leaves_none_of_the_folders_or_empty_st
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json"]
 
 
+def test_a_start_refused_after_importing_logs_leaves_no_copy_of_them(tmp_path, monkeypatch):
+    """A --replay-only start refused for want of a config, or one stopped while its learner was
+    made (a Ctrl-C in a long load, say), left a data directory holding every record it imported."""
+    from tests.mounts import files
+    from tests.unit.wfnn_io.test_logs import record
+    from wfnn_io.bus import NetConfig
+    from wfnn_io.logs import LogFormatError
+    from wfnn_server import server as server_module
+
+    record(tmp_path / "log")
+    info = json.loads((tmp_path / "log" / "log.json").read_text())
+    (tmp_path / "bare").mkdir()
+    for seg in (tmp_path / "log").glob("*.seg"):  # a log that names no config
+        (tmp_path / "bare" / seg.name).write_bytes(seg.read_bytes())
+    (tmp_path / "bare" / "log.json").write_text(json.dumps({**info, "learner_config": None}))
+    before = files(tmp_path)
+    net = NetConfig(listen=("tcp/127.0.0.1:0",))
+    bare = ServerConfig(controller="t", server_id="s1", data_dir=tmp_path / "runs" / "s1", net=net,
+                        replay=(tmp_path / "bare",), replay_only=True)  # fmt: skip
+    with pytest.raises(LogFormatError, match="no learner config"):
+        server_module.run(bare)
+    assert files(tmp_path) == before and not (tmp_path / "runs").exists()
+
+    def interrupted(self, adopted):
+        assert self.store.count == 300  # imported, before the learner is made
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(server_module.ThinkServer, "_start_learner", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        server_module.run(dataclasses.replace(bare, replay=(tmp_path / "log",)))
+    assert files(tmp_path) == before and not (tmp_path / "runs").exists()
+
+
 def test_a_refused_start_never_removes_a_store_another_server_has_open(tmp_path):
     """Spelled through a folder that did not exist yet (`missing/../data`), the store looked new."""
     from wfnn_io.bus import NetConfig
