@@ -66,7 +66,12 @@ class Journal:
                                  segment_bytes=segment_bytes)  # fmt: skip
         self._index = _Index()
         self.next_seq = 0
+        self.skips: dict[int, int] = {}
+        """Gaps in the numbering that no damage explains (last -> first): numbers a run that did
+        not close the journal reserved, or numbering moved past what servers held."""
         owner, spec = "", ""
+        after: tuple[Position | None, int] = (None, 0)
+        """Where the last batch read starts, and how many records reading had refused by then."""
         try:
             for pos, _, batch in self.log.entries():
                 owner, spec = owner or batch.client, spec or batch.spec_hash
@@ -79,7 +84,11 @@ class Journal:
                         f"where the journal's first is client {owner!r}'s, spec {spec} (a segment of "
                         "another run?): move it out, or use another record directory"
                     )
-                if batch.first_seq > self.next_seq:
+                if batch.first_seq > self.next_seq and not self._damaged_since(*after, pos):
+                    # Logged at every start, among real damage, in its words: a long-lived robot's
+                    # log grew a line per crash, and an operator could not tell a loss from them.
+                    self.skips[batch.first_seq - 1] = self.next_seq
+                elif batch.first_seq > self.next_seq:
                     missing = (self.next_seq, batch.first_seq - 1)
                     log.error("journal batch at %s starts at %d, expected %d (experiences %d-%d missing: "
                               "damaged, or numbers skipped past what servers held or an earlier run "
@@ -91,6 +100,7 @@ class Journal:
                               pos, batch.first_seq, batch.last_seq, self.next_seq - 1)  # fmt: skip
                 if batch.last_seq >= self.next_seq:
                     self._add(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
+                after = (pos, self.log.counts.unreadable)
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
             self.controllers = journal_controllers(meta)
@@ -126,6 +136,18 @@ class Journal:
         if self.next_seq:
             log.info("journal %s: client %s continues at experience %d", directory, self.client_id,
                      self.next_seq)  # fmt: skip
+        if self.skips:
+            skipped = sum(last - first + 1 for last, first in self.skips.items())
+            log.info("journal %s: %d gaps in its numbering (%d numbers) that runs which did not close it "
+                     "reserved, or numbering past what servers held, left (not damage)", directory,
+                     len(self.skips), skipped)  # fmt: skip
+
+    def _damaged_since(self, before: Position | None, refused: int, pos: Position) -> bool:
+        """Whether reading met damage (or refused a record) after the batch at `before`, up to `pos`."""
+        if self.log.counts.unreadable > refused:
+            return True
+        start = (-1, -1) if before is None else (before.segment, before.offset)
+        return any(start < (d.segment, d.offset) < (pos.segment, pos.offset) for d in self.log.counts.damage)
 
     @staticmethod
     def _client_id(directory: Path, asked: str | None, owner: str) -> str:

@@ -227,3 +227,34 @@ def test_the_index_finds_every_batch_past_its_growth_and_after_a_damaged_one_is_
     again = Journal(tmp_path / "j")
     assert again.next_seq == 5_000 and again.holds(4_096) and len(again._index) == 2_500
     again.close()
+
+
+def test_gaps_no_damage_explains_are_skips_told_once_and_damage_is_still_an_error(tmp_path, caplog):
+    """Each start logged every crash's reserved numbers as an error, in damage's words: a line more
+    per crash, among which the one real loss could not be told apart."""
+    import logging
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg, codec = small_config(), Codec("c1")
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    for first in (0, 5):
+        journal.append(codec.encode(batch(cfg, first, 5)), first + 4)
+    journal.skip_to(20)  # numbers 10-19 never journaled (as a crashed run's reservation leaves them)
+    for first in (20, 25, 30):
+        journal.append(codec.encode(batch(cfg, first, 5)), first + 4)
+    journal.sync()
+    where = journal._index.where(3)  # experiences 25-29
+    journal.close()
+    segment = tmp_path / "j" / f"{where.segment:08d}.seg"
+    data = bytearray(segment.read_bytes())
+    data[where.offset + 40] ^= 0xFF
+    segment.write_bytes(bytes(data))
+    with caplog.at_level(logging.INFO, logger="wfnn_client.journal"):
+        again = Journal(tmp_path / "j")
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert again.skips == {19: 10}
+    assert len(errors) == 1 and "experiences 25-29 missing" in errors[0], errors
+    assert "1 gaps in its numbering (10 numbers)" in caplog.text
+    again.close()

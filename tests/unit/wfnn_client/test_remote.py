@@ -968,7 +968,42 @@ def test_a_lockstep_client_restarted_after_a_crash_syncs_past_the_numbers_it_res
         again.stop()
     told = [r for r in caplog.records if r.name == "wfnn_client.uplink" and "told they are lost" in r.message]
     assert told and {r.levelno for r in told} == {logging.WARNING}, [r.message for r in told]
-    assert "reserved by a run that did not close its journal" in told[0].message
+    assert "a run that did not close its journal reserved" in told[0].message
+
+
+def test_numbers_an_earlier_crash_reserved_are_declared_to_a_new_server_as_a_crash_not_as_damage(
+    tmp_path, caplog
+):
+    """A run after the one that restarted from a crash re-sent its journal to an empty server, and
+    called the crash's gap damage (an error) where the run just after the crash called it a warning."""
+    import logging
+    import shutil
+
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    with make_server(tmp_path / "a", hub, cfg):
+        first = remote(tmp_path, hub, cfg)
+        first.start()
+        for _ in range(30):
+            first.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.1), None)
+        assert wait(first.all_acked)
+        shutil.copytree(tmp_path / "journal", tmp_path / "crashed")  # as a kill -9 leaves it: not closed
+        first.stop()
+        second = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed")
+        second.start()
+        second.learn(Experience(np.zeros(3), np.zeros(2), np.zeros(3), -0.7), None)
+        assert wait(second.all_acked)
+        second.stop()
+    hub = Hub()
+    with make_server(tmp_path / "b", hub, cfg) as empty:  # another store: everything is sent again
+        caplog.set_level(logging.WARNING, logger="wfnn_client.uplink")
+        third = remote(tmp_path, hub, cfg, journal_dir=tmp_path / "crashed")
+        third.start()
+        assert wait(third.all_acked, timeout=10.0) and empty.store.count == 31
+        third.stop()
+    told = [r for r in caplog.records if r.name == "wfnn_client.uplink" and "told they are lost" in r.message]
+    assert told and {r.levelno for r in told} == {logging.WARNING}, [r.message for r in told]
 
 
 def test_a_lockstep_restart_after_a_power_cut_waits_for_what_the_server_holds_beyond_the_journal(tmp_path):
