@@ -240,8 +240,12 @@ def client(
         ),
     ] = "wfnn",
     symmetries: Annotated[
-        bool, typer.Option(help="Also learn each experience's images under the task's declared symmetries.")
-    ] = False,
+        bool | None,
+        typer.Option(
+            help="Also learn each experience's images under the task's declared symmetries "
+            "(default: no; with --weights, as saved)."
+        ),
+    ] = None,
     boat_dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     env: Annotated[
         str | None,
@@ -297,7 +301,13 @@ def client(
     timing_trace: Annotated[
         bool, typer.Option(help="Also write every tick's timing and every applied snapshot into the metrics.")
     ] = False,
-    seed: int = 0,
+    seed: Annotated[
+        int | None,
+        typer.Option(
+            help="The run's seed: the task's and the learner's (with --weights: the task's, and "
+            "the learner's only where given) [default: 0]"
+        ),
+    ] = None,
     verbose: bool = False,
 ) -> None:
     """Run a simulated robot learning at a fixed tick; save weights, experiences, metrics, plot."""
@@ -368,7 +378,7 @@ def client(
         sim=sim, episodes=episodes, duration_s=duration, rate_hz=rate, lockstep=lockstep,
         hydra=hydra, nomad=nomad, forage=forage if sim == "nomad" else None,
         boat_dt=boat_dt, env=env, thinks_per_action=thinks, advantage_k=advantage_k, learn=learn,
-        bc_weight=bc_weight, weights=weights, symmetries=symmetries, behaviour_policy=mix,
+        bc_weight=bc_weight, weights=weights, symmetries=bool(symmetries), behaviour_policy=mix,
         # The deep learner explores its own way unless told (the sims' defaults are the thesis').
         exploration=ExplorationConfig(kind=exploration) if explicit or learner == "thesis" else None,  # type: ignore[arg-type]
         learner=learner, learner_options=learner_options,
@@ -376,7 +386,10 @@ def client(
         controller=controller, client_id=client_id, follow=follow,
         net=NetConfig(mode=mode, listen=tuple(listen or ()), shared_memory=shared_memory,  # type: ignore[arg-type]
                       zenoh_config=str(zenoh_config) if zenoh_config else None),
-        key_file=key_file, insecure=insecure, out=out, json_stats=json_stats, seed=seed,
+        key_file=key_file, insecure=insecure, out=out, json_stats=json_stats, seed=seed or 0,
+        explicit=tuple(name for name, given in (
+            ("seed", seed is not None), ("symmetries", symmetries is not None), ("exploration", explicit),
+        ) if given),
         timing_trace=timing_trace, camera_every=camera_every,
         safety=SafetyConfig(safe_action=_floats(safe_action, "--safe-action"),
                             max_action_rate=_floats(max_action_rate, "--max-action-rate"), veto=veto),

@@ -55,6 +55,9 @@ class ClientConfig:
     bc_weight: float | None = None
     """Override the learner's `bc_weight` (the best wire pulled toward the actions taken, for
     learning from other controllers); None: the thesis' 0."""
+    explicit: tuple[str, ...] = ()
+    """Which of `seed`, `symmetries` and `exploration` were given (on the command line, its flags):
+    a run resumed from `weights` sets only these over the learner config saved with them."""
     symmetries: bool = False
     """Learn each experience also as its images under the task's declared symmetries (the
     boat's mirror; `wfnn_common.symmetry`); they travel in the learner config to the servers."""
@@ -102,6 +105,8 @@ class ClientConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if not set(self.explicit) <= {"seed", "symmetries", "exploration"}:
+            raise ValueError(f"explicit names only seed, symmetries and exploration, got {self.explicit}")
         if self.sim not in SIMS:
             raise ValueError(f"unknown sim {self.sim!r}; choose from {', '.join(SIMS)}")
         if (self.sim == "gym") != (self.env is not None):
@@ -207,7 +212,9 @@ class ClientConfig:
             if self.lockstep
             else (f"{self.tick_hz:g} Hz" if self.tick_hz else "as fast as possible")
         )
-        learner = ", ".join(f"{name} {value}" for name, value in (
+        saved = f"as saved with {self.weights}" if self.weights is not None else None
+        learner = ", ".join(f"{name} {value}" if name else str(value) for name, value in (
+            ("", saved),
             ("k", self.advantage_k), ("thinks", self.thinks_per_action), ("bc_weight", self.bc_weight),
             ("options", self.learner_options or None),
         ) if value is not None) or "defaults"  # fmt: skip

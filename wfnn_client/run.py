@@ -298,25 +298,25 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
 def _resumed(saved: LearnerConfig, chosen: LearnerConfig, config: ClientConfig, path: Path) -> LearnerConfig:
     """The learner config saved with resumed weights, with what this run's command line sets over it.
 
-    The training goes on as it was configured (its discount, rates, warm-up...): the command
-    line's defaults do not replace them. Its overrides (`--thinks`, `--advantage-k`,
-    `--bc-weight`, `--learner-options`), `--symmetries` and the exploration it gives apply, and
-    where the updates run (`PLACEMENT`: this host's choice) is this run's.
+    The training goes on as it was configured (its discount, rates, warm-up, seed...): the
+    command line's defaults do not replace them. Its overrides (`--thinks`, `--advantage-k`,
+    `--bc-weight`, `--learner-options`) and what it gave of `--seed`, `--symmetries` and
+    `--exploration` (`config.explicit`) apply, and where the updates run (`PLACEMENT`: this
+    host's choice) is this run's.
     """
     from wfnn_client.downlink import config_differences
 
-    changes: dict[str, Any] = {}
-    if config.symmetries:
-        changes["symmetries"] = chosen.symmetries
-    if config.exploration is not None:
-        changes["exploration"] = chosen.exploration
+    changes: dict[str, Any] = {name: getattr(chosen, name) for name in config.explicit}
     if saved.learner == "deep":
         here = chosen.deep
         changes["deep"] = dataclasses.replace(saved.deep, device=here.device, compile=here.compile)
     resumed = config.overrides.apply(dataclasses.replace(saved, **changes))
     differ = config_differences(saved.to_json(), resumed.to_json())
-    log.info("%s: resuming its learner config%s", path,
-             f", with {', '.join(differ)} as this command line sets them" if differ else "")  # fmt: skip
+    # Said at the default level where the command line changes it: the run's line says "as saved".
+    (log.warning if differ else log.info)(
+        "%s: resuming its learner config%s", path,
+        f", with {', '.join(differ)} as this command line sets them" if differ else "",
+    )  # fmt: skip
     return resumed
 
 

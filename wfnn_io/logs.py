@@ -367,6 +367,13 @@ def read_batches(
     directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
 ) -> Iterator[ExperienceBatch]:
     """Every experience batch in a log, oldest first (see `read_entries`); read-only."""
+    check_log(directory)
+    for _, _, batch in read_entries(directory, key, counts):
+        yield batch
+
+
+def check_log(directory: Path) -> None:
+    """Refuse, naming why, a directory that is not a whole log (LogFormatError)."""
     if not is_log(directory):
         if _unfinished(directory):
             raise LogFormatError(
@@ -374,8 +381,6 @@ def read_batches(
                 "write again: what it left is removed then)"
             )
         raise LogFormatError(f"{directory}: no experience log here (no .seg files)")
-    for _, _, batch in read_entries(directory, key, counts):
-        yield batch
 
 
 class ExperienceLog:

@@ -81,8 +81,10 @@ class Damage:
     kind: Literal["corrupt", "tail", "missing"]
     """`tail`: it runs to the end of the last segment (a torn write, or one in progress); `corrupt`:
     anywhere else (a segment is synced before the next one begins, so none ends torn); `missing`:
-    the whole segment is not there, between two that are (offset and length 0: its size is not
+    whole segments are not there, between two that are (offset and length 0: their size is not
     known)."""
+    segments: int = 1
+    """How many segments, from `segment` on, the span covers (`missing` ones: any number)."""
 
 
 @dataclass
@@ -234,6 +236,22 @@ def read_segment(path: Path) -> tuple[bytes, int]:
         return f.read(min(size, MAX_SEGMENT)), size
 
 
+def _report_missing(directory: Path, before: int, after: int, report: ReadReport) -> None:
+    """Report the segments between `before` and `after` that are still not there, a span a run.
+
+    Deleted or never copied: what they held is not read, and nothing else would say so. Listed
+    again first: a writer rotating segments fast can move a name past a listing (`segment_numbers`).
+    """
+    present = {n for n in segment_numbers(directory) if before < n < after}
+    start = before + 1
+    for n in [*sorted(present), after]:
+        if n > start:
+            report.damage.append(Damage(start, 0, 0, "missing", segments=n - start))
+            log.warning("%s: segments %s to %s are missing: what they held is not read", directory,
+                        segment_name(start), segment_name(n - 1))  # fmt: skip
+        start = n + 1
+
+
 def read_records(
     directory: Path, start: Position | None = None, report: ReadReport | None = None, marker: bytes = b""
 ) -> Iterator[tuple[Position, bytes]]:
@@ -249,10 +267,7 @@ def read_records(
         if start is not None and n < start.segment:
             continue
         if report is not None and before is not None and n > before + 1:
-            # Deleted or never copied: what it held is not read, and nothing else would say so.
-            report.damage.extend(Damage(m, 0, 0, "missing") for m in range(before + 1, n))
-            log.warning("%s: segments %s to %s are missing: what they held is not read", directory,
-                        segment_name(before + 1), segment_name(n - 1))  # fmt: skip
+            _report_missing(directory, before, n, report)
         before = n
         _check_segment(directory / segment_name(n), owner=False)
         data, size = read_segment(directory / segment_name(n))

@@ -42,6 +42,7 @@ from wfnn_io.cli_errors import Terminated, log_failure
 from wfnn_io.logs import (
     LogFormatError,
     ReadCounts,
+    check_log,
     common_config,
     merged,
     read_log_json,
@@ -425,6 +426,8 @@ class ThinkServer:
         imported and the learner config the logs were recorded for (if said). Logs in which every
         record was refused (a wrong key, say) are an error that names the reasons.
         """
+        for directory in directories:  # what is not a log is named as such, before any other refusal
+            check_log(directory)
         known, described = self._initial_config(), common_config(directories)
         spec = known.spec_hash() if known is not None else ""
         if described is not None and spec and described.spec_hash() != spec:

@@ -585,6 +585,7 @@ def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_opt
     import json
 
     from wfnn_client.run import run as run_client
+    from wfnn_common.config import ExplorationConfig
     from wfnn_io.persist import load_checkpoint
 
     def client(out, options, **kw):
@@ -603,6 +604,38 @@ def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_opt
         assert saved.alpha == 0.05
     run_client(client(tmp_path / "c", {"gamma": 0.9}, weights=weights))
     assert load_checkpoint(tmp_path / "c" / "weights.npz")[0].gamma == 0.9
+    # The seed, symmetries and exploration apply where given (the CLI names them), else as saved.
+    mirror = ExplorationConfig(kind="gaussian", sigma=0.3)
+    run_client(client(tmp_path / "d", {}, exploration=mirror, symmetries=True, seed=3))
+    given = tmp_path / "d" / "weights.npz"
+    default = ExplorationConfig(kind="uniform")  # what the CLI fills in for the thesis' learner
+    run_client(client(tmp_path / "e", {}, weights=given, exploration=default))
+    kept = load_checkpoint(tmp_path / "e" / "weights.npz")[0]
+    assert kept.exploration == mirror and kept.symmetries and kept.seed == 3
+    run_client(client(tmp_path / "f", {}, weights=given, exploration=default, seed=7,
+                      explicit=("seed", "symmetries", "exploration")))  # fmt: skip
+    changed = load_checkpoint(tmp_path / "f" / "weights.npz")[0]
+    assert changed.exploration == default and not changed.symmetries and changed.seed == 7
+
+
+def test_the_command_line_says_which_of_seed_symmetries_and_exploration_it_gave(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from wfnn_client import cli
+
+    seen = []
+
+    def built(config):
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "prepare", built)
+    for args, explicit in ((["--sim", "boat"], ()), (["--sim", "boat", "--no-symmetries", "--seed", "0"],
+                                                      ("seed", "symmetries")),
+                           (["--sim", "boat", "--exploration", "gaussian"], ("exploration",))):  # fmt: skip
+        result = CliRunner().invoke(cli.app, [*args, "--out", str(tmp_path / "run")])
+        assert result.exit_code == 0, result.output
+        assert seen[-1].explicit == explicit and seen[-1].seed == 0 and not seen[-1].symmetries
 
 
 def test_huge_figures_print_in_powers_of_ten_and_usual_ones_with_their_places():

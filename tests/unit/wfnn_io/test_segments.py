@@ -98,10 +98,14 @@ def test_a_segment_missing_between_others_is_reported_as_damage(tmp_path):
     seg_path(tmp_path, 2).unlink()
     report = segments.ReadReport()
     assert len(list(segments.read_records(tmp_path, report=report))) == 6
-    assert [(d.segment, d.kind) for d in report.damage] == [(1, "missing"), (2, "missing")]
+    assert [(d.segment, d.segments, d.kind) for d in report.damage] == [(1, 2, "missing")]  # one span
     report = segments.ReadReport()
     list(segments.read_records(tmp_path, start=Position(3, 0), report=report))  # read from after them
     assert report.damage == []
+    seg_path(tmp_path, 4).rename(seg_path(tmp_path, 10**7))  # a stray number: still one span, at once
+    report = segments.ReadReport()
+    list(segments.read_records(tmp_path, report=report))
+    assert [(d.segment, d.segments) for d in report.damage] == [(1, 2), (4, 10**7 - 4)]
 
 
 def test_record_larger_than_segment_gets_its_own_segment(tmp_path):
