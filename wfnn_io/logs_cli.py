@@ -87,7 +87,9 @@ def inspect(
     for why, n in summary.refused.most_common():
         table.add_row(f"[red]records refused ({escape(why)})[/]", f"{n:,}")
     for d in summary.damage:
-        where = (f"segments {d.segment} to {d.segment + d.segments - 1}: not there" if d.kind == "missing"
+        last = d.segment + d.segments - 1
+        span = f"segment {d.segment}" if d.segments == 1 else f"segments {d.segment} to {last}"
+        where = (f"{span}: not there" if d.kind == "missing"
                  else f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
         table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]", where)
     console.print(table)

@@ -236,20 +236,14 @@ def read_segment(path: Path) -> tuple[bytes, int]:
         return f.read(min(size, MAX_SEGMENT)), size
 
 
-def _report_missing(directory: Path, before: int, after: int, report: ReadReport) -> None:
-    """Report the segments between `before` and `after` that are still not there, a span a run.
-
-    Deleted or never copied: what they held is not read, and nothing else would say so. Listed
-    again first: a writer rotating segments fast can move a name past a listing (`segment_numbers`).
-    """
-    present = {n for n in segment_numbers(directory) if before < n < after}
-    start = before + 1
-    for n in [*sorted(present), after]:
-        if n > start:
-            report.damage.append(Damage(start, 0, 0, "missing", segments=n - start))
-            log.warning("%s: segments %s to %s are missing: what they held is not read", directory,
-                        segment_name(start), segment_name(n - 1))  # fmt: skip
-        start = n + 1
+def _missing(directory: Path, start: int, n: int, report: ReadReport | None) -> None:
+    """Report segments `start`..`n`-1 as missing, one span (deleted, never copied, or emptied)."""
+    if report is None:  # as damage: told where reported
+        return
+    report.damage.append(Damage(start, 0, 0, "missing", segments=n - start))
+    log.warning("%s: %s missing: what %s held is not read", directory,
+                f"segments {segment_name(start)} to {segment_name(n - 1)} are" if n - start > 1
+                else f"segment {segment_name(start)} is", "they" if n - start > 1 else "it")  # fmt: skip
 
 
 def read_records(
@@ -258,19 +252,34 @@ def read_records(
     """Every valid record of a log from `start` (default: the beginning), oldest first.
 
     Read-only: files are opened for reading and nothing is written, renamed or truncated.
-    Damaged spans are skipped and added to `report` (with where they are and how long).
+    Damaged spans are skipped and added to `report` (with where they are and how long), and so
+    are segments that are not there: a log begins at segment 0 and its writer leaves none
+    missing or empty before its last (nothing else would say that what they held is not read).
     """
     directory = Path(directory)
     numbers = segment_numbers(directory)
-    before: int | None = None
-    for n in numbers:
+    expected = 0 if start is None else None
+    """The segment that should come next (None: any, before the first read from `start`)."""
+    i = 0
+    while i < len(numbers):
+        n = numbers[i]
         if start is not None and n < start.segment:
+            i += 1
             continue
-        if report is not None and before is not None and n > before + 1:
-            _report_missing(directory, before, n, report)
-        before = n
+        if expected is not None and n > expected:
+            # Listed again: a writer rotating segments fast can move a name past a listing
+            # (`segment_numbers`); what is there now is read, what is not is missing.
+            found = [m for m in segment_numbers(directory) if expected <= m < n and m not in numbers]
+            if found:
+                numbers[i:i] = found
+                continue
+            _missing(directory, expected, n, report)
+        expected = n + 1
+        i += 1
         _check_segment(directory / segment_name(n), owner=False)
         data, size = read_segment(directory / segment_name(n))
+        if size == 0 and n != numbers[-1]:
+            _missing(directory, n, n + 1, report)
         records, damage = scan(data, marker)
         if size > len(data):  # longer than any segment written: read no further
             damage = [*damage, (len(data), size - len(data))]

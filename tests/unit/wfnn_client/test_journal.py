@@ -258,3 +258,23 @@ def test_gaps_no_damage_explains_are_skips_told_once_and_damage_is_still_an_erro
     assert len(errors) == 1 and "experiences 25-29 missing" in errors[0], errors
     assert "1 gaps in its numbering (10 numbers)" in caplog.text
     again.close()
+
+
+def test_a_journal_that_lost_its_first_segment_calls_it_damage_not_a_skip(tmp_path, caplog):
+    import logging
+
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg, codec = small_config(), Codec("c1")
+    journal = Journal(tmp_path / "j", "c1", fsync="never", segment_bytes=600)
+    for first in range(0, 30, 5):
+        journal.append(codec.encode(batch(cfg, first, 5)), first + 4)
+    journal.close()
+    assert len(list((tmp_path / "j").glob("*.seg"))) >= 3
+    (tmp_path / "j" / "00000000.seg").unlink()
+    with caplog.at_level(logging.INFO, logger="wfnn_client.journal"):
+        again = Journal(tmp_path / "j")
+    assert again.skips == {} and not again.holds(0)
+    assert any(r.levelno >= logging.ERROR and "missing" in r.getMessage() for r in caplog.records)
+    again.close()

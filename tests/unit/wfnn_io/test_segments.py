@@ -108,6 +108,34 @@ def test_a_segment_missing_between_others_is_reported_as_damage(tmp_path):
     assert [(d.segment, d.segments) for d in report.damage] == [(1, 2), (4, 10**7 - 4)]
 
 
+def test_a_missing_first_segment_an_emptied_one_and_one_a_listing_missed_are_told_apart(
+    tmp_path, monkeypatch
+):
+    """A log begins at segment 0 and its writer leaves none empty before its last: a deleted first
+    segment and an emptied middle one were read past without a word. A segment the first listing
+    missed (a writer rotating fast) is read, not called missing."""
+    with SegmentLog(tmp_path, segment_bytes=120, fsync="always") as log:
+        for p in payloads(10, size=40):
+            log.append(p)
+    seg_path(tmp_path, 0).unlink()
+    seg_path(tmp_path, 2).write_bytes(b"")
+    report = segments.ReadReport()
+    assert len(list(segments.read_records(tmp_path, report=report))) == 6
+    assert [(d.segment, d.segments, d.kind) for d in report.damage] == [(0, 1, "missing"), (2, 1, "missing")]
+    listed = segments.segment_numbers
+    calls = []
+
+    def first_misses_three(directory):
+        calls.append(1)
+        numbers = listed(directory)
+        return [n for n in numbers if n != 3] if len(calls) == 1 else numbers
+
+    monkeypatch.setattr(segments, "segment_numbers", first_misses_three)
+    report = segments.ReadReport()
+    positions = [pos for pos, _ in segments.read_records(tmp_path, report=report)]
+    assert [p.segment for p in positions] == [1, 1, 3, 3, 4, 4] and len(report.damage) == 2
+
+
 def test_record_larger_than_segment_gets_its_own_segment(tmp_path):
     with SegmentLog(tmp_path, segment_bytes=16) as log:
         assert log.append(b"a" * 100) == Position(0, 0)  # an empty segment takes any record
