@@ -305,7 +305,7 @@ def client(
         int | None,
         typer.Option(
             help="The run's seed: the task's and the learner's (with --weights: the task's, and "
-            "the learner's only where given) [default: 0]"
+            "the learner's only where given; default 0)."
         ),
     ] = None,
     verbose: bool = False,
