@@ -89,7 +89,7 @@ def inspect(
     for d in summary.damage:
         last = d.segment + d.segments - 1
         span = f"segment {d.segment}" if d.segments == 1 else f"segments {d.segment} to {last}"
-        where = (f"{span}: not there" if d.kind == "missing"
+        where = (f"{span}: not there, or empty" if d.kind == "missing"
                  else f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
         table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]", where)
     console.print(table)

@@ -240,7 +240,11 @@ def _missing(directory: Path, start: int, n: int, report: ReadReport | None) -> 
     """Report segments `start`..`n`-1 as missing, one span (deleted, never copied, or emptied)."""
     if report is None:  # as damage: told where reported
         return
-    report.damage.append(Damage(start, 0, 0, "missing", segments=n - start))
+    last = report.damage[-1] if report.damage else None
+    if last is not None and last.kind == "missing" and last.segment + last.segments == start:
+        report.damage[-1] = Damage(last.segment, 0, 0, "missing", segments=n - last.segment)  # one span
+    else:
+        report.damage.append(Damage(start, 0, 0, "missing", segments=n - start))
     log.warning("%s: %s missing: what %s held is not read", directory,
                 f"segments {segment_name(start)} to {segment_name(n - 1)} are" if n - start > 1
                 else f"segment {segment_name(start)} is", "they" if n - start > 1 else "it")  # fmt: skip
@@ -258,15 +262,15 @@ def read_records(
     """
     directory = Path(directory)
     numbers = segment_numbers(directory)
-    expected = 0 if start is None else None
-    """The segment that should come next (None: any, before the first read from `start`)."""
+    expected = 0 if start is None else start.segment
+    """The segment that should come next (a start names one that was written)."""
     i = 0
     while i < len(numbers):
         n = numbers[i]
         if start is not None and n < start.segment:
             i += 1
             continue
-        if expected is not None and n > expected:
+        if n > expected:
             # Listed again: a writer rotating segments fast can move a name past a listing
             # (`segment_numbers`); what is there now is read, what is not is missing.
             found = [m for m in segment_numbers(directory) if expected <= m < n and m not in numbers]
@@ -554,11 +558,14 @@ class SegmentLog:
 
     def _rotate(self) -> None:
         self.sync()
+        # The next segment opened before this one is left: where that fails (no file handles left,
+        # say), the log stays as it was, and the next append tries the same segment again (it had
+        # moved on by one at each failure, leaving segments that readers rightly call missing).
+        following = self._segment + 1
+        _check_segment(self.directory / segment_name(following), owner=True)
+        opened = open(self.directory / segment_name(following), "ab")
         self._file.close()
-        self._segment += 1
-        _check_segment(self.directory / segment_name(self._segment), owner=True)
-        self._file = open(self.directory / segment_name(self._segment), "ab")
-        self._size = 0
+        self._segment, self._file, self._size = following, opened, 0
         if self.fsync != "never":  # the new file's directory entry must survive too
             sync_dir(self.directory)
 

@@ -136,6 +136,46 @@ def test_a_missing_first_segment_an_emptied_one_and_one_a_listing_missed_are_tol
     assert [p.segment for p in positions] == [1, 1, 3, 3, 4, 4] and len(report.damage) == 2
 
 
+def test_missing_segments_from_a_start_and_side_by_side_are_one_span_each_run(tmp_path):
+    with SegmentLog(tmp_path, segment_bytes=120, fsync="always") as log:
+        for p in payloads(12, size=40):
+            log.append(p)
+    seg_path(tmp_path, 2).unlink()
+    report = segments.ReadReport()
+    list(segments.read_records(tmp_path, start=Position(2, 0), report=report))  # a start names a written one
+    assert [(d.segment, d.segments) for d in report.damage] == [(2, 1)]
+    seg_path(tmp_path, 3).write_bytes(b"")  # emptied beside the missing one: one span
+    report = segments.ReadReport()
+    list(segments.read_records(tmp_path, report=report))
+    assert [(d.segment, d.segments, d.kind) for d in report.damage] == [(2, 2, "missing")]
+
+
+def test_a_rotation_that_cannot_open_the_next_segment_leaves_the_log_as_it_was(tmp_path, monkeypatch):
+    """The segment number moved on at each failed open: the next append wrote segment 2, and readers
+    called the never-written segment 1 missing."""
+    import builtins
+
+    real_open = builtins.open
+    log = SegmentLog(tmp_path, segment_bytes=100, fsync="never")
+    log.append(b"a" * 40)
+    log.append(b"b" * 40)
+
+    def no_handles(path, *args, **kw):
+        if str(path).endswith(segments.segment_name(1)):
+            raise OSError(24, "Too many open files")
+        return real_open(path, *args, **kw)
+
+    monkeypatch.setattr(builtins, "open", no_handles)
+    with pytest.raises(OSError):
+        log.append(b"c" * 40)
+    monkeypatch.setattr(builtins, "open", real_open)
+    assert log.append(b"c" * 40) == Position(1, 0)
+    log.close()
+    report = segments.ReadReport()
+    assert [p for _, p in segments.read_records(tmp_path, report=report)] == [b"a" * 40, b"b" * 40, b"c" * 40]
+    assert report.damage == []
+
+
 def test_record_larger_than_segment_gets_its_own_segment(tmp_path):
     with SegmentLog(tmp_path, segment_bytes=16) as log:
         assert log.append(b"a" * 100) == Position(0, 0)  # an empty segment takes any record
