@@ -68,7 +68,8 @@ class Journal:
         self.next_seq = 0
         self.skips: dict[int, int] = {}
         """Gaps in the numbering that no damage explains (last -> first): numbers a run that did
-        not close the journal reserved, or numbering moved past what servers held."""
+        not close the journal reserved (this open's reservation included), or numbering moved past
+        what servers held."""
         owner, spec = "", ""
         after: tuple[Position | None, int] = (None, 0)
         """Where the last batch read starts, and how many records reading had refused by then."""
@@ -115,6 +116,11 @@ class Journal:
         except BaseException:
             self.log.close()
             raise
+        if self.skips:
+            skipped = sum(last - first + 1 for last, first in self.skips.items())
+            log.info("journal %s: %d gaps in its numbering (%d numbers) that runs which did not close it "
+                     "reserved, or numbering past what servers held, left (not damage)", directory,
+                     len(self.skips), skipped)  # fmt: skip
         self.skipped_at_open = 0
         """Numbers skipped at this open because an earlier run reserved them (`reserve`)."""
         if self.reserved_through >= self.next_seq:
@@ -126,6 +132,8 @@ class Journal:
                             "numbers it reserved, at %d (%d-%d, published or not, are not in the "
                             "journal)", directory, self.reserved_through + 1, self.next_seq,
                             self.reserved_through)  # fmt: skip
+            # A gap as those read above (`skips`): a server that lacks them is told of a crash's end.
+            self.skips[self.reserved_through] = self.next_seq
             self.skip_to(self.reserved_through + 1)
         if self.next_seq > MAX_SEQ - ROOM:
             self.log.close()
@@ -136,11 +144,6 @@ class Journal:
         if self.next_seq:
             log.info("journal %s: client %s continues at experience %d", directory, self.client_id,
                      self.next_seq)  # fmt: skip
-        if self.skips:
-            skipped = sum(last - first + 1 for last, first in self.skips.items())
-            log.info("journal %s: %d gaps in its numbering (%d numbers) that runs which did not close it "
-                     "reserved, or numbering past what servers held, left (not damage)", directory,
-                     len(self.skips), skipped)  # fmt: skip
 
     def _damaged_since(self, before: Position | None, refused: int, pos: Position) -> bool:
         """Whether reading met damage (or refused a record) after the batch at `before`, up to `pos`."""

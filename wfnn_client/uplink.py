@@ -338,12 +338,10 @@ class Uplink:
             return frame
         flags = batch.flags.copy()
         flags[0] |= EXP_AFTER_LOSS
-        reserved_from = self._first_seq - self.journal.skipped_at_open
-        skipped_from = self.journal.skips.get(batch.first_seq - 1, acked + 2)
-        if (reserved_from <= acked + 1 and batch.first_seq == self._first_seq) or skipped_from <= acked + 1:
-            # Only numbers a crashed run reserved and never journaled (its start said so, or the
-            # journal's numbering, read at this start, with no damage there): the expected end of
-            # a crash, not damage.
+        if self.journal.skips.get(batch.first_seq - 1, acked + 2) <= acked + 1:
+            # Only numbers a crashed run reserved and never journaled (the journal's numbering, read
+            # at this start, with no damage there, or this start's own reservation): the expected
+            # end of a crash, not damage.
             log.warning("experiences %d-%d were never journaled (numbers a run that did not close its "
                         "journal reserved, or skipped); server %s is told they are lost", acked + 1,
                         batch.first_seq - 1, server)  # fmt: skip

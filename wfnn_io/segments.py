@@ -81,8 +81,8 @@ class Damage:
     kind: Literal["corrupt", "tail", "missing"]
     """`tail`: it runs to the end of the last segment (a torn write, or one in progress); `corrupt`:
     anywhere else (a segment is synced before the next one begins, so none ends torn); `missing`:
-    whole segments are not there, between two that are (offset and length 0: their size is not
-    known)."""
+    whole segments before the last are not there, or empty (offset and length 0: what they held
+    is not known)."""
     segments: int = 1
     """How many segments, from `segment` on, the span covers (`missing` ones: any number)."""
 

@@ -297,7 +297,8 @@ def test_options_this_run_would_not_read_are_refused(tmp_path, monkeypatch, args
     assert result.exit_code != 0 and option in result.output and not (tmp_path / "config.json").exists()
 
 
-def test_options_of_the_run_given_are_taken(tmp_path, monkeypatch):
+def built_configs(monkeypatch, out, *command_lines):
+    """The ClientConfig `wfnn-client` builds from each command line (run with --out `out`; not started)."""
     from typer.testing import CliRunner
 
     from wfnn_client import cli
@@ -309,13 +310,19 @@ def test_options_of_the_run_given_are_taken(tmp_path, monkeypatch):
         raise SystemExit(0)
 
     monkeypatch.setattr(cli, "prepare", built)
-    for args in (
+    for args in command_lines:
+        result = CliRunner().invoke(cli.app, [*args, "--out", str(out)])
+        assert result.exit_code == 0, result.output
+    return seen
+
+
+def test_options_of_the_run_given_are_taken(tmp_path, monkeypatch):
+    seen = built_configs(
+        monkeypatch, tmp_path,
         ["--sim", "nomad", "--behaviour", "forage", "--every-second-target"],
         ["--sim", "boat", "--boat-dt", "1"],
         ["--sim", "boat", "--server", "tcp/127.0.0.1:7447", "--follow", "s2", "--controller", "x"],
-    ):
-        result = CliRunner().invoke(cli.app, [*args, "--out", str(tmp_path)])
-        assert result.exit_code == 0, result.output
+    )  # fmt: skip
     assert seen[0].forage is not None and seen[0].forage.pursue == "every_second"
     assert seen[1].boat_dt == 1.0 and seen[2].follow == "s2" and seen[2].controller == "x"
 
@@ -619,23 +626,14 @@ def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_opt
 
 
 def test_the_command_line_says_which_of_seed_symmetries_and_exploration_it_gave(tmp_path, monkeypatch):
-    from typer.testing import CliRunner
-
-    from wfnn_client import cli
-
-    seen = []
-
-    def built(config):
-        seen.append(config)
-        raise SystemExit(0)
-
-    monkeypatch.setattr(cli, "prepare", built)
-    for args, explicit in ((["--sim", "boat"], ()), (["--sim", "boat", "--no-symmetries", "--seed", "0"],
-                                                      ("seed", "symmetries")),
-                           (["--sim", "boat", "--exploration", "gaussian"], ("exploration",))):  # fmt: skip
-        result = CliRunner().invoke(cli.app, [*args, "--out", str(tmp_path / "run")])
-        assert result.exit_code == 0, result.output
-        assert seen[-1].explicit == explicit and seen[-1].seed == 0 and not seen[-1].symmetries
+    seen = built_configs(
+        monkeypatch, tmp_path / "run",
+        ["--sim", "boat"],
+        ["--sim", "boat", "--no-symmetries", "--seed", "0"],
+        ["--sim", "boat", "--exploration", "gaussian"],
+    )  # fmt: skip
+    assert [c.explicit for c in seen] == [(), ("seed", "symmetries"), ("exploration",)]
+    assert all(c.seed == 0 and not c.symmetries for c in seen)
 
 
 def test_huge_figures_print_in_powers_of_ten_and_usual_ones_with_their_places():
