@@ -414,6 +414,11 @@ class Downlink:
         w = self._fresh_weights(view, now)
         return w is not None and not w.diverged and now >= view.suspect_until
 
+    def _suspected_newer(self, view: ServerView, now: float) -> bool:
+        """Fresh weights, not flagged diverged, of a server suspected for others (not those acted on)."""
+        w = self._fresh_weights(view, now)
+        return w is not None and not w.diverged and now < view.suspect_until and w is not self.current
+
     def _relearning(self, view: ServerView, now: float) -> bool:
         """Fresh weights it relearns after a divergence reset."""
         w = self._fresh_weights(view, now)
@@ -424,7 +429,10 @@ class Downlink:
 
         With no healthy server, a server relearning after a divergence reset is followed on
         its fresh weights (Section 7.6.2) rather than keep acting on weights known to have
-        diverged; otherwise the last weights stay in use.
+        diverged; else a server passed over because its weights diverged on this robot, on its
+        newer weights once they come (the robot kept acting on the weights that diverged, and
+        each tick's divergence renewed the hold: one forged snapshot that diverges held an
+        unkeyed robot on it for good); otherwise the last weights stay in use.
         """
         now = time.monotonic()
         with self.table.lock:
@@ -433,6 +441,7 @@ class Downlink:
                 views = [v for v in views if v.server == self.config.follow]
             chosen = _longest_alive([v for v in views if self._healthy(v, now)])
             relearning = _longest_alive([v for v in views if self._relearning(v, now)])
+            newer = _longest_alive([v for v in views if self._suspected_newer(v, now)])
         self.connected = chosen is not None
         if chosen is None:
             if self.following and self._lost_at is None:
@@ -442,6 +451,8 @@ class Downlink:
                             self.following, fallback)  # fmt: skip
             if relearning is not None and relearning.latest is not None:
                 self._apply(relearning.latest)
+            elif newer is not None and newer.latest is not None:
+                self._apply(newer.latest)
             return
         if chosen.server != self.following:
             previous = self.table.views.get(self.following)

@@ -212,10 +212,11 @@ class ServerTable:
         frame replayed, which a MAC does not tell from a fresh one. While that server is alive, a
         lower incarnation or an earlier start is earlier (a higher incarnation that started before
         the one announced now was lost with a disk and is replayed after a backup was restored:
-        taken, it shut the live server out); once it is silent, only a start earlier by both (a
-        lower or equal incarnation that started before), so that a restored backup (a lower
+        taken, it shut the live server out); once it is silent, with a key, only a start earlier by
+        both (a lower or equal incarnation that started before), so that a restored backup (a lower
         incarnation started later) and a start after the server's clock was set back (a higher
-        incarnation started "before") are still taken.
+        incarnation started "before") are still taken; without a key, none: one forged start later
+        by both would otherwise shut the real server (and its restarts) out for good.
         Another store: with a key, refused unless it started later than the start announced now
         (a server restarted on another data directory starts after the start it replaces; one
         started before is a frame of an earlier store, replayed, which would drive the robot with
@@ -229,7 +230,7 @@ class ServerTable:
             if view.alive:  # a higher incarnation that started before: a lost one, replayed after a restore
                 earlier = incarnation < view.incarnation or started_ns < view.started_ns
             else:
-                earlier = incarnation <= view.incarnation and started_ns < view.started_ns
+                earlier = self.keyed and incarnation <= view.incarnation and started_ns < view.started_ns
             if earlier:
                 return False
             if (incarnation, started_ns) == (view.incarnation, view.started_ns):

@@ -242,6 +242,60 @@ def test_one_forged_snapshot_of_a_huge_version_stops_driving_the_robot(tmp_path)
             brain.stop()
 
 
+@pytest.mark.parametrize("frame", ["status", "ack"])
+def test_one_forged_later_start_of_the_genuine_store_does_not_shut_the_server_out(tmp_path, frame):
+    """Without a key, a start later by both incarnation and clock, of the store the server's status
+    names (public), once: the robot follows the genuine server again soon after, and its acks go on."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg, status_timeout_s=0.5)
+        brain.start()
+        try:
+            feed(brain, 10)
+            assert wait(lambda: brain.following == "s1" and brain.current is not None and brain.all_acked())
+            later = {"incarnation": server.incarnation + 1, "started_ns": server.started_ns + 3600 * 10**9}
+            rogue = hub.bus()
+            if frame == "status":
+                announce(rogue, "s1", cfg, store=server.store.id, token=False, **later)
+            else:
+                forged = Ack(client=brain.id, server="s1", store=server.store.id, stored_through=-1, **later)
+                rogue.put(KEYS.ack(brain.id, "s1"), Codec("s1").encode(forged), None)
+            assert wait(lambda: brain.rejected["status_stale"] + brain.rejected["ack_stale"] > 0)
+            feed(brain, 10, seed=1)
+            assert wait(lambda: brain.current.source == f"s1:{server.incarnation}" and brain.all_acked(),
+                        timeout=5.0)  # fmt: skip
+            assert server.store.stored_through[brain.id] == 19
+        finally:
+            brain.stop()
+
+
+def test_one_forged_snapshot_that_diverges_on_the_robot_stops_driving_it(tmp_path):
+    """Acting on it diverges, which passes the server over: the robot must not stay on the weights
+    that diverged once they are dropped as unconfirmed and genuine ones come."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1, divergence_patience=1)
+    with make_server(tmp_path, hub, cfg) as server:
+        brain = remote(tmp_path, hub, cfg, status_timeout_s=0.5)
+        brain.start()
+        try:
+            assert wait(lambda: brain.following == "s1" and brain.current is not None)
+            n = brain.current.params.flat.shape[1]
+            forged = forge(cfg, version=2**63, incarnation=server.incarnation, store=server.store.id,
+                           started_ns=server.started_ns, params=np.full((1, n), 1e300))  # fmt: skip
+            hub.bus().put(KEYS.weights("s1"), forged, None)  # one frame, then the forger stops
+            assert wait(lambda: brain.current.version == 2**63)
+            diverged, deadline = 0, time.monotonic() + 5.0
+            while brain.current.version == 2**63 and time.monotonic() < deadline:
+                acted = brain.act(np.zeros(3))  # the tick: each act on the forged weights diverges
+                diverged += bool(acted.result.diverged)
+                feed(brain, 1, seed=diverged)
+                time.sleep(0.02)
+            assert diverged > 0 and brain.current.version < 2**63
+            assert brain.current.source == f"s1:{server.incarnation}"
+            assert not brain.act(np.zeros(3)).result.diverged
+        finally:
+            brain.stop()
+
+
 def lose_one_live_batch(hub, brain):
     """One experience fed to `brain` whose live batch is lost on the way (the journal keeps it)."""
     lost = {"n": 1}
