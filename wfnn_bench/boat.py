@@ -365,7 +365,8 @@ def plot(result: dict[str, Any], path: Path) -> None:
         ax.set_ylabel("mean distance to target")
         ax.set_title(
             f"{res['condition']} (k={res['advantage_k']}): {res['controllers']} controllers, "
-            f"median of last 10 = {res['median_last10']:.3f}, acceptable {100 * res['frac_acceptable']:.0f}%"
+            f"median of last {min(10, scores.shape[1])} = {res['median_last10']:.3f}, "
+            f"acceptable {100 * res['frac_acceptable']:.0f}%"
         )
         ax.legend(loc="upper right")
     axes[-1, 0].set_xlabel("target number")

@@ -232,8 +232,8 @@ def boat(
     ] = 1,
     learner: Annotated[str, typer.Option(help="thesis or deep.")] = "thesis",
     learner_options: Annotated[
-        str, typer.Option(help="Learner config fields over the learner's defaults (JSON).")
-    ] = "",
+        str | None, typer.Option(help="Learner config fields over the learner's defaults (JSON).")
+    ] = None,
     seed: int = 0,
     json_path: JsonOpt = None,
     plot_path: PlotOpt = None,
@@ -252,7 +252,7 @@ def boat(
             dt=dt,
             hold=hold,
             learner=learner,
-            learner_options=learner_options,
+            learner_options=_json_options(learner_options, "--learner-options"),
             seed=seed,
         )
     except ValueError as exc:
@@ -529,13 +529,13 @@ def passive(
         str, typer.Option(help="thesis | deep: the learner of every condition but the thesis' passive one.")
     ] = "thesis",
     learner_options: Annotated[
-        str,
+        str | None,
         typer.Option(
             help="That learner's config fields over its defaults, a JSON object (the passive "
             "learners' k, pull and rate come from --passive-advantage-k, --bc-weight and "
             "--passive-alpha over it)."
         ),
-    ] = "",
+    ] = None,
     dt: Annotated[float, typer.Option(min=1e-6, help="Boat time per action.")] = 0.1,
     log_targets: Annotated[
         int,
@@ -576,7 +576,8 @@ def passive(
     _logging(verbose, json_path, plot_path)
     try:
         cfg = passive_bench.PassiveBenchConfig(
-            controllers=controllers, learner=learner, learner_options=learner_options,  # type: ignore[arg-type]
+            controllers=controllers, learner=learner,  # type: ignore[arg-type]
+            learner_options=_json_options(learner_options, "--learner-options"),
             dt=dt, log_targets=log_targets, passive_thinks=passive_thinks, online_targets=online_targets,
             thinks=thinks, eval_targets=eval_targets, bc_weight=bc_weight,
             passive_advantage_k=passive_advantage_k, passive_alpha=passive_alpha, seed=seed,
@@ -585,6 +586,13 @@ def passive(
         raise typer.BadParameter(str(exc)) from exc
     _measure(passive_bench, cfg, "passive", passive_bench.steps(cfg),
              "Passive and off-policy learning (boat)", json_path, plot_path)  # fmt: skip
+
+
+def _json_options(text: str | None, option: str) -> str:
+    """An options JSON text as given ("" where not given); an empty one given is refused."""
+    if text is not None and not text.strip():
+        raise typer.BadParameter("config fields as a JSON object, not an empty string", param_hint=option)
+    return text or ""
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -609,8 +617,8 @@ def vs_sb3(
     algorithms: Annotated[str, typer.Option(help="Of wfnn, sac, td3.")] = "wfnn,sac,td3",
     learners: Annotated[str, typer.Option(help="WFNN learners run for wfnn: thesis, deep.")] = "thesis",
     deep_options: Annotated[
-        str, typer.Option(help="Deep learner config fields over its defaults (JSON).")
-    ] = "",
+        str | None, typer.Option(help="Deep learner config fields over its defaults (JSON).")
+    ] = None,
     seeds: Annotated[int, _count(1)] = 3,
     eval_every: Annotated[
         int,
@@ -631,8 +639,9 @@ def vs_sb3(
     try:
         cfg = vs_sb3_bench.VsSb3Config(
             tasks=_names(tasks), steps=_counts(steps, "--steps"), algorithms=_names(algorithms),
-            learners=_names(learners), deep_options=deep_options, seeds=seeds, eval_every=eval_every,
-            eval_episodes=eval_episodes, thinks=thinks, reward_scale=reward_scale, seed=seed,
+            learners=_names(learners), deep_options=_json_options(deep_options, "--deep-options"),
+            seeds=seeds, eval_every=eval_every, eval_episodes=eval_episodes, thinks=thinks,
+            reward_scale=reward_scale, seed=seed,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -316,6 +316,12 @@ def client(
         handlers=[RichHandler(console=console, show_path=False)],
     )  # fmt: skip
     log_printably()
+    if env is not None and _given(ctx, "sim") and sim != "gym":  # else the --sim typed was dropped unsaid
+        raise typer.BadParameter(f"--env runs a Gymnasium task (--sim gym), not --sim {sim!r:.60}",
+                                 param_hint="--sim")  # fmt: skip
+    if _given(ctx, "learner_options") and not learner_options.strip():
+        raise typer.BadParameter("config fields as a JSON object, not an empty string",
+                                 param_hint="--learner-options")  # fmt: skip
     if sim not in SIMS and env is None:
         raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
     own_rate = SIMS[sim].rate_hz if env is None else 0.0

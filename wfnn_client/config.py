@@ -216,8 +216,13 @@ class ClientConfig:
         learner = ", ".join(f"{name} {value}" if name else str(value) for name, value in (
             ("", saved),
             ("k", self.advantage_k), ("thinks", self.thinks_per_action), ("bc_weight", self.bc_weight),
-            ("options", self.learner_options or None),
+            ("options", _shortened(self.learner_options) or None),
         ) if value is not None) or "defaults"  # fmt: skip
         keyed = ", key" if self.key_file else ""
         kind = "" if self.learner == "thesis" else f"{self.learner} "  # the thesis' learner: as before
         return f"{task}, {rate}, {where}{keyed}; {kind}learner {learner}; run directory {self.out}"
+
+
+def _shortened(text: str, most: int = 200) -> str:
+    """`text` cut to `most` characters for the run's one line (options of any length are refused later)."""
+    return text if len(text) <= most else text[: most - 3] + "..."

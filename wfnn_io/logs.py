@@ -80,6 +80,7 @@ from wfnn_io.segments import (
     ReadReport,
     SegmentLog,
     read_records,
+    segment_numbers,
     take_lock,
 )
 
@@ -103,7 +104,7 @@ class LogFormatError(ValueError):
 def is_log(directory: Path) -> bool:
     """Whether `directory` holds segment files of a whole log (none still being moved into place)."""
     directory = Path(directory)
-    return directory.is_dir() and any(directory.glob("*.seg")) and not _unfinished(directory)
+    return directory.is_dir() and bool(segment_numbers(directory)) and not _unfinished(directory)
 
 
 def remove_empty_log(directory: Path, also: Collection[str] = (), records: bool = False) -> bool:
@@ -541,6 +542,8 @@ class Summary:
     """Intact records whose frame was refused, by reason."""
     damage: list[Damage] = field(default_factory=list)
     """Damaged spans skipped (segment, offset, length, kind)."""
+    strays: list[str] = field(default_factory=list)
+    """Files named like segments but not as the log names them: not read."""
     learner_config: dict[str, Any] | None = None
     description_error: str = ""
     """Why `log.json` (or the store's learner config) could not be read, if it could not."""
@@ -559,7 +562,7 @@ class Summary:
             "flags": dict(self.flags),
             "terminal": self.terminal, "reward_mean": self.reward_mean, "unreadable": self.unreadable,
             "refused": dict(self.refused), "damage": [vars(d) for d in self.damage],
-            "skipped_bytes": sum(d.length for d in self.damage),
+            "skipped_bytes": sum(d.length for d in self.damage), "strays": self.strays,
             "learner_config": self.learner_config, "description_error": self.description_error,
         }  # fmt: skip
 
@@ -591,7 +594,7 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
         finite = batch.reward[np.isfinite(batch.reward)]
         if finite.size:
             means.append((finite.size, _mean(finite)))
-    out.refused, out.damage = counts.refused, counts.damage
+    out.refused, out.damage, out.strays = counts.refused, counts.damage, counts.report.strays
     total = sum(n for n, _ in means)
     if total:  # weights that sum to 1: no partial sum beyond the largest term
         out.reward_mean = _mean(np.array([m for _, m in means]), np.array([n / total for n, _ in means]))

@@ -92,6 +92,10 @@ def inspect(
         where = (f"{span}: not there, or empty" if d.kind == "missing"
                  else f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
         table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]", where)
+    if summary.strays:
+        names = ", ".join(_shown(n) for n in summary.strays[:5])
+        more = f" and {len(summary.strays) - 5} more" if len(summary.strays) > 5 else ""
+        table.add_row("[red]named like segments, not read[/]", names + more)
     console.print(table)
 
 

@@ -426,9 +426,14 @@ def _open(path: Path, expected_format: str, wanted: Callable[[str], bool]) -> di
     except OSError as exc:
         raise PersistError(f"{path}: cannot be opened ({exc.strerror or exc})") from None
     try:
+        mode = os.fstat(fd).st_mode
+    except OSError:
+        mode = 0
+    if not stat.S_ISREG(mode):  # before fdopen, whose refusal of a folder named its descriptor, not it
+        os.close(fd)
+        raise PersistError(f"{path}: {'is a directory' if stat.S_ISDIR(mode) else 'not a regular file'}")
+    try:
         with os.fdopen(fd, "rb") as f:
-            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-                raise PersistError(f"{path}: not a regular file")
             names = _members(Path(path), f)
             take = [n for n in names if n in ("format", "format_version", MANIFEST) or wanted(n)]
             f.seek(0)

@@ -93,6 +93,9 @@ class ReadReport:
 
     records: int = 0
     damage: list[Damage] = field(default_factory=list)
+    strays: list[str] = field(default_factory=list)
+    """Files in the log's folder named like segments (`*.seg`) but not as its writer names them:
+    not read (`stray_segments`)."""
 
     @property
     def skipped_bytes(self) -> int:
@@ -117,20 +120,47 @@ def segment_name(n: int) -> str:
     return f"{n:08d}{SUFFIX}"
 
 
+MAX_SEGMENT_NUMBER = 10**12
+"""Segment numbers are below this (a writer counts up from 0, one a rotation): a name beyond it,
+such as a segment renamed by hand, is none of the log's (its number overflowed the client's
+int64 journal index, and every start of that client failed)."""
+
+
+def _segment_number(path: Path) -> int | None:
+    """The segment number `path` names, or None where `segment_name` writes no such name."""
+    stem = path.stem
+    if not (stem.isascii() and stem.isdigit()) or len(stem) > len(str(MAX_SEGMENT_NUMBER - 1)):
+        return None
+    n = int(stem)
+    return n if segment_name(n) == path.name else None
+
+
+def stray_segments(directory: Path) -> list[str]:
+    """Names in `directory` like segments' (`*.seg`) that its writer does not write: never read.
+
+    `1.seg` beside `00000001.seg` would otherwise be read as the same segment twice; a segment
+    renamed so is told (`read_records`), as what it holds is not read.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted(p.name for p in directory.glob(f"*{SUFFIX}") if _segment_number(p) is None)
+
+
 def segment_numbers(directory: Path) -> list[int]:
     """Segment numbers present in `directory`, in order (none if it does not exist).
 
-    Only names as `segment_name` writes them count: `1.seg` beside `00000001.seg` would
-    otherwise be read as the same segment twice.
+    Only names as `segment_name` writes them count, below MAX_SEGMENT_NUMBER (`stray_segments`).
     """
     directory = Path(directory)
     if not directory.is_dir():
         return []
     numbers: set[int] = set()
     for _ in range(LISTINGS):
-        for stem in (p.stem for p in directory.glob(f"*{SUFFIX}")):
-            if stem.isascii() and stem.isdigit() and segment_name(int(stem)) == stem + SUFFIX:
-                numbers.add(int(stem))
+        for path in directory.glob(f"*{SUFFIX}"):
+            n = _segment_number(path)
+            if n is not None:
+                numbers.add(n)
         if not numbers or max(numbers) - min(numbers) + 1 == len(numbers):
             break
         # A gap: a directory is listed in several reads, and a segment a writer created meanwhile
@@ -262,6 +292,15 @@ def read_records(
     """
     directory = Path(directory)
     numbers = segment_numbers(directory)
+    strays = stray_segments(directory)
+    if strays:
+        if report is not None:
+            report.strays = strays
+        shown = ", ".join(ascii(n)[:80] for n in strays[:5])
+        if len(strays) > 5:
+            shown += f" and {len(strays) - 5} more"
+        log.warning("%s: %d files named like segments, not as this log names them, are not read: %s",
+                    directory, len(strays), shown)  # fmt: skip
     expected = 0 if start is None else start.segment
     """The segment that should come next (a start names one that was written)."""
     i = 0

@@ -61,6 +61,7 @@ from wfnn_io.persist import (
     remove_empty_folders,
     save_weights,
     unfinished_write_of,
+    writable,
     write_json,
 )
 from wfnn_io.protocol import (
@@ -1371,6 +1372,7 @@ def prepare(config: ServerConfig) -> list[str]:
                         "(learner config, clients, camera pictures): no key protects it")  # fmt: skip
         log.warning(warnings[-1])
     check_free(config.data_dir / "store")  # a server already on this data directory keeps its record
+    writable(config.data_dir / SERVER_JSON)  # before it serves: a folder in its place was found after
     return warnings
 
 

@@ -738,6 +738,9 @@ def test_a_checkpoint_that_is_a_fifo_or_holds_no_network_is_refused_without_wait
     reader.start()
     reader.join(10.0)
     assert not reader.is_alive() and "not a regular file" in outcome[0]
+    (tmp_path / "folder.npz").mkdir()  # told as such, by its name (the refusal named a descriptor)
+    with pytest.raises(PersistError, match=r"folder\.npz: is a directory$"):
+        load_checkpoint(tmp_path / "folder.npz")
     cfg = small_config()
     no_network = types.SimpleNamespace(flat=WFNN(cfg).params.flat[:0])  # [0, n_params]
     save_weights(tmp_path / "none.npz", cfg, no_network)  # type: ignore[arg-type]

@@ -702,6 +702,17 @@ def test_options_that_would_be_ignored_or_taken_as_the_default_are_refused(tmp_p
 
     result = CliRunner().invoke(cli.app, ["--sim", "boat", "--exploration", "", "--out", str(tmp_path / "r")])
     assert result.exit_code == 2 and "--exploration" in result.output and not (tmp_path / "r").exists()
+    # An empty --learner-options ran with the defaults; --env dropped the --sim typed beside it.
+    for args, option in ((["--sim", "boat", "--learner-options", " "], "--learner-options"),
+                         (["--env", "Pendulum-v1", "--sim", "boat"], "--sim")):  # fmt: skip
+        result = CliRunner().invoke(cli.app, [*args, "--out", str(tmp_path / "r")])
+        assert result.exit_code == 2 and option in result.output and not (tmp_path / "r").exists()
+    from wfnn_bench import cli as bench_cli
+
+    for args in (["vs-sb3", "--deep-options", ""], ["boat", "--learner-options", ""],
+                 ["passive", "--learner-options", ""]):  # fmt: skip
+        result = CliRunner().invoke(bench_cli.app, args, env={"COLUMNS": "300"})
+        assert result.exit_code == 2 and "not an empty string" in result.output, result.output
     monkeypatch.setattr(server_cli, "run", lambda *args, **kwargs: {})  # a server that would start ends
     for option in (["--dashboard-host", "0.0.0.0"], ["--dashboard-hz", "30"]):
         args = ["--listen", "tcp/127.0.0.1:0", "--data-dir", str(tmp_path / "d"), *option]

@@ -278,3 +278,19 @@ def test_a_journal_that_lost_its_first_segment_calls_it_damage_not_a_skip(tmp_pa
     assert again.skips == {} and not again.holds(0)
     assert any(r.levelno >= logging.ERROR and "missing" in r.getMessage() for r in caplog.records)
     again.close()
+
+
+def test_a_journal_with_a_segment_renamed_to_a_huge_number_still_opens(tmp_path):
+    """Its number overflowed the int64 index: every start of the client failed with no file named."""
+    from tests.unit.wfnn_server.test_server import batch
+    from wfnn_client.journal import Journal
+
+    cfg = small_config()
+    journal = Journal(tmp_path / "j", "c1", fsync="never")
+    b = batch(cfg, 0, 5)
+    journal.append(Codec("c1").encode(b), b.last_seq)
+    journal.close()
+    (tmp_path / "j" / "00000000.seg").rename(tmp_path / "j" / f"{2**64}.seg")
+    again = Journal(tmp_path / "j")
+    assert again.client_id == "c1" and not again.holds(0)
+    again.close()

@@ -115,6 +115,8 @@ def test_export_never_writes_inside_a_log_or_beside_a_servers_store(tmp_path):
     (tmp_path / "proj" / "learner_config.json").write_text("{}")
     (tmp_path / "proj" / "log.json").write_text('{"note": 1}')
     assert logs.export([tmp_path / "a"], tmp_path / "proj" / "all.npz") == 20
+    (tmp_path / "notes.seg").write_text("a user's file")  # named like a segment, as no log names one
+    assert logs.export([tmp_path / "a"], tmp_path / "proj" / "b.npz") == 20
 
 
 def test_a_file_made_while_a_new_one_is_written_is_kept(tmp_path, monkeypatch):
@@ -223,6 +225,10 @@ def test_inspect_names_a_segment_missing_between_others(tmp_path):
     result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log")], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     assert "damaged, skipped (missing)" in result.output and "segment 1: not there, or empty" in result.output
+    (tmp_path / "log" / "00000002.seg").rename(tmp_path / "log" / "000000002.seg")  # renamed by hand
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "named like segments, not read" in result.output and "000000002.seg" in result.output
 
 
 @pytest.mark.parametrize("damage", [{"learner_config": {"state_low": "wrong"}}, {"id": 7}])

@@ -514,6 +514,26 @@ def test_only_segment_names_as_the_log_writes_them_count(tmp_path):
     assert [p for _, p in segments.read_records(tmp_path)] == payloads(3)
 
 
+def test_files_named_like_segments_that_are_not_read_are_told(tmp_path, caplog):
+    """A segment renamed by hand (a leading zero, a number beyond any a writer reaches) was read
+    past without a word, and a number of 2^63 or more stopped every start of a client."""
+    with SegmentLog(tmp_path, segment_bytes=40) as log:
+        for p in payloads(4):
+            log.append(p)
+    seg_path(tmp_path, 3).rename(tmp_path / "100000000000000000000.seg")
+    (tmp_path / "000000002.seg").write_bytes(seg_path(tmp_path, 2).read_bytes())
+    (tmp_path / "1.seg").write_bytes(b"")
+    (tmp_path / f"{segments.MAX_SEGMENT_NUMBER}.seg").write_bytes(b"")
+    assert segments.segment_numbers(tmp_path) == [0, 1, 2]
+    report = segments.ReadReport()
+    assert [p for _, p in segments.read_records(tmp_path, report=report)] == payloads(3)
+    assert report.strays == ["000000002.seg", "1.seg", "1000000000000.seg", "100000000000000000000.seg"]
+    assert "4 files named like segments" in caplog.text and "100000000000000000000.seg" in caplog.text
+    with SegmentLog(tmp_path, segment_bytes=40) as log:  # its owner goes on from its last segment
+        log.append(b"more")
+    assert segments.segment_numbers(tmp_path)[-1] == 3
+
+
 @pytest.mark.parametrize("kind", ["fifo", "directory", "link"])
 def test_a_segment_that_is_not_a_regular_file_is_refused_in_one_line(tmp_path, kind):
     import os

@@ -501,6 +501,9 @@ def test_a_refused_start_leaves_the_last_server_config_as_it_was(tmp_path):
     with SegmentLog(data / "store"), pytest.raises(LogError, match="in use"):  # a server running on it
         prepare(ServerConfig(controller="other", server_id="s1", data_dir=data))
     assert (data / SERVER_JSON).read_bytes() == before
+    (tmp_path / "s2" / SERVER_JSON).mkdir(parents=True)  # found before it serves, not once it has
+    with pytest.raises(IsADirectoryError, match="is a directory"):
+        prepare(ServerConfig(controller="t", server_id="s2", data_dir=tmp_path / "s2"))
     with pytest.raises(ValueError, match="dashboard host"):
         DashboardConfig(port=0, host="")
     exposed = ServerConfig(
