@@ -153,6 +153,12 @@ def _given(ctx: typer.Context, name: str) -> bool:
     return source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")
 
 
+def _cut(value: str, most: int = 60) -> str:
+    """`value` as its repr, cut to `most` characters with "..." (an option's text may be of any length)."""
+    shown = repr(value)
+    return shown if len(shown) <= most else shown[:most] + "..."
+
+
 def _option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -317,13 +323,14 @@ def client(
     )  # fmt: skip
     log_printably()
     if env is not None and _given(ctx, "sim") and sim != "gym":  # else the --sim typed was dropped unsaid
-        raise typer.BadParameter(f"--env runs a Gymnasium task (--sim gym), not --sim {sim!r:.60}",
+        raise typer.BadParameter(f"--env runs a Gymnasium task (--sim gym), not --sim {_cut(sim)}",
                                  param_hint="--sim")  # fmt: skip
     if _given(ctx, "learner_options") and not learner_options.strip():
         raise typer.BadParameter("config fields as a JSON object, not an empty string",
                                  param_hint="--learner-options")  # fmt: skip
     if sim not in SIMS and env is None:
-        raise typer.BadParameter(f"unknown sim {sim!r}; choose from {', '.join(SIMS)}", param_hint="--sim")
+        raise typer.BadParameter(f"unknown sim {_cut(sim)}; choose from {', '.join(SIMS)}",
+                                 param_hint="--sim")  # fmt: skip
     own_rate = SIMS[sim].rate_hz if env is None else 0.0
     if env is not None:
         sim = "gym"
@@ -349,7 +356,7 @@ def client(
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
-        raise typer.BadParameter(f"unknown exploration {exploration!r}", param_hint="--exploration")
+        raise typer.BadParameter(f"unknown exploration {_cut(exploration)}", param_hint="--exploration")
     try:
         mix = parse_mix(behaviour_policy)
     except ValueError as exc:

@@ -415,9 +415,14 @@ class Downlink:
         return w is not None and not w.diverged and now >= view.suspect_until
 
     def _suspected_newer(self, view: ServerView, now: float) -> bool:
-        """Fresh weights, not flagged diverged, of a server suspected for others (not those acted on)."""
-        w = self._fresh_weights(view, now)
-        return w is not None and not w.diverged and now < view.suspect_until and w is not self.current
+        """Newer fresh weights, not flagged diverged, of the suspected server whose weights are acted on.
+
+        Only that server's: another suspected server's weights diverged here too, and the weights
+        of a server that never diverged (one failed over to, its snapshots paused) stay in use.
+        """
+        w, current = self._fresh_weights(view, now), self.current
+        return (w is not None and not w.diverged and now < view.suspect_until and current is not None
+                and w is not current and current.server == view.server)  # fmt: skip
 
     def _relearning(self, view: ServerView, now: float) -> bool:
         """Fresh weights it relearns after a divergence reset."""
@@ -446,7 +451,9 @@ class Downlink:
         if chosen is None:
             if self.following and self._lost_at is None:
                 self._lost_at = now
-                fallback = f"the weights {relearning.server} relearns" if relearning else "its last weights"
+                fallback = (f"the weights {relearning.server} relearns" if relearning
+                            else f"the newer weights of {newer.server}, whose weights diverged here" if newer
+                            else "its last weights")  # fmt: skip
                 log.warning("server %s unhealthy and no other healthy server: acting on %s",
                             self.following, fallback)  # fmt: skip
             if relearning is not None and relearning.latest is not None:

@@ -81,6 +81,7 @@ from wfnn_io.segments import (
     SegmentLog,
     read_records,
     segment_numbers,
+    stray_segments,
     take_lock,
 )
 
@@ -381,6 +382,11 @@ def check_log(directory: Path) -> None:
                 f"{directory}: not a whole log: a write of it is under way, or was cut short (run that "
                 "write again: what it left is removed then)"
             )
+        strays = stray_segments(directory) if Path(directory).is_dir() else []
+        if strays:  # a log's segments renamed by hand: said, as readers say it of a log
+            shown = ", ".join(ascii(n)[:80] for n in strays[:5]) + (" ..." if len(strays) > 5 else "")
+            raise LogFormatError(f"{directory}: no segment named as a log names them (00000000.seg on); "
+                                 f"named like segments, not read: {shown}")  # fmt: skip
         raise LogFormatError(f"{directory}: no experience log here (no .seg files)")
 
 

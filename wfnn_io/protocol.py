@@ -150,7 +150,8 @@ def _check_journal(journal: str) -> None:
 def check_id(name: str, what: str = "id") -> str:
     """A sender id or controller name: 1-16 of [A-Za-z0-9_.-] (safe in frames and key expressions)."""
     if not isinstance(name, str) or not _ID_PATTERN.fullmatch(name):
-        raise ValueError(f"{what} must be 1-16 characters of [A-Za-z0-9_.-], got {name!r:.60}")
+        shown = repr(name) if len(repr(name)) <= 60 else repr(name)[:60] + "..."
+        raise ValueError(f"{what} must be 1-16 characters of [A-Za-z0-9_.-], got {shown}")
     return name
 
 

@@ -239,14 +239,14 @@ def test_snapshots_that_fail_their_tag_are_told_once_as_other_frames_are(tmp_pat
 
 
 def announce(bus, server, cfg, started_ns, key=None, incarnation=1, store="store1", token=True,
-             stored_through=None):  # fmt: skip
+             stored_through=None, weights_version=0):  # fmt: skip
     """A server's liveliness token and heartbeat, as a real one publishes them."""
     if token:
         bus.declare_token(KEYS.server_alive(server))
     status = ServerStatus(
         server=server, incarnation=incarnation, store=store, started_ns=started_ns, spec_hash=cfg.spec_hash(),
-        learner_config=cfg.to_json(), weights_version=0, stored_through=stored_through or {}, rejected={},
-        metrics={},
+        learner_config=cfg.to_json(), weights_version=weights_version, stored_through=stored_through or {},
+        rejected={}, metrics={},
     )  # fmt: skip
     bus.put(KEYS.server_status(server), server_codec(server, key).encode(status), None)
 
@@ -274,6 +274,43 @@ def test_with_no_healthy_server_the_weights_relearned_after_a_reset_drive_the_ro
     time.sleep(0.2)
     assert brain.current.server == "s2"
     brain.stop()
+
+
+def test_a_server_whose_weights_diverged_here_does_not_take_over_from_one_whose_snapshots_pause(tmp_path):
+    """s1's weights diverge when acted on, so the robot fails over to s2; s2's snapshots then pause
+    (it still heartbeats) while s1 publishes newer weights: the robot stays on s2's, which never
+    diverged, and does not go back to s1's for the rest of the hold."""
+    hub, cfg = Hub(), small_config(divergence_patience=1)
+    n = WFNN(cfg).params.flat.shape[1]
+    brain = remote(tmp_path, hub, cfg, snapshot_timeout_s=0.3, status_timeout_s=1.0, diverged_hold_s=30.0)
+    brain.start()
+    bus = hub.bus()
+    try:
+        version = {"s1": 0, "s2": 0}
+
+        def heartbeat(s2_snapshots: bool) -> None:
+            for server, started, params in (("s1", 1, 1e300), ("s2", 2, 0.1)):
+                if server == "s1" or s2_snapshots:
+                    version[server] += 1
+                    weights = np.full((1, n), params)
+                    snapshot = forge(cfg, server=server, version=version[server], started_ns=started,
+                                     params=weights)  # fmt: skip
+                    bus.put(KEYS.weights(server), snapshot, None)
+                announce(bus, server, cfg, started_ns=started, weights_version=version[server])
+
+        diverged, served = 0, []
+        for k in range(150):  # 3 s at 20 ms; s2's snapshots stop after 1 s
+            if k % 5 == 0:
+                heartbeat(s2_snapshots=k < 50)
+            acted = brain.act(np.zeros(3))
+            if acted is not None:
+                diverged += bool(acted.result.diverged)
+                served.append((k, brain.current.server))
+            time.sleep(0.02)
+        assert diverged >= 1  # s1's weights were acted on once, and diverged
+        assert [s for k, s in served if k >= 40] == ["s2"] * len([k for k, _ in served if k >= 40])
+    finally:
+        brain.stop()
 
 
 def test_lost_frames_are_resent_from_the_journal(tmp_path):

@@ -229,6 +229,10 @@ def test_inspect_names_a_segment_missing_between_others(tmp_path):
     result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log")], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     assert "named like segments, not read" in result.output and "000000002.seg" in result.output
+    (tmp_path / "alone").mkdir()  # only a renamed segment: named, not "no .seg files"
+    (tmp_path / "log" / "00000000.seg").rename(tmp_path / "alone" / "0.seg")
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "alone")], env={"COLUMNS": "300"})
+    assert result.exit_code == 2 and "not read: '0.seg'" in result.output, result.output
 
 
 @pytest.mark.parametrize("damage", [{"learner_config": {"state_low": "wrong"}}, {"id": 7}])
