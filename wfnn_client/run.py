@@ -276,12 +276,19 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
         # A learner that learns here resumes the training saved with the weights (the deep
         # learner's second critic, targets, optimiser and warm-up), as a think server does.
         saved_cfg, params, meta, training = load_checkpoint(path, training=config.learn and config.local)
-        if saved_cfg.spec_hash() != lcfg.spec_hash():
-            kind, same_task = saved_cfg.learner, _ranges(saved_cfg) == _ranges(lcfg)
+        kind, same_task = saved_cfg.learner, _ranges(saved_cfg) == _ranges(lcfg)
+        if kind != lcfg.learner or not same_task:
             hint = f": --learner {kind}" if kind != lcfg.learner and same_task else ""  # helps only then
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, this task needs "
                              f"{lcfg.spec_hash()} ({saved_cfg.spec_difference(lcfg)}{hint})")  # fmt: skip
-        lcfg = _resumed(saved_cfg, lcfg, config, path)
+        # The saved network, not the defaults' (a run with another hidden width was refused unless
+        # its options were given again); options given that change it are refused.
+        resumed = _resumed(saved_cfg, lcfg, config, path)
+        if resumed.spec_hash() != saved_cfg.spec_hash():
+            differ = saved_cfg.spec_difference(resumed)
+            raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}; the options given "
+                             f"make {resumed.spec_hash()} ({differ})")  # fmt: skip
+        lcfg = resumed
         try:
             learner = make_learner(lcfg, params=params)
             learner.load_training_state(training)

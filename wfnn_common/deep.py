@@ -169,8 +169,9 @@ class DeepWFNN(WFNN):
         Importing torch in a thread while others run costs many times its single-threaded time on a
         busy machine (each handover of the interpreter lock waits for the scheduler), and it holds
         that lock for long stretches, so a caller with a loop to keep does it before starting threads.
+        With deep.compile, the update is compiled now too (`Trainer.warm`).
         """
-        self._train()
+        self._train().warm()
 
     def _explore(self, greedy: FloatArray) -> FloatArray:
         self.acted += 1

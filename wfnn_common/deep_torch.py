@@ -465,6 +465,25 @@ class Trainer:
         total.backward()
         return self._grad
 
+    def warm(self) -> None:
+        """Compile the update now (deep.compile), on a batch of zeros: no weight, moment or stream moves.
+
+        Its first real update compiled it otherwise, for 5 to 30 s holding the interpreter lock
+        much of the time: in a robot's own process, beside its control loop, ticks came late.
+        """
+        if not self.config.deep.compile or self._compiled is not None:
+            return
+        b, s, a = self.config.batch_size, self.config.state_dim, self.config.action_dim
+
+        def zeros(*shape: int) -> torch.Tensor:
+            return torch.zeros(shape, device=self.device)
+
+        args = (self.blocks, self.target, zeros(b, s), zeros(b, a), zeros(b), zeros(b, s), zeros(b),
+                zeros(b, a), self._identity)  # fmt: skip
+        total, _, _ = self._compiled_loss(args)
+        self.gradient(total)  # the backward pass is compiled at its first call too
+        self._grad.zero_()
+
     def _compiled_loss(self, args: tuple[Any, ...]) -> Losses:
         """`loss` through torch.compile (compiled in its first call); uncompiled where that fails."""
         if self._compiled is None:

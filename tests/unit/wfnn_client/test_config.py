@@ -599,16 +599,24 @@ def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_opt
         return ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=1, thinks_per_action=1, out=out,
                             learner=learner, learner_options=json.dumps(options), **kw)  # fmt: skip
 
-    own = {"deep": {"warmup": 50, "lr": 1e-3}} if learner == "deep" else {"alpha": 0.05}
+    # Another network than the defaults' too: the defaults' refused the saved one.
+    own = (
+        {"deep": {"warmup": 50, "lr": 1e-3, "hidden": [16, 16]}}
+        if learner == "deep"
+        else {"alpha": 0.05, "n_hidden": 7}
+    )
     run_client(client(tmp_path / "a", {"gamma": 0.95, **own}))
     weights = tmp_path / "a" / "weights.npz"
     run_client(client(tmp_path / "b", {}, weights=weights, advantage_k=0.5))  # nothing else said
     saved, _, _, _ = load_checkpoint(tmp_path / "b" / "weights.npz")
     assert saved.gamma == 0.95 and saved.advantage_k == 0.5  # kept, and the option given applied
     if learner == "deep":
-        assert saved.deep.warmup == 50 and saved.deep.lr == 1e-3
+        assert saved.deep.warmup == 50 and saved.deep.lr == 1e-3 and saved.deep.hidden == (16, 16)
     else:
-        assert saved.alpha == 0.05
+        assert saved.alpha == 0.05 and saved.n_hidden == 7
+    other = {"deep": {"hidden": [8]}} if learner == "deep" else {"n_hidden": 5}
+    with pytest.raises(ValueError, match=r"the options given make .*another network"):
+        run_client(client(tmp_path / "g", other, weights=weights))
     run_client(client(tmp_path / "c", {"gamma": 0.9}, weights=weights))
     assert load_checkpoint(tmp_path / "c" / "weights.npz")[0].gamma == 0.9
     # The seed, symmetries and exploration apply where given (the CLI names them), else as saved.

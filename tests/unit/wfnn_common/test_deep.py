@@ -247,6 +247,35 @@ def test_a_failing_compiler_leaves_the_same_update(monkeypatch, caplog):
     np.testing.assert_array_equal(compiled.params.flat, plain.params.flat)
 
 
+def test_a_compiled_update_is_compiled_before_thinking_and_leaves_no_trace(monkeypatch):
+    """Compiled at its first real update, it held a robot's loop up for seconds (local thinking):
+    `prepare_thinking`, which runs before the loop, compiles it on zeros, changing nothing."""
+    calls = []
+
+    def counting(fn, **kwargs):
+        def compiled(*args):
+            calls.append(args[2].shape)  # the states [B, S]
+            return fn(*args)
+
+        return compiled
+
+    monkeypatch.setattr(torch, "compile", counting)
+    compiled_loss.cache_clear()
+    try:
+        warmed, plain = _fed(DeepWFNN(config(deep={"compile": True}))), _fed(DeepWFNN(config()))
+        warmed.prepare_thinking()
+        assert calls == [(warmed.config.batch_size, 2)]  # the shapes of every update: compiled once
+        trainer = warmed._train()
+        assert trainer.adam_step == 0 and not trainer._grad.any()
+        assert torch.equal(trainer.theta, trainer.target)
+        warmed.think(3)
+        plain.think(3)
+    finally:
+        compiled_loss.cache_clear()
+    assert len(calls) == 4
+    np.testing.assert_array_equal(warmed.params.flat, plain.params.flat)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("c++") is None, reason="torch.compile on a CPU needs a C++ compiler")
 @pytest.mark.parametrize(
