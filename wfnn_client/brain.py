@@ -236,7 +236,7 @@ class LocalBrain:
     ) -> None:
         self.learner = learner
         # Before the control loop and the think thread run: loading torch among them would hold up ticks.
-        learner.prepare_thinking()
+        learner.prepare_thinking(compile=learns)
         self.lockstep = lockstep
         self.mt = None if lockstep or not learns else ActLearnThinkMT(learner, think_batch=think_batch)
         self.frozen = None if learns else learner.snapshot()

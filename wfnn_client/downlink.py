@@ -125,6 +125,8 @@ class Downlink:
         """The spec of each server heard learning for another, said once each (this and
         `_config_warned` bounded: ids are forgeable)."""
         self._lost_at: float | None = None
+        self._newer_told = False
+        """Whether this outage's move to a diverged server's newer weights was told (`_choose`)."""
         self._applied_at: float | None = None
         """time.monotonic() when weights were last applied (None before the first)."""
         self._weightless_since: float | None = None
@@ -451,14 +453,16 @@ class Downlink:
         if chosen is None:
             if self.following and self._lost_at is None:
                 self._lost_at = now
-                fallback = (f"the weights {relearning.server} relearns" if relearning
-                            else f"the newer weights of {newer.server}, whose weights diverged here" if newer
-                            else "its last weights")  # fmt: skip
+                fallback = f"the weights {relearning.server} relearns" if relearning else "its last weights"
                 log.warning("server %s unhealthy and no other healthy server: acting on %s",
                             self.following, fallback)  # fmt: skip
             if relearning is not None and relearning.latest is not None:
                 self._apply(relearning.latest)
             elif newer is not None and newer.latest is not None:
+                if not self._newer_told:  # the outage's warning came while only the diverged ones were there
+                    self._newer_told = True
+                    log.warning("acting on newer weights (version %d) of server %s, whose weights diverged "
+                                "here", newer.latest.version, newer.server)  # fmt: skip
                 self._apply(newer.latest)
             return
         if chosen.server != self.following:
@@ -469,7 +473,7 @@ class Downlink:
             else:  # the first, or one alive longer than the one followed has just become known
                 log.info("following server %s", chosen.server)
             self.following = chosen.server
-        self._lost_at = None
+        self._lost_at, self._newer_told = None, False
         assert chosen.latest is not None
         self._apply(chosen.latest)
 

@@ -103,7 +103,7 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> B
 
         # Before the journal is opened: a learner that cannot think here (a device torch does not
         # see) is refused without leaving a journal of its spec behind in the run directory.
-        learner.prepare_thinking()
+        learner.prepare_thinking(compile=config.learn)  # a compile in the think thread held ticks up
         # Off the tick, in lock-step too: a slow disk must not hold up the control loop.
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id,
                           background=True)  # fmt: skip
@@ -283,11 +283,12 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
                              f"{lcfg.spec_hash()} ({saved_cfg.spec_difference(lcfg)}{hint})")  # fmt: skip
         # The saved network, not the defaults' (a run with another hidden width was refused unless
         # its options were given again); options given that change it are refused.
-        resumed = _resumed(saved_cfg, lcfg, config, path)
+        resumed = _resumed(saved_cfg, lcfg, config)
         if resumed.spec_hash() != saved_cfg.spec_hash():
             differ = saved_cfg.spec_difference(resumed)
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}; the options given "
                              f"make {resumed.spec_hash()} ({differ})")  # fmt: skip
+        _tell_resumed(saved_cfg, resumed, path)
         lcfg = resumed
         try:
             learner = make_learner(lcfg, params=params)
@@ -302,7 +303,7 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
     return lcfg, learner
 
 
-def _resumed(saved: LearnerConfig, chosen: LearnerConfig, config: ClientConfig, path: Path) -> LearnerConfig:
+def _resumed(saved: LearnerConfig, chosen: LearnerConfig, config: ClientConfig) -> LearnerConfig:
     """The learner config saved with resumed weights, with what this run's command line sets over it.
 
     The training goes on as it was configured (its discount, rates, warm-up, seed...): the
@@ -311,20 +312,23 @@ def _resumed(saved: LearnerConfig, chosen: LearnerConfig, config: ClientConfig, 
     `--exploration` (`config.explicit`) apply, and where the updates run (`PLACEMENT`: this
     host's choice) is this run's.
     """
-    from wfnn_client.downlink import config_differences
-
     changes: dict[str, Any] = {name: getattr(chosen, name) for name in config.explicit}
     if saved.learner == "deep":
         here = chosen.deep
         changes["deep"] = dataclasses.replace(saved.deep, device=here.device, compile=here.compile)
-    resumed = config.overrides.apply(dataclasses.replace(saved, **changes))
+    return config.overrides.apply(dataclasses.replace(saved, **changes))
+
+
+def _tell_resumed(saved: LearnerConfig, resumed: LearnerConfig, path: Path) -> None:
+    """Say which fields of the saved config the command line changes (once the resume is taken)."""
+    from wfnn_client.downlink import config_differences
+
     differ = config_differences(saved.to_json(), resumed.to_json())
     # Said at the default level where the command line changes it: the run's line says "as saved".
     (log.warning if differ else log.info)(
         "%s: resuming its learner config%s", path,
         f", with {', '.join(differ)} as this command line sets them" if differ else "",
     )  # fmt: skip
-    return resumed
 
 
 def _run(

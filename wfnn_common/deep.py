@@ -163,15 +163,17 @@ class DeepWFNN(WFNN):
         """Count n experiences produced before this process (a robot's journal): warm-up included."""
         self.acted = max(self.acted, n)
 
-    def prepare_thinking(self) -> None:
+    def prepare_thinking(self, compile: bool = False) -> None:
         """Import torch and build the trainer now, as the first think would.
 
+        With `compile`, where deep.compile is set, the update is compiled now too (`Trainer.warm`).
         Importing torch in a thread while others run costs many times its single-threaded time on a
         busy machine (each handover of the interpreter lock waits for the scheduler), and it holds
         that lock for long stretches, so a caller with a loop to keep does it before starting threads.
-        With deep.compile, the update is compiled now too (`Trainer.warm`).
         """
-        self._train().warm()
+        trainer = self._train()
+        if compile:
+            trainer.warm()
 
     def _explore(self, greedy: FloatArray) -> FloatArray:
         self.acted += 1

@@ -474,14 +474,20 @@ class Trainer:
         if not self.config.deep.compile or self._compiled is not None:
             return
         b, s, a = self.config.batch_size, self.config.state_dim, self.config.action_dim
-
-        def zeros(*shape: int) -> torch.Tensor:
-            return torch.zeros(shape, device=self.device)
-
-        args = (self.blocks, self.target, zeros(b, s), zeros(b, a), zeros(b), zeros(b, s), zeros(b),
-                zeros(b, a), self._identity)  # fmt: skip
+        # Laid out as every update's minibatch (`_tensors`' views of one block, in `think`'s order):
+        # torch.compile guards on strides too, and contiguous zeros were compiled again at the first update.
+        zeros = {"state": np.zeros((b, s)), "action": np.zeros((b, a)), "reward": np.zeros(b),
+                 "next_state": np.zeros((b, s)), "discount": np.zeros(b)}  # fmt: skip
+        t = self._tensors(zeros)
+        noise = torch.zeros(t["action"].shape, device=self.device)
+        args = (self.blocks, self.target, t["state"], t["action"], t["reward"], t["next_state"],
+                t["discount"], noise, self._identity)  # fmt: skip
         total, _, _ = self._compiled_loss(args)
-        self.gradient(total)  # the backward pass is compiled at its first call too
+        try:
+            self.gradient(total)  # the backward pass is compiled at its first call too
+        except Exception as exc:  # as a failing forward compile: the uncompiled loss is the same arithmetic
+            logger.warning("deep.compile: torch.compile failed (%s); training uncompiled", exc)
+            self._compiled = False
         self._grad.zero_()
 
     def _compiled_loss(self, args: tuple[Any, ...]) -> Losses:

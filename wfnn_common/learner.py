@@ -639,7 +639,7 @@ class WFNN:
     def rewarded(self, reward: ArrayLike) -> None:
         """Rewards met while acting on snapshots (the thesis' learner judges squashed values alike)."""
 
-    def prepare_thinking(self) -> None:
+    def prepare_thinking(self, compile: bool = False) -> None:
         """Nothing to load: the compiled think comes from numba's cache at its first call."""
 
     def training_state(self) -> dict[str, NDArray[Any]]:

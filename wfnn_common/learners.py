@@ -86,8 +86,12 @@ class Learner(Protocol):
         rewards' size.
         """
 
-    def prepare_thinking(self) -> None:
-        """Load what thinking needs now, before the caller starts its threads (the deep learner: torch)."""
+    def prepare_thinking(self, compile: bool = False) -> None:
+        """Load what thinking needs now, before the caller starts its threads (the deep learner: torch).
+
+        With `compile`, also compile what thinking would compile in its first call (the deep learner's
+        update, where deep.compile is set): for a caller beside whose loop thinking runs later.
+        """
 
     def training_state(self) -> dict[str, NDArray[Any]]:
         """What training needs beyond the weights to resume (saved with checkpoints)."""

@@ -269,7 +269,7 @@ def test_one_forged_later_start_of_the_genuine_store_does_not_shut_the_server_ou
             brain.stop()
 
 
-def test_one_forged_snapshot_that_diverges_on_the_robot_stops_driving_it(tmp_path):
+def test_one_forged_snapshot_that_diverges_on_the_robot_stops_driving_it(tmp_path, caplog):
     """Acting on it diverges, which passes the server over: the robot must not stay on the weights
     that diverged once they are dropped as unconfirmed and genuine ones come."""
     hub, cfg = Hub(), small_config(thinks_per_action=1, divergence_patience=1)
@@ -291,6 +291,7 @@ def test_one_forged_snapshot_that_diverges_on_the_robot_stops_driving_it(tmp_pat
                 time.sleep(0.02)
             assert diverged > 0 and brain.current.version < 2**63
             assert brain.current.source == f"s1:{server.incarnation}"
+            assert "acting on newer weights" in caplog.text and "of server s1, whose weights" in caplog.text
             assert not brain.act(np.zeros(3)).result.diverged
         finally:
             brain.stop()

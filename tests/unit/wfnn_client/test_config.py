@@ -586,7 +586,9 @@ def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path,
 
 
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
-def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_options_given(tmp_path, learner):
+def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_options_given(
+    tmp_path, learner, caplog
+):
     """A resume built the config from the command line: its defaults replaced the saved discount,
     rates and warm-up without a word, though the training state went on."""
     import json
@@ -615,8 +617,10 @@ def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_opt
     else:
         assert saved.alpha == 0.05 and saved.n_hidden == 7
     other = {"deep": {"hidden": [8]}} if learner == "deep" else {"n_hidden": 5}
+    caplog.clear()
     with pytest.raises(ValueError, match=r"the options given make .*another network"):
         run_client(client(tmp_path / "g", other, weights=weights))
+    assert "resuming its learner config" not in caplog.text  # no word of a change then refused
     run_client(client(tmp_path / "c", {"gamma": 0.9}, weights=weights))
     assert load_checkpoint(tmp_path / "c" / "weights.npz")[0].gamma == 0.9
     # The seed, symmetries and exploration apply where given (the CLI names them), else as saved.
