@@ -180,7 +180,7 @@ POSITIVE_REWARD_THRESHOLD = 1.5
 DEEP_DEFAULTS: dict[str, Any] = {
     "gamma": 0.99, "advantage_k": 1.0, "thinks_per_action": 1, "batch_size": 256, "n_wires": 8,
     "smoothing_c": 0.1, "squash_reward": False, "divergence_threshold": 1e4,
-    "exploration": ExplorationConfig(kind="gaussian", sigma=0.1),
+    "exploration": ExplorationConfig(kind="smooth", sigma=0.1, tau_steps=10.0),
 }  # fmt: skip
 """The shared fields' defaults for the deep learner, where they differ from the thesis' (whose
 gamma 0.8, 200 thinks per action and squashed rewards suit one-experience SGD on a small net)."""
