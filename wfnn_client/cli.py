@@ -25,6 +25,7 @@ from wfnn_client.controllers import LEARNER, parse_mix
 from wfnn_client.run import jsonable_config, prepare, run
 from wfnn_client.safety import SafetyConfig
 from wfnn_client.sims import SIMS
+from wfnn_common.checks import cut_repr
 from wfnn_common.config import ExplorationConfig
 from wfnn_io.bus import SHARED_MEMORY_HELP, NetConfig
 from wfnn_io.cli_errors import (
@@ -151,12 +152,6 @@ def _given(ctx: typer.Context, name: str) -> bool:
     """Whether option `name` was given (on the command line or by its environment variable)."""
     source = ctx.get_parameter_source(name)  # typer's own click: its enum is not public
     return source is not None and source.name in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")
-
-
-def _cut(value: str, most: int = 60) -> str:
-    """`value` as its repr, cut to `most` characters with "..." (an option's text may be of any length)."""
-    shown = repr(value)
-    return shown if len(shown) <= most else shown[:most] + "..."
 
 
 def _option(name: str) -> str:
@@ -323,13 +318,13 @@ def client(
     )  # fmt: skip
     log_printably()
     if env is not None and _given(ctx, "sim") and sim != "gym":  # else the --sim typed was dropped unsaid
-        raise typer.BadParameter(f"--env runs a Gymnasium task (--sim gym), not --sim {_cut(sim)}",
+        raise typer.BadParameter(f"--env runs a Gymnasium task (--sim gym), not --sim {cut_repr(sim, 60)}",
                                  param_hint="--sim")  # fmt: skip
     if _given(ctx, "learner_options") and not learner_options.strip():
         raise typer.BadParameter("config fields as a JSON object, not an empty string",
                                  param_hint="--learner-options")  # fmt: skip
     if sim not in SIMS and env is None:
-        raise typer.BadParameter(f"unknown sim {_cut(sim)}; choose from {', '.join(SIMS)}",
+        raise typer.BadParameter(f"unknown sim {cut_repr(sim, 60)}; choose from {', '.join(SIMS)}",
                                  param_hint="--sim")  # fmt: skip
     own_rate = SIMS[sim].rate_hz if env is None else 0.0
     if env is not None:
@@ -356,7 +351,8 @@ def client(
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
     if exploration not in ("uniform", "gaussian", "smooth", "none"):
-        raise typer.BadParameter(f"unknown exploration {_cut(exploration)}", param_hint="--exploration")
+        raise typer.BadParameter(f"unknown exploration {cut_repr(exploration, 60)}",
+                                 param_hint="--exploration")  # fmt: skip
     try:
         mix = parse_mix(behaviour_policy)
     except ValueError as exc:

@@ -75,10 +75,16 @@ def check_fields(config: Any) -> None:
         if check is None or (value is None and str(f.type).endswith("| None")):
             continue
         if not check(value):
-            shown = repr(value) if len(repr(value)) <= 200 else repr(value)[:200] + "..."
-            raise ConfigError(f"{type(config).__name__}.{f.name} must be {_WHAT[kind]}, got {shown}")
+            what = f"{type(config).__name__}.{f.name}"
+            raise ConfigError(f"{what} must be {_WHAT[kind]}, got {cut_repr(value)}")
         if kind in _CANONICAL:
             object.__setattr__(config, f.name, _CANONICAL[kind](value))  # frozen dataclasses too
+
+
+def cut_repr(value: Any, most: int = 200) -> str:
+    """`value`'s repr for a refusal, cut to `most` characters with "..." (it may be of any length)."""
+    shown = repr(value)
+    return shown if len(shown) <= most else shown[:most] + "..."
 
 
 def parse_json(text: str | bytes, what: str, max_bytes: int = 1 << 20) -> Any:

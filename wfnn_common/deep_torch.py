@@ -420,18 +420,23 @@ class Trainer:
         d = self.config.deep
         t = self._tensors(batch)
         noise = torch.randn(t["action"].shape, generator=self.generator, device=self.device)
-        popart = d.popart_rate > 0.0
-        scale = torch.tensor(value_scale(self.moments), device=self.device) if popart else self._identity
-        args = (self.blocks, self.target, t["state"], t["action"], t["reward"], t["next_state"],
-                t["discount"], noise, scale)  # fmt: skip
-        total, Q1, y = self._compiled_loss(args) if d.compile else loss(self.critics, self.config, *args)
+        total, Q1, y = self._losses(t, noise)
         self._step(self.gradient(total))
         self.target.lerp_(self.theta, d.tau)
-        if popart:
+        if d.popart_rate > 0.0:
             self._track(y)
         if not stats:
             return float("nan"), float("nan")
         return float(Q1.mean()), float((y - Q1).abs_().mean())
+
+    def _losses(self, t: dict[str, torch.Tensor], noise: torch.Tensor) -> Losses:
+        """`loss` (compiled where deep.compile is set) on a minibatch's tensors (`_tensors`) and noise."""
+        d = self.config.deep
+        popart = d.popart_rate > 0.0
+        scale = torch.tensor(value_scale(self.moments), device=self.device) if popart else self._identity
+        args = (self.blocks, self.target, t["state"], t["action"], t["reward"], t["next_state"],
+                t["discount"], noise, scale)  # fmt: skip
+        return self._compiled_loss(args) if d.compile else loss(self.critics, self.config, *args)
 
     def _track(self, y: torch.Tensor) -> None:
         """The statistics take in targets y [B]; the output layers keep every value as it was.
@@ -479,10 +484,7 @@ class Trainer:
         zeros = {"state": np.zeros((b, s)), "action": np.zeros((b, a)), "reward": np.zeros(b),
                  "next_state": np.zeros((b, s)), "discount": np.zeros(b)}  # fmt: skip
         t = self._tensors(zeros)
-        noise = torch.zeros(t["action"].shape, device=self.device)
-        args = (self.blocks, self.target, t["state"], t["action"], t["reward"], t["next_state"],
-                t["discount"], noise, self._identity)  # fmt: skip
-        total, _, _ = self._compiled_loss(args)
+        total, _, _ = self._losses(t, torch.zeros(t["action"].shape, device=self.device))
         try:
             self.gradient(total)  # the backward pass is compiled at its first call too
         except Exception as exc:  # as a failing forward compile: the uncompiled loss is the same arithmetic

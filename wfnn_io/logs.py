@@ -79,6 +79,7 @@ from wfnn_io.segments import (
     Position,
     ReadReport,
     SegmentLog,
+    named_strays,
     read_records,
     segment_numbers,
     stray_segments,
@@ -384,9 +385,8 @@ def check_log(directory: Path) -> None:
             )
         strays = stray_segments(directory) if Path(directory).is_dir() else []
         if strays:  # a log's segments renamed by hand: said, as readers say it of a log
-            shown = ", ".join(ascii(n)[:80] for n in strays[:5]) + (" ..." if len(strays) > 5 else "")
             raise LogFormatError(f"{directory}: no segment named as a log names them (00000000.seg on); "
-                                 f"named like segments, not read: {shown}")  # fmt: skip
+                                 f"named like segments, not read: {named_strays(strays)}")  # fmt: skip
         raise LogFormatError(f"{directory}: no experience log here (no .seg files)")
 
 

@@ -17,6 +17,7 @@ from wfnn_io import logs
 from wfnn_io.cli_errors import describe, file_given, guarded, log_printably, one_line, path_given
 from wfnn_io.persist import to_jsonable
 from wfnn_io.protocol import load_key
+from wfnn_io.segments import named_strays
 
 app = typer.Typer(help="Experience logs: a client's --record DIR/journal, a server's DATA_DIR/store.",
                   no_args_is_help=True)  # fmt: skip
@@ -93,9 +94,7 @@ def inspect(
                  else f"segment {d.segment}, offset {d.offset:,}: {d.length:,} bytes")  # fmt: skip
         table.add_row(f"[red]damaged, skipped ({escape(d.kind)})[/]", where)
     if summary.strays:
-        names = ", ".join(_shown(n) for n in summary.strays[:5])
-        more = f" and {len(summary.strays) - 5} more" if len(summary.strays) > 5 else ""
-        table.add_row("[red]named like segments, not read[/]", names + more)
+        table.add_row("[red]named like segments, not read[/]", escape(named_strays(summary.strays)))
     console.print(table)
 
 

@@ -36,6 +36,8 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
+from wfnn_common.checks import cut_repr
+
 log = logging.getLogger(__name__)
 
 MAGIC = b"WFNN"
@@ -150,8 +152,7 @@ def _check_journal(journal: str) -> None:
 def check_id(name: str, what: str = "id") -> str:
     """A sender id or controller name: 1-16 of [A-Za-z0-9_.-] (safe in frames and key expressions)."""
     if not isinstance(name, str) or not _ID_PATTERN.fullmatch(name):
-        shown = repr(name) if len(repr(name)) <= 60 else repr(name)[:60] + "..."
-        raise ValueError(f"{what} must be 1-16 characters of [A-Za-z0-9_.-], got {shown}")
+        raise ValueError(f"{what} must be 1-16 characters of [A-Za-z0-9_.-], got {cut_repr(name, 60)}")
     return name
 
 

@@ -147,6 +147,12 @@ def stray_segments(directory: Path) -> list[str]:
     return sorted(p.name for p in directory.glob(f"*{SUFFIX}") if _segment_number(p) is None)
 
 
+def named_strays(strays: list[str]) -> str:
+    """`stray_segments`' names for a message: the first five (escaped, cut), and how many more."""
+    shown = ", ".join(ascii(n)[:80] for n in strays[:5])
+    return shown + (f" and {len(strays) - 5} more" if len(strays) > 5 else "")
+
+
 def segment_numbers(directory: Path) -> list[int]:
     """Segment numbers present in `directory`, in order (none if it does not exist).
 
@@ -296,11 +302,8 @@ def read_records(
     if strays:
         if report is not None:
             report.strays = strays
-        shown = ", ".join(ascii(n)[:80] for n in strays[:5])
-        if len(strays) > 5:
-            shown += f" and {len(strays) - 5} more"
         log.warning("%s: %d files named like segments, not as this log names them, are not read: %s",
-                    directory, len(strays), shown)  # fmt: skip
+                    directory, len(strays), named_strays(strays))  # fmt: skip
     expected = 0 if start is None else start.segment
     """The segment that should come next (a start names one that was written)."""
     i = 0
