@@ -287,7 +287,8 @@ def client(
         ),
     ] = 0,
     exploration: Annotated[
-        str | None, typer.Option(help="uniform, gaussian, smooth or none (sim's: uniform, hydra gaussian).")
+        str | None,
+        typer.Option(help="uniform, gaussian, smooth, pink or none (sim's: uniform, hydra gaussian)."),
     ] = None,
     max_action_rate: Annotated[str | None, typer.Option(help="Max change per second, per action.")] = None,
     safe_action: Annotated[str | None, typer.Option(help="Safe action, comma-separated (default 0).")] = None,
@@ -350,7 +351,7 @@ def client(
         raise typer.BadParameter("an exploration kind, not an empty string", param_hint="--exploration")
     explicit = exploration is not None
     exploration = exploration or SIMS[sim].exploration
-    if exploration not in ("uniform", "gaussian", "smooth", "none"):
+    if exploration not in ("uniform", "gaussian", "smooth", "pink", "none"):
         raise typer.BadParameter(f"unknown exploration {cut_repr(exploration, 60)}",
                                  param_hint="--exploration")  # fmt: skip
     try:

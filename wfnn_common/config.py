@@ -20,7 +20,7 @@ from wfnn_common.checks import check_fields as check_fields
 from wfnn_common.checks import parse_json as parse_json
 from wfnn_common.symmetry import Symmetry
 
-ExplorationKind = Literal["none", "uniform", "gaussian", "smooth"]
+ExplorationKind = Literal["none", "uniform", "gaussian", "smooth", "pink"]
 log = logging.getLogger(__name__)
 _told_whole: set[str] = set()
 """Specs whose whole-number ranges were warned of (once each, a few: statuses repeat configs)."""
@@ -37,18 +37,19 @@ class ExplorationConfig:
     kind: ExplorationKind = "uniform"
     """`uniform`: replace the action by a uniform random one with probability `p` (Section 3.4);
     `gaussian`: add N(0, sigma) noise, as on the robots; `smooth`: add smoothly varying noise
-    (an Ornstein-Uhlenbeck process with time constant `tau_steps`); `none`: greedy."""
+    (an Ornstein-Uhlenbeck process with time constant `tau_steps`); `pink`: add noise whose power
+    falls as 1/frequency up to periods of about `tau_steps` (`exploration.Explorer`); `none`: greedy."""
     p: float = 0.1
     """Probability of a uniform random action (kind `uniform`)."""
     sigma: float = 0.1
     """Noise standard deviation in scaled action units, where the declared range is [-1, 1]."""
     tau_steps: float = 10.0
-    """Correlation time of the smooth noise, in actions."""
+    """Correlation time of the smooth noise, in actions; the pink noise's longest."""
 
     def __post_init__(self) -> None:
         check_fields(self)
-        if self.kind not in ("none", "uniform", "gaussian", "smooth"):
-            kinds = "none, uniform, gaussian or smooth"
+        if self.kind not in ("none", "uniform", "gaussian", "smooth", "pink"):
+            kinds = "none, uniform, gaussian, smooth or pink"
             raise ConfigError(f"exploration.kind must be {kinds}, got {self.kind!r:.60}")
         if not 0.0 <= self.p <= 1.0:
             raise ConfigError(f"exploration.p must be in [0, 1], got {self.p}")

@@ -699,17 +699,23 @@ class WFNN:
             return None
         noise = np.asarray(state["exploration_noise"])
         shape = self.explorer.noise.shape
-        if noise.dtype.kind != "f" or noise.shape != shape or not np.isfinite(noise).all():
+        # The smooth noise [P, A] or the pink noise's processes [P, K, A]: a run resumed with
+        # another exploration may hold the other layout, or another K.
+        layout = noise.ndim in (2, 3) and noise.shape[:1] == shape[:1] and noise.shape[-1:] == shape[-1:]
+        if noise.dtype.kind != "f" or not layout or not np.isfinite(noise).all():
             raise ValueError(f"training state exploration_noise: {noise.dtype} {noise.shape}, expected "
                              f"finite {shape}")  # fmt: skip
-        # The smooth noise's deviation is sigma: 20 of them is no state it reaches (1e300 held the
-        # actions at their limit for thousands of ticks). Such noise restarts from 0, as at an
+        # The noise's deviation is sigma: 20 of them is no state it reaches (1e300 held the
+        # actions at their limit for thousands of ticks). Such noise restarts, as at an
         # episode's start: a run resumed with a smaller sigma may hold it too.
         bound = NOISE_DEVIATIONS * self.config.exploration.sigma
-        if np.abs(noise).max(initial=0.0) > bound:
+        restart = noise.shape != shape or np.abs(noise).max(initial=0.0) > bound
+        if noise.shape != shape:
+            log.warning("training state exploration_noise is laid out as %s, this exploration's as %s "
+                        "(another kind, or tau_steps): the noise restarts", noise.shape, shape)  # fmt: skip
+        elif restart:
             log.warning("training state exploration_noise is beyond %g (%d times exploration.sigma): "
-                        "the noise restarts from 0", bound, NOISE_DEVIATIONS)  # fmt: skip
-            noise = np.zeros(shape)
+                        "the noise restarts", bound, NOISE_DEVIATIONS)  # fmt: skip
         streams = [(self._weights_rng, "random_weights"), (self._replay_rng, "random_replay"),
                    (self.explorer.rng, "random_exploration")]  # fmt: skip
         states = [generator_state_from(state[key], key) for _, key in streams]
@@ -717,7 +723,10 @@ class WFNN:
         def load() -> None:
             for (rng, _), bits in zip(streams, states, strict=True):
                 rng.bit_generator.state = bits
-            self.explorer.noise[...] = noise
+            if restart:
+                self.explorer.reset()
+            else:
+                self.explorer.noise[...] = noise
 
         return load
 

@@ -1,4 +1,5 @@
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -202,6 +203,33 @@ def test_exploration_strategies():
     assert steps.std() < 0.5 * trace[100:].std()  # consecutive actions close: smooth
     assert 0.15 < trace[100:].std() < 0.25
     assert np.array_equal(Explorer(ExplorationConfig(kind="none"), 3, 2, rng)(greedy[:3]), greedy[:3])
+
+
+def test_pink_exploration_has_deviation_sigma_from_the_first_action_and_power_falling_as_one_over_f():
+    """Eberhard et al.'s pink noise: its power spectrum's log-log slope is -1 between periods of
+    a few actions and tau_steps (white noise's is 0, the smooth noise's -2 above its corner)."""
+    from wfnn_common.exploration import pink_taus
+
+    assert pink_taus(1.0).tolist() == [1.0] and pink_taus(4.0).tolist() == [1.0, 4.0]
+    taus = pink_taus(1000.0)
+    assert taus[0] == 1.0 and taus[-1] == pytest.approx(1000.0) and (taus[1:] / taus[:-1] <= 4.0 + 1e-9).all()
+    pink_config = ExplorationConfig(kind="pink", sigma=0.1, tau_steps=1000.0)
+    pink = Explorer(pink_config, 64, 2, np.random.default_rng(3))
+    trace = np.array([pink(np.zeros((64, 2))) for _ in range(4096)])  # [T, P, A]
+    assert 0.08 < trace[:10].std() < 0.12 and 0.09 < trace.std() < 0.11  # no ramp up from 0
+    segments = trace.reshape(4096, -1).T  # one per learner and action dimension
+    power = (np.abs(np.fft.rfft(segments * np.hanning(4096), axis=1)) ** 2).mean(axis=0)
+    freq = np.fft.rfftfreq(4096)
+    band = (freq > 1 / 1000) & (freq < 1 / 10)
+    slope = np.polyfit(np.log(freq[band]), np.log(power[band]), 1)[0]
+    assert -1.15 < slope < -0.85
+    rows = np.array([True] + [False] * 63)
+    before = pink.noise.copy()
+    pink.reset(rows)  # drawn anew where asked, where it stands elsewhere
+    assert not np.array_equal(pink.noise[0], before[0]) and np.array_equal(pink.noise[1:], before[1:])
+    assert 0.0 < np.abs(pink.noise[0]).max() < 0.5
+    near_bound = pink(np.full((64, 2), 0.99))
+    assert (near_bound <= 1.0).all() and (near_bound < 0.99).any()
 
 
 def test_replay_buffer_is_a_bounded_ring_per_learner():
@@ -699,14 +727,20 @@ def test_a_deep_population_takes_its_members_rows_as_given_not_reshaped():
     assert population.learn(rows, np.zeros((3, 1)), rows, np.zeros(3)).tolist() == [True] * 3
 
 
-@pytest.mark.parametrize("learner", ["thesis", "deep"])
-def test_a_learner_resumed_from_its_training_state_goes_on_as_one_that_never_stopped(tmp_path, learner):
+RESUMED = [("thesis", "uniform"), ("deep", "uniform"), ("deep", "pink")]
+
+
+@pytest.mark.parametrize(("learner", "exploration"), RESUMED)
+def test_a_learner_resumed_from_its_training_state_goes_on_as_one_that_never_stopped(
+    tmp_path, learner, exploration
+):
     """Its random streams (replay sampling, exploration, the deep learner's smoothing noise and
     warm-up) are resumed where they stood: they started again from the seed, and a run stopped
     and resumed (a think server's restart) sampled, explored and learned otherwise."""
     from wfnn_io.persist import load_checkpoint, save_weights
 
-    options = {"deep": {"warmup": 30}} if learner == "deep" else {}
+    options: dict[str, Any] = {"deep": {"warmup": 30}} if learner == "deep" else {}
+    options["exploration"] = {"kind": exploration, "tau_steps": 50.0}
     cfg = with_options(small_config(learner=learner, thinks_per_action=3, seed=4), options)
     exp = random_experiences(np.random.default_rng(1), 60, 3, 2)
     states = np.random.default_rng(2).uniform(-1, 1, (40, 3))
@@ -762,4 +796,15 @@ def test_a_learner_resumed_from_its_training_state_goes_on_as_one_that_never_sto
     resumed.load_training_state(
         {**training, "exploration_noise": np.full_like(training["exploration_noise"], 1e300)}
     )
-    assert not resumed.random_state()["exploration_noise"].any()
+    restarted = resumed.random_state()["exploration_noise"]
+    assert (0.0 < np.abs(restarted).max() < 1.0) if exploration == "pink" else not restarted.any()
+    # Noise laid out for another exploration (smooth's [P, A], pink's [P, K, A], another K) is
+    # a resume with another --exploration: the noise restarts, the rest resumes.
+    for other in ("smooth", "pink"):
+        again = make_learner(with_options(ck_cfg, {"exploration": {"kind": other, "tau_steps": 400.0}}),
+                             params=params)  # fmt: skip
+        again.load_training_state(training)
+        np.testing.assert_array_equal(again.random_state()["random_replay"], training["random_replay"])
+        assert again.random_state()["exploration_noise"].shape == again.explorer.noise.shape
+    with pytest.raises(ValueError, match="exploration_noise"):
+        resumed.load_training_state({**training, "exploration_noise": np.zeros((2, 3))})
