@@ -233,18 +233,24 @@ class LocalBrain:
         think_batch: int = 50,
         recorder: Recorder | None = None,
         learns: bool = True,
+        version: int = 0,
     ) -> None:
         self.learner = learner
         # Before the control loop and the think thread run: loading torch among them would hold up ticks.
         learner.prepare_thinking(compile=learns)
         self.lockstep = lockstep
-        self.mt = None if lockstep or not learns else ActLearnThinkMT(learner, think_batch=think_batch)
+        self.mt = None if lockstep or not learns else ActLearnThinkMT(learner, think_batch, version=version)
         self.frozen = None if learns else learner.snapshot()
         """A run that learns nothing acts on the weights it was given, as they are: acting on the
         learner's own, its divergence monitor would reset them to random ones (and save those)."""
         self.recorder = recorder
         """Where every experience is recorded (an experience log), if anywhere."""
         self._told_refused = False
+
+    @property
+    def version(self) -> int:
+        """The weights version `act` uses: the snapshots published (lock-step: the thinks)."""
+        return self.mt.version if self.mt is not None else int(self.learner.thinks[0])
 
     @property
     def following(self) -> str:
@@ -319,7 +325,7 @@ class LocalBrain:
                         threshold=8), cfg.valid_margin)  # fmt: skip
         return {
             "think/thinks": float(self.learner.thinks.sum()),
-            "weights/version": float(self.mt.version if self.mt else self.learner.thinks[0]),
+            "weights/version": float(self.version),
             "learn/divergence_resets": float(self.learner.resets.sum()),
             "learn/experiences": stored,
             "learn/rejected": refused,

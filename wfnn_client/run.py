@@ -96,8 +96,12 @@ def learner_config(task: VecTask | Ranges, config: ClientConfig) -> LearnerConfi
     return chosen
 
 
-def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> Brain:
-    """Local thinking, or the C/S client over a Zenoh bus (a behaviour of several: its own controller)."""
+def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "", version: int = 0) -> Brain:
+    """Local thinking, or the C/S client over a Zenoh bus (a behaviour of several: its own controller).
+
+    `version`: the last weights version of the run these weights were saved by (local thinking
+    counts on from it, so that the runs' journals never name two snapshots by one version).
+    """
     if config.local:
         from wfnn_client.brain import Recorder
 
@@ -109,7 +113,7 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "") -> B
                           background=True)  # fmt: skip
         try:
             return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch,
-                              recorder=record, learns=config.learn)  # fmt: skip
+                              recorder=record, learns=config.learn, version=version)  # fmt: skip
         except BaseException:
             record.close()
             raise
@@ -267,10 +271,14 @@ def _ranges(config: LearnerConfig) -> tuple[tuple[float, ...], ...]:
     return config.state_low, config.state_high, config.action_low, config.action_high
 
 
-def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerConfig, Learner]:
-    """A behaviour's learner config and learner (from saved weights where given); nothing written."""
+def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerConfig, Learner, int]:
+    """A behaviour's learner config, learner and weights version (from saved weights where given).
+
+    Nothing is written.
+    """
     lcfg = learner_config(ranges, config)
     learner = make_learner(lcfg)
+    version = 0
     path = _given_weights(config, name)
     if path is not None:
         # A learner that learns here resumes the training saved with the weights (the deep
@@ -297,10 +305,17 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             raise ValueError(f"{path}: {exc}") from exc
         thinks = meta.get("thinks") if config.learn and config.local else None
         if thinks is not None:  # the count goes on: a local learner's weights versions are its thinks
-            if not isinstance(thinks, int) or isinstance(thinks, bool) or not 0 <= thinks <= MAX_SAVED_COUNT:
-                raise ValueError(f"{path}: its thinks are not a count: {str(thinks)[:40]!r}")
-            learner.thinks[:] = thinks
-    return lcfg, learner
+            learner.thinks[:] = _saved_count(thinks, f"{path}: its thinks")
+            # Saved before versions were, the thinks bound them (one snapshot per think at most).
+            version = _saved_count(meta.get("version", thinks), f"{path}: its versions")
+    return lcfg, learner, version
+
+
+def _saved_count(value: Any, what: str) -> int:
+    """`value`, a count saved with weights; ValueError where it is none."""
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_SAVED_COUNT:
+        raise ValueError(f"{what} are not a count: {str(value)[:40]!r}")
+    return value
 
 
 def _resumed(saved: LearnerConfig, chosen: LearnerConfig, config: ClientConfig) -> LearnerConfig:
@@ -369,8 +384,8 @@ def _run(
             )  # fmt: skip
         journals = [Path(config.out) / _named("journal", name) for name in behaviours.names]
         new_journals = [j for j in journals if not os.path.lexists(j)]
-        for name, lcfg, learner in learners:  # each opens its journal, which checks its spec
-            skills.append(Skill(name, lcfg, learner, make_brain(config, learner, name)))
+        for name, lcfg, learner, version in learners:  # each opens its journal, which checks its spec
+            skills.append(Skill(name, lcfg, learner, make_brain(config, learner, name, version)))
         # Written once the rest is known to hold: a refused start leaves the last run's config as it was.
         write_json(Path(config.out) / "config.json", {"client": jsonable_config(config)})
     except BaseException as exc:
@@ -734,6 +749,7 @@ def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> l
                                 "behaviour": sk.name}  # fmt: skip
         if config.local and config.learn:  # resumed with --weights, the count (and version) goes on
             meta["thinks"] = int(sk.learner.thinks[0])
+            meta["version"] = int(getattr(sk.brain, "version", 0))
         name = f"{_named('weights', sk.name)}.npz"
         given, path = _given_weights(config, sk.name), Path(config.out) / name
         if not (config.local and config.learn) and given is not None and _same_file(given, path):

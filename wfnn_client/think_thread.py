@@ -46,6 +46,7 @@ class ActLearnThinkMT:
         think_batch: int = 50,
         publish_period_s: float = 0.02,
         idle_sleep_s: float = 0.001,
+        version: int = 0,
     ) -> None:
         self.learner = learner
         self.think_batch = think_batch
@@ -56,8 +57,10 @@ class ActLearnThinkMT:
         thinks-per-action setting; more replays than that over-fit, Fig 4.9)."""
         self._queue: collections.deque[tuple[Any, ...]] = collections.deque()
         self._snapshot: Params = learner.snapshot()
-        self.version = 0
-        """Snapshots published so far."""
+        self.version = version
+        """The last snapshot's number: snapshots published so far, after `version` (those of the
+        run that saved the weights this one resumed)."""
+        self._first_version = version
         self._published_thinks = 0
         self._reset_requested = np.zeros(learner.population, dtype=np.bool_)
         self._stop = threading.Event()
@@ -157,7 +160,7 @@ class ActLearnThinkMT:
                     log.warning("divergence: reset weights of %d learner(s)", int(which.sum()))
                 n = self.schedule.next_thinks(self.think_batch, 0, stored=learner.buffer.count.max() > 0)
                 if n == 0:
-                    if self.version == 0 or learner.thinks.sum() > self._published_thinks:
+                    if self.version == self._first_version or learner.thinks.sum() > self._published_thinks:
                         self._publish()
                     time.sleep(self.idle_sleep_s)
                     continue

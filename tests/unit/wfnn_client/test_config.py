@@ -585,6 +585,31 @@ def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path,
     assert meta["thinks"] == second["think/thinks"]
 
 
+def test_a_local_run_thinking_in_its_thread_resumed_from_its_weights_numbers_its_snapshots_on(tmp_path):
+    """Its weights versions (snapshots published) began again at 0 while its thinks went on: a
+    journal continued by the resumed run named two snapshots by one version."""
+    from wfnn_client.run import run as run_client
+    from wfnn_io import logs
+    from wfnn_io.persist import load_checkpoint, save_weights
+
+    def client(**kw):
+        return ClientConfig(sim="boat", rate_hz=0, episodes=1, thinks_per_action=2, out=tmp_path / "a", **kw)
+
+    run_client(client())
+    _, _, meta, _ = load_checkpoint(tmp_path / "a" / "weights.npz")
+    first = np.concatenate([b.weights_version for b in logs.read_batches(tmp_path / "a" / "journal")])
+    assert meta["version"] >= first.max() > 0 and (np.diff(first.astype(np.int64)) >= 0).all()
+    run_client(client(weights=tmp_path / "a" / "weights.npz"))
+    both = np.concatenate([b.weights_version for b in logs.read_batches(tmp_path / "a" / "journal")])
+    assert len(both) > len(first) and (np.diff(both.astype(np.int64)) >= 0).all()
+    assert both[len(first) :].min() >= first.max()
+    cfg, params, meta, training = load_checkpoint(tmp_path / "a" / "weights.npz")
+    assert meta["version"] >= both.max() > first.max()
+    save_weights(tmp_path / "bad.npz", cfg, params, {**meta, "version": -1}, training=training)
+    with pytest.raises(ValueError, match=r"bad\.npz: its versions are not a count: '-1'"):
+        run_client(client(weights=tmp_path / "bad.npz"))
+
+
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_options_given(
     tmp_path, learner, caplog
