@@ -44,9 +44,11 @@ from wfnn_io.cli_errors import Terminated, handling, log_failure, noting, termin
 from wfnn_io.logs import CLIENT_JSON, remove_empty_log
 from wfnn_io.persist import (
     PersistError,
+    folders_to_be_made,
     load_checkpoint,
     make_directory,
     read_regular_text,
+    remove_empty_folders,
     save_experiences,
     save_figure,
     save_weights,
@@ -171,17 +173,22 @@ def run(
     directory is checked and made first (`prepare`; `prepared`: the caller has done it), and
     the whole config is written there (`config.json`) once nothing else can refuse the start.
     """
-    if not prepared:
-        prepare(config)
-    spec = SIMS[config.sim]
-    task = spec.make(config.sim_options)
+    new_folders = [] if prepared else folders_to_be_made(Path(config.out))
     try:
-        with _terminated_as_interrupted():
-            return _run(config, spec, task, on_status)
-    finally:
-        close = getattr(task, "close", None)  # a renderer's GL context
-        if close is not None:
-            close()
+        if not prepared:
+            prepare(config)
+        spec = SIMS[config.sim]
+        task = spec.make(config.sim_options)
+        try:
+            with _terminated_as_interrupted():
+                return _run(config, spec, task, on_status)
+        finally:
+            close = getattr(task, "close", None)  # a renderer's GL context
+            if close is not None:
+                close()
+    except BaseException:
+        remove_empty_folders(new_folders)  # a refused start leaves no empty folder of its own making
+        raise
 
 
 def _terminated_as_interrupted() -> contextlib.AbstractContextManager[None]:

@@ -356,7 +356,7 @@ def test_a_start_refused_after_its_journals_opened_leaves_no_journal_of_its_maki
     for config in (boat, forage):
         with pytest.raises(OSError, match="No space"):
             run(config)
-        assert config.out.is_dir() and list(config.out.iterdir()) == []
+        assert not config.out.exists()  # nor the folder it made
     monkeypatch.undo()
     run(ClientConfig(sim="boat", episodes=1, rate_hz=0.0, out=tmp_path / "kept"))
     before = {p.name: p.read_bytes() for p in (tmp_path / "kept" / "journal").iterdir() if p.is_file()}
@@ -756,3 +756,15 @@ def test_options_that_would_be_ignored_or_taken_as_the_default_are_refused(tmp_p
         result = CliRunner().invoke(server_cli.app, args)
         assert result.exit_code == 2 and "serves no dashboard without --dashboard" in result.output
     assert not (tmp_path / "d").exists()
+
+
+def test_a_start_the_python_api_refuses_leaves_no_empty_folder_of_its_making(tmp_path):
+    """As the command line's: a refused run() left its new, empty --out (and the folders above it)."""
+    from wfnn_client.run import SetupError
+    from wfnn_client.run import run as run_client
+
+    (tmp_path / "kept").mkdir()
+    for out in (tmp_path / "new" / "deeper" / "run", tmp_path / "kept"):
+        with pytest.raises(SetupError, match="no such file"):
+            run_client(ClientConfig(sim="boat", rate_hz=0, episodes=1, out=out, weights=tmp_path / "no.npz"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"] and not any((tmp_path / "kept").iterdir())

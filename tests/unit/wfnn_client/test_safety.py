@@ -159,7 +159,7 @@ def test_a_vetoed_tick_is_learned_twice(tmp_path, monkeypatch):
     sims["positioning"] = dataclasses.replace(sims["positioning"], veto=always_veto)
     monkeypatch.setattr(client_run, "SIMS", sims)
     monkeypatch.setattr(
-        client_run, "make_brain", lambda config, learner, behaviour="": Recording(learner, lockstep=True)
+        client_run, "make_brain", lambda config, learner, *_: Recording(learner, lockstep=True)
     )
     config = ClientConfig(
         sim="positioning", episodes=1, rate_hz=0, lockstep=True, thinks_per_action=1, out=tmp_path
