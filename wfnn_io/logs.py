@@ -70,6 +70,7 @@ from wfnn_io.protocol import (
     check_id,
     controller_key,
     decode,
+    mark_non_finite,
 )
 from wfnn_io.segments import (
     LOCK,
@@ -369,10 +370,14 @@ def read_entries(
 def read_batches(
     directory: Path, key: bytes | None = None, counts: ReadCounts | None = None
 ) -> Iterator[ExperienceBatch]:
-    """Every experience batch in a log, oldest first (see `read_entries`); read-only."""
+    """Every experience batch in a log, oldest first (see `read_entries`); read-only.
+
+    Experiences holding NaN or infinity are flagged EXP_NON_FINITE, as a server flags them at
+    ingest: a client's journal keeps its frames as sent, unflagged.
+    """
     check_log(directory)
     for _, _, batch in read_entries(directory, key, counts):
-        yield batch
+        yield mark_non_finite(batch)[0]
 
 
 def check_log(directory: Path) -> None:
@@ -882,6 +887,23 @@ def check_outside(out: Path, sources: Iterable[Path]) -> None:
             raise LogFormatError(f"{out} is inside the log {source} being read; write somewhere else")
 
 
+def check_place(out: Path) -> None:
+    """Refuse an output path inside any log, read or not, or in a think server's data directory.
+
+    A live server's store went on appending to the segment an export replaced (what it had
+    acknowledged was gone); a split into a store's folder, cut short, left every reader refusing
+    the store as "a write under way"; an export over a checkpoint lost what the server had learned.
+    An output that is itself a log is `_check_new`'s to refuse.
+    """
+    target = Path(out).resolve()
+    for folder in [target, *target.parents]:
+        if folder != target and is_log(folder):  # a live one has its segment from the start
+            raise LogFormatError(f"{out} is inside the log {folder}; write somewhere else")
+        if is_log(folder / "store"):
+            raise LogFormatError(f"{out} is in a think server's data directory {folder}; "
+                                 "write somewhere else")  # fmt: skip
+
+
 def common_config(directories: Iterable[Path]) -> LearnerConfig | None:
     """The learner config of logs that must agree on their spec (None if none says).
 
@@ -975,6 +997,7 @@ def _digests(batch: ExperienceBatch) -> list[int]:
 def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     """Merge logs into a new log at `out` (see `merged`); -> experiences written."""
     check_outside(out, sources)
+    check_place(out)
     config = common_config(sources)
     counts = ReadCounts()
     written = write_log(out, merged(sources, key, config=config, counts=counts), config)
@@ -1003,6 +1026,8 @@ def split(
     if by != "count" and every:  # else silently ignored
         raise ValueError(f"every is for split by count, not by {by}")
     check_outside(out, [source])
+    check_place(out)
+    _check_new(Path(out))  # its parts go inside it: in a log, one cut short had every reader refuse it
     config = common_config([source])  # an unreadable description: a warning, as for the other commands
     groups: dict[str, list[ExperienceBatch]] = {}
     names: dict[str, str] = {}
@@ -1075,15 +1100,7 @@ def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bo
         raise IsADirectoryError(21, "is a directory (export writes one .npz file)", str(out))
     # Any folder above it, not only its own: --replace over a store's quarantined tail (in a
     # subfolder of the store) lost what the store had set aside.
-    for folder in Path(out).resolve().parents:
-        if is_log(folder):  # a live one has its segment from the start
-            # Any log, not only those read: a live server's store went on appending to the segment
-            # an export replaced, and what it had acknowledged was gone from the store.
-            raise LogFormatError(f"{out} is inside the log {folder}; write somewhere else")
-    folder = Path(out).resolve().parent
-    if is_log(folder / "store"):
-        # Nor beside a server's store: --replace over its checkpoint lost what it had learned.
-        raise LogFormatError(f"{out} is in a think server's data directory {folder}; write somewhere else")
+    check_place(out)
     if not replace and os.path.lexists(out):  # before the logs are read, which may take long
         raise FileExistsError(errno.EEXIST, "exists (pass --replace to write over it)", str(out))
     arrays = to_arrays(sources, key)

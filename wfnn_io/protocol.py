@@ -240,7 +240,8 @@ EXP_FILTERED = 0x10
 """The action filter (maximum acceleration) changed the proposed action."""
 EXP_NON_FINITE = 0x20
 """A value of the experience is NaN or infinite: stored as received (its numbering kept
-whole), never learned. Set by the server at ingest (`mark_non_finite`)."""
+whole), never learned. Set by the server at ingest and by every reader of a log (`mark_non_finite`):
+a client's journal keeps its frames as it sent them."""
 EXP_AFTER_LOSS = 0x40
 """On a batch's first experience: the experiences numbered between what its receiver holds and
 this one are lost (the sender's journal lost them to damage); the receiver's run goes on after
@@ -473,6 +474,18 @@ M = TypeVar("M", ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatu
 MESSAGES: dict[MsgType, type[Any]] = {
     cls.TYPE: cls for cls in (ExperienceBatch, Ack, WeightSnapshot, ServerStatus, ClientStatus, CameraView)
 }
+
+
+def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
+    """`batch` with EXP_NON_FINITE set on experiences holding NaN or infinity; -> (batch, how many).
+
+    They are stored as received, so each client's numbering stays whole, and never learned.
+    """
+    bad = batch.non_finite() & ((batch.flags & EXP_NON_FINITE) == 0)
+    n = int(np.count_nonzero(bad))
+    if not n:
+        return batch, 0
+    return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
 
 
 # --------------------------------------------------------------------------- body codec

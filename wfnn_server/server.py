@@ -81,6 +81,7 @@ from wfnn_io.protocol import (
     Unsendable,
     WeightSnapshot,
     load_key,
+    mark_non_finite,
     older_peer,
     take,
 )
@@ -144,18 +145,6 @@ def lower_priority(nice: int) -> None:
         os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
     except OSError as exc:
         log.warning("could not lower the think thread's priority: %s", exc)
-
-
-def mark_non_finite(batch: ExperienceBatch) -> tuple[ExperienceBatch, int]:
-    """`batch` with EXP_NON_FINITE set on experiences holding NaN or infinity; -> (batch, how many).
-
-    They are stored as received, so each client's numbering stays whole, and never learned.
-    """
-    bad = batch.non_finite() & ((batch.flags & EXP_NON_FINITE) == 0)
-    n = int(np.count_nonzero(bad))
-    if not n:
-        return batch, 0
-    return dataclasses.replace(batch, flags=np.where(bad, batch.flags | EXP_NON_FINITE, batch.flags)), n
 
 
 def _digest(cfg: LearnerConfig) -> bytes:

@@ -896,3 +896,51 @@ def test_a_file_set_aside_is_named_once_where_the_reason_names_it_too(tmp_path, 
         kept = logs.set_aside(path, f"unreadable ({path}: not JSON)")
     assert kept.exists() and not path.exists()
     assert caplog.text.count(str(path)) == 1 and "unreadable (not JSON)" in caplog.text
+
+
+def test_every_reader_flags_a_journals_non_finite_experiences_as_a_server_flags_them(tmp_path):
+    """A client's journal keeps its frames as sent, unflagged: inspect said non_finite 0, export
+    wrote NaN rows with clean flags, and merge and split passed them on unflagged."""
+    from wfnn_io.protocol import EXP_NON_FINITE
+
+    rng = np.random.default_rng(0)
+    config = LearnerConfig.for_task(BoatVec)
+    recorder = Recorder(tmp_path / "log", config, "robot1", batch_max=16)
+    bad = {3: "reward", 10: "state", 11: "next_state", 40: "action"}
+    for i in range(50):
+        s, sn = rng.uniform(-1, 1, config.state_dim), rng.uniform(-1, 1, config.state_dim)
+        a = rng.uniform(-1, 1, config.action_dim)
+        r = np.nan if bad.get(i) == "reward" else 0.5
+        {"state": s, "action": a, "next_state": sn}.get(bad.get(i, ""), np.zeros(1))[0] = np.inf
+        recorder.add(Experience(s, a, sn, r, False, EXP_EXPLORED if i == 10 else 0), "local", 1)
+    recorder.close()
+    flagged = [3, 10, 11, 40]
+    assert logs.summarise(tmp_path / "log").flags["non_finite"] == 4
+    arrays = logs.to_arrays([tmp_path / "log"])
+    assert np.flatnonzero(arrays["flags"] & EXP_NON_FINITE).tolist() == flagged
+    assert arrays["flags"][10] == EXP_NON_FINITE | EXP_EXPLORED  # the flags it had are kept
+    logs.merge([tmp_path / "log"], tmp_path / "merged")
+    merged = np.concatenate([b.flags for _, _, b in logs.read_entries(tmp_path / "merged")])  # as stored
+    assert np.flatnonzero(merged & EXP_NON_FINITE).tolist() == flagged
+
+
+def test_merge_and_split_refuse_an_output_in_a_log_or_a_servers_data_directory_as_export_does(tmp_path):
+    """`split --out STORE` was taken (parts written inside a store: cut short, every reader refused
+    the store), as were `merge --out DATA_DIR` and `merge --out STORE/x`."""
+    record(tmp_path / "a")
+    record(tmp_path / "b", client="robot3")
+    record(tmp_path / "srv" / "store", client="robot2")  # a think server's data directory
+    before = {p: p.read_bytes() for p in (tmp_path / "srv").rglob("*") if p.is_file()}
+    refused = [
+        (lambda: logs.split(tmp_path / "a", tmp_path / "srv" / "store"), "data directory"),
+        (lambda: logs.split(tmp_path / "a", tmp_path / "b"), "already holds a log"),
+        (lambda: logs.split(tmp_path / "a", tmp_path / "srv" / "parts"), "think server's data directory"),
+        (lambda: logs.merge([tmp_path / "a"], tmp_path / "srv"), "think server's data directory"),
+        (lambda: logs.merge([tmp_path / "a"], tmp_path / "srv" / "store" / "x"), "inside the log"),
+        (lambda: logs.export([tmp_path / "a"], tmp_path / "srv" / "sub" / "a.npz"), "data directory"),
+    ]
+    for write, why in refused:
+        with pytest.raises(logs.LogFormatError, match=why):
+            write()
+    assert {p: p.read_bytes() for p in (tmp_path / "srv").rglob("*") if p.is_file()} == before
+    assert logs.split(tmp_path / "a", tmp_path / "parts") == {"robot1": 300}  # elsewhere, as before
