@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -409,7 +410,19 @@ def _journal_section(journal: Path) -> Section:
             ("mean reward", _fmt(s.reward_mean)), ("terminal", str(s.terminal))]  # fmt: skip
     rows += [(f"behaviour policy {name}", str(n)) for name, n in sorted(s.behaviour.items())]
     rows += [(f"flag {name}", str(n)) for name, n in sorted(s.flags.items()) if n]
-    return Section(f"Experience log {journal.name}", rows, [], [])
+    # What a reader skipped or found missing: a page that said "experiences 544" alone hid it.
+    for client, run in sorted(s.clients.items()):
+        held = f"{run.experiences} experiences numbered {run.first_seq} to {run.last_seq}"
+        rows.append((f"client {client}", f"{held}: {run.gaps} gaps, {run.duplicates} duplicates"))
+    spans, skipped = Counter(d.kind for d in s.damage), Counter[str]()
+    for d in s.damage:
+        skipped[d.kind] += d.length
+    rows += [(f"damage {kind}", f"{n} spans, {skipped[kind]} bytes skipped")
+             for kind, n in sorted(spans.items())]  # fmt: skip
+    rows += [(f"records refused ({reason})", str(n)) for reason, n in sorted(s.refused.items()) if n]
+    notes = [f"files named like segments, not read: {', '.join(s.strays[:8])}"] if s.strays else []
+    notes += [f"its description: {s.description_error}"] if s.description_error else []
+    return Section(f"Experience log {journal.name}", rows[:MAX_ROWS], [], notes)
 
 
 def _bench_section(path: Path) -> Section:

@@ -334,3 +334,20 @@ def test_a_think_servers_data_directory_is_refused_and_left_as_it_was(tmp_path):
         result = CliRunner().invoke(app, args)
         assert result.exit_code == 2 and "think server's data directory" in result.output, args
     assert sorted(p.name for p in fresh.iterdir()) == [SERVER_JSON]
+
+
+def test_a_runs_report_tells_what_its_journal_lost_to_damage(tmp_path):
+    """A damaged journal's page said "experiences 544" alone: the damage, the gap it left and
+    the stray segment files reached only the console."""
+    out = tmp_path / "run"
+    run_client(ClientConfig(sim="boat", rate_hz=0, episodes=8, thinks_per_action=1, out=out, seed=3))
+    segment = out / "journal" / "00000000.seg"
+    data = bytearray(segment.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 64] = bytes(64)
+    segment.write_bytes(bytes(data))
+    (out / "journal" / "1.seg").write_bytes(b"")
+    html = run(ReportConfig(path=out)).read_text()
+    assert re.search(r"<td>damage corrupt</td><td>1 spans, \d+ bytes skipped</td>", html)
+    held = r"<td>client [^<]+</td><td>\d+ experiences numbered 0 to 1599: 1 gaps, 0 duplicates</td>"
+    assert re.search(held, html)
+    assert "files named like segments, not read: 1.seg" in html
