@@ -98,13 +98,25 @@ def describe(exc: BaseException) -> str:
     parts: list[str] = []
     seen: set[int] = set()
     current: BaseException | None = exc
+    effect: BaseException | None = None
     while current is not None and id(current) not in seen:
         seen.add(id(current))
-        parts.append(_one(current))
+        if not _renamed(current, effect):
+            parts.append(_one(current))
+        effect = current
         current = current.__cause__ or (None if current.__suppress_context__ else current.__context__)
     # A cause its error already quotes ("unreadable (X)" caused by X) is not said twice.
     text = ": ".join(p for i, p in enumerate(parts) if p and not any(p in q for q in parts[:i]))
     return " ".join(text.split())
+
+
+def _renamed(cause: BaseException, effect: BaseException | None) -> bool:
+    """Whether `cause` is the OS error `effect` says again, naming another file.
+
+    `naming_file`'s: a temporary file's name means nothing to the user.
+    """
+    return (isinstance(cause, OSError) and isinstance(effect, OSError) and cause.errno == effect.errno
+            and cause.strerror == effect.strerror)  # fmt: skip
 
 
 def path_given(value: str | Path) -> Path:

@@ -1016,8 +1016,9 @@ def split(
     """Split a log into new logs under `out`; -> experiences per new log.
 
     One log per client (`by="client"`) or per behaviour policy (`by="behaviour"`), or chunks of
-    about `every` experiences (`by="count"`; whole batches). The log is read as `merged` reads
-    it: each client's experiences once, and batches that do not fit its spec refused.
+    at most `every` experiences (`by="count"`; whole batches: a batch larger alone is a part of
+    its own). The log is read as `merged` reads it: each client's experiences once, and batches
+    that do not fit its spec refused.
     """
     if by not in ("client", "behaviour", "count"):
         raise ValueError(f"split by client, behaviour or count, not {by!r}")
@@ -1031,7 +1032,7 @@ def split(
     config = common_config([source])  # an unreadable description: a warning, as for the other commands
     groups: dict[str, list[ExperienceBatch]] = {}
     names: dict[str, str] = {}
-    done = 0
+    part, in_part = 0, 0
     # Read as merge and export read it: each experience once, and widths that fit their spec.
     counts = ReadCounts()
     for batch in merged([source], key, config=config, counts=counts):
@@ -1039,12 +1040,14 @@ def split(
             label = batch.client
         elif by == "behaviour":
             label = batch.weights_source
-        else:
-            label = f"part{done // every:04d}"
+        else:  # numbered by experiences done, a large batch just before a boundary overfilled one part
+            if in_part and in_part + len(batch) > every:
+                part, in_part = part + 1, 0
+            in_part += len(batch)
+            label = f"part{part:04d}"
         if label not in names:
             names[label] = _directory_name(label, set(names.values()))
         groups.setdefault(names[label], []).append(batch)
-        done += len(batch)
     counts.warn_conflicts()
     return _write_logs(Path(out), groups, config, "wfnn-logs") if groups else {}
 

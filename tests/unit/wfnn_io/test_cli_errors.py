@@ -38,6 +38,7 @@ def test_a_write_that_fails_names_the_file_asked_for_not_a_temporary_one(tmp_pat
             with pytest.raises(OSError) as info:
                 write(target, "x")
             assert describe(info.value).startswith(f"{target}: "), describe(info.value)
+            assert ".tmp" not in describe(info.value)  # nor the cause that named it
     assert [p.name for p in tmp_path.iterdir()] == ["dir"]  # nothing left beside it
 
 

@@ -144,8 +144,12 @@ def test_split_by_client_behaviour_and_count(tmp_path):
         "local": 200,
         "handcoded": 150,
     }
+    # Batches of 64, 64, 64, 8 and 64, 64, 22: at most `every` each, whole batches (numbered by
+    # experiences done, a batch just before a boundary overfilled its part and starved the next).
     parts = logs.split(tmp_path / "all", tmp_path / "parts", by="count", every=128)
-    assert sum(parts.values()) == 350 and len(parts) == 3
+    assert list(parts.values()) == [128, 72, 128, 22]
+    parts = logs.split(tmp_path / "all", tmp_path / "parts100", by="count", every=100)
+    assert list(parts.values()) == [64, 64, 72, 64, 86]
     assert logs.log_config(tmp_path / "by_client" / "robot2") is not None
     with pytest.raises(ValueError):
         logs.split(tmp_path / "all", tmp_path / "x", by="colour")
