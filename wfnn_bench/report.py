@@ -121,6 +121,8 @@ def _fmt(value: Any) -> str:
 SCALARS_DEPTH = 4
 """How deep nested objects are followed: vs-sb3's figures sit at tasks.<task>.<learner>.<figure>."""
 MAX_ROWS = 500
+MAX_CLIENT_ROWS = 50
+"""Clients (and behaviour policies) of an experience log listed in its section."""
 """Most figures a benchmark's table shows (a note says how many more there are)."""
 
 
@@ -408,12 +410,8 @@ def _journal_section(journal: Path) -> Section:
         return Section(f"Experience log {journal.name}", [], [], [f"unreadable: {exc}"])
     rows = [("experiences", str(s.experiences)), ("batches", str(s.batches)),
             ("mean reward", _fmt(s.reward_mean)), ("terminal", str(s.terminal))]  # fmt: skip
-    rows += [(f"behaviour policy {name}", str(n)) for name, n in sorted(s.behaviour.items())]
-    rows += [(f"flag {name}", str(n)) for name, n in sorted(s.flags.items()) if n]
-    # What a reader skipped or found missing: a page that said "experiences 544" alone hid it.
-    for client, run in sorted(s.clients.items()):
-        held = f"{run.experiences} experiences numbered {run.first_seq} to {run.last_seq}"
-        rows.append((f"client {client}", f"{held}: {run.gaps} gaps, {run.duplicates} duplicates"))
+    # What a reader skipped or found missing (a page that said "experiences 544" alone hid it),
+    # before anything a long list of clients could push past the table's end.
     spans, skipped = Counter(d.kind for d in s.damage), Counter[str]()
     for d in s.damage:
         skipped[d.kind] += d.length
@@ -422,7 +420,16 @@ def _journal_section(journal: Path) -> Section:
     rows += [(f"records refused ({reason})", str(n)) for reason, n in sorted(s.refused.items()) if n]
     notes = [f"files named like segments, not read: {', '.join(s.strays[:8])}"] if s.strays else []
     notes += [f"its description: {s.description_error}"] if s.description_error else []
-    return Section(f"Experience log {journal.name}", rows[:MAX_ROWS], [], notes)
+    policies = sorted(s.behaviour.items())[:MAX_CLIENT_ROWS]
+    rows += [(f"behaviour policy {name}", str(n)) for name, n in policies]
+    rows += [(f"flag {name}", str(n)) for name, n in sorted(s.flags.items()) if n]
+    for client, run in sorted(s.clients.items())[:MAX_CLIENT_ROWS]:
+        held = f"{run.experiences} experiences numbered {run.first_seq} to {run.last_seq}"
+        rows.append((f"client {client}", f"{held}: {run.gaps} gaps, {run.duplicates} duplicates"))
+    for what, n in (("clients", len(s.clients)), ("behaviour policies", len(s.behaviour))):
+        if n > MAX_CLIENT_ROWS:
+            notes.append(f"the first {MAX_CLIENT_ROWS} of {n} {what}; `wfnn-logs inspect` lists them all")
+    return Section(f"Experience log {journal.name}", rows, [], notes)
 
 
 def _bench_section(path: Path) -> Section:

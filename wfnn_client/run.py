@@ -312,16 +312,17 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             raise ValueError(f"{path}: {exc}") from exc
         thinks = meta.get("thinks") if config.learn and config.local else None
         if thinks is not None:  # the count goes on: a local learner's weights versions are its thinks
-            learner.thinks[:] = _saved_count(thinks, f"{path}: its thinks")
+            learner.thinks[:] = _saved_count(thinks, path, "thinks")
             # Saved before versions were, the thinks bound them (one snapshot per think at most).
-            version = _saved_count(meta.get("version", thinks), f"{path}: its versions")
+            # One more: the weights saved may have learned after the last snapshot had that number.
+            version = _saved_count(meta.get("version", thinks), path, "weights version") + 1
     return lcfg, learner, version
 
 
-def _saved_count(value: Any, what: str) -> int:
-    """`value`, a count saved with weights; ValueError where it is none."""
-    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_SAVED_COUNT:
-        raise ValueError(f"{what} are not a count: {str(value)[:40]!r}")
+def _saved_count(value: Any, path: Path, what: str) -> int:
+    """`value`, a count saved with the weights at `path`; ValueError where it is none."""
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < MAX_SAVED_COUNT:
+        raise ValueError(f"{path}: its saved {what} is not a count: {repr(value)[:40]}")
     return value
 
 

@@ -703,14 +703,15 @@ class WFNN:
         # another exploration may hold the other layout, or another K.
         layout = noise.ndim in (2, 3) and noise.shape[:1] == shape[:1] and noise.shape[-1:] == shape[-1:]
         if noise.dtype.kind != "f" or not layout or not np.isfinite(noise).all():
+            p, a = shape[0], shape[-1]
             raise ValueError(f"training state exploration_noise: {noise.dtype} {noise.shape}, expected "
-                             f"finite {shape}")  # fmt: skip
+                             f"finite [{p}, {a}] or [{p}, K, {a}]")  # fmt: skip
         # The noise's deviation is sigma: 20 of them is no state it reaches (1e300 held the
         # actions at their limit for thousands of ticks). Such noise restarts, as at an
         # episode's start: a run resumed with a smaller sigma may hold it too.
         bound = NOISE_DEVIATIONS * self.config.exploration.sigma
         restart = noise.shape != shape or np.abs(noise).max(initial=0.0) > bound
-        if noise.shape != shape:
+        if noise.shape != shape and self.config.exploration.kind in ("smooth", "pink"):  # else none is held
             log.warning("training state exploration_noise is laid out as %s, this exploration's as %s "
                         "(another kind, or tau_steps): the noise restarts", noise.shape, shape)  # fmt: skip
         elif restart:

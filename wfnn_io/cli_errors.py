@@ -111,12 +111,12 @@ def describe(exc: BaseException) -> str:
 
 
 def _renamed(cause: BaseException, effect: BaseException | None) -> bool:
-    """Whether `cause` is the OS error `effect` says again, naming another file.
+    """Whether `cause` is the OS error `effect` says again, naming the file asked for.
 
-    `naming_file`'s: a temporary file's name means nothing to the user.
+    `persist.naming_file`'s: a temporary file's name means nothing to the user. Other causes,
+    of the same errno or not, are said.
     """
-    return (isinstance(cause, OSError) and isinstance(effect, OSError) and cause.errno == effect.errno
-            and cause.strerror == effect.strerror)  # fmt: skip
+    return effect is not None and getattr(effect, "renamed_from", None) is cause
 
 
 def path_given(value: str | Path) -> Path:

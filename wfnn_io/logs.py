@@ -187,6 +187,10 @@ def write_log_json(directory: Path, config: LearnerConfig | None, log_id: str | 
 
 SERVER_CONFIG_JSON = "learner_config.json"
 """A server's learner config, beside its store (a log)."""
+SERVER_FILES = (SERVER_CONFIG_JSON, "server_config.json", "incarnation", "checkpoint.npz",
+                "checkpoint.prev.npz")  # fmt: skip
+"""What a think server writes beside its store (`wfnn_server.server`'s names): a folder holding a
+`store` folder and any of them is a server's data directory."""
 
 
 def log_config(directory: Path) -> LearnerConfig | None:
@@ -899,7 +903,9 @@ def check_place(out: Path) -> None:
     for folder in [target, *target.parents]:
         if folder != target and is_log(folder):  # a live one has its segment from the start
             raise LogFormatError(f"{out} is inside the log {folder}; write somewhere else")
-        if is_log(folder / "store"):
+        # By what the server writes beside its store, not by the store: one with no segment yet,
+        # or one a write cut short, is a store all the same, and a user's log named `store` none.
+        if (folder / "store").is_dir() and any(os.path.lexists(folder / name) for name in SERVER_FILES):
             raise LogFormatError(f"{out} is in a think server's data directory {folder}; "
                                  "write somewhere else")  # fmt: skip
 

@@ -124,7 +124,9 @@ def split(
         Path, typer.Option(parser=path_given, help="Directory for the new logs (one subdirectory each).")
     ],
     by: Annotated[str, typer.Option(help="client, behaviour (weights source) or count.")] = "client",
-    every: Annotated[int, typer.Option(help="by count: most experiences per part (whole batches).")] = 0,
+    every: Annotated[
+        int, typer.Option(help="by count: most experiences per part (whole batches: a larger one alone).")
+    ] = 0,
     key_file: KeyOpt = None,
 ) -> None:
     """Split a log by client, by behaviour policy, or into parts."""

@@ -224,7 +224,9 @@ def naming_file(exc: OSError, path: Path) -> OSError:
     disk) names no file, where a run with several outputs must say which one failed.
     """
     if str(exc.filename) != str(path) and exc.strerror:
-        return type(exc)(exc.errno, exc.strerror, str(path))
+        named = type(exc)(exc.errno, exc.strerror, str(path))
+        named.renamed_from = exc  # type: ignore[attr-defined]  # its cause, which `describe` leaves unsaid
+        return named
     return exc
 
 

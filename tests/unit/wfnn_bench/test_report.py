@@ -351,3 +351,31 @@ def test_a_runs_report_tells_what_its_journal_lost_to_damage(tmp_path):
     held = r"<td>client [^<]+</td><td>\d+ experiences numbered 0 to 1599: 1 gaps, 0 duplicates</td>"
     assert re.search(held, html)
     assert "files named like segments, not read: 1.seg" in html
+
+
+def test_a_journal_of_many_clients_lists_the_first_fifty_after_its_damage(tmp_path):
+    """505 clients filled the table's 500 rows before its damage rows, which were cut unsaid."""
+    import numpy as np
+
+    from sims.boat import BoatVec
+    from wfnn_client.brain import Experience, Recorder
+    from wfnn_common.config import LearnerConfig
+    from wfnn_io import logs
+
+    config = LearnerConfig.for_task(BoatVec)
+    for i in range(55):
+        recorder = Recorder(tmp_path / "logs" / f"r{i:02d}", config, f"r{i:02d}", batch_max=4)
+        for _ in range(8):
+            recorder.add(Experience(np.zeros(config.state_dim), np.zeros(config.action_dim),
+                                    np.zeros(config.state_dim), 0.0, False, 0), "local", 1)  # fmt: skip
+        recorder.close()
+    out = tmp_path / "run"
+    logs.merge(sorted((tmp_path / "logs").iterdir()), out / "journal")
+    segment = out / "journal" / "00000000.seg"
+    data = bytearray(segment.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 16] = bytes(16)
+    segment.write_bytes(bytes(data))
+    (out / "metrics.json").write_text(json.dumps({"scores": [1.0, 2.0]}))
+    html = run(ReportConfig(path=out)).read_text()
+    assert "<td>damage corrupt</td>" in html and html.count("<td>client r") == 50
+    assert "the first 50 of 55 clients; `wfnn-logs inspect` lists them all" in html

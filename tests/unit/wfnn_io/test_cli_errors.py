@@ -25,6 +25,24 @@ def test_a_cause_is_named_once_even_when_its_error_quotes_it():
     assert describe(_chained("weights", missing)) == "weights: x.npz: No such file or directory"
 
 
+def test_a_cause_of_the_same_os_error_naming_another_file_is_still_said(tmp_path):
+    """Only the temporary file `naming_file` renamed is left unsaid: another file's error of the
+    same errno (a fallback that failed too) and errors without an errno are causes to tell."""
+    try:
+        try:
+            open(tmp_path / "nope" / "weights.npz")
+        except OSError:
+            open(tmp_path / "nope" / "backup.npz")
+    except OSError as exc:
+        said = describe(exc)
+    assert "backup.npz: No such file" in said and "weights.npz: No such file" in said
+    jpeg = OSError("cannot write mode RGBA as JPEG")
+    assert describe(_chained("x", jpeg)) == "x: cannot write mode RGBA as JPEG"
+    png = OSError("PNG encoding failed")
+    png.__cause__ = OSError("cannot write mode RGBA as JPEG")
+    assert describe(png) == "PNG encoding failed: cannot write mode RGBA as JPEG"
+
+
 def test_a_write_that_fails_names_the_file_asked_for_not_a_temporary_one(tmp_path):
     from pathlib import Path
 

@@ -934,6 +934,7 @@ def test_merge_and_split_refuse_an_output_in_a_log_or_a_servers_data_directory_a
     record(tmp_path / "a")
     record(tmp_path / "b", client="robot3")
     record(tmp_path / "srv" / "store", client="robot2")  # a think server's data directory
+    (tmp_path / "srv" / "incarnation").write_text("3")
     before = {p: p.read_bytes() for p in (tmp_path / "srv").rglob("*") if p.is_file()}
     refused = [
         (lambda: logs.split(tmp_path / "a", tmp_path / "srv" / "store"), "data directory"),
@@ -948,3 +949,24 @@ def test_merge_and_split_refuse_an_output_in_a_log_or_a_servers_data_directory_a
             write()
     assert {p: p.read_bytes() for p in (tmp_path / "srv").rglob("*") if p.is_file()} == before
     assert logs.split(tmp_path / "a", tmp_path / "parts") == {"robot1": 300}  # elsewhere, as before
+    # Known by what the server writes beside its store: a store with no segment yet is one all
+    # the same, and a user's own log named `store` makes no data directory of its folder.
+    (tmp_path / "new" / "store").mkdir(parents=True)
+    (tmp_path / "new" / "server_config.json").write_text("{}")
+    with pytest.raises(logs.LogFormatError, match="data directory"):
+        logs.merge([tmp_path / "a"], tmp_path / "new" / "x")
+    logs.merge([tmp_path / "a"], tmp_path / "mine" / "store")
+    assert logs.merge([tmp_path / "b"], tmp_path / "mine" / "other") == 300
+
+
+def test_the_files_a_server_writes_are_those_that_mark_its_data_directory():
+    from wfnn_server import server
+
+    written = {
+        server.CHECKPOINT,
+        server.PREVIOUS_CHECKPOINT,
+        server.LEARNER_JSON,
+        server.SERVER_JSON,
+        "incarnation",
+    }
+    assert written == set(logs.SERVER_FILES)
