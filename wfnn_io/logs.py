@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text, sync_dir
+from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text, sync_dir, unfinished_write_of
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
@@ -1097,6 +1097,16 @@ def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def _clear_unfinished_writes(out: Path) -> None:
+    """Remove what killed exports to `out` left beside it (a full-size temporary file each)."""
+    folder = out.parent if str(out.parent) else Path(".")
+    with contextlib.suppress(OSError):  # a folder that is not there yet holds none
+        for entry in os.scandir(folder):
+            if unfinished_write_of(entry.name, out.name) and entry.is_file(follow_symlinks=False):
+                os.unlink(entry.path)
+                log.info("%s: left by an export that was cut short; deleted", entry.path)
+
+
 def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bool = False) -> int:
     """Write logs' experiences as one `.npz` of plain arrays (`to_arrays`); -> experiences.
 
@@ -1114,6 +1124,7 @@ def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bo
         raise FileExistsError(errno.EEXIST, "exists (pass --replace to write over it)", str(out))
     arrays = to_arrays(sources, key)
     config = common_config(sources)
+    _clear_unfinished_writes(Path(out))
     atomic_savez(out, {"format": np.str_(EXPORT_FORMAT), "format_version": np.int64(1),
                        "learner_config": np.str_(config.to_json() if config else ""), **arrays},
                  replace=replace)  # fmt: skip

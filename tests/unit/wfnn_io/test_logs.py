@@ -970,3 +970,14 @@ def test_the_files_a_server_writes_are_those_that_mark_its_data_directory():
         "incarnation",
     }
     assert written == set(logs.SERVER_FILES)
+
+
+def test_an_export_clears_what_exports_cut_short_left_beside_its_file(tmp_path):
+    """Each killed export left a full-size temporary file beside its output, for good."""
+    record(tmp_path / "a")
+    left = [tmp_path / "all.npzab3k_x9q.tmp", tmp_path / "all.npz00000000.tmp"]
+    kept = [tmp_path / "all.npz.tmp", tmp_path / "other.npzab3k_x9q.tmp", tmp_path / "all.npzABCDEFGH.tmp"]
+    for path in left + kept:
+        path.write_bytes(b"x" * 100)
+    assert logs.export([tmp_path / "a"], tmp_path / "all.npz") == 300
+    assert not any(p.exists() for p in left) and all(p.exists() for p in kept)
