@@ -121,9 +121,9 @@ def _fmt(value: Any) -> str:
 SCALARS_DEPTH = 4
 """How deep nested objects are followed: vs-sb3's figures sit at tasks.<task>.<learner>.<figure>."""
 MAX_ROWS = 500
+"""Most figures a benchmark's table shows (a note says how many more there are)."""
 MAX_CLIENT_ROWS = 50
 """Clients (and behaviour policies) of an experience log listed in its section."""
-"""Most figures a benchmark's table shows (a note says how many more there are)."""
 
 
 def _scalars(data: dict[str, Any], prefix: str = "", depth: int = 0) -> list[tuple[str, str]]:
@@ -423,12 +423,17 @@ def _journal_section(journal: Path) -> Section:
     policies = sorted(s.behaviour.items())[:MAX_CLIENT_ROWS]
     rows += [(f"behaviour policy {name}", str(n)) for name, n in policies]
     rows += [(f"flag {name}", str(n)) for name, n in sorted(s.flags.items()) if n]
-    for client, run in sorted(s.clients.items())[:MAX_CLIENT_ROWS]:
+    gaps, duplicates = sum(r.gaps for r in s.clients.values()), sum(r.duplicates for r in s.clients.values())
+    rows.append(("gaps / duplicates (all clients)", f"{gaps} / {duplicates}"))
+    # Those with gaps or duplicates first: the list is cut, and they are what a reader looks for.
+    listed = sorted(s.clients.items(), key=lambda kv: (not (kv[1].gaps or kv[1].duplicates), kv[0]))
+    for client, run in listed[:MAX_CLIENT_ROWS]:
         held = f"{run.experiences} experiences numbered {run.first_seq} to {run.last_seq}"
         rows.append((f"client {client}", f"{held}: {run.gaps} gaps, {run.duplicates} duplicates"))
     for what, n in (("clients", len(s.clients)), ("behaviour policies", len(s.behaviour))):
         if n > MAX_CLIENT_ROWS:
-            notes.append(f"the first {MAX_CLIENT_ROWS} of {n} {what}; `wfnn-logs inspect` lists them all")
+            notes.append(f"{MAX_CLIENT_ROWS} of {n} {what} (those with gaps or duplicates first); "
+                         "`wfnn-logs inspect` lists them all")  # fmt: skip
     return Section(f"Experience log {journal.name}", rows, [], notes)
 
 

@@ -364,11 +364,14 @@ def test_a_journal_of_many_clients_lists_the_first_fifty_after_its_damage(tmp_pa
 
     config = LearnerConfig.for_task(BoatVec)
     for i in range(55):
-        recorder = Recorder(tmp_path / "logs" / f"r{i:02d}", config, f"r{i:02d}", batch_max=4)
-        for _ in range(8):
+        folder = tmp_path / ("whole" if i == 53 else "logs") / f"r{i:02d}"
+        recorder = Recorder(folder, config, f"r{i:02d}", batch_max=4)
+        for _ in range(12 if i == 53 else 8):
             recorder.add(Experience(np.zeros(config.state_dim), np.zeros(config.action_dim),
                                     np.zeros(config.state_dim), 0.0, False, 0), "local", 1)  # fmt: skip
         recorder.close()
+    logs.split(tmp_path / "whole" / "r53", tmp_path / "parts", by="count", every=4)  # r53 loses 4-7
+    logs.merge([tmp_path / "parts" / "part0000", tmp_path / "parts" / "part0002"], tmp_path / "logs" / "r53")
     out = tmp_path / "run"
     logs.merge(sorted((tmp_path / "logs").iterdir()), out / "journal")
     segment = out / "journal" / "00000000.seg"
@@ -378,4 +381,9 @@ def test_a_journal_of_many_clients_lists_the_first_fifty_after_its_damage(tmp_pa
     (out / "metrics.json").write_text(json.dumps({"scores": [1.0, 2.0]}))
     html = run(ReportConfig(path=out)).read_text()
     assert "<td>damage corrupt</td>" in html and html.count("<td>client r") == 50
-    assert "the first 50 of 55 clients; `wfnn-logs inspect` lists them all" in html
+    assert (
+        "50 of 55 clients (those with gaps or duplicates first); `wfnn-logs inspect` lists them all" in html
+    )
+    # A client with a gap is listed, whatever its name (r53 came after the first 50).
+    assert re.search(r"<td>gaps / duplicates \(all clients\)</td><td>[1-9] / 0</td>", html)
+    assert "<td>client r53</td><td>8 experiences numbered 0 to 11: 1 gaps, 0 duplicates</td>" in html
