@@ -240,6 +240,10 @@ class LocalBrain:
         learner.prepare_thinking(compile=learns)
         self.lockstep = lockstep
         self.mt = None if lockstep or not learns else ActLearnThinkMT(learner, think_batch, version=version)
+        self._offset = version - int(learner.thinks[0]) if version else 0
+        """Lock-step (and a run that learns nothing) numbers its weights by its thinks, from
+        `version` on: the version of the weights it was given (the threaded run's counts its
+        snapshots, which may have run ahead of its thinks)."""
         self.frozen = None if learns else learner.snapshot()
         """A run that learns nothing acts on the weights it was given, as they are: acting on the
         learner's own, its divergence monitor would reset them to random ones (and save those)."""
@@ -249,8 +253,11 @@ class LocalBrain:
 
     @property
     def version(self) -> int:
-        """The weights version `act` uses: the snapshots published (lock-step: the thinks)."""
-        return self.mt.version if self.mt is not None else int(self.learner.thinks[0])
+        """The weights version `act` uses, after the version of the weights it was given.
+
+        The snapshots published (lock-step, and a run that learns nothing: the thinks).
+        """
+        return self.mt.version if self.mt is not None else int(self.learner.thinks[0]) + self._offset
 
     @property
     def following(self) -> str:
@@ -281,7 +288,7 @@ class LocalBrain:
         if self.mt is None:
             # None: the learner's own weights, or in a run that learns nothing the frozen copy.
             result = self.learner.act(state, explore, params=self.frozen)
-            return Acted(result, "local", int(self.learner.thinks[0]))
+            return Acted(result, "local", self.version)
         return Acted(self.mt.act(state, explore), "local", self.mt.version)
 
     def learn(self, experience: Experience, acted: Acted | None) -> None:

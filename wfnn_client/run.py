@@ -310,12 +310,12 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             learner.load_training_state(training)
         except ValueError as exc:  # weights that make no learner of their config (several networks, say)
             raise ValueError(f"{path}: {exc}") from exc
-        thinks = meta.get("thinks") if config.learn and config.local else None
-        if thinks is not None:  # the count goes on: a local learner's weights versions are its thinks
+        thinks = meta.get("thinks") if config.local else None
+        if thinks is not None:  # the counts go on, the weights' versions after those saved
             learner.thinks[:] = _saved_count(thinks, path, "thinks")
             # Saved before versions were, the thinks bound them (one snapshot per think at most).
             # One more: the weights saved may have learned after the last snapshot had that number.
-            version = _saved_count(meta.get("version", thinks), path, "weights version") + 1
+            version = max(_saved_count(meta.get("version", thinks), path, "weights version"), thinks) + 1
     return lcfg, learner, version
 
 
@@ -755,7 +755,7 @@ def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> l
         params = sk.learner.params if config.local else (current.params if current is not None else None)
         meta: dict[str, Any] = {"sim": config.sim, "episodes": episodes, "following": sk.brain.following,
                                 "behaviour": sk.name}  # fmt: skip
-        if config.local and config.learn:  # resumed with --weights, the count (and version) goes on
+        if config.local:  # resumed with --weights (learning or not), the count and version go on
             meta["thinks"] = int(sk.learner.thinks[0])
             meta["version"] = int(getattr(sk.brain, "version", 0))
         name = f"{_named('weights', sk.name)}.npz"

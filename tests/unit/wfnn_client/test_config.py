@@ -585,26 +585,41 @@ def test_a_local_learner_resumed_from_its_weights_counts_its_thinks_on(tmp_path,
     assert meta["thinks"] == second["think/thinks"]
 
 
-def test_a_local_run_thinking_in_its_thread_resumed_from_its_weights_numbers_its_snapshots_on(tmp_path):
-    """Its weights versions (snapshots published) began again at 0 while its thinks went on: a
-    journal continued by the resumed run named two snapshots by one version."""
+def test_local_runs_resumed_from_their_weights_number_their_weights_on_whatever_their_mode(tmp_path):
+    """A threaded run's weights versions (snapshots published) began again at 0 while its thinks
+    went on; a lock-step run after a threaded one numbered by its thinks, below the snapshots'
+    count; a run that learned nothing saved no count, and one resumed from its weights began at
+    0: journals the runs continued named other weights by versions already used."""
     from wfnn_client.run import run as run_client
     from wfnn_io import logs
     from wfnn_io.persist import load_checkpoint, save_weights
 
-    def client(**kw):
-        return ClientConfig(sim="boat", rate_hz=0, episodes=1, thinks_per_action=2, out=tmp_path / "a", **kw)
+    def client(out="a", **kw):
+        return ClientConfig(sim="boat", rate_hz=0, episodes=1, thinks_per_action=2, out=tmp_path / out, **kw)
 
+    def versions(out="a"):
+        return np.concatenate([b.weights_version for b in logs.read_batches(tmp_path / out / "journal")])
+
+    weights = tmp_path / "a" / "weights.npz"
     run_client(client())
-    _, _, meta, _ = load_checkpoint(tmp_path / "a" / "weights.npz")
-    first = np.concatenate([b.weights_version for b in logs.read_batches(tmp_path / "a" / "journal")])
-    assert meta["version"] >= first.max() > 0 and (np.diff(first.astype(np.int64)) >= 0).all()
-    run_client(client(weights=tmp_path / "a" / "weights.npz"))
-    both = np.concatenate([b.weights_version for b in logs.read_batches(tmp_path / "a" / "journal")])
-    assert len(both) > len(first) and (np.diff(both.astype(np.int64)) >= 0).all()
-    assert both[len(first) :].min() > meta["version"] >= first.max()  # the weights loaded: one more
-    cfg, params, meta, training = load_checkpoint(tmp_path / "a" / "weights.npz")
-    assert meta["version"] >= both.max() > first.max()
+    seen = versions()
+    # Threaded, lock-step, one that learns nothing (its own --out: it may not replace a learning
+    # run's outputs) whose weights the next run resumes, then threaded and lock-step again.
+    runs = [("a", {}), ("a", {"lockstep": True}), ("b", {"learn": False}),
+            ("a", {"weights": tmp_path / "b" / "weights.npz"}), ("a", {"lockstep": True})]  # fmt: skip
+    for out, kw in runs:
+        given = kw.setdefault("weights", weights)
+        _, _, meta, _ = load_checkpoint(given)
+        run_client(client(out, **kw))
+        if out == "b":  # the weights it was given, numbered past theirs
+            _, _, saved, _ = load_checkpoint(tmp_path / "b" / "weights.npz")
+            assert saved["version"] > meta["version"] and saved["thinks"] == meta["thinks"]
+            continue
+        now = versions(out)
+        assert len(now) > len(seen) and (np.diff(now.astype(np.int64)) >= 0).all(), kw
+        assert now[len(seen) :].min() > meta["version"] >= seen.max(), kw
+        seen = now
+    cfg, params, meta, training = load_checkpoint(weights)
     save_weights(tmp_path / "bad.npz", cfg, params, {**meta, "version": -1}, training=training)
     with pytest.raises(ValueError, match=r"bad\.npz: its saved weights version is not a count: -1"):
         run_client(client(weights=tmp_path / "bad.npz"))
