@@ -1097,12 +1097,19 @@ def to_arrays(sources: list[Path], key: bytes | None = None) -> dict[str, Any]:
     }  # fmt: skip
 
 
+UNFINISHED_AGE_S = 600.0
+"""An export's temporary file untouched this long was left by one cut short: a live export
+writes to its file as it goes (a second export to the same file deleted the first's)."""
+
+
 def _clear_unfinished_writes(out: Path) -> None:
     """Remove what killed exports to `out` left beside it (a full-size temporary file each)."""
     folder = out.parent if str(out.parent) else Path(".")
     with contextlib.suppress(OSError):  # a folder that is not there yet holds none
         for entry in os.scandir(folder):
-            if unfinished_write_of(entry.name, out.name) and entry.is_file(follow_symlinks=False):
+            if not (unfinished_write_of(entry.name, out.name) and entry.is_file(follow_symlinks=False)):
+                continue
+            if entry.stat(follow_symlinks=False).st_mtime < time.time() - UNFINISHED_AGE_S:
                 os.unlink(entry.path)
                 log.info("%s: left by an export that was cut short; deleted", entry.path)
 

@@ -1,6 +1,7 @@
 """Experience logs: recording, summary, merge, split, export, and refusing what does not fit."""
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -389,6 +390,7 @@ def test_a_split_that_fails_in_a_later_part_leaves_none(tmp_path, monkeypatch):
 KILLED_AT_RENAME = """
 import os, sys
 import os
+import time
 from pathlib import Path
 from wfnn_io import logs
 
@@ -977,7 +979,11 @@ def test_an_export_clears_what_exports_cut_short_left_beside_its_file(tmp_path):
     record(tmp_path / "a")
     left = [tmp_path / "all.npzab3k_x9q.tmp", tmp_path / "all.npz00000000.tmp"]
     kept = [tmp_path / "all.npz.tmp", tmp_path / "other.npzab3k_x9q.tmp", tmp_path / "all.npzABCDEFGH.tmp"]
-    for path in left + kept:
+    live = tmp_path / "all.npzlive_tmp.tmp"  # another export's, being written: touched just now
+    for path in [*left, *kept, live]:
         path.write_bytes(b"x" * 100)
+        if path is not live:
+            os.utime(path, (time.time() - 3600, time.time() - 3600))
+    kept.append(live)
     assert logs.export([tmp_path / "a"], tmp_path / "all.npz") == 300
     assert not any(p.exists() for p in left) and all(p.exists() for p in kept)
