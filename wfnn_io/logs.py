@@ -36,6 +36,7 @@ from __future__ import annotations
 import bisect
 import contextlib
 import errno
+import itertools
 import json
 import logging
 import os
@@ -53,7 +54,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text, sync_dir, unfinished_write_of
+from wfnn_io.persist import (
+    atomic_savez,
+    atomic_write_text,
+    naming_file,
+    read_regular_text,
+    sync_dir,
+    unfinished_write_of,
+)
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
@@ -707,6 +715,8 @@ def _write_logs(
                     out.append(codec.encode(batch))
                     written[name] += len(batch)
                 out.sync()
+            except OSError as exc:  # the output asked for, not the hidden segment (removed below)
+                raise naming_file(exc, targets[name]) from exc
             finally:
                 out.close()
             files += sorted(
@@ -1006,7 +1016,11 @@ def merge(sources: list[Path], out: Path, key: bytes | None = None) -> int:
     check_place(out)
     config = common_config(sources)
     counts = ReadCounts()
-    written = write_log(out, merged(sources, key, config=config, counts=counts), config)
+    batches = merged(sources, key, config=config, counts=counts)
+    first = next(batches, None)
+    if first is None:  # as export refuses: an empty log written with exit 0 said nothing was wrong
+        raise LogFormatError(f"no experiences in {', '.join(map(str, sources))}; nothing written")
+    written = write_log(out, itertools.chain([first], batches), config)
     counts.warn_conflicts()
     return written
 
@@ -1055,7 +1069,9 @@ def split(
             names[label] = _directory_name(label, set(names.values()))
         groups.setdefault(names[label], []).append(batch)
     counts.warn_conflicts()
-    return _write_logs(Path(out), groups, config, "wfnn-logs") if groups else {}
+    if not groups:
+        raise LogFormatError(f"no experiences in {source}; nothing written")
+    return _write_logs(Path(out), groups, config, "wfnn-logs")
 
 
 def _directory_name(label: str, taken: set[str]) -> str:

@@ -987,3 +987,35 @@ def test_an_export_clears_what_exports_cut_short_left_beside_its_file(tmp_path):
     kept.append(live)
     assert logs.export([tmp_path / "a"], tmp_path / "all.npz") == 300
     assert not any(p.exists() for p in left) and all(p.exists() for p in kept)
+
+
+def test_merge_and_split_of_logs_without_experiences_are_refused_as_export_is(tmp_path):
+    """Merge wrote a log of 0 experiences and split nothing, both with exit 0, where export said
+    "no experiences": a log whose records were all damaged looked merged."""
+    empty = logs.ExperienceLog(tmp_path / "empty", LearnerConfig.for_task(BoatVec))
+    empty.close()
+    for write in (lambda: logs.merge([tmp_path / "empty"], tmp_path / "m"),
+                  lambda: logs.split(tmp_path / "empty", tmp_path / "s"),
+                  lambda: logs.export([tmp_path / "empty"], tmp_path / "e.npz")):  # fmt: skip
+        with pytest.raises(logs.LogFormatError, match="no experiences in"):
+            write()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
+def test_a_merge_the_disk_refuses_names_its_output_not_its_hidden_segment(tmp_path, monkeypatch):
+    """A full disk was told as OUT/.partial-*/00000000.seg, a file gone once the write was undone."""
+    from wfnn_io.cli_errors import describe
+
+    record(tmp_path / "a")
+
+    def full(self, frame):
+        raise OSError(28, "No space left on device", str(self.directory / "00000000.seg"))
+
+    monkeypatch.setattr(logs.ExperienceLog, "append", full)
+    writes = [(lambda: logs.merge([tmp_path / "a"], tmp_path / "m"), tmp_path / "m"),
+              (lambda: logs.split(tmp_path / "a", tmp_path / "s"), tmp_path / "s" / "robot1")]  # fmt: skip
+    for write, out in writes:
+        with pytest.raises(OSError) as failed:
+            write()
+        assert describe(failed.value) == f"{out}: No space left on device"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
