@@ -432,8 +432,8 @@ def _journal_section(journal: Path) -> Section:
         rows.append((f"client {client}", f"{held}: {run.gaps} gaps, {run.duplicates} duplicates"))
     for what, n in (("clients", len(s.clients)), ("behaviour policies", len(s.behaviour))):
         if n > MAX_CLIENT_ROWS:
-            notes.append(f"{MAX_CLIENT_ROWS} of {n} {what} (those with gaps or duplicates first); "
-                         "`wfnn-logs inspect` lists them all")  # fmt: skip
+            which = "those with gaps or duplicates first" if what == "clients" else "the first by name"
+            notes.append(f"{MAX_CLIENT_ROWS} of {n} {what} ({which}); `wfnn-logs inspect` lists them all")
     return Section(f"Experience log {journal.name}", rows, [], notes)
 
 

@@ -314,8 +314,10 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
         if thinks is not None:  # the counts go on, the weights' versions after those saved
             learner.thinks[:] = _saved_count(thinks, path, "thinks")
             # Saved before versions were, the thinks bound them (one snapshot per think at most).
-            # One more: the weights saved may have learned after the last snapshot had that number.
-            version = max(_saved_count(meta.get("version", thinks), path, "weights version"), thinks) + 1
+            # One more where it learns: the weights saved may have learned after the last snapshot
+            # had that number; a run that learns nothing acts on them as they were saved.
+            version = max(_saved_count(meta.get("version", thinks), path, "weights version"), thinks)
+            version += 1 if config.learn else 0
     return lcfg, learner, version
 
 
@@ -755,9 +757,12 @@ def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> l
         params = sk.learner.params if config.local else (current.params if current is not None else None)
         meta: dict[str, Any] = {"sim": config.sim, "episodes": episodes, "following": sk.brain.following,
                                 "behaviour": sk.name}  # fmt: skip
-        if config.local:  # resumed with --weights (learning or not), the count and version go on
+        # Resumed with --weights (learning or not), the count and version go on; weights given
+        # without them are not said to have thought none.
+        counted = getattr(sk.brain, "version", None)
+        if config.local and (config.learn or counted):
             meta["thinks"] = int(sk.learner.thinks[0])
-            meta["version"] = int(getattr(sk.brain, "version", 0))
+            meta["version"] = int(counted or 0)
         name = f"{_named('weights', sk.name)}.npz"
         given, path = _given_weights(config, sk.name), Path(config.out) / name
         if not (config.local and config.learn) and given is not None and _same_file(given, path):

@@ -711,12 +711,17 @@ def _write_logs(
             out = ExperienceLog(staging, config, fsync="interval", fsync_interval_s=float("inf"))
             written[name] = 0
             try:
-                for batch in batches:
-                    out.append(codec.encode(batch))
+                for batch in batches:  # reading the sources: their errors name what failed
+                    frame = codec.encode(batch)
+                    try:
+                        out.append(frame)
+                    except OSError as exc:  # the output asked for, not its hidden segment (removed below)
+                        raise naming_file(exc, targets[name]) from exc
                     written[name] += len(batch)
-                out.sync()
-            except OSError as exc:  # the output asked for, not the hidden segment (removed below)
-                raise naming_file(exc, targets[name]) from exc
+                try:
+                    out.sync()
+                except OSError as exc:
+                    raise naming_file(exc, targets[name]) from exc
             finally:
                 out.close()
             files += sorted(

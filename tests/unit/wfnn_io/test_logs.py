@@ -1019,3 +1019,24 @@ def test_a_merge_the_disk_refuses_names_its_output_not_its_hidden_segment(tmp_pa
             write()
         assert describe(failed.value) == f"{out}: No space left on device"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+
+
+def test_a_merge_whose_source_cannot_be_read_names_the_source(tmp_path, monkeypatch):
+    """Errors reading a source mid-merge were renamed to the output, as a full disk's are."""
+    from wfnn_io.cli_errors import describe
+
+    record(tmp_path / "a")
+    record(tmp_path / "b", client="robot2")
+    reading = logs.read_batches
+
+    def failing(directory, *args, **kwargs):
+        for i, batch in enumerate(reading(directory, *args, **kwargs)):
+            if directory == tmp_path / "b" and i == 2:
+                raise OSError(5, "Input/output error", str(directory / "00000000.seg"))
+            yield batch
+
+    monkeypatch.setattr(logs, "read_batches", failing)
+    with pytest.raises(OSError) as failed:
+        logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "m")
+    assert describe(failed.value) == f"{tmp_path / 'b' / '00000000.seg'}: Input/output error"
+    assert not (tmp_path / "m").exists()
