@@ -54,14 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.persist import (
-    atomic_savez,
-    atomic_write_text,
-    naming_file,
-    read_regular_text,
-    sync_dir,
-    unfinished_write_of,
-)
+from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text, sync_dir, unfinished_write_of
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
@@ -89,6 +82,7 @@ from wfnn_io.segments import (
     ReadReport,
     SegmentLog,
     named_strays,
+    naming,
     read_records,
     segment_numbers,
     stray_segments,
@@ -713,15 +707,11 @@ def _write_logs(
             try:
                 for batch in batches:  # reading the sources: their errors name what failed
                     frame = codec.encode(batch)
-                    try:
+                    with naming(targets[name]):  # the output asked for, not its hidden segment (undone)
                         out.append(frame)
-                    except OSError as exc:  # the output asked for, not its hidden segment (removed below)
-                        raise naming_file(exc, targets[name]) from exc
                     written[name] += len(batch)
-                try:
+                with naming(targets[name]):
                     out.sync()
-                except OSError as exc:
-                    raise naming_file(exc, targets[name]) from exc
             finally:
                 out.close()
             files += sorted(

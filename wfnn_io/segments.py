@@ -346,7 +346,7 @@ def read_records(
 
 
 @contextlib.contextmanager
-def _naming(path: Path) -> Iterator[None]:
+def naming(path: Path) -> Iterator[None]:
     """An OSError raised inside names `path`.
 
     A write, flush or fsync that fails (a full disk) names no file, where the tools' one-line
@@ -521,19 +521,19 @@ class SegmentLog:
             # In pieces (a tail may be longer than any segment), each failure naming its own file:
             # a segment that could not be read was reported as its quarantine copy, just deleted.
             with os.fdopen(fd, "wb") as f:
-                with _naming(path):
+                with naming(path):
                     torn = open(path, "rb")  # closed below
                 with torn:
-                    with _naming(path):
+                    with naming(path):
                         torn.seek(valid_end)
                     while True:
-                        with _naming(path):
+                        with naming(path):
                             piece = torn.read(1 << 20)
                         if not piece:
                             break
-                        with _naming(kept):
+                        with naming(kept):
                             f.write(piece)
-                with _naming(kept):
+                with naming(kept):
                     f.flush()
                     os.fsync(f.fileno())
         except BaseException:  # a full disk: no partial copy left to pass for the tail (it is still in place)
@@ -561,7 +561,7 @@ class SegmentLog:
         if self._size > 0 and self._size + RECORD.size + len(payload) > self.segment_bytes:
             self._rotate()
         pos = Position(self._segment, self._size)
-        with _naming(self.directory / segment_name(self._segment)):
+        with naming(self.directory / segment_name(self._segment)):
             self._file.write(RECORD.pack(len(payload), crc32c(payload)) + payload)
             self._size += RECORD.size + len(payload)
             self._dirty = True
@@ -573,7 +573,7 @@ class SegmentLog:
 
     def flush(self) -> None:
         """Hand appended records to the OS (readers in this process see them)."""
-        with _naming(self.directory / segment_name(self._segment)):
+        with naming(self.directory / segment_name(self._segment)):
             self._file.flush()
 
     @property
@@ -591,7 +591,7 @@ class SegmentLog:
         """Make every appended record durable (fsync unless the policy is `never`)."""
         if not self._dirty:
             return
-        with _naming(self.directory / segment_name(self._segment)):
+        with naming(self.directory / segment_name(self._segment)):
             self._file.flush()
             if self.fsync != "never":
                 os.fsync(self._file.fileno())

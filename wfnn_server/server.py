@@ -40,6 +40,7 @@ from wfnn_common.schedule import ThinkSchedule
 from wfnn_io.bus import Bus, Channel, Inbox, OfflineBus, guarded
 from wfnn_io.cli_errors import Terminated, log_failure
 from wfnn_io.logs import (
+    SERVER_FILES,
     LogFormatError,
     ReadCounts,
     check_log,
@@ -315,9 +316,8 @@ class ThinkServer:
         got renamed holds nothing the target does not (checkpoints are full-size: one per crash
         would pile up). Only this server writes here: the store's lock says so.
         """
-        names = (CHECKPOINT, PREVIOUS_CHECKPOINT, LEARNER_JSON, "incarnation", SERVER_JSON)
         for path in self.data_dir.glob("*.tmp"):
-            if path.is_file() and any(unfinished_write_of(path.name, name) for name in names):
+            if path.is_file() and any(unfinished_write_of(path.name, name) for name in SERVER_FILES):
                 path.unlink(missing_ok=True)
                 log.info("%s: left by a write a crash interrupted; deleted", path)
 

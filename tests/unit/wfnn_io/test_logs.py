@@ -1040,3 +1040,12 @@ def test_a_merge_whose_source_cannot_be_read_names_the_source(tmp_path, monkeypa
         logs.merge([tmp_path / "a", tmp_path / "b"], tmp_path / "m")
     assert describe(failed.value) == f"{tmp_path / 'b' / '00000000.seg'}: Input/output error"
     assert not (tmp_path / "m").exists()
+
+
+def test_the_files_that_mark_a_data_directory_are_those_the_server_writes():
+    """The server clears its interrupted writes by this list, and merge, split and export know
+    its data directory by it: one list, the server's file names."""
+    from wfnn_server import server
+
+    written = {server.CHECKPOINT, server.PREVIOUS_CHECKPOINT, server.LEARNER_JSON, server.SERVER_JSON}
+    assert set(logs.SERVER_FILES) == written | {"incarnation"}
