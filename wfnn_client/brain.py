@@ -38,6 +38,9 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
+LOCAL_SOURCE = "local"
+"""The weights source of an in-process learner (the experiences' `weights_source`)."""
+
 
 class Acted(NamedTuple):
     """An action chosen by `act`, and the weights that chose it."""
@@ -262,7 +265,7 @@ class LocalBrain:
     @property
     def following(self) -> str:
         """Always the in-process learner."""
-        return "local"
+        return LOCAL_SOURCE
 
     @property
     def connected(self) -> bool:
@@ -288,8 +291,8 @@ class LocalBrain:
         if self.mt is None:
             # None: the learner's own weights, or in a run that learns nothing the frozen copy.
             result = self.learner.act(state, explore, params=self.frozen)
-            return Acted(result, "local", self.version)
-        return Acted(self.mt.act(state, explore), "local", self.mt.version)
+            return Acted(result, LOCAL_SOURCE, self.version)
+        return Acted(self.mt.act(state, explore), LOCAL_SOURCE, self.mt.version)
 
     def learn(self, experience: Experience, acted: Acted | None) -> None:
         """Record; queue for the think thread, or learn and think now (lock-step)."""

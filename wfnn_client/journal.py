@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_common.config import LearnerConfig
+from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_io.logs import (
     CLIENT_JSON,
     MAX_CONTROLLERS,
@@ -66,6 +66,9 @@ class Journal:
                                  segment_bytes=segment_bytes)  # fmt: skip
         self._index = _Index()
         self.next_seq = 0
+        self.last_version: dict[str, int] = {}
+        """The newest weights version each source chose actions by in the journal (below
+        MAX_SAVED_COUNT: larger ones are no run's count), so that a run continuing it numbers on."""
         self.skips: dict[int, int] = {}
         """Gaps in the numbering that no damage explains (last -> first): numbers a run that did
         not close the journal reserved (this open's reservation included), or numbering moved past
@@ -99,6 +102,11 @@ class Journal:
                     log.error("journal batch at %s holds experiences %d-%d, of which those through %d are "
                               "journaled before it: only what follows them is kept",
                               pos, batch.first_seq, batch.last_seq, self.next_seq - 1)  # fmt: skip
+                counted = batch.weights_version[batch.weights_version < MAX_SAVED_COUNT]
+                if len(counted):
+                    newest = int(counted.max())
+                    source = batch.weights_source
+                    self.last_version[source] = max(self.last_version.get(source, newest), newest)
                 if batch.last_seq >= self.next_seq:
                     self._add(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
                 after = (pos, self.log.counts.unreadable)

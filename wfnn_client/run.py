@@ -105,7 +105,7 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "", vers
     counts on from it, so that the runs' journals never name two snapshots by one version).
     """
     if config.local:
-        from wfnn_client.brain import Recorder
+        from wfnn_client.brain import LOCAL_SOURCE, Recorder
 
         # Before the journal is opened: a learner that cannot think here (a device torch does not
         # see) is refused without leaving a journal of its spec behind in the run directory.
@@ -113,6 +113,9 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "", vers
         # Off the tick, in lock-step too: a slow disk must not hold up the control loop.
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id,
                           background=True)  # fmt: skip
+        if config.learn:  # its weights are new: numbered past every version the journal names already
+            # (given another run's weights, or none, a run numbered from theirs: the versions went back)
+            version = max(version, record.journal.last_version.get(LOCAL_SOURCE, -1) + 1)
         try:
             return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch,
                               recorder=record, learns=config.learn, version=version)  # fmt: skip

@@ -361,13 +361,13 @@ def read_entries(
         except ProtocolError as exc:
             counts.refused[exc.reason] += 1
             refused[exc.reason] += 1
-            if refused.total() <= REFUSALS_TOLD:  # a wrong key refuses every record: told, not listed
+            if refused.total() <= REFUSALS_TOLD and not counts.report.quiet:  # a wrong key: told, not listed
                 log.error("%s: record at %s is not an experience batch (%s); skipped",
                           directory, position, exc)  # fmt: skip
             continue
         assert isinstance(batch, ExperienceBatch)
         yield position, frame, batch
-    if refused.total() > REFUSALS_TOLD:
+    if refused.total() > REFUSALS_TOLD and not counts.report.quiet:
         reasons = ", ".join(f"{reason} {n}" for reason, n in sorted(refused.items()))
         log.error("%s: %d records refused in all (%s), the first %d named above",
                   directory, refused.total(), reasons, REFUSALS_TOLD)  # fmt: skip

@@ -96,6 +96,8 @@ class ReadReport:
     strays: list[str] = field(default_factory=list)
     """Files in the log's folder named like segments (`*.seg`) but not as its writer names them:
     not read (`stray_segments`)."""
+    quiet: bool = False
+    """Count what the read meets without logging it: a second read of logs whose first read told it."""
 
     @property
     def skipped_bytes(self) -> int:
@@ -281,6 +283,8 @@ def _missing(directory: Path, start: int, n: int, report: ReadReport | None) -> 
         report.damage[-1] = Damage(last.segment, 0, 0, "missing", segments=n - last.segment)  # one span
     else:
         report.damage.append(Damage(start, 0, 0, "missing", segments=n - start))
+    if report.quiet:
+        return
     log.warning("%s: %s missing: what %s held is not read", directory,
                 f"segments {segment_name(start)} to {segment_name(n - 1)} are" if n - start > 1
                 else f"segment {segment_name(start)} is", "they" if n - start > 1 else "it")  # fmt: skip
@@ -302,8 +306,9 @@ def read_records(
     if strays:
         if report is not None:
             report.strays = strays
-        log.warning("%s: %d files named like segments, not as this log names them, are not read: %s",
-                    directory, len(strays), named_strays(strays))  # fmt: skip
+        if report is None or not report.quiet:
+            log.warning("%s: %d files named like segments, not as this log names them, are not read: %s",
+                        directory, len(strays), named_strays(strays))  # fmt: skip
     expected = 0 if start is None else start.segment
     """The segment that should come next (a start names one that was written)."""
     i = 0
@@ -335,8 +340,9 @@ def read_records(
                 last = n == numbers[-1] and offset + length == size
                 kind: Literal["corrupt", "tail"] = "tail" if last else "corrupt"
                 report.damage.append(Damage(n, offset, length, kind))
-                log.warning("%s: %d damaged bytes at offset %d (%s) skipped",
-                            directory / segment_name(n), length, offset, kind)  # fmt: skip
+                if not report.quiet:
+                    log.warning("%s: %d damaged bytes at offset %d (%s) skipped",
+                                directory / segment_name(n), length, offset, kind)  # fmt: skip
         for offset, end in records:
             if start is not None and n == start.segment and offset < start.offset:
                 continue

@@ -86,7 +86,7 @@ from wfnn_io.protocol import (
     older_peer,
     take,
 )
-from wfnn_io.segments import check_free
+from wfnn_io.segments import ReadReport, check_free
 from wfnn_server.config import ServerConfig
 from wfnn_server.store import ENDLESS, Admission, ExperienceStore, Hole, without
 from wfnn_server.view import ViewModel, kept
@@ -446,7 +446,8 @@ class ThinkServer:
                 )
             log.warning("records refused while reading the logs: %s", reasons)
         imported = 0
-        for batch in merged(directories, self._key, spec, dims=dims):
+        told = ReadCounts(ReadReport(quiet=True))  # the first read told what it met
+        for batch in merged(directories, self._key, spec, told, dims=dims):
             for admitted in self.store.parts(mark_non_finite(batch)[0], allow_gap=True):
                 if admitted.new is None:
                     continue

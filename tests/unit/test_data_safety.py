@@ -87,16 +87,19 @@ def test_a_log_on_a_read_only_file_system_can_be_inspected(tmp_path):
         assert summary.experiences == BATCHES * PER_BATCH
 
 
-def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_experience(tmp_path):
+def test_replay_only_changes_no_byte_of_its_logs_and_imports_every_readable_experience(tmp_path, caplog):
     cfg = small_config(thinks_per_action=1)
     where = journal(tmp_path / "j", cfg)
     size = seg(tmp_path / "j").stat().st_size
     overwrite(seg(tmp_path / "j"), 2000, b"\x00" * 8)
     lost = hit(where, size, 2000, 8)
     before = files(tmp_path / "j")
-    server = make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j",), replay_only=True)
+    with caplog.at_level(logging.WARNING, logger="wfnn_io.segments"):
+        server = make_server(tmp_path, Hub(), cfg, replay=(tmp_path / "j",), replay_only=True)
     try:
         assert files(tmp_path / "j") == before
+        # Told once: the logs are read twice (checked through, then stored), and it was said twice.
+        assert sum("damaged bytes" in r.getMessage() for r in caplog.records) == 1
         # The damaged batch is in no log: c1's run goes on after it, and it is a hole, missing
         # (c1 would be asked for it), not given up as lost.
         assert server.imported == server.store.count == (BATCHES - lost) * PER_BATCH

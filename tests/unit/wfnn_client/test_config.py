@@ -625,6 +625,36 @@ def test_local_runs_resumed_from_their_weights_number_their_weights_on_whatever_
         run_client(client(weights=tmp_path / "bad.npz"))
 
 
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_a_run_continuing_a_journal_numbers_its_weights_past_every_version_the_journal_names(
+    tmp_path, lockstep
+):
+    """Given another run's weights (or none), a run continuing a journal numbered its snapshots
+    on from those weights' version: the journal's versions went back, and named two snapshots
+    by one version."""
+    from wfnn_client.run import run as run_client
+    from wfnn_io import logs
+
+    def client(out, **kw):
+        return ClientConfig(sim="boat", rate_hz=0, episodes=1, thinks_per_action=2, out=tmp_path / out,
+                            lockstep=lockstep, **kw)  # fmt: skip
+
+    def versions():
+        return np.concatenate([b.weights_version for b in logs.read_batches(tmp_path / "a" / "journal")])
+
+    run_client(client("a"))
+    run_client(client("b"))  # a run elsewhere: its weights are numbered apart from this journal
+    first = versions()
+    assert first.max() > 0
+    run_client(client("a", weights=tmp_path / "b" / "weights.npz"))
+    second = versions()
+    run_client(client("a"))  # no weights given: a fresh learner, in the same record
+    both = versions()
+    for before, after in ((first, second), (second, both)):
+        assert len(after) > len(before) and after[len(before) :].min() > before.max()
+    assert (np.diff(both.astype(np.int64)) >= 0).all()
+
+
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_options_given(
     tmp_path, learner, caplog
