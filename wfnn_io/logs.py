@@ -54,7 +54,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wfnn_common.config import LearnerConfig
-from wfnn_io.persist import atomic_savez, atomic_write_text, read_regular_text, sync_dir, unfinished_write_of
+from wfnn_io.persist import (
+    atomic_savez,
+    atomic_write_text,
+    read_regular_text,
+    remove_unfinished_writes,
+    sync_dir,
+)
 from wfnn_io.protocol import (
     EXP_AFTER_LOSS,
     EXP_EXPLORED,
@@ -1115,14 +1121,8 @@ writes to its file as it goes (a second export to the same file deleted the firs
 
 def _clear_unfinished_writes(out: Path) -> None:
     """Remove what killed exports to `out` left beside it (a full-size temporary file each)."""
-    folder = out.parent if str(out.parent) else Path(".")
-    with contextlib.suppress(OSError):  # a folder that is not there yet holds none
-        for entry in os.scandir(folder):
-            if not (unfinished_write_of(entry.name, out.name) and entry.is_file(follow_symlinks=False)):
-                continue
-            if entry.stat(follow_symlinks=False).st_mtime < time.time() - UNFINISHED_AGE_S:
-                os.unlink(entry.path)
-                log.info("%s: left by an export that was cut short; deleted", entry.path)
+    for path in remove_unfinished_writes(out.parent, [out.name], older_than_s=UNFINISHED_AGE_S):
+        log.info("%s: left by an export that was cut short; deleted", path)
 
 
 def export(sources: list[Path], out: Path, key: bytes | None = None, replace: bool = False) -> int:

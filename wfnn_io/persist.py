@@ -15,8 +15,9 @@ import os
 import re
 import stat
 import tempfile
+import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -168,6 +169,29 @@ def unfinished_write_of(name: str, target: str) -> bool:
     prefix = _short(target)
     middle = name[len(prefix) : -len(".tmp")] if name.startswith(prefix) and name.endswith(".tmp") else ""
     return re.fullmatch(r"[a-z0-9_]{8}", middle) is not None
+
+
+def remove_unfinished_writes(folder: Path, targets: Iterable[str], older_than_s: float = 0.0) -> list[Path]:
+    """Delete the temporary files that interrupted atomic writes of `targets` left in `folder`.
+
+    One that never got renamed holds nothing its target does not (full size: one per crash
+    would pile up). Regular files only (a link named alike is not followed), and only those
+    untouched for `older_than_s` (a write under way now fills its file); -> those deleted.
+    """
+    names = list(targets)
+    gone: list[Path] = []
+    with contextlib.suppress(OSError):  # a folder that is not there yet holds none
+        for entry in os.scandir(folder):
+            if not any(unfinished_write_of(entry.name, name) for name in names):
+                continue
+            with contextlib.suppress(OSError):  # gone meanwhile, or not ours to delete
+                if not entry.is_file(follow_symlinks=False):
+                    continue
+                if older_than_s and entry.stat(follow_symlinks=False).st_mtime >= time.time() - older_than_s:
+                    continue
+                os.unlink(entry.path)
+                gone.append(Path(entry.path))
+    return gone
 
 
 def _short(name: str, most: int = 200) -> str:

@@ -60,8 +60,8 @@ from wfnn_io.persist import (
     read_regular_bytes,
     read_regular_text,
     remove_empty_folders,
+    remove_unfinished_writes,
     save_weights,
-    unfinished_write_of,
     writable,
     write_json,
 )
@@ -316,10 +316,8 @@ class ThinkServer:
         got renamed holds nothing the target does not (checkpoints are full-size: one per crash
         would pile up). Only this server writes here: the store's lock says so.
         """
-        for path in self.data_dir.glob("*.tmp"):
-            if path.is_file() and any(unfinished_write_of(path.name, name) for name in SERVER_FILES):
-                path.unlink(missing_ok=True)
-                log.info("%s: left by a write a crash interrupted; deleted", path)
+        for path in remove_unfinished_writes(self.data_dir, SERVER_FILES):
+            log.info("%s: left by a write a crash interrupted; deleted", path)
 
     def _next_incarnation(self) -> int:
         """One more than the last start's incarnation (written by `start`).
