@@ -32,6 +32,7 @@ from wfnn_client.think_thread import ActLearnThinkMT
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import Learner
+from wfnn_io.cli_errors import interrupts_after
 from wfnn_io.protocol import EXP_EXPLORED, Codec, ExperienceBatch
 
 log = logging.getLogger(__name__)
@@ -300,9 +301,11 @@ class LocalBrain:
         if self.recorder is not None:
             self.recorder.add(*as_recorded(e, acted))
         if self.mt is None:
-            # Thinks are owed per stored experience, as in the think thread and on a server.
-            if self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal):
-                self.learner.think()
+            # Thinks are owed per stored experience, as in the think thread and on a server. Ctrl-C
+            # or SIGTERM waits for them: the learner is saved as the run ends, never half-updated.
+            with interrupts_after():
+                if self.learner.learn(e.state, e.action, e.next_state, e.reward, e.terminal):
+                    self.learner.think()
         else:
             self.mt.learn(e.state, e.action, e.next_state, e.reward, e.terminal)
 

@@ -40,7 +40,7 @@ from wfnn_client.tick import Ticker, TickStats
 from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
-from wfnn_io.cli_errors import Terminated, handling, log_failure, noting, terminate
+from wfnn_io.cli_errors import handling, interrupt_behind, log_failure, noting, raise_noted, terminate
 from wfnn_io.logs import CLIENT_JSON, remove_empty_log
 from wfnn_io.persist import (
     PersistError,
@@ -214,14 +214,6 @@ def _stop_brains(brains: _Brains) -> int:
     with noting(signal.SIGTERM, signal.SIGINT, keep_ignored=True) as noted:
         brains.stop()
     return noted[0] if noted else 0
-
-
-def _raise_noted(signum: int) -> None:
-    """End the run as the signal noted while stopping would have (after the brains stopped)."""
-    if signum == signal.SIGINT:
-        raise KeyboardInterrupt
-    if signum:
-        raise Terminated(signum)
 
 
 @dataclass
@@ -586,14 +578,15 @@ def _run(
             log_failure(log, "stopping the brains after the run failed failed too", exc)
         if frames is not None:
             frames.close()
-        ended_outside = isinstance(ended, KeyboardInterrupt) or robot_failed
+        interrupt = interrupt_behind(ended)  # raised in a compiled act, it came back as another error
+        ended_outside = interrupt is not None or robot_failed
         if ended_outside and config.local and config.learn and _learners_whole(brains):
             # Ctrl-C or SIGTERM is how a long run is ended, and a robot (a simulation going
             # unstable, a task's own error) can fail in a step, before anything learned from it:
             # what the learner learned is kept (the journal keeps the experiences), so that
             # --weights resumes it. The learner's own failure is not trusted to have left it
             # whole, and its experiences can be learned again from the journal.
-            why = "interrupted" if isinstance(ended, KeyboardInterrupt) else "the robot failed"
+            why = "interrupted" if interrupt is not None else "the robot failed"
             try:
                 saved = _save_weights(skills, config, len(scores))
             except Exception as exc:  # what ended the run is what to report, whatever the save met
@@ -601,10 +594,12 @@ def _run(
             else:
                 if saved:
                     log.warning("%s: %s saved in %s", why, ", ".join(saved), config.out)
+        if interrupt is not None and interrupt is not ended:
+            raise interrupt from None  # how the run ended (exit 130, or the signal's), not its wrapper
         raise
     noted = _stop_brains(brains)
     camera_frames = frames.close() if frames is not None else None
-    _raise_noted(noted)
+    raise_noted(noted)
     _finish_thinking(brains)
     brains.check()
     final = _status(brains, ticks, safety, rewards, values, len(scores), scores, wall, whole_run=True)

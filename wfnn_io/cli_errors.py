@@ -241,6 +241,42 @@ def noting(*signums: int, keep_ignored: bool = False) -> Iterator[list[int]]:
         yield noted
 
 
+def raise_noted(signum: int) -> None:
+    """End the run as a signal that was only noted (`noting`) would have ended it; 0: none came."""
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    if signum:
+        raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def interrupts_after() -> Iterator[None]:
+    """Ctrl-C and SIGTERM held until the block ends, then raised as they came (ignored ones stay so).
+
+    For work that must not stop half-made (a learner's update): raised inside compiled code, the
+    interrupt also came back wrapped in another error (numba's SystemError).
+    """
+    with noting(signal.SIGINT, signal.SIGTERM, keep_ignored=True) as noted:
+        yield
+    raise_noted(noted[0] if noted else 0)
+
+
+def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM (`Terminated`) that `exc` is, or was raised from, if any.
+
+    An interrupt raised inside compiled code comes back as the cause of another error (numba's
+    "returned a result with an exception set" SystemError).
+    """
+    seen: set[int] = set()
+    at: BaseException | None = exc
+    while at is not None and id(at) not in seen:
+        if isinstance(at, KeyboardInterrupt):
+            return at
+        seen.add(id(at))
+        at = at.__cause__ or at.__context__
+    return None
+
+
 def _put_back(handlers: list[tuple[int, Any]]) -> None:
     if handlers:
         (signum, handler), rest = handlers[0], handlers[1:]

@@ -396,6 +396,61 @@ def test_a_local_run_ended_by_ctrl_c_keeps_what_its_learner_learned(tmp_path, le
     assert resumed["experiences_learned"] > 0
 
 
+def test_ctrl_c_inside_a_compiled_act_keeps_what_the_learner_learned_and_ends_as_an_interrupt(
+    tmp_path, monkeypatch
+):
+    """Raised inside a numba kernel's call, the interrupt came back as a SystemError: the run was
+    taken for a failed learner, saved nothing and ended in that error (exit 1)."""
+    from wfnn_client.run import run as run_client
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import load_checkpoint
+
+    acts, original = [0], WFNN.act
+
+    def act(self, *args, **kwargs):
+        acts[0] += 1
+        if acts[0] == 450:  # in the third episode
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as exc:
+                raise SystemError("CPUDispatcher returned a result with an exception set") from exc
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(WFNN, "act", act)
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_client(ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=50, thinks_per_action=1,
+                                out=out))  # fmt: skip
+    _, _, meta, _ = load_checkpoint(out / "weights.npz")
+    assert meta["episodes"] == 2
+
+
+def test_ctrl_c_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_whole(tmp_path, monkeypatch):
+    """The interrupt landed inside the update: the learner was saved with the update half-made
+    (here: the think not counted), or inside a numba kernel's call, not saved at all."""
+    import signal
+
+    from wfnn_client.run import run as run_client
+    from wfnn_common.learner import WFNN
+    from wfnn_io.persist import load_checkpoint
+
+    calls, original = [0], WFNN.think
+
+    def think(self, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 300:
+            signal.raise_signal(signal.SIGINT)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(WFNN, "think", think)
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_client(ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=50, thinks_per_action=1,
+                                out=out))  # fmt: skip
+    _, _, meta, _ = load_checkpoint(out / "weights.npz")
+    assert calls[0] == 300 and meta["thinks"] == 300
+
+
 class _FailsLate(gymnasium.Env):
     """A task whose step fails (a simulation going unstable) after 250 steps."""
 
