@@ -135,13 +135,14 @@ def _evaluate(policy: Any, env_id: str, episodes: int, seed: int) -> tuple[float
     """
     env = gym.make(env_id)
     limit = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else EVAL_LIMIT
+    dtype = env.action_space.dtype  # as training's steps give it (a task may check its actions' type)
     total, length = 0.0, 0
     try:
         for k in range(episodes):
             obs, _ = env.reset(seed=seed + k)
             done, steps = False, 0
             while not done and steps < limit:
-                obs, reward, terminated, truncated, _ = env.step(policy(obs))
+                obs, reward, terminated, truncated, _ = env.step(np.asarray(policy(obs), dtype=dtype))
                 total += float(reward)
                 length += 1
                 steps += 1

@@ -308,3 +308,18 @@ def test_a_task_failing_in_an_evaluation_is_named():
     gym.register("WfnnTestBoom-v0", entry_point=_Boom, max_episode_steps=20)
     with pytest.raises(RuntimeError, match="WfnnTestBoom-v0 failed in a greedy evaluation: ValueError: boom"):
         _evaluate(lambda obs: np.array([1.0], np.float32), "WfnnTestBoom-v0", 1, 0)
+
+
+class _Strict(_Walk):
+    """A task that checks its actions as Gymnasium's checker does: of its space's dtype too."""
+
+    def step(self, action):
+        assert self.action_space.contains(action), f"action {action!r} not in {self.action_space}"
+        return super().step(action)
+
+
+def test_an_evaluation_gives_actions_of_the_action_spaces_type():
+    """WFNN's float64 actions failed a float32 task's own check in its evaluation alone (training
+    steps cast them: a run failed only when it was evaluated)."""
+    gym.register("WfnnTestStrict-v0", entry_point=_Strict, max_episode_steps=20)
+    assert _evaluate(lambda obs: np.array([1.0]), "WfnnTestStrict-v0", 1, 0) == (7.0, 3.0)
