@@ -9,7 +9,8 @@ value after it), as an ordinary one when only the time limit truncated it.
 Declared ranges (the learner scales states and actions by them) come from the spaces. Where an
 observation bound is infinite (most MuJoCo tasks), its range is measured instead: the 1st and
 99th percentiles of the observations met over `probe_steps` random actions, widened by half
-their span on each side. Such ranges are estimates from a random policy, which rarely goes
+their span on each side (on the task itself, before the run: ranges measured before, given as
+`state_ranges`, are taken instead). Such ranges are estimates from a random policy, which rarely goes
 where a good one does (a balanced pole's cart drifts far beyond where random pushes ever
 took it), so the task then declares `valid_margin` = MEASURED_MARGIN: the learner's sanity
 limits refuse only non-finite observations, not those beyond an estimated range. A bound of at
@@ -110,7 +111,15 @@ class GymVec:
 
     n = 1
 
-    def __init__(self, env_id: str, seed: int = 0, probe_steps: int = 2000, **make_kwargs: Any) -> None:
+    def __init__(
+        self, env_id: str, seed: int = 0, probe_steps: int = 2000,
+        state_ranges: tuple[tuple[float, ...], tuple[float, ...]] | None = None, **make_kwargs: Any,
+    ) -> None:  # fmt: skip
+        """One environment of `env_id`, its ranges declared or measured (module docstring).
+
+        `state_ranges` (low, high), where given and of the observations' size, are the ranges as
+        measured before (saved with weights), so that no random action is sent to measure them.
+        """
         self.env = make_env(env_id, **make_kwargs)
         obs, act = self.env.observation_space, self.env.action_space
         assert isinstance(obs, gym.spaces.Box) and isinstance(act, gym.spaces.Box)
@@ -122,7 +131,13 @@ class GymVec:
         low[~(np.abs(low) < UNBOUNDED)], high[~(np.abs(high) < UNBOUNDED)] = -np.inf, np.inf
         self.valid_margin = 1.0
         """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
-        if not (np.isfinite(low).all() and np.isfinite(high).all()):
+        given = state_ranges is not None and len(state_ranges[0]) == len(state_ranges[1]) == len(low)
+        if given and not (np.isfinite(low).all() and np.isfinite(high).all()):
+            assert state_ranges is not None
+            saved = [np.array(r, dtype=np.float64) for r in state_ranges]
+            low, high = np.where(np.isfinite(low), low, saved[0]), np.where(np.isfinite(high), high, saved[1])
+            self.valid_margin = MEASURED_MARGIN
+        elif not (np.isfinite(low).all() and np.isfinite(high).all()):
             declared, unbounded = (obs.low, obs.high), ~(np.isfinite(low) & np.isfinite(high))
             with np.errstate(over="ignore", invalid="ignore"):  # told below, naming the observation
                 low, high, seen = self._measured_ranges(low, high, probe_steps)

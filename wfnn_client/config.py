@@ -196,7 +196,7 @@ class ClientConfig:
     def sim_options(self) -> SimOptions:
         """What building the simulated task needs of these options."""
         return SimOptions(boat_dt=self.boat_dt, env=self.env, hydra=self.hydra, nomad=self.nomad,
-                          forage=self.forage, seed=self.seed)  # fmt: skip
+                          forage=self.forage, seed=self.seed, weights=self.weights)  # fmt: skip
 
     def summary(self) -> str:
         """One line: the task, where it thinks, the learner's overrides and the run directory."""

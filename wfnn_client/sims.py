@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from sims.nomad import ForageConfig, NomadConfig, NomadForage, NomadVec, handcod
 from sims.positioning import PositioningVec, handcoded_positioning
 from wfnn_client.safety import Veto
 from wfnn_common.config import check_fields
+from wfnn_io.persist import load_weights
 
 FloatArray = NDArray[np.float64]
 Policy = Callable[[FloatArray], FloatArray]
@@ -45,6 +47,8 @@ class SimOptions:
     forage: ForageConfig | None = None
     """nomad: learned wandering and learned servoing, one learner each (Fig 6.3)."""
     seed: int = 0
+    weights: Path | None = None
+    """The weights the run starts from (`--weights`): gym takes the state ranges saved with them."""
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -225,8 +229,26 @@ SIMS["nomad"] = SimSpec(
     ),
 )
 SIMS["position"] = SIMS["positioning"]
+
+
+def _saved_ranges(config: SimOptions) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
+    """The state ranges saved with the weights given (a gym task's, measured when they were made).
+
+    Taken instead of measuring them again with random actions sent to the task (a robot's,
+    it may be): the saved weights need those ranges anyway. None where there are none to read
+    (their loading refuses them later, saying why).
+    """
+    if config.weights is None or not config.weights.is_file():
+        return None
+    try:
+        saved = load_weights(config.weights)[0]
+    except (OSError, ValueError):
+        return None
+    return saved.state_low, saved.state_high
+
+
 SIMS["gym"] = SimSpec(
-    make=lambda c: GymVec(c.env or "", seed=c.seed),
+    make=lambda c: GymVec(c.env or "", seed=c.seed, state_ranges=_saved_ranges(c)),
     # One client episode per time limit; an episode the task ends early restarts inside it, so
     # the score times the time limit is no return (a hopper falling every 30 steps earns most of
     # a standing one's healthy reward): the task's own returns are in metrics.json (task_returns).

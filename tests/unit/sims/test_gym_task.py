@@ -608,3 +608,37 @@ def test_a_task_slower_than_real_time_allows_is_told_so_not_blamed_on_a_flag_not
     said = " ".join(result.output.replace("│", " ").split())  # out of the error's box
     assert result.exit_code == 2 and "the task's own rate is 1e-06 Hz, below real time's limit" in said, said
     assert not (tmp_path / "r").exists()
+
+
+class _CountedDrift(_Drift):
+    """`_Drift`, counting the actions sent to it (a robot's, it may be)."""
+
+    sent = 0
+
+    def step(self, action):
+        _CountedDrift.sent += 1
+        return super().step(action)
+
+
+def test_ranges_saved_with_weights_are_taken_without_a_random_action_sent_to_measure_them(tmp_path):
+    """A run given weights measured the ranges again: 2,000 random actions, outside the safety
+    layer and the record, sent to a task that may drive a real robot."""
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run as run_client
+
+    gym.register("WfnnTestCountedDrift-v0", entry_point=_CountedDrift, max_episode_steps=20)
+    first = ClientConfig(sim="gym", env="WfnnTestCountedDrift-v0", rate_hz=0, lockstep=True, episodes=1,
+                         thinks_per_action=1, out=tmp_path / "a")  # fmt: skip
+    run_client(first)
+    assert _CountedDrift.sent == 2000 + 20  # the probe, then the run's one episode
+    _CountedDrift.sent = 0
+    again = dataclasses.replace(first, weights=tmp_path / "a" / "weights.npz", out=tmp_path / "b")
+    run_client(again)
+    assert _CountedDrift.sent == 20
+    measured = GymVec("WfnnTestCountedDrift-v0")
+    saved = GymVec("WfnnTestCountedDrift-v0", state_ranges=(measured.state_low, measured.state_high))
+    assert (saved.state_low, saved.state_high, saved.valid_margin) == (
+        measured.state_low, measured.state_high, measured.valid_margin)  # fmt: skip
+    # Ranges that do not fit the observations are not taken: measured again.
+    other = GymVec("WfnnTestCountedDrift-v0", state_ranges=((0.0,), (1.0,)))
+    assert other.state_low == measured.state_low
