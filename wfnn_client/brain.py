@@ -107,9 +107,9 @@ class Recorder:
 
     def __init__(
         self, directory: Path, config: LearnerConfig, client_id: str | None = None, batch_max: int = 256,
-        background: bool = False,
+        background: bool = False, task: str | None = None,
     ) -> None:  # fmt: skip
-        self.journal = Journal(directory, client_id, fsync="never", learner_config=config)
+        self.journal = Journal(directory, client_id, fsync="never", learner_config=config, task=task)
         self.codec = Codec(self.journal.client_id)
         self.spec_hash = config.spec_hash()
         self.batch_max = batch_max

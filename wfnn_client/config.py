@@ -198,14 +198,19 @@ class ClientConfig:
         return SimOptions(boat_dt=self.boat_dt, env=self.env, hydra=self.hydra, nomad=self.nomad,
                           forage=self.forage, seed=self.seed, weights=self.weights)  # fmt: skip
 
-    def summary(self) -> str:
-        """One line: the task, where it thinks, the learner's overrides and the run directory."""
-        task = {
+    @property
+    def task(self) -> str:
+        """The task and the options that make it another (its journal records it: `Journal`)."""
+        return {
             "hydra": f"hydra ({','.join(self.hydra.joints)}; {','.join(self.hydra.axes)}; "
                      f"{self.hydra.regime})",
             "nomad": f"nomad ({'forage' if self.forage else self.nomad.behaviour})",
             "gym": f"gym {self.env}", "boat": f"boat (dt {self.boat_dt:g})",
         }.get(self.sim, self.sim)  # fmt: skip
+
+    def summary(self) -> str:
+        """One line: the task, where it thinks, the learner's overrides and the run directory."""
+        task = self.task
         where = "thinking locally" if self.local else f"servers {', '.join(self.server) or '(they connect)'}"
         rate = (
             "lock-step"

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from wfnn_common.checks import cut_repr
 from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_io.logs import (
     CLIENT_JSON,
@@ -33,6 +34,8 @@ from wfnn_io.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
 
+MAX_TASK_CHARS = 1024
+"""Longest task name a journal's `client.json` is read with (a longer one is damage, not a task)."""
 RESERVE_BLOCK = 256
 """Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
 ROOM = 1 << 40
@@ -60,7 +63,14 @@ class Journal:
         segment_bytes: int = 8 << 20,
         learner_config: LearnerConfig | None = None,
         controller: str | None = None,
+        task: str | None = None,
     ) -> None:
+        """Open (or make) the journal in `directory`, continuing its numbering.
+
+        `task` names what the experiences are of (a run's task and its options): a journal is
+        continued only by runs of the task it records (the spec alone does not tell tasks whose
+        spaces are the same apart).
+        """
         directory = Path(directory)
         self.log = ExperienceLog(directory, learner_config, fsync=fsync, fsync_interval_s=fsync_interval_s,
                                  segment_bytes=segment_bytes)  # fmt: skip
@@ -112,6 +122,16 @@ class Journal:
                 after = (pos, self.log.counts.unreadable)
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
+            recorded = meta.get("task")
+            readable = isinstance(recorded, str) and 0 < len(recorded) <= MAX_TASK_CHARS
+            self.task = recorded if readable else task
+            """The task its experiences are of (None: not said, by a journal from before it was)."""
+            if task is not None and self.task != task:
+                raise ValueError(
+                    f"journal {directory} records experiences of {cut_repr(self.task, 120)}, not of "
+                    f"{cut_repr(task, 120)}: one record holds one task's experiences; use another run "
+                    "directory"
+                )
             self.controllers = journal_controllers(meta)
             """The controllers its frames were tagged for, by this run and earlier ones (recorded, so
             that a reader with the key checks them with those controllers' keys: `logs.read_entries`)."""
@@ -120,6 +140,8 @@ class Journal:
             closed = meta.get("closed") is True
             if controller is not None and controller not in self.controllers:
                 self.controllers = [*self.controllers, controller][-MAX_CONTROLLERS:]
+                self._write_meta(self.reserved_through, closed=closed)
+            elif self.task is not None and recorded != self.task:  # recorded now, not at its next write
                 self._write_meta(self.reserved_through, closed=closed)
         except BaseException:
             self.log.close()
@@ -191,6 +213,8 @@ class Journal:
                                    "closed": closed}  # fmt: skip
         if self.controllers:
             meta["controllers"] = self.controllers
+        if self.task is not None:
+            meta["task"] = self.task
         atomic_write_text(self.log.directory / CLIENT_JSON, json.dumps(meta))
         self.reserved_through = reserved_through
 

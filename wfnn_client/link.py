@@ -35,6 +35,8 @@ class RemoteConfig:
     client_id: str | None = None
     """Client id (default: the journal's, or a new random one)."""
     journal_dir: Path = Path("runs/latest/journal")
+    task: str | None = None
+    """What the experiences are of (`Journal`'s task): a journal of another task is not continued."""
     key_file: Path | None = None
     follow: str | None = None
     """Pin this server id; None follows the longest-alive healthy server."""

@@ -92,7 +92,8 @@ class RemoteBrain:
         self.bus = bus
         self.keys = Keys(config.controller)
         self.journal = Journal(config.journal_dir, config.client_id, fsync=config.journal_fsync,
-                               learner_config=learner.config, controller=config.controller)  # fmt: skip
+                               learner_config=learner.config, controller=config.controller,
+                               task=config.task)  # fmt: skip
         self.id = self.journal.client_id
         key = load_key(str(config.key_file) if config.key_file else None)
         self.codec = Codec(self.id, key, config.controller)

@@ -37,6 +37,7 @@ from wfnn_client.safety import SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_client.tick import Ticker, TickStats
+from wfnn_common.checks import cut_repr
 from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
@@ -112,7 +113,7 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "", vers
         learner.prepare_thinking(compile=config.learn)  # a compile in the think thread held ticks up
         # Off the tick, in lock-step too: a slow disk must not hold up the control loop.
         record = Recorder(config.out / _named("journal", behaviour), learner.config, config.client_id,
-                          background=True)  # fmt: skip
+                          background=True, task=config.task)  # fmt: skip
         if config.learn:  # its weights are new: numbered past every version the journal names already
             # (given another run's weights, or none, a run numbered from theirs: the versions went back)
             version = max(version, record.journal.last_version.get(LOCAL_SOURCE, -1) + 1)
@@ -130,7 +131,7 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "", vers
     net = dataclasses.replace(config.remote_net, max_message_bytes=min(config.net.max_message_bytes, largest))
     remote = RemoteConfig(
         controller=_named(config.controller, behaviour, "-"), client_id=config.client_id,
-        journal_dir=config.out / _named("journal", behaviour),
+        journal_dir=config.out / _named("journal", behaviour), task=config.task,
         key_file=config.key_file, follow=config.follow, lockstep=config.lockstep,
     )  # fmt: skip
     bus = ZenohBus(net)
@@ -299,6 +300,10 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}; the options given "
                              f"make {resumed.spec_hash()} ({differ})")  # fmt: skip
         _tell_resumed(saved_cfg, resumed, path)
+        learned_on = meta.get("task")
+        if isinstance(learned_on, str) and learned_on != config.task:  # a transfer (sim to robot, say)
+            log.warning("%s: weights learned on %s, taken on %s (their spaces are the same)", path,
+                        cut_repr(learned_on, 120), config.task)  # fmt: skip
         lcfg = resumed
         try:
             learner = make_learner(lcfg, params=params)
@@ -753,7 +758,8 @@ def _save_weights(skills: list[Skill], config: ClientConfig, episodes: int) -> l
     for sk in skills:
         current = getattr(sk.brain, "current", None)  # C/S: the snapshot act used last
         params = sk.learner.params if config.local else (current.params if current is not None else None)
-        meta: dict[str, Any] = {"sim": config.sim, "episodes": episodes, "following": sk.brain.following,
+        meta: dict[str, Any] = {"sim": config.sim, "task": config.task, "episodes": episodes,
+                                "following": sk.brain.following,
                                 "behaviour": sk.name}  # fmt: skip
         # Resumed with --weights (learning or not), the count and version go on; weights given
         # without them are not said to have thought none.

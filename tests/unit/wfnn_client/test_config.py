@@ -710,6 +710,40 @@ def test_a_run_continuing_a_journal_numbers_its_weights_past_every_version_the_j
     assert (np.diff(both.astype(np.int64)) >= 0).all()
 
 
+def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, caplog):
+    """The boat at another time step (or two Gymnasium tasks of the same spaces) has the same
+    learner spec: a run of it continued another task's journal, which then mixed the two."""
+    import json
+    import logging
+
+    from wfnn_client.run import SetupError
+    from wfnn_client.run import run as run_client
+    from wfnn_io import logs
+
+    def client(dt, out="a", **kw):
+        return ClientConfig(sim="boat", boat_dt=dt, rate_hz=0, lockstep=True, episodes=1, thinks_per_action=1,
+                            out=tmp_path / out, **kw)  # fmt: skip
+
+    run_client(client(0.1))
+    meta = json.loads((tmp_path / "a" / "journal" / "client.json").read_text())
+    assert meta["task"] == "boat (dt 0.1)"
+    before = logs.summarise(tmp_path / "a" / "journal").experiences
+    with pytest.raises(SetupError, match=r"records experiences of 'boat \(dt 0.1\)', not of 'boat \(dt 1\)'"):
+        run_client(client(1.0))
+    assert logs.summarise(tmp_path / "a" / "journal").experiences == before
+    run_client(client(0.1))  # the same task goes on
+    assert logs.summarise(tmp_path / "a" / "journal").experiences > before
+    # A journal from before tasks were recorded is continued, and records the task from then on.
+    del meta["task"]
+    (tmp_path / "a" / "journal" / "client.json").write_text(json.dumps(meta))
+    run_client(client(0.1))
+    assert json.loads((tmp_path / "a" / "journal" / "client.json").read_text())["task"] == "boat (dt 0.1)"
+    # Weights may go to another task of the same spaces (a simulation's to the robot): said, not refused.
+    with caplog.at_level(logging.WARNING, logger="wfnn_client.run"):
+        run_client(client(1.0, out="b", weights=tmp_path / "a" / "weights.npz"))
+    assert any("learned on 'boat (dt 0.1)', taken on boat (dt 1)" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
 def test_a_learner_resumed_from_its_weights_keeps_its_saved_config_under_the_options_given(
     tmp_path, learner, caplog
