@@ -171,6 +171,9 @@ class GymVec:
         """The largest reward where the task declares it (this project's own do); else None, unknown,
         as for Gymnasium's tasks (`LearnerConfig.for_task`)."""
         self._obs = np.zeros((1, len(low)))
+        self._failed: Exception | None = None
+        """The restart at an episode's end that failed: raised by the next `observe` or `step`, once
+        the transition into the end (which happened) has been returned, to be learned and recorded."""
         self.last_reward = np.zeros(1)
         self.episode_return = 0.0
         self.returns: list[float] = []
@@ -284,15 +287,20 @@ class GymVec:
         """A new episode -> states [1, S]."""
         obs = self._reset(int(rng.integers(2**31)))
         self._obs = self._observation(obs)
+        self._failed = None
         self.episode_return = 0.0
         return self.observe()
 
     def observe(self) -> FloatArray:
-        """The observation to act from [1, S]."""
+        """The observation to act from [1, S] (the error of a failed restart, where one failed)."""
+        if self._failed is not None:
+            raise self._failed
         return self._obs.copy()
 
     def step(self, action: FloatArray) -> Transition:
         """One environment step with actions [1, A]; a finished episode restarts at once."""
+        if self._failed is not None:
+            raise self._failed
         u = np.clip(np.asarray(action, dtype=np.float64).reshape(1, -1)[0], self.action_low, self.action_high)
         obs, reward, terminated, truncated = self._step(u.astype(self.env.action_space.dtype))
         next_state = self._observation(obs)
@@ -303,7 +311,10 @@ class GymVec:
             self.returns.append(self.episode_return)
             self.episodes += 1
             self.episode_return = 0.0
-            self._obs = self._observation(self._reset(None))
+            try:
+                self._obs = self._observation(self._reset(None))
+            except Exception as exc:  # raised at the next call: this transition happened, and is kept
+                self._failed = exc
         else:
             self._obs = next_state.copy()
         return Transition(

@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import logging
+import shutil
 from decimal import Decimal
 from fractions import Fraction
 
@@ -339,6 +340,8 @@ def test_the_clients_summary_says_why_a_score_is_nan_and_a_curve_it_could_not_dr
     )
     assert (out / "learning_curve.png").exists() and "metrics.json and learning_curve.png" in said
     # The same folder again, with scores matplotlib cannot draw: the earlier curve is not passed off.
+    # (Another task's: its journal, which would refuse it, goes first.)
+    shutil.rmtree(out / "journal")
     result = CliRunner().invoke(cli.app, ["--env", "WfnnTestHugeRewardCli-v0", "--rate-hz", "0",
                                           "--episodes", "1", "--out", str(out)])  # fmt: skip
     said = " ".join(result.output.split())
@@ -626,6 +629,7 @@ def test_ranges_saved_with_weights_are_taken_without_a_random_action_sent_to_mea
     from wfnn_client.config import ClientConfig
     from wfnn_client.run import run as run_client
 
+    _CountedDrift.sent = 0
     gym.register("WfnnTestCountedDrift-v0", entry_point=_CountedDrift, max_episode_steps=20)
     first = ClientConfig(sim="gym", env="WfnnTestCountedDrift-v0", rate_hz=0, lockstep=True, episodes=1,
                          thinks_per_action=1, out=tmp_path / "a")  # fmt: skip
@@ -642,3 +646,41 @@ def test_ranges_saved_with_weights_are_taken_without_a_random_action_sent_to_mea
     # Ranges that do not fit the observations are not taken: measured again.
     other = GymVec("WfnnTestCountedDrift-v0", state_ranges=((0.0,), (1.0,)))
     assert other.state_low == measured.state_low
+
+
+class _ResetFailsLater(gym.Env):
+    """A task whose episodes end after 10 steps and whose second reset fails (a simulator lost)."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float64)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    resets = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        _ResetFailsLater.resets += 1
+        if _ResetFailsLater.resets > 1:
+            raise ConnectionError("simulator lost")
+        self.t = 0
+        return np.zeros(2), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.full(2, 0.05 * self.t), 1.0, self.t == 10, False, {}
+
+
+def test_a_restart_failing_at_an_episodes_end_keeps_the_transition_into_the_end(tmp_path):
+    """The restart failed inside the step that ended the episode: the transition, which happened,
+    was lost with it (learned by no one, in no record)."""
+    from wfnn_client.config import ClientConfig
+    from wfnn_client.run import run as run_client
+    from wfnn_io import logs
+
+    _ResetFailsLater.resets = 0
+    gym.register("WfnnTestResetFailsLater-v0", entry_point=_ResetFailsLater, max_episode_steps=50)
+    cfg = ClientConfig(sim="gym", env="WfnnTestResetFailsLater-v0", rate_hz=0, lockstep=True, episodes=3,
+                       thinks_per_action=1, out=tmp_path / "a")  # fmt: skip
+    with pytest.raises(RuntimeError, match="failed in reset: ConnectionError: simulator lost"):
+        run_client(cfg)
+    [batch] = list(logs.read_batches(tmp_path / "a" / "journal"))
+    assert len(batch) == 10 and batch.terminal[-1] and not batch.terminal[:-1].any()
+    assert (tmp_path / "a" / "weights.npz").exists()  # the robot failed: what was learned is kept
