@@ -144,6 +144,14 @@ class Downlink:
         bus.watch_presence(keys.server_alive(), self._on_presence)
 
     def _on_status(self, key: str, data: bytes) -> None:
+        try:  # checked before it is queued: a flood of junk (with a key: frames failing the tag)
+            sender, _ = check_frame(data, self.codec.key, ServerStatus)  # pushed genuine statuses out
+        except ProtocolError as exc:
+            count_rejected(exc, data, self.rejected, "server status", "status_")
+            return
+        if sender != Keys.last(key):
+            self.rejected["status_misrouted"] += 1
+            return
         if not self._statuses.put(data, len(data)):
             self.rejected["status_inbox_full"] += 1
         self._wake.set()

@@ -81,6 +81,8 @@ from wfnn_io.protocol import (
     SpecMismatch,
     Unsendable,
     WeightSnapshot,
+    check_frame,
+    count_rejected,
     load_key,
     mark_non_finite,
     older_peer,
@@ -617,6 +619,12 @@ class ThinkServer:
 
         def receive(kind: str) -> Callable[[str, bytes], None]:
             def put(key: str, data: bytes) -> None:
+                if self.codec.key is not None:  # a flood failing the tag must not push out genuine frames
+                    try:
+                        check_frame(data, self.codec.key)
+                    except ProtocolError as exc:
+                        count_rejected(exc, data, self.rejected, f"{kind} frame")
+                        return
                 self._inbox.put((kind, data), len(data))  # beyond its bound: dropped, counted
 
             return put

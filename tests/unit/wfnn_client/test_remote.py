@@ -13,7 +13,7 @@ from wfnn_client.link import ServerView
 from wfnn_client.remote import RemoteBrain, RemoteConfig
 from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import WFNN
-from wfnn_io.protocol import Codec, ServerStatus, WeightSnapshot
+from wfnn_io.protocol import Codec, MsgType, ServerStatus, WeightSnapshot
 from wfnn_io.segments import check_free
 
 
@@ -1357,3 +1357,25 @@ def test_a_journal_given_a_new_identity_still_fills_a_server_with_its_earlier_fr
             assert server.rejected["journal_in_use"] == 0
         finally:
             again.stop()
+
+
+def test_statuses_failing_their_checks_are_refused_before_they_can_crowd_out_a_genuine_one(tmp_path):
+    """With a key, frames failing the tag were queued unchecked: a flood of them filled the status
+    inbox, and the genuine statuses behind it were dropped (a client then left a healthy server)."""
+    from wfnn_client.downlink import STATUS_INBOX_BYTES
+    from wfnn_io.protocol import _framed
+
+    hub, cfg = Hub(), small_config()
+    (tmp_path / "key").write_bytes(KEY)
+    brain = remote(tmp_path, hub, cfg, key_file=tmp_path / "key")  # not started: its rounds run here
+    downlink = brain.downlink
+    genuine = status_frame(cfg, weights_version=1)
+    junk = _framed(MsgType.SERVER_STATUS, b"\x80" * (1 << 20), "s1", 0, b"another key of 32 bytes........")
+    for _ in range(2 * STATUS_INBOX_BYTES // len(junk)):
+        downlink._on_status(KEYS.server_status("s1"), junk)
+    downlink._on_status(KEYS.server_status("s2"), genuine)  # another server's key: misrouted
+    downlink._on_status(KEYS.server_status("s1"), genuine)
+    assert brain.rejected["status_auth"] == 2 * STATUS_INBOX_BYTES // len(junk)
+    assert brain.rejected["status_misrouted"] == 1 and brain.rejected["status_inbox_full"] == 0
+    assert list(downlink._statuses.drained()) == [genuine]
+    brain.stop(flush_timeout_s=0.0)

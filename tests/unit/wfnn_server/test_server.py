@@ -157,6 +157,25 @@ def test_keyed_server_rejects_unauthenticated_frames(tmp_path):
         assert listener.wait(lambda: server.store.count == 4)
 
 
+def test_a_keyed_server_refuses_frames_failing_the_tag_before_they_take_room_in_its_inbox(tmp_path):
+    """They were queued unchecked: a flood of them filled the inbox, and genuine frames behind it
+    were dropped (sent again by their clients, late)."""
+    hub, cfg = Hub(), small_config(thinks_per_action=1)
+    key_file = tmp_path / "key"
+    key_file.write_text("k" * 32)
+    listener = Listener(hub)
+    with make_server(tmp_path, hub, cfg, key_file=key_file) as server:
+        queued, put = [], server._inbox.put
+        server._inbox.put = lambda item, size: queued.append(item[0]) or put(item, size)
+        for _ in range(5):
+            send(hub, batch(cfg, 0, 4), key=b"x" * 32)
+        assert listener.wait(lambda: server.rejected["auth"] == 5)
+        assert queued == []
+        send(hub, batch(cfg, 0, 4), key=b"k" * 32)
+        assert listener.wait(lambda: server.store.count == 4)
+        assert queued == ["exp"]
+
+
 def test_adopts_the_first_clients_config(tmp_path):
     hub, cfg = Hub(), small_config(thinks_per_action=3, seed=5)
     listener = Listener(hub)
