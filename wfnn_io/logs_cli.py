@@ -80,7 +80,8 @@ def inspect(
     for name, n in summary.flags.items():
         table.add_row(f"flag {_shown(name)}", f"{n:,}")
     table.add_row("terminal", f"{summary.terminal:,}")
-    table.add_row("mean reward", f"{summary.reward_mean:.4f}")
+    mean = summary.reward_mean  # rewards as large as 1e308 are not written out in 300 digits
+    table.add_row("mean reward", f"{mean:.4f}" if abs(mean) < 1e6 else f"{mean:.4g}")
     table.add_row("learner spec", _shown(", ".join(summary.spec_hashes)) or "-")
     table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
     if summary.description_error:

@@ -215,6 +215,22 @@ def test_inspect_prints_the_names_a_log_holds_verbatim(tmp_path):
     assert "[1]: 80 experiences" in result.output  # the title keeps the path's brackets
 
 
+def test_inspect_shows_a_huge_mean_reward_in_a_few_digits(tmp_path):
+    """Rewards of 1e308 (forged, or a task's own) had their mean written out in over 300 digits."""
+    from typer.testing import CliRunner
+
+    from wfnn_io.logs_cli import app
+
+    config = LearnerConfig.for_task(BoatVec)
+    recorder = Recorder(tmp_path / "log", config, "robot1")
+    for reward in (1e308, 1e308, -2.0):
+        recorder.add(Experience(np.zeros(config.state_dim), np.zeros(config.action_dim),
+                                np.zeros(config.state_dim), reward, False, 0), "local", 0)  # fmt: skip
+    recorder.close()
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "log")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0 and "6.667e+307" in result.output and "66666" not in result.output
+
+
 def test_inspect_names_a_segment_missing_between_others(tmp_path):
     from typer.testing import CliRunner
 
