@@ -425,7 +425,7 @@ def test_ctrl_c_inside_a_compiled_act_keeps_what_the_learner_learned_and_ends_as
     assert meta["episodes"] == 2
 
 
-def test_ctrl_c_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_whole(tmp_path, monkeypatch):
+def test_a_stop_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_whole(tmp_path, monkeypatch):
     """The interrupt landed inside the update: the learner was saved with the update half-made
     (here: the think not counted), or inside a numba kernel's call, not saved at all."""
     import signal
@@ -438,8 +438,8 @@ def test_ctrl_c_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_wh
 
     def think(self, *args, **kwargs):
         calls[0] += 1
-        if calls[0] == 300:
-            signal.raise_signal(signal.SIGINT)
+        if calls[0] == 300:  # SIGTERM, as a supervisor stops a run (SIGINT is ignored in a job run with &)
+            signal.raise_signal(signal.SIGTERM)
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(WFNN, "think", think)
