@@ -26,6 +26,7 @@ from wfnn_io.logs import (
     ExperienceLog,
     client_meta,
     journal_controllers,
+    journal_task,
     set_aside,
 )
 from wfnn_io.persist import atomic_write_text, read_regular_text
@@ -34,8 +35,6 @@ from wfnn_io.segments import FsyncPolicy, Position
 
 log = logging.getLogger(__name__)
 
-MAX_TASK_CHARS = 1024
-"""Longest task name a journal's `client.json` is read with (a longer one is damage, not a task)."""
 RESERVE_BLOCK = 256
 """Experience numbers reserved in `client.json` at a time, ahead of those published (`reserve`)."""
 ROOM = 1 << 40
@@ -122,9 +121,8 @@ class Journal:
                 after = (pos, self.log.counts.unreadable)
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
-            recorded = meta.get("task")
-            readable = isinstance(recorded, str) and 0 < len(recorded) <= MAX_TASK_CHARS
-            self.task = recorded if readable else task
+            recorded = journal_task(meta)
+            self.task = recorded or task
             """The task its experiences are of (None: not said, by a journal from before it was)."""
             if task is not None and self.task != task:
                 raise ValueError(

@@ -296,6 +296,16 @@ def client_meta(directory: Path, warn: bool = False) -> dict[str, Any]:
     return meta
 
 
+MAX_TASK_CHARS = 1024
+"""Longest task a journal's `client.json` is read with (a longer one is damage, not a task)."""
+
+
+def journal_task(meta: dict[str, Any]) -> str:
+    """The task a journal's `client_meta` records its experiences are of ("" where it says none)."""
+    task = meta.get("task")
+    return task if isinstance(task, str) and len(task) <= MAX_TASK_CHARS else ""
+
+
 def journal_controllers(meta: dict[str, Any]) -> list[str]:
     """The controllers a journal's `client_meta` records that its frames were tagged for (oldest first)."""
     named = meta.get("controllers", [])
@@ -570,6 +580,8 @@ class Summary:
     learner_config: dict[str, Any] | None = None
     description_error: str = ""
     """Why `log.json` (or the store's learner config) could not be read, if it could not."""
+    task: str = ""
+    """The task a client's journal records its experiences are of ("": not said, or not a journal)."""
 
     @property
     def unreadable(self) -> int:
@@ -587,6 +599,7 @@ class Summary:
             "refused": dict(self.refused), "damage": [vars(d) for d in self.damage],
             "skipped_bytes": sum(d.length for d in self.damage), "strays": self.strays,
             "learner_config": self.learner_config, "description_error": self.description_error,
+            "task": self.task,
         }  # fmt: skip
 
 
@@ -627,6 +640,7 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
         out.description_error = str(exc)
         config = None
     out.learner_config = config.to_dict() if config is not None else None
+    out.task = journal_task(client_meta(directory))
     if config is not None and out.spec_hashes and config.spec_hash() not in out.spec_hashes:
         out.description_error = (f"its learner config is of spec {config.spec_hash()}, its experiences of "
                                  f"{', '.join(out.spec_hashes)} (a {LOG_JSON} of another log?)")  # fmt: skip

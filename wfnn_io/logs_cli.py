@@ -83,6 +83,8 @@ def inspect(
     mean = summary.reward_mean  # rewards as large as 1e308 are not written out in 300 digits
     table.add_row("mean reward", f"{mean:.4f}" if abs(mean) < 1e6 else f"{mean:.4g}")
     table.add_row("learner spec", _shown(", ".join(summary.spec_hashes)) or "-")
+    if summary.task:
+        table.add_row("task", _shown(summary.task))
     table.add_row("learner config", "in the log" if summary.learner_config else "not recorded")
     if summary.description_error:
         table.add_row("[red]description[/]", _shown(summary.description_error))

@@ -726,7 +726,7 @@ def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, ca
 
     run_client(client(0.1))
     meta = json.loads((tmp_path / "a" / "journal" / "client.json").read_text())
-    assert meta["task"] == "boat (dt 0.1)"
+    assert meta["task"] == "boat (dt 0.1)" == logs.summarise(tmp_path / "a" / "journal").task
     before = logs.summarise(tmp_path / "a" / "journal").experiences
     with pytest.raises(SetupError, match=r"records experiences of 'boat \(dt 0.1\)', not of 'boat \(dt 1\)'"):
         run_client(client(1.0))
