@@ -22,6 +22,7 @@ left out.
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import gymnasium as gym
@@ -30,6 +31,8 @@ from numpy.typing import NDArray
 
 from sims.base import Transition
 from wfnn_common.config import MAX_ACTION_DIM, MAX_STATE_DIM
+
+log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 MEASURED_MARGIN = 1e6
@@ -117,8 +120,9 @@ class GymVec:
     ) -> None:  # fmt: skip
         """One environment of `env_id`, its ranges declared or measured (module docstring).
 
-        `state_ranges` (low, high), where given and of the observations' size, are the ranges as
-        measured before (saved with weights), so that no random action is sent to measure them.
+        `state_ranges` (low, high), where given, are the ranges as measured before (saved with
+        weights), so that no random action is sent to measure them (ValueError: they are not of
+        the observations' size).
         """
         self.env = make_env(env_id, **make_kwargs)
         obs, act = self.env.observation_space, self.env.action_space
@@ -131,9 +135,11 @@ class GymVec:
         low[~(np.abs(low) < UNBOUNDED)], high[~(np.abs(high) < UNBOUNDED)] = -np.inf, np.inf
         self.valid_margin = 1.0
         """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
-        given = state_ranges is not None and len(state_ranges[0]) == len(state_ranges[1]) == len(low)
-        if given and not (np.isfinite(low).all() and np.isfinite(high).all()):
-            assert state_ranges is not None
+        if state_ranges is not None and not (np.isfinite(low).all() and np.isfinite(high).all()):
+            if not len(state_ranges[0]) == len(state_ranges[1]) == len(low):  # not measured on this task
+                self.env.close()
+                raise ValueError(f"{env_id}: ranges given for {len(state_ranges[0])} observations, the "
+                                 f"task has {len(low)} (another task's weights?)")  # fmt: skip
             saved = [np.array(r, dtype=np.float64) for r in state_ranges]
             low, high = np.where(np.isfinite(low), low, saved[0]), np.where(np.isfinite(high), high, saved[1])
             self.valid_margin = MEASURED_MARGIN
@@ -287,6 +293,9 @@ class GymVec:
         """A new episode -> states [1, S]."""
         obs = self._reset(int(rng.integers(2**31)))
         self._obs = self._observation(obs)
+        if self._failed is not None:  # told: no call raised it, and the task is whole again
+            log.warning("%s: a restart at an episode's end failed (%s); the reset after it worked",
+                        self.env_id, self._failed)  # fmt: skip
         self._failed = None
         self.episode_return = 0.0
         return self.observe()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -198,9 +200,8 @@ class ClientConfig:
         return SimOptions(boat_dt=self.boat_dt, env=self.env, hydra=self.hydra, nomad=self.nomad,
                           forage=self.forage, seed=self.seed, weights=self.weights)  # fmt: skip
 
-    @property
-    def task(self) -> str:
-        """The task and the options that make it another (its journal records it: `Journal`)."""
+    def _task_summary(self) -> str:
+        """The task in a few words (the run's line)."""
         return {
             "hydra": f"hydra ({','.join(self.hydra.joints)}; {','.join(self.hydra.axes)}; "
                      f"{self.hydra.regime})",
@@ -208,9 +209,23 @@ class ClientConfig:
             "gym": f"gym {self.env}", "boat": f"boat (dt {self.boat_dt:g})",
         }.get(self.sim, self.sim)  # fmt: skip
 
+    @property
+    def task(self) -> str:
+        """The task and every option that makes it another (its journal records it: `Journal`).
+
+        The robots' many options (camera, balls, rate, vision, limits...) as a digest of them all
+        beside the few words: any that differ make another task.
+        """
+        options = {"hydra": (self.hydra,), "nomad": (self.nomad, self.forage)}.get(self.sim)
+        if options is None:  # the few words say it all (the boat's time step, the Gymnasium id)
+            return self._task_summary()
+        plain = [dataclasses.asdict(o) if o is not None else None for o in options]
+        digest = hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:8]
+        return f"{self._task_summary()}, options {digest}"
+
     def summary(self) -> str:
         """One line: the task, where it thinks, the learner's overrides and the run directory."""
-        task = self.task
+        task = self._task_summary()
         where = "thinking locally" if self.local else f"servers {', '.join(self.server) or '(they connect)'}"
         rate = (
             "lock-step"

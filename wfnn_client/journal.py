@@ -76,8 +76,9 @@ class Journal:
         self._index = _Index()
         self.next_seq = 0
         self.last_version: dict[str, int] = {}
-        """The newest weights version each source chose actions by in the journal (below
-        MAX_SAVED_COUNT: larger ones are no run's count), so that a run continuing it numbers on."""
+        """The newest weights version each source chose actions by in the journal, so that a run
+        continuing it numbers on. Only those below half MAX_SAVED_COUNT: larger ones are no run's
+        count, and a run numbering on from one would save weights whose version a resume refuses."""
         self.skips: dict[int, int] = {}
         """Gaps in the numbering that no damage explains (last -> first): numbers a run that did
         not close the journal reserved (this open's reservation included), or numbering moved past
@@ -111,7 +112,7 @@ class Journal:
                     log.error("journal batch at %s holds experiences %d-%d, of which those through %d are "
                               "journaled before it: only what follows them is kept",
                               pos, batch.first_seq, batch.last_seq, self.next_seq - 1)  # fmt: skip
-                counted = batch.weights_version[batch.weights_version < MAX_SAVED_COUNT]
+                counted = batch.weights_version[batch.weights_version < MAX_SAVED_COUNT // 2]
                 if len(counted):
                     newest = int(counted.max())
                     source = batch.weights_source
@@ -122,6 +123,9 @@ class Journal:
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
             recorded = journal_task(meta)
+            if "task" in meta and not recorded and task is not None:  # damaged: whose experiences, unknown
+                log.warning("journal %s: its %s records a task that cannot be read (%s); taken as %s",
+                            directory, CLIENT_JSON, cut_repr(meta["task"], 60), task[:120])  # fmt: skip
             self.task = recorded or task
             """The task its experiences are of (None: not said, by a journal from before it was)."""
             if task is not None and self.task != task:

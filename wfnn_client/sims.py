@@ -235,15 +235,12 @@ def _saved_ranges(config: SimOptions) -> tuple[tuple[float, ...], tuple[float, .
     """The state ranges saved with the weights given (a gym task's, measured when they were made).
 
     Taken instead of measuring them again with random actions sent to the task (a robot's,
-    it may be): the saved weights need those ranges anyway. None where there are none to read
-    (their loading refuses them later, saying why).
+    it may be): the saved weights need those ranges anyway. Weights that cannot be read are
+    refused here (PersistError, OSError), before the task is sent anything.
     """
-    if config.weights is None or not config.weights.is_file():
+    if config.weights is None:
         return None
-    try:
-        saved = load_weights(config.weights)[0]
-    except (OSError, ValueError):
-        return None
+    saved = load_weights(config.weights)[0]
     return saved.state_low, saved.state_high
 
 

@@ -303,7 +303,7 @@ MAX_TASK_CHARS = 1024
 def journal_task(meta: dict[str, Any]) -> str:
     """The task a journal's `client_meta` records its experiences are of ("" where it says none)."""
     task = meta.get("task")
-    return task if isinstance(task, str) and len(task) <= MAX_TASK_CHARS else ""
+    return task if isinstance(task, str) and 0 < len(task) <= MAX_TASK_CHARS else ""
 
 
 def journal_controllers(meta: dict[str, Any]) -> list[str]:

@@ -643,9 +643,18 @@ def test_ranges_saved_with_weights_are_taken_without_a_random_action_sent_to_mea
     saved = GymVec("WfnnTestCountedDrift-v0", state_ranges=(measured.state_low, measured.state_high))
     assert (saved.state_low, saved.state_high, saved.valid_margin) == (
         measured.state_low, measured.state_high, measured.valid_margin)  # fmt: skip
-    # Ranges that do not fit the observations are not taken: measured again.
-    other = GymVec("WfnnTestCountedDrift-v0", state_ranges=((0.0,), (1.0,)))
-    assert other.state_low == measured.state_low
+    # Ranges that do not fit the observations (another task's) are refused, nothing measured.
+    _CountedDrift.sent = 0
+    with pytest.raises(ValueError, match="ranges given for 1 observations, the task has 2"):
+        GymVec("WfnnTestCountedDrift-v0", state_ranges=((0.0,), (1.0,)))
+    # Weights that cannot be read are refused before the task is sent anything (they were refused
+    # only after the probe's 2,000 random actions).
+    (tmp_path / "bad.npz").write_bytes(b"not weights")
+    with pytest.raises(ValueError, match=r"bad\.npz"):
+        run_client(dataclasses.replace(first, weights=tmp_path / "bad.npz", out=tmp_path / "c"))
+    with pytest.raises(ValueError, match="is a directory"):
+        run_client(dataclasses.replace(first, weights=tmp_path, out=tmp_path / "d"))
+    assert _CountedDrift.sent == 0
 
 
 class _ResetFailsLater(gym.Env):

@@ -1,3 +1,4 @@
+import dataclasses
 import re
 import threading
 import time
@@ -708,6 +709,54 @@ def test_a_run_continuing_a_journal_numbers_its_weights_past_every_version_the_j
     for before, after in ((first, second), (second, both)):
         assert len(after) > len(before) and after[len(before) :].min() > before.max()
     assert (np.diff(both.astype(np.int64)) >= 0).all()
+
+
+def test_a_journal_version_no_run_counts_to_is_not_numbered_on_from(tmp_path):
+    """One record of a version near the saved counts' limit (forged, or odd): the run numbered on
+    from it and saved weights whose version its own resume then refused."""
+    from wfnn_client.brain import Experience, Recorder
+    from wfnn_client.run import run as run_client
+    from wfnn_common.config import MAX_SAVED_COUNT
+    from wfnn_io.persist import load_checkpoint
+
+    first = ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=1, thinks_per_action=1,
+                         out=tmp_path / "a")  # fmt: skip
+    run_client(first)
+    lcfg = load_checkpoint(tmp_path / "a" / "weights.npz")[0]
+    record = Recorder(tmp_path / "a" / "journal", lcfg, task=first.task)
+    x, u = np.zeros(lcfg.state_dim), np.zeros(lcfg.action_dim)
+    record.add(Experience(x, u, x, 0.0, False, 0), "local", MAX_SAVED_COUNT - 1)
+    record.close()
+    resumed = dataclasses.replace(first, weights=tmp_path / "a" / "weights.npz")
+    run_client(resumed)
+    run_client(resumed)  # its own weights: refused where their version was past the limit
+    assert load_checkpoint(tmp_path / "a" / "weights.npz")[2]["version"] < MAX_SAVED_COUNT // 2
+
+
+def test_the_task_a_journal_records_covers_every_option_of_a_robots_task(tmp_path, caplog):
+    """A nomad's camera yaw or balls (or a robot's simulated rate) made no other task: such runs
+    continued each other's journals; a task that cannot be read was replaced without a word."""
+    import json
+    import logging
+
+    from sims.nomad import NomadConfig
+    from wfnn_client.journal import Journal
+
+    nomad = ClientConfig(sim="nomad")
+    assert nomad.task == ClientConfig(sim="nomad", seed=3).task  # the seed is no other task
+    for other in (NomadConfig(camera_yaw_deg=90.0), NomadConfig(balls=1), NomadConfig(rate_hz=20.0)):
+        assert dataclasses.replace(nomad, nomad=other).task != nomad.task
+    hydra = ClientConfig(sim="hydra")
+    assert dataclasses.replace(hydra, hydra=HydraConfig(rate_hz=30.0)).task != hydra.task
+    assert ClientConfig(sim="boat", boat_dt=1.0).task == "boat (dt 1)"
+    Journal(tmp_path / "j", "c1", task="boat (dt 0.1)").close()
+    meta = json.loads((tmp_path / "j" / "client.json").read_text())
+    for damaged in (5, "", "x" * 2000, ["boat (dt 0.1)"]):
+        (tmp_path / "j" / "client.json").write_text(json.dumps({**meta, "task": damaged}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="wfnn_client.journal"):
+            Journal(tmp_path / "j", task="boat (dt 1)").close()
+        assert any("records a task that cannot be read" in r.getMessage() for r in caplog.records)
 
 
 def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, caplog):
