@@ -116,13 +116,14 @@ class GymVec:
 
     def __init__(
         self, env_id: str, seed: int = 0, probe_steps: int = 2000,
-        state_ranges: tuple[tuple[float, ...], tuple[float, ...]] | None = None, **make_kwargs: Any,
+        state_ranges: tuple[tuple[float, ...], tuple[float, ...]] | None = None,
+        ranges_from: str = "the ranges given", **make_kwargs: Any,
     ) -> None:  # fmt: skip
         """One environment of `env_id`, its ranges declared or measured (module docstring).
 
         `state_ranges` (low, high), where given, are the ranges as measured before (saved with
         weights), so that no random action is sent to measure them (ValueError: they are not of
-        the observations' size).
+        the observations' size; `ranges_from` names where they came from).
         """
         self.env = make_env(env_id, **make_kwargs)
         obs, act = self.env.observation_space, self.env.action_space
@@ -138,8 +139,8 @@ class GymVec:
         if state_ranges is not None and not (np.isfinite(low).all() and np.isfinite(high).all()):
             if not len(state_ranges[0]) == len(state_ranges[1]) == len(low):  # not measured on this task
                 self.env.close()
-                raise ValueError(f"{env_id}: ranges given for {len(state_ranges[0])} observations, the "
-                                 f"task has {len(low)} (another task's weights?)")  # fmt: skip
+                raise ValueError(f"{ranges_from}: ranges for {len(state_ranges[0])} observations, {env_id} "
+                                 f"has {len(low)} (another task's?)")  # fmt: skip
             saved = [np.array(r, dtype=np.float64) for r in state_ranges]
             low, high = np.where(np.isfinite(low), low, saved[0]), np.where(np.isfinite(high), high, saved[1])
             self.valid_margin = MEASURED_MARGIN

@@ -33,6 +33,7 @@ from wfnn_common.config import LearnerConfig
 from wfnn_common.learner import ActResult
 from wfnn_common.learners import Learner
 from wfnn_io.cli_errors import interrupts_after
+from wfnn_io.logs import Task
 from wfnn_io.protocol import EXP_EXPLORED, Codec, ExperienceBatch
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ class Recorder:
 
     def __init__(
         self, directory: Path, config: LearnerConfig, client_id: str | None = None, batch_max: int = 256,
-        background: bool = False, task: str | None = None,
+        background: bool = False, task: Task | None = None,
     ) -> None:  # fmt: skip
         self.journal = Journal(directory, client_id, fsync="never", learner_config=config, task=task)
         self.codec = Codec(self.journal.client_id)

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from sims.boat import BoatConfig
 from sims.hydra import HydraConfig
+from sims.hydra.task import AXES, JOINTS
 from sims.nomad import ForageConfig, NomadConfig
 from wfnn_client.controllers import PolicyShare
 from wfnn_client.safety import SafetyConfig
@@ -210,18 +210,28 @@ class ClientConfig:
         }.get(self.sim, self.sim)  # fmt: skip
 
     @property
-    def task(self) -> str:
-        """The task and every option that makes it another (its journal records it: `Journal`).
+    def task(self) -> dict[str, Any]:
+        """The task: {"sim": name, "options": every option that differs from its default}.
 
-        The robots' many options (camera, balls, rate, vision, limits...) as a digest of them all
-        beside the few words: any that differ make another task.
+        A journal records it (`Journal`). Nested options are named with dots ("vision.source");
+        HyDrA's joints and axes in the model's order, as its states are, whatever order given in.
         """
-        options = {"hydra": (self.hydra,), "nomad": (self.nomad, self.forage)}.get(self.sim)
-        if options is None:  # the few words say it all (the boat's time step, the Gymnasium id)
-            return self._task_summary()
-        plain = [dataclasses.asdict(o) if o is not None else None for o in options]
-        digest = hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:8]
-        return f"{self._task_summary()}, options {digest}"
+        options: dict[str, Any] = {}
+        if self.sim == "boat":
+            options = _differing({"boat_dt": self.boat_dt}, {"boat_dt": ClientConfig.boat_dt})
+        elif self.sim == "gym":
+            options = {"env": self.env}
+        elif self.sim == "hydra":
+            h = self.hydra
+            canonical = dataclasses.replace(h, joints=tuple(JOINTS[i] for i in h.joint_index),
+                                            axes=tuple(AXES[i] for i in h.axis_index))  # fmt: skip
+            options = _dataclass_differing(canonical, HydraConfig())
+        elif self.sim == "nomad":
+            options = _dataclass_differing(self.nomad, NomadConfig())
+            if self.forage is not None:
+                options["forage"] = True
+                options.update(_dataclass_differing(self.forage, ForageConfig(), "forage."))
+        return {"sim": self.sim, "options": options}
 
     def summary(self) -> str:
         """One line: the task, where it thinks, the learner's overrides and the run directory."""
@@ -241,6 +251,32 @@ class ClientConfig:
         keyed = ", key" if self.key_file else ""
         kind = "" if self.learner == "thesis" else f"{self.learner} "  # the thesis' learner: as before
         return f"{task}, {rate}, {where}{keyed}; {kind}learner {learner}; run directory {self.out}"
+
+
+def _plain(value: Any) -> Any:
+    """A task option's value as JSON keeps it (tuples as lists, numbers as floats, -0.0 as 0.0)."""
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value) + 0.0
+    return value
+
+
+def _differing(values: dict[str, Any], defaults: dict[str, Any]) -> dict[str, Any]:
+    """The entries of `values` that differ from `defaults`, as plain values."""
+    return {k: _plain(v) for k, v in values.items() if _plain(v) != _plain(defaults.get(k))}
+
+
+def _dataclass_differing(obj: Any, default: Any, prefix: str = "") -> dict[str, Any]:
+    """The fields of dataclass `obj` that differ from `default`'s, nested ones named with dots."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        mine, theirs = getattr(obj, f.name), getattr(default, f.name)
+        if dataclasses.is_dataclass(mine) and dataclasses.is_dataclass(theirs):
+            out.update(_dataclass_differing(mine, theirs, f"{prefix}{f.name}."))
+        else:
+            out.update(_differing({f"{prefix}{f.name}": mine}, {f"{prefix}{f.name}": theirs}))
+    return out
 
 
 def _shortened(text: str, most: int = 200) -> str:

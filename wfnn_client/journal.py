@@ -18,16 +18,17 @@ from typing import Any
 
 import numpy as np
 
-from wfnn_common.checks import cut_repr
 from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_io.logs import (
     CLIENT_JSON,
     MAX_CONTROLLERS,
     ExperienceLog,
+    Task,
     client_meta,
     journal_controllers,
     journal_task,
     set_aside,
+    task_difference,
 )
 from wfnn_io.persist import atomic_write_text, read_regular_text
 from wfnn_io.protocol import MAX_PRODUCED, MAX_SEQ, check_id
@@ -49,6 +50,24 @@ def _reserved(meta: dict[str, Any]) -> int:
     return reserved if isinstance(reserved, int) and 0 <= reserved < MAX_PRODUCED else -1
 
 
+def check_task(directory: Path, meta: dict[str, Any], task: Task | None) -> Task | None:
+    """The task a journal's `client_meta` records (None: none), refused unless it is `task` (where given).
+
+    A record whose task cannot be read is refused too: whose experiences it holds is unknown, and
+    it is neither continued nor rewritten.
+    """
+    try:
+        recorded = journal_task(meta)
+    except ValueError as exc:
+        raise ValueError(f"journal {directory}: {exc}; move the journal out, or use another run "
+                         "directory") from None  # fmt: skip
+    if task is not None and recorded is not None and recorded != task:
+        raise ValueError(f"journal {directory} records experiences of another task "
+                         f"({task_difference(recorded, task)}): one record holds one task's experiences; "
+                         "use another run directory")  # fmt: skip
+    return recorded
+
+
 class Journal:
     """Append-only journal of encoded `ExperienceBatch` frames with an index by sequence number."""
 
@@ -62,7 +81,7 @@ class Journal:
         segment_bytes: int = 8 << 20,
         learner_config: LearnerConfig | None = None,
         controller: str | None = None,
-        task: str | None = None,
+        task: Task | None = None,
     ) -> None:
         """Open (or make) the journal in `directory`, continuing its numbering.
 
@@ -77,8 +96,7 @@ class Journal:
         self.next_seq = 0
         self.last_version: dict[str, int] = {}
         """The newest weights version each source chose actions by in the journal, so that a run
-        continuing it numbers on. Only those below half MAX_SAVED_COUNT: larger ones are no run's
-        count, and a run numbering on from one would save weights whose version a resume refuses."""
+        continuing it numbers on (only those below MAX_SAVED_COUNT: larger ones are no run's count)."""
         self.skips: dict[int, int] = {}
         """Gaps in the numbering that no damage explains (last -> first): numbers a run that did
         not close the journal reserved (this open's reservation included), or numbering moved past
@@ -112,7 +130,7 @@ class Journal:
                     log.error("journal batch at %s holds experiences %d-%d, of which those through %d are "
                               "journaled before it: only what follows them is kept",
                               pos, batch.first_seq, batch.last_seq, self.next_seq - 1)  # fmt: skip
-                counted = batch.weights_version[batch.weights_version < MAX_SAVED_COUNT // 2]
+                counted = batch.weights_version[batch.weights_version < MAX_SAVED_COUNT]
                 if len(counted):
                     newest = int(counted.max())
                     source = batch.weights_source
@@ -122,18 +140,9 @@ class Journal:
                 after = (pos, self.log.counts.unreadable)
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
-            recorded = journal_task(meta)
-            if "task" in meta and not recorded and task is not None:  # damaged: whose experiences, unknown
-                log.warning("journal %s: its %s records a task that cannot be read (%s); taken as %s",
-                            directory, CLIENT_JSON, cut_repr(meta["task"], 60), task[:120])  # fmt: skip
-            self.task = recorded or task
+            recorded = check_task(directory, meta, task)
+            self.task = recorded if recorded is not None else task
             """The task its experiences are of (None: not said, by a journal from before it was)."""
-            if task is not None and self.task != task:
-                raise ValueError(
-                    f"journal {directory} records experiences of {cut_repr(self.task, 120)}, not of "
-                    f"{cut_repr(task, 120)}: one record holds one task's experiences; use another run "
-                    "directory"
-                )
             self.controllers = journal_controllers(meta)
             """The controllers its frames were tagged for, by this run and earlier ones (recorded, so
             that a reader with the key checks them with those controllers' keys: `logs.read_entries`)."""

@@ -15,7 +15,7 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from wfnn_common.config import check_fields
 from wfnn_common.learners import Weights as NetworkWeights
@@ -35,7 +35,7 @@ class RemoteConfig:
     client_id: str | None = None
     """Client id (default: the journal's, or a new random one)."""
     journal_dir: Path = Path("runs/latest/journal")
-    task: str | None = None
+    task: dict[str, Any] | None = None
     """What the experiences are of (`Journal`'s task): a journal of another task is not continued."""
     key_file: Path | None = None
     follow: str | None = None

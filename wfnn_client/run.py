@@ -33,16 +33,16 @@ from wfnn_client.brain import Acted, Brain, Experience, LocalBrain
 from wfnn_client.config import ClientConfig
 from wfnn_client.controllers import LEARNER, Controllers
 from wfnn_client.frames import FrameWriter
+from wfnn_client.journal import check_task
 from wfnn_client.safety import SafetyLayer
 from wfnn_client.sims import SIMS, OneBehaviour, SimSpec
 from wfnn_client.step import Decided, Learn, Pupil, robot_step
 from wfnn_client.tick import Ticker, TickStats
-from wfnn_common.checks import cut_repr
 from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
 from wfnn_io.cli_errors import handling, interrupt_behind, log_failure, noting, raise_noted, terminate
-from wfnn_io.logs import CLIENT_JSON, remove_empty_log
+from wfnn_io.logs import CLIENT_JSON, client_meta, journal_task, remove_empty_log, task_difference
 from wfnn_io.persist import (
     PersistError,
     folders_to_be_made,
@@ -117,6 +117,11 @@ def make_brain(config: ClientConfig, learner: Learner, behaviour: str = "", vers
         if config.learn:  # its weights are new: numbered past every version the journal names already
             # (given another run's weights, or none, a run numbered from theirs: the versions went back)
             version = max(version, record.journal.last_version.get(LOCAL_SOURCE, -1) + 1)
+            if version >= MAX_SAVED_COUNT // 2:  # as the journal's numbering keeps room (`journal.ROOM`)
+                record.close()
+                raise ValueError(f"journal {record.journal.log.directory} names weights versions up to "
+                                 f"{version - 1}, too near the last a run may save ({MAX_SAVED_COUNT - 1}): "
+                                 "use another run directory")  # fmt: skip
         try:
             return LocalBrain(learner, lockstep=config.lockstep, think_batch=config.think_batch,
                               recorder=record, learns=config.learn, version=version)  # fmt: skip
@@ -165,6 +170,8 @@ def prepare(config: ClientConfig) -> list[str]:
     warnings = [] if config.local else check_exposure(config.remote_net, keyed, config.insecure)
     for journal in Path(config.out).glob("journal*"):  # a run already on this directory keeps its record
         check_free(journal)
+        if journal.is_dir():  # refused now, as its `Journal` would be, before the task is sent anything
+            check_task(journal, client_meta(journal), config.task)
     return warnings
 
 
@@ -300,10 +307,13 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}; the options given "
                              f"make {resumed.spec_hash()} ({differ})")  # fmt: skip
         _tell_resumed(saved_cfg, resumed, path)
-        learned_on = meta.get("task")
-        if isinstance(learned_on, str) and learned_on != config.task:  # a transfer (sim to robot, say)
-            log.warning("%s: weights learned on %s, taken on %s (their spaces are the same)", path,
-                        cut_repr(learned_on, 120), config.task)  # fmt: skip
+        try:  # weights may be taken to another task of the same spaces (a simulation's to the robot's)
+            learned_on = journal_task(meta)
+        except ValueError:  # an unreadable record of where they were learned: said as none
+            learned_on = None
+        if learned_on is not None and learned_on != config.task:
+            log.warning("%s: weights learned on another task (%s), taken here (their spaces are the same)",
+                        path, task_difference(learned_on, config.task))  # fmt: skip
         lcfg = resumed
         try:
             learner = make_learner(lcfg, params=params)

@@ -245,7 +245,9 @@ def _saved_ranges(config: SimOptions) -> tuple[tuple[float, ...], tuple[float, .
 
 
 SIMS["gym"] = SimSpec(
-    make=lambda c: GymVec(c.env or "", seed=c.seed, state_ranges=_saved_ranges(c)),
+    make=lambda c: GymVec(
+        c.env or "", seed=c.seed, state_ranges=_saved_ranges(c), ranges_from=str(c.weights)
+    ),
     # One client episode per time limit; an episode the task ends early restarts inside it, so
     # the score times the time limit is no return (a hopper falling every 30 steps earns most of
     # a standing one's healthy reward): the task's own returns are in metrics.json (task_returns).

@@ -296,14 +296,65 @@ def client_meta(directory: Path, warn: bool = False) -> dict[str, Any]:
     return meta
 
 
+MAX_TASK_OPTIONS = 256
+"""Most options a task record holds (a robot's config has a few dozen fields)."""
 MAX_TASK_CHARS = 1024
-"""Longest task a journal's `client.json` is read with (a longer one is damage, not a task)."""
+"""Longest name or value in a task record (a longer one is damage, not a task)."""
+Task = dict[str, Any]
+"""What a client's experiences are of: {"sim": name, "options": {option: value}} (the options
+that differ from their defaults; `wfnn_client.config.ClientConfig.task`)."""
 
 
-def journal_task(meta: dict[str, Any]) -> str:
-    """The task a journal's `client_meta` records its experiences are of ("" where it says none)."""
-    task = meta.get("task")
-    return task if isinstance(task, str) and 0 < len(task) <= MAX_TASK_CHARS else ""
+def _task_value(value: Any) -> bool:
+    """Whether `value` is what a task option holds: a number, string, boolean, or a list of them."""
+    if isinstance(value, list):
+        return len(value) <= MAX_TASK_OPTIONS and all(
+            _task_value(v) and not isinstance(v, list) for v in value
+        )
+    if isinstance(value, str):
+        return len(value) <= MAX_TASK_CHARS
+    return value is None or isinstance(value, bool | int | float)
+
+
+def journal_task(meta: dict[str, Any]) -> Task | None:
+    """The task a journal's `client_meta` records (None: it says none; ValueError: it cannot be read)."""
+    if "task" not in meta:
+        return None
+    task = meta["task"]
+    options = task.get("options") if isinstance(task, dict) else None
+    if not (isinstance(task, dict) and set(task) == {"sim", "options"} and isinstance(task["sim"], str)
+            and 0 < len(task["sim"]) <= MAX_TASK_CHARS and isinstance(options, dict)
+            and len(options) <= MAX_TASK_OPTIONS
+            and all(isinstance(k, str) and len(k) <= MAX_TASK_CHARS and _task_value(v)
+                    for k, v in options.items())):  # fmt: skip
+        raise ValueError(f"its {CLIENT_JSON} records a task that cannot be read: {repr(task)[:80]}")
+    return {"sim": task["sim"], "options": dict(options)}
+
+
+def describe_task(task: Task) -> str:
+    """A task in one line: its sim, then the options that differ from their defaults."""
+    options = ", ".join(f"{k} {_shown_value(v)}" for k, v in sorted(task["options"].items()))
+    return f"{task['sim']} ({options})" if options else str(task["sim"])
+
+
+def task_difference(recorded: Task, given: Task) -> str:
+    """How `given` differs from `recorded`, option by option ("default": not set, its default)."""
+    if recorded["sim"] != given["sim"]:
+        return f"{describe_task(recorded)} there, {describe_task(given)} here"
+    mine, theirs = recorded["options"], given["options"]
+    keys = sorted(k for k in {*mine, *theirs} if mine.get(k) != theirs.get(k))
+    said = [f"{k} {_shown_value(mine.get(k, 'default'))} there, {_shown_value(theirs.get(k, 'default'))} here"
+            for k in keys[:5]]  # fmt: skip
+    return "; ".join(said) + (f"; and {len(keys) - 5} more options" if len(keys) > 5 else "")
+
+
+def _shown_value(value: Any) -> str:
+    """An option's value as a person reads it: 15.0 as 15, strings unquoted, lists joined."""
+    if isinstance(value, list):
+        return ",".join(_shown_value(v) for v in value)
+    if isinstance(value, float) and value.is_integer() and abs(value) < 1e15:
+        return str(int(value))
+    return str(value)[:120]
 
 
 def journal_controllers(meta: dict[str, Any]) -> list[str]:
@@ -581,7 +632,8 @@ class Summary:
     description_error: str = ""
     """Why `log.json` (or the store's learner config) could not be read, if it could not."""
     task: str = ""
-    """The task a client's journal records its experiences are of ("": not said, or not a journal)."""
+    """The task a client's journal records its experiences are of, in a line ("": not said, or not a
+    journal; "unreadable: ..." where its record cannot be read)."""
 
     @property
     def unreadable(self) -> int:
@@ -640,7 +692,12 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
         out.description_error = str(exc)
         config = None
     out.learner_config = config.to_dict() if config is not None else None
-    out.task = journal_task(client_meta(directory))
+    try:
+        recorded = journal_task(client_meta(directory))
+    except ValueError as exc:
+        out.task = f"unreadable: {exc}"
+    else:
+        out.task = describe_task(recorded) if recorded is not None else ""
     if config is not None and out.spec_hashes and config.spec_hash() not in out.spec_hashes:
         out.description_error = (f"its learner config is of spec {config.spec_hash()}, its experiences of "
                                  f"{', '.join(out.spec_hashes)} (a {LOG_JSON} of another log?)")  # fmt: skip

@@ -645,7 +645,9 @@ def test_ranges_saved_with_weights_are_taken_without_a_random_action_sent_to_mea
         measured.state_low, measured.state_high, measured.valid_margin)  # fmt: skip
     # Ranges that do not fit the observations (another task's) are refused, nothing measured.
     _CountedDrift.sent = 0
-    with pytest.raises(ValueError, match="ranges given for 1 observations, the task has 2"):
+    with pytest.raises(
+        ValueError, match="the ranges given: ranges for 1 observations, WfnnTestCountedDrift-v0 has 2"
+    ):
         GymVec("WfnnTestCountedDrift-v0", state_ranges=((0.0,), (1.0,)))
     # Weights that cannot be read are refused before the task is sent anything (they were refused
     # only after the probe's 2,000 random actions).

@@ -711,10 +711,11 @@ def test_a_run_continuing_a_journal_numbers_its_weights_past_every_version_the_j
     assert (np.diff(both.astype(np.int64)) >= 0).all()
 
 
-def test_a_journal_version_no_run_counts_to_is_not_numbered_on_from(tmp_path):
+def test_a_journal_version_near_the_saved_counts_limit_is_refused(tmp_path):
     """One record of a version near the saved counts' limit (forged, or odd): the run numbered on
     from it and saved weights whose version its own resume then refused."""
     from wfnn_client.brain import Experience, Recorder
+    from wfnn_client.run import SetupError
     from wfnn_client.run import run as run_client
     from wfnn_common.config import MAX_SAVED_COUNT
     from wfnn_io.persist import load_checkpoint
@@ -727,36 +728,44 @@ def test_a_journal_version_no_run_counts_to_is_not_numbered_on_from(tmp_path):
     x, u = np.zeros(lcfg.state_dim), np.zeros(lcfg.action_dim)
     record.add(Experience(x, u, x, 0.0, False, 0), "local", MAX_SAVED_COUNT - 1)
     record.close()
-    resumed = dataclasses.replace(first, weights=tmp_path / "a" / "weights.npz")
-    run_client(resumed)
-    run_client(resumed)  # its own weights: refused where their version was past the limit
-    assert load_checkpoint(tmp_path / "a" / "weights.npz")[2]["version"] < MAX_SAVED_COUNT // 2
+    before = (tmp_path / "a" / "weights.npz").read_bytes()
+    with pytest.raises(SetupError, match="names weights versions up to 999999999999999, too near the last"):
+        run_client(dataclasses.replace(first, weights=tmp_path / "a" / "weights.npz"))
+    assert (tmp_path / "a" / "weights.npz").read_bytes() == before
 
 
-def test_the_task_a_journal_records_covers_every_option_of_a_robots_task(tmp_path, caplog):
+def test_the_task_a_journal_records_covers_every_option_of_a_robots_task(tmp_path):
     """A nomad's camera yaw or balls (or a robot's simulated rate) made no other task: such runs
-    continued each other's journals; a task that cannot be read was replaced without a word."""
+    continued each other's journals; a task that cannot be read was replaced, the journal continued."""
     import json
-    import logging
 
     from sims.nomad import NomadConfig
     from wfnn_client.journal import Journal
 
     nomad = ClientConfig(sim="nomad")
-    assert nomad.task == ClientConfig(sim="nomad", seed=3).task  # the seed is no other task
+    assert nomad.task == ClientConfig(sim="nomad", seed=3, rate_hz=0, lockstep=True).task  # no other task
+    assert nomad.task == {"sim": "nomad", "options": {}}
     for other in (NomadConfig(camera_yaw_deg=90.0), NomadConfig(balls=1), NomadConfig(rate_hz=20.0)):
         assert dataclasses.replace(nomad, nomad=other).task != nomad.task
+    assert ClientConfig(sim="nomad", nomad=NomadConfig(camera_yaw_deg=-0.0)).task == nomad.task
     hydra = ClientConfig(sim="hydra")
-    assert dataclasses.replace(hydra, hydra=HydraConfig(rate_hz=30.0)).task != hydra.task
-    assert ClientConfig(sim="boat", boat_dt=1.0).task == "boat (dt 1)"
-    Journal(tmp_path / "j", "c1", task="boat (dt 0.1)").close()
+    assert dataclasses.replace(hydra, hydra=HydraConfig(rate_hz=30.0)).task["options"] == {"rate_hz": 30.0}
+    assert dataclasses.replace(hydra, hydra=HydraConfig(rate_hz=15)).task == hydra.task  # 15 is 15.0
+    both = [
+        dataclasses.replace(hydra, hydra=HydraConfig(joints=j)).task
+        for j in (("right", "pan"), ("pan", "right"))
+    ]
+    assert both[0] == both[1]  # the states are in the model's order either way
+    boat = ClientConfig(sim="boat", boat_dt=1.0).task
+    Journal(tmp_path / "j", "c1", task=ClientConfig(sim="boat").task).close()
+    with pytest.raises(ValueError, match=r"another task \(boat_dt default there, 1 here\)"):
+        Journal(tmp_path / "j", task=boat)
     meta = json.loads((tmp_path / "j" / "client.json").read_text())
-    for damaged in (5, "", "x" * 2000, ["boat (dt 0.1)"]):
+    for damaged in (5, "", "x" * 2000, ["boat"], {"sim": "boat", "options": {"dt": {"nested": 1}}}):
         (tmp_path / "j" / "client.json").write_text(json.dumps({**meta, "task": damaged}))
-        caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="wfnn_client.journal"):
-            Journal(tmp_path / "j", task="boat (dt 1)").close()
-        assert any("records a task that cannot be read" in r.getMessage() for r in caplog.records)
+        with pytest.raises(ValueError, match="records a task that cannot be read"):
+            Journal(tmp_path / "j", task=boat)
+        assert json.loads((tmp_path / "j" / "client.json").read_text())["task"] == damaged  # not rewritten
 
 
 def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, caplog):
@@ -765,7 +774,6 @@ def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, ca
     import json
     import logging
 
-    from wfnn_client.run import SetupError
     from wfnn_client.run import run as run_client
     from wfnn_io import logs
 
@@ -773,24 +781,29 @@ def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, ca
         return ClientConfig(sim="boat", boat_dt=dt, rate_hz=0, lockstep=True, episodes=1, thinks_per_action=1,
                             out=tmp_path / out, **kw)  # fmt: skip
 
-    run_client(client(0.1))
+    run_client(client(0.2))
     meta = json.loads((tmp_path / "a" / "journal" / "client.json").read_text())
-    assert meta["task"] == "boat (dt 0.1)" == logs.summarise(tmp_path / "a" / "journal").task
+    assert meta["task"] == {"sim": "boat", "options": {"boat_dt": 0.2}}
+    assert logs.summarise(tmp_path / "a" / "journal").task == "boat (boat_dt 0.2)"  # as inspect says it
     before = logs.summarise(tmp_path / "a" / "journal").experiences
-    with pytest.raises(SetupError, match=r"records experiences of 'boat \(dt 0.1\)', not of 'boat \(dt 1\)'"):
+    with pytest.raises(ValueError, match=r"another task \(boat_dt 0.2 there, 1 here\)"):
         run_client(client(1.0))
     assert logs.summarise(tmp_path / "a" / "journal").experiences == before
-    run_client(client(0.1))  # the same task goes on
+    run_client(client(0.2))  # the same task goes on
     assert logs.summarise(tmp_path / "a" / "journal").experiences > before
     # A journal from before tasks were recorded is continued, and records the task from then on.
     del meta["task"]
     (tmp_path / "a" / "journal" / "client.json").write_text(json.dumps(meta))
-    run_client(client(0.1))
-    assert json.loads((tmp_path / "a" / "journal" / "client.json").read_text())["task"] == "boat (dt 0.1)"
+    run_client(client(0.2))
+    assert json.loads((tmp_path / "a" / "journal" / "client.json").read_text())["task"]["options"] == {
+        "boat_dt": 0.2
+    }
     # Weights may go to another task of the same spaces (a simulation's to the robot): said, not refused.
     with caplog.at_level(logging.WARNING, logger="wfnn_client.run"):
         run_client(client(1.0, out="b", weights=tmp_path / "a" / "weights.npz"))
-    assert any("learned on 'boat (dt 0.1)', taken on boat (dt 1)" in r.getMessage() for r in caplog.records)
+    assert any(
+        "learned on another task (boat_dt 0.2 there, 1 here)" in r.getMessage() for r in caplog.records
+    )
 
 
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
