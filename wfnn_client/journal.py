@@ -27,6 +27,7 @@ from wfnn_io.logs import (
     client_meta,
     journal_controllers,
     journal_task,
+    same_task,
     set_aside,
     task_difference,
 )
@@ -61,7 +62,7 @@ def check_task(directory: Path, meta: dict[str, Any], task: Task | None) -> Task
     except ValueError as exc:
         raise ValueError(f"journal {directory}: {exc}; move the journal out, or use another run "
                          "directory") from None  # fmt: skip
-    if task is not None and recorded is not None and recorded != task:
+    if task is not None and recorded is not None and not same_task(recorded, task):
         raise ValueError(f"journal {directory} records experiences of another task "
                          f"({task_difference(recorded, task)}): one record holds one task's experiences; "
                          "use another run directory")  # fmt: skip
@@ -138,10 +139,16 @@ class Journal:
                 if batch.last_seq >= self.next_seq:
                     self._add(max(batch.first_seq, self.next_seq), batch.last_seq, pos)
                 after = (pos, self.log.counts.unreadable)
+            # A client.json that cannot be read is set aside (`_client_id`): what task the records
+            # are of is then unknown, and this run's is not written as theirs.
+            unknown = owner != "" and (directory / CLIENT_JSON).exists() and not client_meta(directory)
             self.client_id: str = self._client_id(directory, client_id, owner)
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
             recorded = check_task(directory, meta, task)
-            self.task = recorded if recorded is not None else task
+            self.task = recorded if recorded is not None or unknown else task
+            if unknown and task is not None:
+                log.warning("journal %s: the task of its experiences is unknown (its %s could not be "
+                            "read); it goes on without one recorded", directory, CLIENT_JSON)  # fmt: skip
             """The task its experiences are of (None: not said, by a journal from before it was)."""
             self.controllers = journal_controllers(meta)
             """The controllers its frames were tagged for, by this run and earlier ones (recorded, so

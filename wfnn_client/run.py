@@ -42,7 +42,7 @@ from wfnn_common.config import MAX_SAVED_COUNT, LearnerConfig
 from wfnn_common.learners import Learner, make_learner
 from wfnn_io.bus import check_exposure
 from wfnn_io.cli_errors import handling, interrupt_behind, log_failure, noting, raise_noted, terminate
-from wfnn_io.logs import CLIENT_JSON, client_meta, journal_task, remove_empty_log, task_difference
+from wfnn_io.logs import CLIENT_JSON, client_meta, journal_task, remove_empty_log, same_task, task_difference
 from wfnn_io.persist import (
     PersistError,
     folders_to_be_made,
@@ -294,9 +294,9 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
         # A learner that learns here resumes the training saved with the weights (the deep
         # learner's second critic, targets, optimiser and warm-up), as a think server does.
         saved_cfg, params, meta, training = load_checkpoint(path, training=config.learn and config.local)
-        kind, same_task = saved_cfg.learner, _ranges(saved_cfg) == _ranges(lcfg)
-        if kind != lcfg.learner or not same_task:
-            hint = f": --learner {kind}" if kind != lcfg.learner and same_task else ""  # helps only then
+        kind, same_ranges = saved_cfg.learner, _ranges(saved_cfg) == _ranges(lcfg)
+        if kind != lcfg.learner or not same_ranges:
+            hint = f": --learner {kind}" if kind != lcfg.learner and same_ranges else ""  # helps only then
             raise ValueError(f"{path} holds weights for spec {saved_cfg.spec_hash()}, this task needs "
                              f"{lcfg.spec_hash()} ({saved_cfg.spec_difference(lcfg)}{hint})")  # fmt: skip
         # The saved network, not the defaults' (a run with another hidden width was refused unless
@@ -311,7 +311,7 @@ def _learner(config: ClientConfig, name: str, ranges: Ranges) -> tuple[LearnerCo
             learned_on = journal_task(meta)
         except ValueError:  # an unreadable record of where they were learned: said as none
             learned_on = None
-        if learned_on is not None and learned_on != config.task:
+        if learned_on is not None and not same_task(learned_on, config.task):
             log.warning("%s: weights learned on another task (%s), taken here (their spaces are the same)",
                         path, task_difference(learned_on, config.task))  # fmt: skip
         lcfg = resumed

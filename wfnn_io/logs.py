@@ -317,7 +317,10 @@ def _task_value(value: Any) -> bool:
 
 
 def journal_task(meta: dict[str, Any]) -> Task | None:
-    """The task a journal's `client_meta` records (None: it says none; ValueError: it cannot be read)."""
+    """The task a journal's `client_meta` records (None: it says none; ValueError: it cannot be read).
+
+    Numbers come back as floats (as `ClientConfig.task` gives them), booleans as booleans.
+    """
     if "task" not in meta:
         return None
     task = meta["task"]
@@ -327,14 +330,32 @@ def journal_task(meta: dict[str, Any]) -> Task | None:
             and len(options) <= MAX_TASK_OPTIONS
             and all(isinstance(k, str) and len(k) <= MAX_TASK_CHARS and _task_value(v)
                     for k, v in options.items())):  # fmt: skip
-        raise ValueError(f"its {CLIENT_JSON} records a task that cannot be read: {repr(task)[:80]}")
-    return {"sim": task["sim"], "options": dict(options)}
+        raise ValueError(f"its {CLIENT_JSON} records a task that cannot be read: {_shown(repr(task), 80)}")
+    return {"sim": task["sim"], "options": {k: _as_float(v) for k, v in options.items()}}
 
 
-def describe_task(task: Task) -> str:
-    """A task in one line: its sim, then the options that differ from their defaults."""
-    options = ", ".join(f"{k} {_shown_value(v)}" for k, v in sorted(task["options"].items()))
-    return f"{task['sim']} ({options})" if options else str(task["sim"])
+def _as_float(value: Any) -> Any:
+    if isinstance(value, list):
+        return [_as_float(v) for v in value]
+    return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+def same_task(a: Task, b: Task) -> bool:
+    """Whether two task records are one task: by value and type (True is not 1.0)."""
+    return _typed(a) == _typed(b)
+
+
+def _typed(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, default=repr)
+
+
+def describe_task(task: Task, most: int = 5) -> str:
+    """A task in one line: its sim, then the first `most` options that differ from their defaults."""
+    items = sorted(task["options"].items())
+    options = ", ".join(f"{_shown(k, 60)} {_shown_value(v)}" for k, v in items[:most])
+    options += f", and {len(items) - most} more" if len(items) > most else ""
+    sim = _shown(task["sim"], 60)
+    return f"{sim} ({options})" if options else sim
 
 
 def task_difference(recorded: Task, given: Task) -> str:
@@ -342,19 +363,27 @@ def task_difference(recorded: Task, given: Task) -> str:
     if recorded["sim"] != given["sim"]:
         return f"{describe_task(recorded)} there, {describe_task(given)} here"
     mine, theirs = recorded["options"], given["options"]
-    keys = sorted(k for k in {*mine, *theirs} if mine.get(k) != theirs.get(k))
-    said = [f"{k} {_shown_value(mine.get(k, 'default'))} there, {_shown_value(theirs.get(k, 'default'))} here"
-            for k in keys[:5]]  # fmt: skip
+    keys = sorted(k for k in {*mine, *theirs} if _typed(mine.get(k)) != _typed(theirs.get(k)))
+    said = [f"{_shown(k, 60)} {_shown_value(mine.get(k, 'default'))} there, "
+            f"{_shown_value(theirs.get(k, 'default'))} here" for k in keys[:5]]  # fmt: skip
     return "; ".join(said) + (f"; and {len(keys) - 5} more options" if len(keys) > 5 else "")
 
 
+def _shown(text: str, most: int) -> str:
+    """`text` on one line (control characters escaped), cut to `most` characters."""
+    escaped = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return escaped if len(escaped) <= most else escaped[: most - 3] + "..."
+
+
 def _shown_value(value: Any) -> str:
-    """An option's value as a person reads it: 15.0 as 15, strings unquoted, lists joined."""
+    """An option's value as a person reads it: 15.0 as 15, a boolean as true/false, lists joined."""
     if isinstance(value, list):
-        return ",".join(_shown_value(v) for v in value)
+        return _shown(",".join(_shown_value(v) for v in value[:8]) + (",..." if len(value) > 8 else ""), 120)
+    if isinstance(value, bool):
+        return "true" if value else "false"
     if isinstance(value, float) and value.is_integer() and abs(value) < 1e15:
         return str(int(value))
-    return str(value)[:120]
+    return _shown(str(value), 60)
 
 
 def journal_controllers(meta: dict[str, Any]) -> list[str]:
@@ -634,6 +663,8 @@ class Summary:
     task: str = ""
     """The task a client's journal records its experiences are of, in a line ("": not said, or not a
     journal; "unreadable: ..." where its record cannot be read)."""
+    task_record: Task | None = None
+    """That task as recorded (`journal_task`): what a script compares."""
 
     @property
     def unreadable(self) -> int:
@@ -651,7 +682,7 @@ class Summary:
             "refused": dict(self.refused), "damage": [vars(d) for d in self.damage],
             "skipped_bytes": sum(d.length for d in self.damage), "strays": self.strays,
             "learner_config": self.learner_config, "description_error": self.description_error,
-            "task": self.task,
+            "task": self.task, "task_record": self.task_record,
         }  # fmt: skip
 
 
@@ -697,7 +728,7 @@ def summarise(directory: Path, key: bytes | None = None) -> Summary:
     except ValueError as exc:
         out.task = f"unreadable: {exc}"
     else:
-        out.task = describe_task(recorded) if recorded is not None else ""
+        out.task, out.task_record = (describe_task(recorded) if recorded is not None else ""), recorded
     if config is not None and out.spec_hashes and config.spec_hash() not in out.spec_hashes:
         out.description_error = (f"its learner config is of spec {config.spec_hash()}, its experiences of "
                                  f"{', '.join(out.spec_hashes)} (a {LOG_JSON} of another log?)")  # fmt: skip

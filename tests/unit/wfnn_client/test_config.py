@@ -766,6 +766,24 @@ def test_the_task_a_journal_records_covers_every_option_of_a_robots_task(tmp_pat
         with pytest.raises(ValueError, match="records a task that cannot be read"):
             Journal(tmp_path / "j", task=boat)
         assert json.loads((tmp_path / "j" / "client.json").read_text())["task"] == damaged  # not rewritten
+    # A boolean is not the number 1 (True == 1.0 in Python); a hostile record is told on one short line.
+    (tmp_path / "j" / "client.json").write_text(
+        json.dumps({**meta, "task": {"sim": "boat", "options": {"boat_dt": True}}})
+    )
+    with pytest.raises(ValueError, match="boat_dt true there, 1 here"):
+        Journal(tmp_path / "j", task=boat)
+    hostile = {
+        "sim": "b\nINJECTED" + "b" * 1000,
+        "options": {f"{'k' * 1000}{i}": "v" * 1000 for i in range(200)},
+    }
+    (tmp_path / "j" / "client.json").write_text(json.dumps({**meta, "task": hostile}))
+    with pytest.raises(ValueError) as refused:
+        Journal(tmp_path / "j", task=boat)
+    assert (
+        "\n" not in str(refused.value)
+        and len(str(refused.value)) < 1500
+        and "and 195 more" in str(refused.value)
+    )
 
 
 def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, caplog):
@@ -791,6 +809,10 @@ def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, ca
     assert logs.summarise(tmp_path / "a" / "journal").experiences == before
     run_client(client(0.2))  # the same task goes on
     assert logs.summarise(tmp_path / "a" / "journal").experiences > before
+    assert logs.summarise(tmp_path / "a" / "journal").task_record == {
+        "sim": "boat",
+        "options": {"boat_dt": 0.2},
+    }
     # A journal from before tasks were recorded is continued, and records the task from then on.
     del meta["task"]
     (tmp_path / "a" / "journal" / "client.json").write_text(json.dumps(meta))
@@ -804,6 +826,10 @@ def test_a_journal_is_continued_only_by_runs_of_the_task_it_records(tmp_path, ca
     assert any(
         "learned on another task (boat_dt 0.2 there, 1 here)" in r.getMessage() for r in caplog.records
     )
+    # A client.json that cannot be read: its records' task is unknown, and no run's is written as theirs.
+    (tmp_path / "a" / "journal" / "client.json").write_text('{"client": "c1", "task": {"sim": "bo')
+    run_client(client(1.0))
+    assert "task" not in json.loads((tmp_path / "a" / "journal" / "client.json").read_text())
 
 
 @pytest.mark.parametrize("learner", ["thesis", "deep"])
