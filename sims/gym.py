@@ -136,7 +136,8 @@ class GymVec:
         low[~(np.abs(low) < UNBOUNDED)], high[~(np.abs(high) < UNBOUNDED)] = -np.inf, np.inf
         self.valid_margin = 1.0
         """How far outside its ranges (in range widths) a state is still learned (`LearnerConfig`)."""
-        if state_ranges is not None and not (np.isfinite(low).all() and np.isfinite(high).all()):
+        bounded = bool(np.isfinite(low).all() and np.isfinite(high).all())
+        if state_ranges is not None and not bounded:
             if not len(state_ranges[0]) == len(state_ranges[1]) == len(low):  # not measured on this task
                 self.env.close()
                 raise ValueError(f"{ranges_from}: ranges for {len(state_ranges[0])} observations, {env_id} "
@@ -144,7 +145,7 @@ class GymVec:
             saved = [np.array(r, dtype=np.float64) for r in state_ranges]
             low, high = np.where(np.isfinite(low), low, saved[0]), np.where(np.isfinite(high), high, saved[1])
             self.valid_margin = MEASURED_MARGIN
-        elif not (np.isfinite(low).all() and np.isfinite(high).all()):
+        elif not bounded:
             declared, unbounded = (obs.low, obs.high), ~(np.isfinite(low) & np.isfinite(high))
             with np.errstate(over="ignore", invalid="ignore"):  # told below, naming the observation
                 low, high, seen = self._measured_ranges(low, high, probe_steps)

@@ -146,10 +146,10 @@ class Journal:
             meta = client_meta(directory)  # as _client_id left it (an unreadable one set aside)
             recorded = check_task(directory, meta, task)
             self.task = recorded if recorded is not None or unknown else task
+            """The task its experiences are of (None: not said, by a journal from before it was)."""
             if unknown and task is not None:
                 log.warning("journal %s: the task of its experiences is unknown (its %s could not be "
                             "read); it goes on without one recorded", directory, CLIENT_JSON)  # fmt: skip
-            """The task its experiences are of (None: not said, by a journal from before it was)."""
             self.controllers = journal_controllers(meta)
             """The controllers its frames were tagged for, by this run and earlier ones (recorded, so
             that a reader with the key checks them with those controllers' keys: `logs.read_entries`)."""
@@ -159,7 +159,7 @@ class Journal:
             if controller is not None and controller not in self.controllers:
                 self.controllers = [*self.controllers, controller][-MAX_CONTROLLERS:]
                 self._write_meta(self.reserved_through, closed=closed)
-            elif self.task is not None and recorded != self.task:  # recorded now, not at its next write
+            elif recorded is None and self.task is not None:  # recorded now, not at its next write
                 self._write_meta(self.reserved_through, closed=closed)
         except BaseException:
             self.log.close()

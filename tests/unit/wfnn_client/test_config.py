@@ -397,14 +397,23 @@ def test_a_local_run_ended_by_ctrl_c_keeps_what_its_learner_learned(tmp_path, le
     assert resumed["experiences_learned"] > 0
 
 
+def _meta_after_an_interrupted_lock_step_run(out):
+    """Run the boat in lock-step until something interrupts it; -> the meta of the weights it saved."""
+    from wfnn_client.run import run as run_client
+    from wfnn_io.persist import load_checkpoint
+
+    with pytest.raises(KeyboardInterrupt):
+        run_client(ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=50, thinks_per_action=1,
+                                out=out))  # fmt: skip
+    return load_checkpoint(out / "weights.npz")[2]
+
+
 def test_ctrl_c_inside_a_compiled_act_keeps_what_the_learner_learned_and_ends_as_an_interrupt(
     tmp_path, monkeypatch
 ):
     """Raised inside a numba kernel's call, the interrupt came back as a SystemError: the run was
     taken for a failed learner, saved nothing and ended in that error (exit 1)."""
-    from wfnn_client.run import run as run_client
     from wfnn_common.learner import WFNN
-    from wfnn_io.persist import load_checkpoint
 
     acts, original = [0], WFNN.act
 
@@ -418,12 +427,7 @@ def test_ctrl_c_inside_a_compiled_act_keeps_what_the_learner_learned_and_ends_as
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(WFNN, "act", act)
-    out = tmp_path / "run"
-    with pytest.raises(KeyboardInterrupt):
-        run_client(ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=50, thinks_per_action=1,
-                                out=out))  # fmt: skip
-    _, _, meta, _ = load_checkpoint(out / "weights.npz")
-    assert meta["episodes"] == 2
+    assert _meta_after_an_interrupted_lock_step_run(tmp_path / "run")["episodes"] == 2
 
 
 def test_a_stop_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_whole(tmp_path, monkeypatch):
@@ -431,9 +435,7 @@ def test_a_stop_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_wh
     (here: the think not counted), or inside a numba kernel's call, not saved at all."""
     import signal
 
-    from wfnn_client.run import run as run_client
     from wfnn_common.learner import WFNN
-    from wfnn_io.persist import load_checkpoint
 
     calls, original = [0], WFNN.think
 
@@ -444,11 +446,7 @@ def test_a_stop_during_a_lock_step_think_waits_for_it_so_the_learner_is_saved_wh
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(WFNN, "think", think)
-    out = tmp_path / "run"
-    with pytest.raises(KeyboardInterrupt):
-        run_client(ClientConfig(sim="boat", rate_hz=0, lockstep=True, episodes=50, thinks_per_action=1,
-                                out=out))  # fmt: skip
-    _, _, meta, _ = load_checkpoint(out / "weights.npz")
+    meta = _meta_after_an_interrupted_lock_step_run(tmp_path / "run")
     assert calls[0] == 300 and meta["thinks"] == 300
 
 
